@@ -1,0 +1,54 @@
+# The course's commands. The two a newcomer needs:
+#   make lab    set up .venv (first time only) and open JupyterLab on notebooks/
+#   make test   set up .venv (first time only) and run every test
+#
+# torch is installed first, on its own, so you choose the build that fits your
+# machine, e.g. `make lab TORCH="torch==2.13.0"` (the default, a CPU build) or
+# `make lab TORCH="torch --index-url https://download.pytorch.org/whl/cu124"`.
+# Its version is then written to .venv/constraints.txt and every later install
+# is constrained by it, so no dependency can swap torch for another build.
+
+PYTHON ?= python3
+TORCH ?= torch==2.13.0
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+export EBJEPA_SCALE ?= class
+
+.PHONY: setup lab test test-fast book student bench lint clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet $(TORCH)
+	$(BIN)/python -c "import importlib.metadata as m; print('torch==' + m.version('torch'))" > $(VENV)/constraints.txt
+	$(BIN)/python -m pip install --quiet --constraint $(VENV)/constraints.txt --editable ".[test,book]"
+	touch $@
+
+lab: setup
+	$(BIN)/jupyter lab notebooks/
+
+# Unit tests, nbval of every notebook at ci scale, and the book in a browser.
+test: setup
+	EBJEPA_SCALE=ci $(BIN)/python -m pytest --nbval-lax -p no:cacheprovider
+
+# Unit tests only (seconds), for quick edit-test loops.
+test-fast: setup
+	$(BIN)/python -m pytest tests -m "not slow and not browser"
+
+book: setup
+	$(BIN)/python -m ebjepa_tutorial.book build
+
+student: setup
+	$(BIN)/python -m ebjepa_tutorial.student notebooks student
+
+bench: setup
+	for script in benchmarks/*.py; do $(BIN)/python $$script || exit 1; done
+
+lint: setup
+	$(BIN)/ruff check ebjepa_tutorial tests benchmarks notebooks
+
+clean:
+	rm -rf build student .jupyter_cache

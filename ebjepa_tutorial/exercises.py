@@ -1,0 +1,97 @@
+"""Checkers for the notebooks' exercises: is the learner's function right?
+
+Each ``check_*`` runs the learner's function and the package's reference
+implementation on the same small inputs, prints a one-line verdict when they
+agree, and otherwise raises :class:`ExerciseError` saying in plain words which
+input went wrong and how. Chapters add their checkers here.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import torch
+
+from . import losses
+
+
+class ExerciseError(AssertionError):
+    """The learner's function disagrees with the reference; the message says where."""
+
+
+@dataclass
+class Case:
+    """One test input: a description for the learner and the arguments to call with."""
+
+    description: str
+    args: tuple
+    kwargs: dict = field(default_factory=dict)
+
+
+def _describe(value) -> str:
+    if isinstance(value, torch.Tensor):
+        return f"a tensor of shape {tuple(value.shape)}"
+    return f"a {type(value).__name__}"
+
+
+def _call(fn: Callable, name: str, case: Case):
+    try:
+        return fn(*case.args, **case.kwargs)
+    except NotImplementedError:
+        raise ExerciseError(
+            f"{name} is not implemented yet: replace the `raise NotImplementedError` "
+            "line with your code, run that cell, then run this check again."
+        ) from None
+    except Exception as err:
+        message = f"{name} raised {type(err).__name__}: {err} on {case.description}."
+        raise ExerciseError(message) from err
+
+
+def compare(fn: Callable, reference: Callable, cases: list[Case], atol: float = 1e-5) -> bool:
+    """Check ``fn`` against ``reference`` on every case; print a verdict or raise ExerciseError."""
+    name = getattr(fn, "__name__", "your function")
+    for case in cases:
+        expected = reference(*case.args, **case.kwargs)
+        got = _call(fn, name, case)
+        if not isinstance(got, torch.Tensor):
+            raise ExerciseError(f"{name} returned {_describe(got)}; expected a torch tensor.")
+        if got.shape != expected.shape:
+            single = " (a single number)" if expected.ndim == 0 else ""
+            raise ExerciseError(
+                f"{name} returned shape {tuple(got.shape)} on {case.description}; "
+                f"expected shape {tuple(expected.shape)}{single}."
+            )
+        if not torch.allclose(got.double(), expected.double(), atol=atol, rtol=1e-4):
+            raise ExerciseError(
+                f"{name} gave {got.detach().flatten()[:4].tolist()} on {case.description}, "
+                f"but the answer is {expected.detach().flatten()[:4].tolist()}."
+            )
+    print(f"Correct: {name} matches the reference on {len(cases)} test inputs.")
+    return True
+
+
+def _embedding_cases(seed: int = 0) -> list[Case]:
+    g = torch.Generator().manual_seed(seed)
+    return [
+        Case("a random batch z of shape (32, 8)", (torch.randn(32, 8, generator=g),)),
+        Case("a collapsed batch (every row the same)", (torch.ones(16, 4),)),
+        Case("a batch with std about 3", (3 * torch.randn(64, 5, generator=g),)),
+        Case("a batch of 2 rows", (torch.randn(2, 3, generator=g),)),
+        Case("a batch with correlated dimensions",
+             (torch.randn(40, 1, generator=g) * torch.tensor([[1.0, -2.0, 0.5]]),)),
+    ]
+
+
+def check_variance_term(fn: Callable) -> bool:
+    """Notebook 00 and 01: ``variance_term(z, gamma=1.0, eps=1e-4)`` on ``(B, D)``."""
+    cases = _embedding_cases() + [
+        Case("gamma=2.0", (torch.randn(32, 4, generator=torch.Generator().manual_seed(1)),),
+             {"gamma": 2.0}),
+    ]
+    return compare(fn, losses.variance_term, cases)
+
+
+def check_covariance_term(fn: Callable) -> bool:
+    """Notebook 00 and 01: ``covariance_term(z)`` on ``(B, D)``."""
+    return compare(fn, losses.covariance_term, _embedding_cases(seed=2))

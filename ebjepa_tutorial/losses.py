@@ -1,0 +1,87 @@
+"""Loss terms of energy-based JEPAs, one function per term of the paper.
+
+All functions take embeddings ``z`` of shape ``(B, D)`` (batch, dimensions)
+and return a 0-d tensor. Introduced in notebook 00 (variance, covariance) and
+used again in notebooks 01, 03 and 05.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def _check_embeddings(z: torch.Tensor, name: str = "z", min_batch: int = 1) -> None:
+    if not isinstance(z, torch.Tensor) or z.ndim != 2:
+        shape = tuple(z.shape) if isinstance(z, torch.Tensor) else type(z).__name__
+        raise ValueError(f"{name} must be a (batch, dim) tensor, got {shape}")
+    if z.shape[0] < min_batch:
+        raise ValueError(
+            f"{name} has a batch of {z.shape[0]}; this term needs at least {min_batch} "
+            "samples (a standard deviation over one sample is undefined)"
+        )
+
+
+def invariance_term(z_a: torch.Tensor, z_b: torch.Tensor) -> torch.Tensor:
+    """Mean squared distance between two views: ``mean_{b,d} (z_a - z_b)^2``.
+
+    ``z_a``, ``z_b``: ``(B, D)``. This is the energy ``E(x, y)`` of a
+    joint-embedding architecture with an identity predictor, averaged over pairs.
+    """
+    _check_embeddings(z_a, "z_a")
+    _check_embeddings(z_b, "z_b")
+    if z_a.shape != z_b.shape:
+        raise ValueError(f"views differ in shape: {tuple(z_a.shape)} vs {tuple(z_b.shape)}")
+    return F.mse_loss(z_a, z_b)
+
+
+def variance_term(z: torch.Tensor, gamma: float = 1.0, eps: float = 1e-4) -> torch.Tensor:
+    """Hinge on the standard deviation of each dimension over the batch.
+
+    ``v(Z) = (1/D) sum_d max(0, gamma - sqrt(Var(z_d) + eps))``, with ``z``
+    of shape ``(B, D)`` and ``B >= 2``. Zero once every dimension has std >= gamma.
+    """
+    _check_embeddings(z, min_batch=2)
+    std = torch.sqrt(z.var(dim=0) + eps)
+    return F.relu(gamma - std).mean()
+
+
+def covariance_matrix(z: torch.Tensor) -> torch.Tensor:
+    """Sample covariance ``C = (Z - mean)^T (Z - mean) / (B - 1)``: ``(B, D) -> (D, D)``."""
+    _check_embeddings(z, min_batch=2)
+    centred = z - z.mean(dim=0)
+    return centred.T @ centred / (z.shape[0] - 1)
+
+
+def covariance_term(z: torch.Tensor) -> torch.Tensor:
+    """Mean squared off-diagonal covariance: ``c(Z) = sum_{i != j} C_ij^2 / (D (D - 1))``.
+
+    ``z``: ``(B, D)`` with ``D >= 2``. The VICReg paper divides the same sum by
+    ``D`` instead; the EB-JEPA paper's ``D (D - 1)`` makes the term an average,
+    so its coefficient does not have to grow with the embedding size.
+    """
+    cov = covariance_matrix(z)
+    dim = cov.shape[0]
+    if dim < 2:
+        raise ValueError("the covariance term needs at least 2 embedding dimensions")
+    off_diagonal = cov - torch.diag(torch.diagonal(cov))
+    return off_diagonal.pow(2).sum() / (dim * (dim - 1))
+
+
+def vicreg_loss(
+    z_a: torch.Tensor,
+    z_b: torch.Tensor,
+    inv_coeff: float = 1.0,
+    std_coeff: float = 1.0,
+    cov_coeff: float = 1.0,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """VICReg on two views ``(B, D)``: weighted invariance + variance + covariance.
+
+    The variance and covariance terms are applied to each view and averaged.
+    Returns the total and a dict of the unweighted terms (floats, for logging).
+    """
+    inv = invariance_term(z_a, z_b)
+    var = (variance_term(z_a) + variance_term(z_b)) / 2
+    cov = (covariance_term(z_a) + covariance_term(z_b)) / 2
+    total = inv_coeff * inv + std_coeff * var + cov_coeff * cov
+    return total, {"invariance": inv.item(), "variance": var.item(), "covariance": cov.item()}

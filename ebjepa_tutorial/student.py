@@ -1,0 +1,79 @@
+"""Write student versions of the notebooks: solutions out, everything else identical.
+
+A notebook is written once, with its solutions. In a code cell, a solution is
+the lines between ``### BEGIN SOLUTION`` and ``### END SOLUTION``; comment
+lines inside it that start with ``# HINT:`` are kept. The student version
+replaces each region by its hints and a ``raise NotImplementedError`` at the
+same indentation, and drops all outputs::
+
+    python -m ebjepa_tutorial.student notebooks student   # what `make student` runs
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+from pathlib import Path
+
+import nbformat
+
+BEGIN = re.compile(r"^(\s*)### BEGIN SOLUTION\s*$")
+END = re.compile(r"^\s*### END SOLUTION\s*$")
+HINT = re.compile(r"^\s*# HINT:\s*(.*)$")
+
+
+def strip_solutions(source: str) -> str:
+    """Replace every solution region in a code cell's ``source`` by hints and a stub."""
+    out, hints, indent = [], [], None
+    for number, line in enumerate(source.splitlines(), start=1):
+        if indent is None and (begin := BEGIN.match(line)):
+            indent, hints = begin.group(1), []
+        elif indent is not None and END.match(line):
+            hint = " ".join(hints) or "see the text above this cell"
+            out.append(f"{indent}raise NotImplementedError({('Exercise: ' + hint)!r})")
+            indent = None
+        elif indent is not None:
+            if hint := HINT.match(line):
+                out.append(line)
+                hints.append(hint.group(1).strip())
+        elif END.match(line):
+            raise ValueError(f"line {number}: END SOLUTION without BEGIN SOLUTION")
+        else:
+            out.append(line)
+    if indent is not None:
+        raise ValueError("BEGIN SOLUTION without END SOLUTION")
+    return "\n".join(out)
+
+
+def student_notebook(notebook: nbformat.NotebookNode) -> nbformat.NotebookNode:
+    """A copy of ``notebook`` with solutions stripped and all outputs removed."""
+    student = nbformat.from_dict(notebook)
+    for cell in student.cells:
+        if cell.cell_type == "code":
+            cell.source = strip_solutions(cell.source)
+            cell.outputs, cell.execution_count = [], None
+    return student
+
+
+def write_student_versions(src: str | Path, dst: str | Path) -> list[Path]:
+    """Write the student version of every ``src/*.ipynb`` into ``dst``; return the paths."""
+    src, dst = Path(src), Path(dst)
+    dst.mkdir(parents=True, exist_ok=True)
+    written = []
+    for path in sorted(src.glob("*.ipynb")):
+        try:
+            notebook = student_notebook(nbformat.read(path, as_version=4))
+        except ValueError as err:
+            raise ValueError(f"{path}: {err}") from None
+        nbformat.validate(notebook)
+        nbformat.write(notebook, dst / path.name)
+        written.append(dst / path.name)
+    return written
+
+
+if __name__ == "__main__":
+    args = sys.argv[1:]
+    source = args[0] if args else "notebooks"
+    target = args[1] if len(args) > 1 else "student"
+    for written in write_student_versions(source, target):
+        print(f"wrote {written}")

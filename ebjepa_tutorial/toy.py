@@ -1,0 +1,139 @@
+"""A joint-embedding model small enough to watch: 2-D points, an MLP, full-batch training.
+
+Notebook 00 uses it to show the energy view of joint-embedding learning and
+the two kinds of collapse (complete and dimensional) in seconds on a CPU.
+
+Data: points ``(N, 2)`` drawn around ``k`` centres on a circle. A "view" of a
+point is the point plus Gaussian noise, the toy analogue of an image
+augmentation: two views of one point are a compatible pair ``(x, y)``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from .losses import covariance_matrix, vicreg_loss
+from .train import History, fit
+
+
+def make_blobs(
+    n: int, k: int = 6, radius: float = 2.0, spread: float = 0.3, seed: int = 0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n`` points around ``k`` centres on a circle: returns points ``(n, 2)``, labels ``(n,)``."""
+    generator = torch.Generator().manual_seed(seed)
+    labels = torch.randint(0, k, (n,), generator=generator)
+    angle = 2 * math.pi * labels / k
+    centres = radius * torch.stack([angle.cos(), angle.sin()], dim=1)
+    return centres + spread * torch.randn(n, 2, generator=generator), labels
+
+
+def two_views(
+    x: torch.Tensor, noise: float, generator: torch.Generator
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Two noisy copies of ``x`` ``(N, 2)``: the compatible pairs of the energy."""
+    noise_a = torch.randn(x.shape, generator=generator)
+    noise_b = torch.randn(x.shape, generator=generator)
+    return x + noise * noise_a, x + noise * noise_b
+
+
+def mlp_encoder(embed_dim: int = 8, hidden: int = 64, in_dim: int = 2) -> nn.Sequential:
+    """A 3-layer MLP ``(N, in_dim) -> (N, embed_dim)``."""
+    return nn.Sequential(
+        nn.Linear(in_dim, hidden), nn.ReLU(),
+        nn.Linear(hidden, hidden), nn.ReLU(),
+        nn.Linear(hidden, embed_dim),
+    )
+
+
+@dataclass(frozen=True)
+class Coefficients:
+    """Weights of the three VICReg terms (notebook 00 turns them on one by one)."""
+
+    inv: float = 1.0  # invariance: pull the two views together
+    var: float = 0.0  # variance: keep every dimension's std above 1
+    cov: float = 0.0  # covariance: decorrelate the dimensions
+
+
+def train_toy(
+    x: torch.Tensor,
+    coeffs: Coefficients,
+    *,
+    embed_dim: int = 8,
+    hidden: int = 64,
+    steps: int = 600,
+    lr: float = 3e-3,
+    noise: float = 0.2,
+    seed: int = 0,
+    progress: bool = False,
+) -> tuple[nn.Module, History]:
+    """Train an :func:`mlp_encoder` on the points ``x`` ``(N, 2)`` with VICReg ``coeffs``.
+
+    Full batch: every step sees all points, with fresh noise drawn from a
+    generator seeded by ``(seed, step)``, so a run is exactly reproducible.
+    """
+    torch.manual_seed(seed)
+    encoder = mlp_encoder(embed_dim, hidden, x.shape[1])
+    optimizer = torch.optim.Adam(encoder.parameters(), lr=lr)
+
+    def batch(step: int) -> tuple[torch.Tensor, torch.Tensor]:
+        return two_views(x, noise, torch.Generator().manual_seed(seed * 100_003 + step))
+
+    def loss(views: tuple[torch.Tensor, torch.Tensor]):
+        z_a, z_b = encoder(views[0]), encoder(views[1])
+        return vicreg_loss(z_a, z_b, coeffs.inv, coeffs.var, coeffs.cov)
+
+    history = fit(encoder, optimizer, loss, batch, steps, progress=progress, desc=str(coeffs))
+    encoder.eval()
+    return encoder, history
+
+
+@torch.no_grad()
+def spectrum(z: torch.Tensor) -> torch.Tensor:
+    """Eigenvalues of the covariance of ``z`` ``(N, D)``, largest first: ``(D,)``."""
+    return torch.linalg.eigvalsh(covariance_matrix(z)).flip(0).clamp_min(0)
+
+
+@torch.no_grad()
+def energy_map(
+    encoder: nn.Module, anchor: torch.Tensor, extent: float = 3.5, resolution: int = 80
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Energy ``E(anchor, y) = ||enc(anchor) - enc(y)||^2`` for ``y`` on a square grid.
+
+    ``anchor``: ``(2,)``. Returns the grid's coordinates ``(R,)`` and the
+    energies ``(R, R)`` (rows are y, columns x), ``R = resolution``.
+    """
+    coords = torch.linspace(-extent, extent, resolution)
+    grid_y, grid_x = torch.meshgrid(coords, coords, indexing="ij")
+    points = torch.stack([grid_x.flatten(), grid_y.flatten()], dim=1)
+    z_anchor = encoder(anchor[None])
+    energy = (encoder(points) - z_anchor).pow(2).sum(dim=1)
+    return coords, energy.reshape(resolution, resolution)
+
+
+@torch.no_grad()
+def pair_energies(
+    encoder: nn.Module, x: torch.Tensor, noise: float = 0.2, seed: int = 0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Energies of compatible pairs (two views of one point) and of random pairs: ``(N,)`` each."""
+    generator = torch.Generator().manual_seed(seed)
+    x_a, x_b = two_views(x, noise, generator)
+    z_a, z_b = encoder(x_a), encoder(x_b)
+    shuffled = torch.randperm(len(x), generator=generator)
+    matched = (z_a - z_b).pow(2).sum(dim=1)
+    random = (z_a - z_b[shuffled]).pow(2).sum(dim=1)
+    return matched, random
+
+
+@torch.no_grad()
+def centroid_energies(z: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+    """Energy between cluster centres in embedding space: ``(N, D), (N,) -> (k, k)``.
+
+    Entry ``(i, j)`` is ``||mean(z | i) - mean(z | j)||^2``; a healthy embedding
+    keeps every pair of different clusters far apart, not only some of them.
+    """
+    centres = torch.stack([z[labels == c].mean(dim=0) for c in labels.unique()])
+    return torch.cdist(centres, centres).pow(2)
