@@ -1,0 +1,208 @@
+"""Where data lives, how it is downloaded safely, and the cache of decoded arrays.
+
+Three places matter:
+
+- the data directory (:func:`data_dir`): an explicit ``root``, else the
+  ``EBJEPA_DATA`` environment variable, else the project's ``data/`` folder;
+- the cache directory (:func:`cache_dir`): ``EBJEPA_CACHE``, else
+  ``<project>/data/cache`` (git-ignored). It never lives under ``EBJEPA_DATA``,
+  which may be a read-only shared folder;
+- the download URLs, each file checked against its published MD5.
+
+Downloads and cache files are written to a temporary file in the same folder
+and renamed into place only once complete, so an interrupted run never leaves
+a half-written file that a later run would trust.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import http.client
+import os
+import tempfile
+import urllib.request
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from tqdm.auto import tqdm
+
+
+class DataNotFoundError(FileNotFoundError):
+    """The data is not on disk and could not be downloaded; the message says where to put it."""
+
+
+class CorruptDataError(RuntimeError):
+    """A data file is damaged: wrong MD5, truncated archive, or a format we cannot read."""
+
+
+class DownloadError(OSError):
+    """Every download attempt failed for a network reason (no connection, HTTP error...)."""
+
+
+def project_root() -> Path | None:
+    """The repository root when the package runs from a checkout (editable install), else None."""
+    root = Path(__file__).resolve().parents[2]
+    return root if (root / "pyproject.toml").is_file() else None
+
+
+def data_dir(root: str | os.PathLike | None = None) -> Path:
+    """The data directory: ``root`` if given, else ``$EBJEPA_DATA``, else ``<project>/data``.
+
+    Outside a checkout (a non-editable install) the last fallback is ``./data``.
+    """
+    if root is not None:
+        return Path(root).expanduser()
+    if os.environ.get("EBJEPA_DATA"):
+        return Path(os.environ["EBJEPA_DATA"]).expanduser()
+    project = project_root()
+    return (project if project is not None else Path.cwd()) / "data"
+
+
+def cache_dir() -> Path:
+    """Where decoded arrays are cached: ``$EBJEPA_CACHE``, else ``<project>/data/cache``."""
+    if os.environ.get("EBJEPA_CACHE"):
+        return Path(os.environ["EBJEPA_CACHE"]).expanduser()
+    project = project_root()
+    return (project if project is not None else Path.cwd()) / "data" / "cache"
+
+
+def check_split(split: str, choices: Sequence[str]) -> None:
+    """Raise ValueError naming the choices when ``split`` is not one of them."""
+    if split not in choices:
+        raise ValueError(f"split must be one of {', '.join(map(repr, choices))}; got {split!r}")
+
+
+def md5sum(path: Path, chunk: int = 1 << 20) -> str:
+    """Hex MD5 of a file, read in 1 MiB chunks."""
+    digest = hashlib.md5()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(chunk), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _open_url(url: str, timeout: float = 60.0):
+    """Open ``url`` for reading (a seam the tests replace to simulate servers)."""
+    return urllib.request.urlopen(url, timeout=timeout)
+
+
+def _fetch_once(url: str, dest: Path, md5: str) -> None:
+    """Download ``url`` to a temp file beside ``dest``, check its MD5, then rename it to ``dest``.
+
+    Raises CorruptDataError on a checksum mismatch; the temp file is always removed.
+    """
+    with _open_url(url) as response:  # connect first: no network, no temp file
+        total = int(response.headers.get("Content-Length") or 0) or None
+        _stream_to(response, dest, md5, url, total)
+
+
+def _stream_to(response, dest: Path, md5: str, url: str, total: int | None) -> None:
+    """Copy ``response`` into a temp file beside ``dest``; rename it only if the MD5 matches."""
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=dest.parent, prefix=f".{dest.name}.", suffix=".part")
+    try:
+        digest, size = hashlib.md5(), 0
+        with os.fdopen(fd, "wb") as out:
+            with tqdm(total=total, unit="B", unit_scale=True, desc=dest.name, leave=False) as bar:
+                for block in iter(lambda: response.read(1 << 20), b""):
+                    out.write(block)
+                    digest.update(block)
+                    size += len(block)
+                    bar.update(len(block))
+        if digest.hexdigest() != md5:
+            expected = f" of {total:,}" if total else ""
+            raise CorruptDataError(
+                f"{url} gave {size:,}{expected} bytes with MD5 {digest.hexdigest()}, "
+                f"expected {md5} (a truncated or damaged download)"
+            )
+        os.chmod(tmp, 0o644)  # mkstemp makes it private; data files are ordinary files
+        os.replace(tmp, dest)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def download(urls: Sequence[str], dest: Path, md5: str, attempts: int = 2) -> Path:
+    """Fetch ``dest`` from the first of ``urls`` that works; each URL is tried ``attempts`` times.
+
+    Only a file whose MD5 matches ever appears at ``dest``. Raises CorruptDataError
+    if a server sent wrong bytes every time, DownloadError if none could be reached.
+    """
+    dest = Path(dest)
+    failures: list[Exception] = []
+    for url in urls:
+        for _ in range(attempts):
+            print(f"Downloading {url} -> {dest}")
+            try:
+                _fetch_once(url, dest, md5)
+                return dest
+            except CorruptDataError as err:
+                failures.append(err)
+            except (OSError, http.client.HTTPException) as err:  # URLError, timeouts, short reads
+                failures.append(DownloadError(f"{url}: {err}"))
+    reasons = "\n  ".join(str(f) for f in failures)
+    if any(isinstance(f, CorruptDataError) for f in failures):
+        raise CorruptDataError(
+            f"Could not download a correct {dest.name}; nothing was kept.\n  {reasons}\n"
+            "Try again later, or download the file by hand and check its MD5."
+        )
+    raise DownloadError(f"could not download {dest.name}:\n  {reasons}")
+
+
+def source_key(*paths: Path) -> str:
+    """A short hash naming these source files or folders (path, size, modification time).
+
+    Used in cache file names, so replacing or editing a source invalidates its
+    cache. Folders are keyed by their own modification time, which changes when
+    a file is added, removed or renamed inside them.
+    """
+    digest = hashlib.sha1()
+    for path in paths:
+        stat = path.stat()
+        digest.update(f"{path.resolve()}|{stat.st_size}|{stat.st_mtime_ns};".encode())
+    return digest.hexdigest()[:12]
+
+
+def _cache_paths(name: str) -> tuple[Path, Path]:
+    folder = cache_dir()
+    return folder / f"{name}-images.npy", folder / f"{name}-labels.npy"
+
+
+def read_cache(name: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """The ``(images, labels)`` arrays cached under ``name``; None if absent or unreadable."""
+    images_path, labels_path = _cache_paths(name)
+    if not (images_path.is_file() and labels_path.is_file()):
+        return None
+    try:
+        images, labels = np.load(images_path), np.load(labels_path)
+    except (OSError, ValueError):  # a damaged cache file: decode again
+        return None
+    return (images, labels) if len(images) == len(labels) else None
+
+
+def _save_npy_atomic(path: Path, array: np.ndarray) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.save(f, array)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def write_cache(name: str, images: np.ndarray, labels: np.ndarray) -> None:
+    """Save ``images`` and ``labels`` under ``name`` in :func:`cache_dir`, each file atomically.
+
+    A cache that cannot be written only warns: the arrays are still returned.
+    """
+    images_path, labels_path = _cache_paths(name)
+    try:
+        images_path.parent.mkdir(parents=True, exist_ok=True)
+        _save_npy_atomic(images_path, images)
+        _save_npy_atomic(labels_path, labels)
+    except OSError as err:  # a read-only or full disk costs speed next time, not this result
+        warnings.warn(f"could not cache {name} in {images_path.parent}: {err}", stacklevel=3)

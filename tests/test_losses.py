@@ -1,0 +1,66 @@
+"""VICReg terms against values worked out by hand on tiny inputs."""
+
+import math
+
+import pytest
+import torch
+
+from ebjepa_tutorial import losses
+
+
+def test_invariance_is_mean_squared_distance():
+    z_a = torch.tensor([[0.0, 0.0], [1.0, 1.0]])
+    z_b = torch.tensor([[1.0, 0.0], [1.0, 3.0]])
+    # squared differences 1, 0, 0, 4 -> mean 5/4
+    assert losses.invariance_term(z_a, z_b).item() == pytest.approx(1.25)
+
+
+def test_variance_hinge_by_hand():
+    z = torch.tensor([[0.0, 0.0], [2.0, 0.0]])
+    # dim 0: unbiased var 2 -> std 1.414 > 1, no penalty; dim 1: var 0 -> std sqrt(eps)
+    expected = (0.0 + (1.0 - math.sqrt(1e-4))) / 2
+    assert losses.variance_term(z).item() == pytest.approx(expected, abs=1e-6)
+
+
+def test_variance_is_zero_when_every_std_exceeds_gamma():
+    z = 5 * torch.randn(256, 4, generator=torch.Generator().manual_seed(0))
+    assert losses.variance_term(z).item() == 0.0
+    assert losses.variance_term(z, gamma=100.0).item() > 90
+
+
+def test_covariance_two_dims_by_hand():
+    z = torch.tensor([[1.0, 2.0], [-1.0, -2.0]])
+    # C = [[2, 4], [4, 8]]; off-diagonal squares 16 + 16, divided by D(D-1) = 2
+    assert losses.covariance_matrix(z).tolist() == [[2.0, 4.0], [4.0, 8.0]]
+    assert losses.covariance_term(z).item() == pytest.approx(16.0)
+
+
+def test_covariance_three_dims_by_hand():
+    z = torch.tensor([[1.0, 0.0, 1.0], [-1.0, 0.0, -1.0], [0.0, 0.0, 0.0]])
+    # C = [[1, 0, 1], [0, 0, 0], [1, 0, 1]]: two off-diagonal ones, divided by 3 * 2
+    assert losses.covariance_term(z).item() == pytest.approx(1 / 3)
+
+
+def test_covariance_vanishes_for_decorrelated_dimensions():
+    z = torch.tensor([[1.0, 1.0], [1.0, -1.0], [-1.0, 1.0], [-1.0, -1.0]])
+    assert losses.covariance_term(z).item() == pytest.approx(0.0)
+
+
+def test_vicreg_loss_weights_the_terms():
+    g = torch.Generator().manual_seed(0)
+    z_a, z_b = torch.randn(16, 4, generator=g), torch.randn(16, 4, generator=g)
+    total, terms = losses.vicreg_loss(z_a, z_b, inv_coeff=2.0, std_coeff=3.0, cov_coeff=5.0)
+    expected = 2 * terms["invariance"] + 3 * terms["variance"] + 5 * terms["covariance"]
+    assert total.item() == pytest.approx(expected, rel=1e-5)
+    assert set(terms) == {"invariance", "variance", "covariance"}
+
+
+def test_bad_inputs_give_clear_errors():
+    with pytest.raises(ValueError, match="at least 2 samples"):
+        losses.variance_term(torch.ones(1, 4))
+    with pytest.raises(ValueError, match=r"\(batch, dim\)"):
+        losses.covariance_term(torch.ones(4, 3, 2))
+    with pytest.raises(ValueError, match="differ in shape"):
+        losses.invariance_term(torch.ones(4, 3), torch.ones(4, 2))
+    with pytest.raises(ValueError, match="at least 2 embedding dimensions"):
+        losses.covariance_term(torch.ones(4, 1))

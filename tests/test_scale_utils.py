@@ -1,0 +1,56 @@
+"""The scale switch, seeding and device choice."""
+
+import pytest
+import torch
+
+from ebjepa_tutorial import scale
+from ebjepa_tutorial.utils import get_device, make_generator, seed_everything
+
+
+def test_default_scale_is_class():
+    assert scale.current_scale({}) == "class"
+    assert scale.current_scale({"EBJEPA_SCALE": ""}) == "class"
+
+
+@pytest.mark.parametrize("name", ["ci", "class", "full", " CI "])
+def test_known_scales(name):
+    assert scale.current_scale({"EBJEPA_SCALE": name}) == name.strip().lower()
+
+
+def test_unknown_scale_names_the_choices():
+    with pytest.raises(ValueError, match="ci, class, full"):
+        scale.current_scale({"EBJEPA_SCALE": "huge"})
+
+
+def test_preset_follows_the_environment(monkeypatch):
+    monkeypatch.setenv("EBJEPA_SCALE", "ci")
+    assert scale.preset("00") == scale.PRESETS["00"]["ci"]
+    assert scale.preset("00", "full").steps > scale.preset("00", "class").steps
+    with pytest.raises(KeyError, match="no presets"):
+        scale.preset("99")
+
+
+def test_every_preset_has_every_scale():
+    for notebook, presets in scale.PRESETS.items():
+        assert set(presets) == set(scale.SCALES), notebook
+
+
+def test_same_seed_same_numbers():
+    a = torch.randn(5, generator=seed_everything(3))
+    b = torch.randn(5, generator=seed_everything(3))
+    c = torch.randn(5, generator=make_generator(4))
+    assert torch.equal(a, b) and not torch.equal(a, c)
+    seed_everything(7)
+    x = torch.rand(3)
+    seed_everything(7)
+    assert torch.equal(x, torch.rand(3))
+
+
+def test_seed_must_be_an_integer():
+    with pytest.raises(TypeError, match="seed must be an int"):
+        seed_everything(1.5)
+
+
+def test_device_choice():
+    assert get_device("cpu") == torch.device("cpu")
+    assert get_device().type in {"cuda", "mps", "cpu"}
