@@ -1,0 +1,134 @@
+"""Exercise checkers accept the solutions, reject wrong answers; student versions are valid."""
+
+import re
+from pathlib import Path
+
+import nbformat
+import pytest
+import torch
+
+from ebjepa_tutorial import exercises, student
+
+NOTEBOOKS = sorted(Path(__file__).resolve().parents[1].glob("notebooks/*.ipynb"))
+CHECKERS = {
+    "variance_term": exercises.check_variance_term,
+    "covariance_term": exercises.check_covariance_term,
+}
+
+
+def _solution_functions():
+    """Every function defined in a notebook cell that holds a solution region."""
+    for path in NOTEBOOKS:
+        for cell in nbformat.read(path, as_version=4).cells:
+            if cell.cell_type == "code" and "### BEGIN SOLUTION" in cell.source:
+                namespace = {"torch": torch}
+                exec(cell.source, namespace)
+                for name in re.findall(r"^def (\w+)\(", cell.source, flags=re.M):
+                    yield path.name, name, namespace[name]
+
+
+def test_notebooks_have_exercises():
+    assert NOTEBOOKS, "no notebooks found"
+    assert any(True for _ in _solution_functions())
+
+
+@pytest.mark.parametrize("notebook, name, fn", list(_solution_functions()),
+                         ids=lambda v: v if isinstance(v, str) else "")
+def test_checker_accepts_the_notebook_solution(notebook, name, fn, capsys):
+    assert name in CHECKERS, f"{notebook}: exercise {name} has no checker in CHECKERS"
+    assert CHECKERS[name](fn) is True
+    assert "Correct" in capsys.readouterr().out
+
+
+def _biased_variance(z, gamma=1.0, eps=1e-4):
+    return torch.relu(gamma - torch.sqrt(z.var(dim=0, unbiased=False) + eps)).mean()
+
+
+def _per_dimension_variance(z, gamma=1.0, eps=1e-4):
+    return torch.relu(gamma - torch.sqrt(z.var(dim=0) + eps))
+
+
+def _covariance_with_diagonal(z):
+    centred = z - z.mean(dim=0)
+    cov = centred.T @ centred / (len(z) - 1)
+    return cov.pow(2).sum() / (z.shape[1] * (z.shape[1] - 1))
+
+
+def _covariance_divided_by_d(z):
+    centred = z - z.mean(dim=0)
+    cov = centred.T @ centred / (len(z) - 1)
+    return (cov - torch.diag(torch.diagonal(cov))).pow(2).sum() / z.shape[1]
+
+
+@pytest.mark.parametrize("checker, wrong, message", [
+    (exercises.check_variance_term, _biased_variance, "but the answer is"),
+    (exercises.check_variance_term, _per_dimension_variance, "a single number"),
+    (exercises.check_variance_term, lambda z, gamma=1.0, eps=1e-4: 0.0, "expected a torch tensor"),
+    (exercises.check_covariance_term, _covariance_with_diagonal, "but the answer is"),
+    (exercises.check_covariance_term, _covariance_divided_by_d, "but the answer is"),
+])
+def test_checker_rejects_wrong_answers(checker, wrong, message):
+    with pytest.raises(exercises.ExerciseError, match=message):
+        checker(wrong)
+
+
+def test_checker_explains_an_unfinished_exercise():
+    def variance_term(z, gamma=1.0, eps=1e-4):
+        raise NotImplementedError("Exercise")
+
+    with pytest.raises(exercises.ExerciseError, match="not implemented yet"):
+        exercises.check_variance_term(variance_term)
+
+
+def test_checker_reports_a_crash_in_plain_words():
+    def covariance_term(z):
+        return z @ z  # wrong shapes for a non-square batch
+
+    with pytest.raises(exercises.ExerciseError, match="raised RuntimeError"):
+        exercises.check_covariance_term(covariance_term)
+
+
+def test_strip_solutions_keeps_hints_and_indentation():
+    source = (
+        "def f(x):\n"
+        "    y = 1\n"
+        "    ### BEGIN SOLUTION\n"
+        "    # HINT: add y\n"
+        "    return x + y\n"
+        "    ### END SOLUTION\n"
+    )
+    assert student.strip_solutions(source) == (
+        "def f(x):\n"
+        "    y = 1\n"
+        "    # HINT: add y\n"
+        "    raise NotImplementedError('Exercise: add y')"
+    )
+
+
+@pytest.mark.parametrize("source", [
+    "### BEGIN SOLUTION\nx = 1\n",
+    "x = 1\n### END SOLUTION\n",
+])
+def test_unbalanced_markers_are_errors(source):
+    with pytest.raises(ValueError, match="SOLUTION"):
+        student.strip_solutions(source)
+
+
+def test_student_versions_are_valid_and_solution_free(tmp_path):
+    written = student.write_student_versions(NOTEBOOKS[0].parent, tmp_path)
+    assert [p.name for p in written] == [p.name for p in NOTEBOOKS]
+    for original_path, path in zip(NOTEBOOKS, written):
+        original = nbformat.read(original_path, as_version=4)
+        notebook = nbformat.read(path, as_version=4)
+        nbformat.validate(notebook)
+        assert len(notebook.cells) == len(original.cells)
+        code = [c.source for c in notebook.cells if c.cell_type == "code"]
+        assert not any("SOLUTION" in s for s in code)
+        assert not any(c.get("outputs") for c in notebook.cells if c.cell_type == "code")
+        stubs = [s for s in code if "raise NotImplementedError" in s]
+        for source in stubs:  # every stub still defines its function, which then says "todo"
+            namespace = {"torch": torch}
+            exec(source, namespace)
+            name = re.search(r"^def (\w+)\(", source, flags=re.M).group(1)
+            with pytest.raises(exercises.ExerciseError, match="not implemented yet"):
+                CHECKERS[name](namespace[name])
