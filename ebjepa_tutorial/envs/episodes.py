@@ -1,0 +1,135 @@
+"""Evaluation episodes in Two Rooms, and the batched environment a planner acts in.
+
+An episode: a fresh layout, a start in one room and a goal in the other, the
+goal shown as an image (the rendered goal state). It succeeds when the dot
+ends within ``SUCCESS_RADIUS`` = 4.5 px of the goal within ``EPISODE_STEPS`` =
+200 steps. Every episode batch comes from a seed; use many seeds (not the
+reference code's single seed 0) and report a confidence interval.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .two_rooms import (
+    as_generator,
+    check_actions,
+    check_layouts,
+    check_positions,
+    random_layouts,
+    render,
+    room_of,
+    sample_positions,
+    transition,
+)
+
+SUCCESS_RADIUS = 4.5
+EPISODE_STEPS = 200
+
+
+@dataclass
+class Episodes:
+    """B evaluation tasks: layouts (B, 2) long, starts (B, 2) and goals (B, 2) float32."""
+
+    layouts: torch.Tensor
+    starts: torch.Tensor
+    goals: torch.Tensor
+
+    def __len__(self) -> int:
+        return len(self.layouts)
+
+    def goal_images(self) -> torch.Tensor:
+        """The goals as the planner sees them: (B, 2, 65, 65) float32."""
+        return render(self.goals, self.layouts)
+
+    def to(self, device) -> Episodes:
+        return Episodes(self.layouts.to(device), self.starts.to(device), self.goals.to(device))
+
+
+def make_episodes(n: int, seed=0) -> Episodes:
+    """``n`` tasks with start and goal in opposite rooms, uniform over each room's floor.
+
+    ``seed``: an int or a ``torch.Generator``; the same seed gives the same tasks.
+    """
+    generator = as_generator(seed)
+    if not isinstance(n, int) or n < 1:
+        raise ValueError(f"n must be a positive int (number of episodes), got {n!r}")
+    layouts = random_layouts(n, generator)
+    start_rooms = torch.randint(0, 2, (n,), generator=generator)
+    starts = sample_positions(layouts, generator, start_rooms)
+    goals = sample_positions(layouts, generator, 1 - start_rooms)
+    return Episodes(layouts, starts, goals)
+
+
+class TwoRoomsEnv:
+    """A batch of Two Rooms worlds that a planner acts in, all stepped at once.
+
+    >>> env = TwoRoomsEnv()
+    >>> obs = env.reset(n=100, seed=1)          # (100, 2, 65, 65)
+    >>> goal = env.goal_images()                # (100, 2, 65, 65)
+    >>> obs = env.step(torch.zeros(100, 2))      # actions (B, 2), clipped to MAX_STEP
+    >>> env.success()                           # (100,) bool
+
+    State: ``positions`` (B, 2), ``goals`` (B, 2), ``layouts`` (B, 2),
+    ``steps_taken`` (int). Steps use :func:`transition`, the same function
+    that made the training data.
+    """
+
+    def __init__(self, device: str | torch.device = "cpu"):
+        self.device = torch.device(device)
+        self.episodes: Episodes | None = None
+        self.positions: torch.Tensor | None = None
+        self.steps_taken = 0
+
+    def reset(self, n: int = 1, seed=0, episodes: Episodes | None = None) -> torch.Tensor:
+        """Start ``n`` new episodes from ``seed`` (or the given ones); returns observations."""
+        episodes = make_episodes(n, seed) if episodes is None else episodes
+        check_layouts(episodes.layouts)
+        check_positions(episodes.starts, episodes.layouts)
+        self.episodes = episodes.to(self.device)
+        self.positions = self.episodes.starts.clone()
+        self.steps_taken = 0
+        return self.observe()
+
+    def _require_reset(self) -> Episodes:
+        if self.episodes is None:
+            raise RuntimeError("call env.reset(n, seed) before using the environment")
+        return self.episodes
+
+    @property
+    def layouts(self) -> torch.Tensor:
+        return self._require_reset().layouts
+
+    @property
+    def goals(self) -> torch.Tensor:
+        return self._require_reset().goals
+
+    def observe(self) -> torch.Tensor:
+        """Current images: (B, 2, 65, 65) float32."""
+        return render(self.positions, self.layouts)
+
+    def goal_images(self) -> torch.Tensor:
+        """Goal images: (B, 2, 65, 65) float32."""
+        return self._require_reset().goal_images()
+
+    def step(self, actions: torch.Tensor) -> torch.Tensor:
+        """Move every world by its action (B, 2); returns the new observations."""
+        check_actions(actions, len(self.layouts))
+        actions = actions.to(device=self.device, dtype=self.positions.dtype)
+        self.positions = transition(self.positions, actions, self.layouts)
+        self.steps_taken += 1
+        return self.observe()
+
+    def distance_to_goal(self) -> torch.Tensor:
+        """Euclidean distance from dot to goal, px: (B,)."""
+        return (self.positions - self.goals).norm(dim=-1)
+
+    def success(self, radius: float = SUCCESS_RADIUS) -> torch.Tensor:
+        """Whether each dot is within ``radius`` px of its goal: (B,) bool."""
+        return self.distance_to_goal() <= radius
+
+    def rooms(self) -> torch.Tensor:
+        """Room of each dot, 0 left / 1 right: (B,) long."""
+        return room_of(self.positions, self.layouts)

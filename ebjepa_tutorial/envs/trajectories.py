@@ -1,0 +1,167 @@
+"""Offline Two Rooms trajectories from the paper's data policy, generated in batches.
+
+The policy is a persistent random walk: the heading turns each step by a von
+Mises increment (concentration ``kappa`` = 5, so consecutive headings agree
+with mean cosine I1(5)/I0(5) = 0.893), and the step length is a normal (mean 1,
+std 0.4) truncated to [0.2, 1.8]. The action is the intended displacement
+``length * (cos heading, sin heading)``; the dot moves by
+:func:`~ebjepa_tutorial.envs.two_rooms.transition`, the same function the
+evaluation environment uses, so a wall may stop part of the move.
+
+Starts. A fraction ``door_fraction`` (35%) of trajectories is built to go
+through the door: the dot starts on a random side, 0.5 to 4 px in front of
+the wall's face (where the slab its centre may not enter begins), within 2 px
+of the door's centre row, with its first heading aimed at the door's centre.
+With kappa 5, about 68% of these end in the other room and about 79% cross
+at least once (the rest drift into the door's side or turn back). The other
+trajectories start uniformly on the free floor with a uniform heading; about
+1.4% of those change rooms, so about 25% of all trajectories end in the other
+room. Each trajectory gets a fresh layout.
+
+Trajectories are stored compactly (positions, actions, layouts); render the
+frames on demand, in batches, with :meth:`Trajectories.frames`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from .two_rooms import (
+    DOT_MARGIN,
+    WALL_WIDTH,
+    as_generator,
+    random_layouts,
+    render,
+    room_of,
+    sample_positions,
+    transition,
+)
+
+
+def sample_von_mises(kappa: float, shape, generator: torch.Generator) -> torch.Tensor:
+    """Angles from a von Mises with mean 0 and concentration ``kappa`` > 0: float32 ``shape``.
+
+    Best and Fisher's (1979) rejection sampler, vectorised: draw candidates in
+    bulk, keep the accepted ones, repeat until enough (about 1.1 rounds at
+    kappa 5). Deterministic given the generator.
+    """
+    if kappa <= 0:
+        raise ValueError(f"kappa must be positive, got {kappa}")
+    n = math.prod(shape)
+    tau = 1 + math.sqrt(1 + 4 * kappa**2)
+    rho = (tau - math.sqrt(2 * tau)) / (2 * kappa)
+    r = (1 + rho**2) / (2 * rho)
+    out, filled = torch.empty(n), 0
+    while filled < n:
+        m = int(1.2 * (n - filled)) + 16
+        u1, u2, u3 = torch.rand(3, m, generator=generator, dtype=torch.float64)
+        z = torch.cos(math.pi * u1)
+        f = (1 + r * z) / (r + z)
+        c = kappa * (r - f)
+        accept = (c * (2 - c) > u2) | (torch.log(c / u2) + 1 - c >= 0)
+        theta = torch.sign(u3 - 0.5) * torch.acos(f.clamp(-1, 1))
+        theta = theta[accept][: n - filled]
+        out[filled : filled + len(theta)] = theta.float()
+        filled += len(theta)
+    return out.view(*shape)
+
+
+def sample_truncated_normal(mean, std, low, high, shape, generator) -> torch.Tensor:
+    """Normal(mean, std) restricted to [low, high], by inverse CDF: float32 ``shape``."""
+    normal = torch.distributions.Normal(torch.tensor(0.0, dtype=torch.float64), 1.0)
+    a = normal.cdf(torch.tensor((low - mean) / std))
+    b = normal.cdf(torch.tensor((high - mean) / std))
+    u = a + (b - a) * torch.rand(shape, generator=generator, dtype=torch.float64)
+    return (mean + std * torch.special.ndtri(u)).clamp(low, high).float()
+
+
+def door_starts(layouts: torch.Tensor, generator: torch.Generator):
+    """Starts in front of the door, aimed at it.
+
+    layouts (B, 2) -> positions (B, 2), headings (B,) in radians.
+    """
+    n = len(layouts)
+    wall_x, door_y = layouts.float().unbind(-1)
+    side = torch.randint(0, 2, (n,), generator=generator).float() * 2 - 1  # -1 left, +1 right
+    gap = 0.5 + 3.5 * torch.rand(n, generator=generator)  # px from the wall's face
+    x = wall_x + side * (WALL_WIDTH / 2 + DOT_MARGIN + gap)
+    y = door_y + 4 * torch.rand(n, generator=generator) - 2
+    heading = torch.atan2(door_y - y, wall_x - x)
+    return torch.stack([x, y], dim=-1), heading
+
+
+@dataclass
+class Trajectories:
+    """N trajectories of T+1 frames.
+
+    positions (N, T+1, 2) float32, actions (N, T, 2) float32 (action t moves
+    frame t to frame t+1), layouts (N, 2) long, door (N,) bool: built to go
+    through the door.
+    """
+
+    positions: torch.Tensor
+    actions: torch.Tensor
+    layouts: torch.Tensor
+    door: torch.Tensor
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+    def frames(self, index=slice(None), out: torch.Tensor | None = None) -> torch.Tensor:
+        """Render the selected trajectories: (n, T+1, 2, 65, 65) float32 in [0, 1].
+
+        ``out``: an optional buffer of that shape to reuse from batch to batch.
+        """
+        return render(self.positions[index], self.layouts[index], out=out)
+
+    def changes_room(self) -> torch.Tensor:
+        """Whether the last frame is in the other room than the first: (N,) bool."""
+        rooms = room_of(self.positions[:, [0, -1]], self.layouts)
+        return rooms[:, 0] != rooms[:, 1]
+
+    def __getitem__(self, index) -> Trajectories:
+        return Trajectories(
+            self.positions[index], self.actions[index], self.layouts[index], self.door[index]
+        )
+
+
+def generate_trajectories(
+    n: int,
+    steps: int = 16,
+    seed=0,
+    door_fraction: float = 0.35,
+    kappa: float = 5.0,
+    step_mean: float = 1.0,
+    step_std: float = 0.4,
+    step_range: tuple[float, float] = (0.2, 1.8),
+) -> Trajectories:
+    """``n`` random-walk trajectories of ``steps`` actions (``steps + 1`` frames).
+
+    ``seed``: an int or a torch.Generator. Exactly ``round(door_fraction * n)``
+    trajectories start at the door (chosen at random).
+    """
+    if not isinstance(n, int) or n < 1 or not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"n and steps must be positive ints, got n={n!r}, steps={steps!r}")
+    if not 0 <= door_fraction <= 1:
+        raise ValueError(f"door_fraction must be in [0, 1], got {door_fraction}")
+    generator = as_generator(seed)
+    layouts = random_layouts(n, generator)
+    door = torch.zeros(n, dtype=torch.bool)
+    door[torch.randperm(n, generator=generator)[: round(door_fraction * n)]] = True
+    start = sample_positions(layouts, generator)
+    heading = 2 * math.pi * torch.rand(n, generator=generator)
+    door_start, door_heading = door_starts(layouts, generator)
+    start = torch.where(door[:, None], door_start, start)
+    heading = torch.where(door, door_heading, heading)
+    turns = sample_von_mises(kappa, (n, steps - 1), generator)
+    headings = heading[:, None] + torch.cat([torch.zeros(n, 1), turns.cumsum(dim=1)], dim=1)
+    lengths = sample_truncated_normal(step_mean, step_std, *step_range, (n, steps), generator)
+    actions = lengths[..., None] * torch.stack([headings.cos(), headings.sin()], dim=-1)
+    positions = torch.empty(n, steps + 1, 2)
+    positions[:, 0] = start
+    for t in range(steps):
+        positions[:, t + 1] = transition(positions[:, t], actions[:, t], layouts)
+    return Trajectories(positions, actions, layouts, door)

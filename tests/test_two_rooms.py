@@ -1,0 +1,323 @@
+"""Two Rooms: geometry, the transition rule, the data policy, evaluation episodes."""
+
+import math
+
+import pytest
+import torch
+
+from ebjepa_tutorial.envs import (
+    TwoRoomsEnv,
+    check_wall_collision,
+    clip_actions,
+    generate_trajectories,
+    make_episodes,
+    random_layouts,
+    render,
+    room_of,
+    sample_positions,
+    sample_von_mises,
+    step,
+    transition,
+    wall_collision,
+)
+from ebjepa_tutorial.envs.trajectories import sample_truncated_normal
+from ebjepa_tutorial.envs.two_rooms import HIGH, LOW, check_positions, wall_bounds, wall_images
+from ebjepa_tutorial.exercises import ExerciseError
+
+# ----------------------------------------------------------------- geometry
+
+
+def test_wall_pixels_by_hand():
+    walls = wall_images(torch.tensor([[20, 10], [44, 54]]))
+    assert walls.shape == (2, 65, 65)
+    for image, wall_x, door_y in ((walls[0], 20, 10), (walls[1], 44, 54)):
+        assert image[0].all() and image[64].all() and image[:, 0].all() and image[:, 64].all()
+        inner = image[1:64, 1:64]  # without the border
+        assert inner.sum(0).nonzero().flatten().tolist() == [wall_x - 2, wall_x - 1, wall_x]
+        column = image[1:64, wall_x]
+        assert column.sum() == 63 - 9  # 9 px door
+        assert (image[door_y - 4 : door_y + 5, wall_x - 1 : wall_x + 2] == 0).all()
+        assert image[door_y - 5, wall_x] == 1 and image[door_y + 5, wall_x] == 1
+
+
+def test_layouts_cover_their_ranges():
+    layouts = random_layouts(5000, torch.Generator().manual_seed(0))
+    assert layouts[:, 0].min() == 20 and layouts[:, 0].max() == 44
+    assert layouts[:, 1].min() == 10 and layouts[:, 1].max() == 54
+
+
+def test_render_shapes_and_values():
+    layouts = torch.tensor([[30, 30], [40, 20]])
+    assert render(torch.tensor([[10.0, 10.0], [50.0, 50.0]]), layouts).shape == (2, 2, 65, 65)
+    frames = render(torch.full((2, 5, 2), 12.0), layouts)
+    assert frames.shape == (2, 5, 2, 65, 65) and frames.dtype == torch.float32
+    assert 0 <= frames.min() and frames.max() <= 1
+    assert frames[0, 0, 0, 12, 12] == 1.0  # peak 1 at an integer centre
+    assert torch.equal(frames[1, 3, 1], wall_images(layouts)[1])
+    buffer = torch.full((2, 5, 2, 65, 65), 7.0)
+    assert render(torch.full((2, 5, 2), 12.0), layouts, out=buffer) is buffer
+    assert torch.equal(buffer, frames)
+    with pytest.raises(ValueError, match="render needs float32"):
+        render(torch.full((2, 2), 12.0), layouts, out=buffer)
+
+
+def test_dot_matches_formula_and_has_std_1_3():
+    pos = torch.tensor([[20.3, 41.7]])
+    dot = render(pos, torch.tensor([[44, 30]]))[0, 0].double()
+    rows, cols = torch.meshgrid(*[torch.arange(65.0, dtype=torch.float64)] * 2, indexing="ij")
+    formula = torch.exp(-((cols - 20.3) ** 2 + (rows - 41.7) ** 2) / (2 * 1.3**2))
+    assert torch.allclose(dot, formula, atol=1e-6)
+    mass = dot.sum()
+    mx, my = (dot * cols).sum() / mass, (dot * rows).sum() / mass
+    assert abs(mx - 20.3) < 1e-3 and abs(my - 41.7) < 1e-3
+    var_x = (dot * (cols - mx) ** 2).sum() / mass
+    var_y = (dot * (rows - my) ** 2).sum() / mass
+    assert abs(var_x.sqrt() - 1.3) < 2e-3 and abs(var_y.sqrt() - 1.3) < 2e-3
+
+
+# ----------------------------------------------------------------- collisions
+
+
+def test_collision_cases_by_hand():
+    layouts = torch.tensor([[30, 40]] * 5)  # slab 27.5 < x < 32.5, doorway 36.5 <= y <= 43.5
+    pos = torch.tensor([[27.0, 40.0], [27.0, 30.0], [2.0, 2.0], [30.0, 43.0], [10.0, 10.0]])
+    moves = torch.tensor([[1.0, 0.0], [1.0, 0.5], [-5.0, 1.0], [0.5, 1.0], [1.0, -1.0]])
+    expected = torch.tensor(
+        [[28.0, 40.0], [27.5, 30.5], [1.5, 3.0], [30.5, 43.5], [11.0, 9.0]]
+    )  # through the door; face stop, y slides; border; door's side; free
+    assert torch.equal(wall_collision(pos, moves, layouts), expected)
+
+
+def _crossing_problems(p0, p1, layouts, slid_ok=False, tol=1e-4):
+    """Invariant violations of one step from p0 to p1 (all (B, 2)).
+
+    A side change must cross x = wall_x within the doorway. A huge move can
+    enter the doorway, hit the door's side and slide along it out of the slab:
+    then the straight line p0 -> p1 is not the path, so ``slid_ok`` accepts a
+    crossing that ends exactly on the doorway's edge.
+    """
+    x_lo, x_hi, y_lo, y_hi = wall_bounds(layouts)
+    wall_x = layouts[:, 0].float()
+    outside = ((p1 < LOW) | (p1 > HIGH)).any(-1)
+    x, y = p1.unbind(-1)
+    in_wall = (x > x_lo) & (x < x_hi) & ((y < y_lo) | (y > y_hi))
+    crossed = (p0[:, 0] < wall_x) != (p1[:, 0] < wall_x)
+    dx = p1[:, 0] - p0[:, 0]
+    t = (wall_x - p0[:, 0]) / torch.where(dx == 0, torch.ones_like(dx), dx)
+    y_cross = p0[:, 1] + t * (p1[:, 1] - p0[:, 1])
+    through_wall = crossed & ((y_cross < y_lo - tol) | (y_cross > y_hi + tol))
+    if slid_ok:
+        through_wall &= (y != y_lo) & (y != y_hi)
+    return outside.sum().item(), in_wall.sum().item(), through_wall.sum().item(), crossed.sum()
+
+
+@pytest.mark.parametrize("clipped", [True, False])
+def test_fuzzed_walks_never_leave_the_arena_or_pass_through_the_wall(clipped):
+    g = torch.Generator().manual_seed(1 if clipped else 2)
+    n, steps = 2000, 60
+    layouts = random_layouts(n, g)
+    pos = sample_positions(layouts, g)
+    crossings = 0
+    for _ in range(steps):
+        moves = 2 * torch.randn(n, 2, generator=g)
+        huge = torch.rand(n, generator=g) < 0.1
+        moves[huge] *= 100
+        new = transition(pos, moves, layouts) if clipped else wall_collision(pos, moves, layouts)
+        limit = clip_actions(moves) if clipped else moves
+        assert ((new - pos).abs() <= limit.abs() + 1e-5).all()  # a move never gets longer
+        outside, in_wall, through_wall, crossed = _crossing_problems(pos, new, layouts, not clipped)
+        assert (outside, in_wall, through_wall) == (0, 0, 0)
+        crossings += crossed
+        pos = new
+    assert crossings > 50  # the door is really used
+
+
+def test_moves_that_touch_no_wall_are_unchanged():
+    g = torch.Generator().manual_seed(3)
+    layouts = random_layouts(4000, g)
+    pos = sample_positions(layouts, g)
+    moves = 1.8 * torch.randn(4000, 2, generator=g)
+    target = pos + moves
+    x_lo, x_hi, _, _ = wall_bounds(layouts)
+    left = (pos[:, 0] <= x_lo) & (target[:, 0] <= x_lo)
+    right = (pos[:, 0] >= x_hi) & (target[:, 0] >= x_hi)
+    inside = ((target >= LOW) & (target <= HIGH)).all(-1)
+    free = (left | right) & inside
+    assert free.sum() > 3000
+    new = wall_collision(pos, moves, layouts)
+    assert torch.equal(new[free], target[free])
+
+
+def test_clip_actions_keeps_direction_and_caps_norm():
+    actions = torch.tensor([[3.0, 4.0], [0.3, -0.4], [0.0, 0.0]])
+    clipped = clip_actions(actions)
+    assert torch.allclose(clipped[0], torch.tensor([1.08, 1.44]))
+    assert torch.equal(clipped[1:], actions[1:])
+
+
+def test_checker_accepts_reference_and_explains_mistakes(capsys):
+    assert check_wall_collision(wall_collision) is True
+    assert "Correct" in capsys.readouterr().out
+
+    def no_inner_wall(pos, moves, layouts):
+        return (pos + moves).clamp(LOW, HIGH)
+
+    with pytest.raises(ExerciseError, match="left the dot centre inside the wall"):
+        check_wall_collision(no_inner_wall)
+
+    def skips_long_moves(pos, moves, layouts):
+        long = moves.norm(dim=-1, keepdim=True) > 20
+        reference = wall_collision(pos, moves, layouts)
+        return torch.where(long, no_inner_wall(pos, moves, layouts), reference)
+
+    with pytest.raises(ExerciseError, match=r"pass through the wall at y=[\d.]+ where the door"):
+        check_wall_collision(skips_long_moves)
+
+    def door_always_shut(pos, moves, layouts):
+        x_lo, x_hi, _, _ = wall_bounds(layouts)
+        new = (pos + moves).clamp(LOW, HIGH)
+        x = torch.where(pos[:, 0] <= x_lo, new[:, 0].clamp(max=x_lo), new[:, 0].clamp(min=x_hi))
+        return torch.stack([x, new[:, 1]], -1)
+
+    with pytest.raises(ExerciseError, match="stopped the dot at the wall, but the door is open"):
+        check_wall_collision(door_always_shut)
+
+    def todo(pos, moves, layouts):
+        raise NotImplementedError
+
+    with pytest.raises(ExerciseError, match="not implemented yet"):
+        check_wall_collision(todo)
+
+
+# ----------------------------------------------------------------- bad input
+
+
+def test_bad_inputs_give_clear_errors():
+    layouts = torch.tensor([[30, 30]])
+    pos = torch.tensor([[10.0, 10.0]])
+    with pytest.raises(ValueError, match=r"shape \(1, 2\)"):
+        step(pos, torch.zeros(1, 3), layouts)
+    with pytest.raises(ValueError, match="NaN"):
+        step(pos, torch.tensor([[float("nan"), 0.0]]), layouts)
+    with pytest.raises(ValueError, match="wall_x=50 is outside"):
+        step(pos, torch.zeros(1, 2), torch.tensor([[50, 30]]))
+    with pytest.raises(ValueError, match="door_y=5 is outside"):
+        step(pos, torch.zeros(1, 2), torch.tensor([[30, 5]]))
+    with pytest.raises(ValueError, match="whole pixel"):
+        step(pos, torch.zeros(1, 2), torch.tensor([[30.5, 30.0]]))
+    with pytest.raises(ValueError, match="inside the wall"):
+        check_positions(torch.tensor([[30.0, 10.0]]), layouts)
+    for seed in ("3", 1.5, True, None):
+        with pytest.raises(TypeError, match="seed must be an int"):
+            make_episodes(4, seed=seed)
+        with pytest.raises(TypeError, match="seed must be an int"):
+            generate_trajectories(4, seed=seed)
+
+
+# ----------------------------------------------------------------- data policy
+
+
+def test_von_mises_sampler_statistics():
+    g = torch.Generator().manual_seed(0)
+    for kappa in (5.0, 0.5):
+        theta = sample_von_mises(kappa, (200_000,), g).double()
+        k = torch.tensor(kappa, dtype=torch.float64)
+        i0, i1 = torch.special.i0(k), torch.special.i1(k)
+        i2 = i0 - 2 / k * i1
+        assert abs(theta.cos().mean() - i1 / i0) < 0.005
+        assert abs(theta.sin().mean()) < 0.005
+        assert abs((2 * theta).cos().mean() - i2 / i0) < 0.006
+        # Kolmogorov-Smirnov distance to the CDF integrated from the density
+        grid = torch.linspace(-math.pi, math.pi, 20_001, dtype=torch.float64)
+        density = torch.distributions.VonMises(0.0, k).log_prob(grid).exp()
+        cdf = torch.cumulative_trapezoid(density, grid)
+        cdf = torch.cat([torch.zeros(1, dtype=torch.float64), cdf / cdf[-1]])
+        empirical = torch.searchsorted(theta.sort().values, grid) / len(theta)
+        assert (empirical - cdf).abs().max() < 0.006
+
+
+def test_truncated_normal_statistics():
+    x = sample_truncated_normal(1.0, 0.4, 0.2, 1.8, (200_000,), torch.Generator().manual_seed(0))
+    assert x.min() >= 0.2 and x.max() <= 1.8
+    # truncated at +-2 std: mean 1, std 0.4 * sqrt(1 - 4 phi(2) / (Phi(2) - Phi(-2)))
+    phi2 = math.exp(-2) / math.sqrt(2 * math.pi)
+    std = 0.4 * math.sqrt(1 - 4 * phi2 / math.erf(2 / math.sqrt(2)))
+    assert abs(x.mean() - 1.0) < 0.003 and abs(x.std() - std) < 0.003
+
+
+@pytest.fixture(scope="module")
+def data():
+    return generate_trajectories(20_000, seed=0)
+
+
+def test_trajectory_shapes_and_policy_statistics(data):
+    assert data.positions.shape == (20_000, 17, 2) and data.actions.shape == (20_000, 16, 2)
+    assert data.layouts.shape == (20_000, 2) and data.door.sum() == 7000
+    lengths = data.actions.norm(dim=-1)
+    assert lengths.min() >= 0.2 - 1e-5 and lengths.max() <= 1.8 + 1e-5
+    assert abs(lengths.mean() - 1.0) < 0.005
+    headings = torch.atan2(data.actions[..., 1], data.actions[..., 0])
+    turns = (headings[:, 1:] - headings[:, :-1]).double()
+    assert abs(turns.cos().mean() - 0.8934) < 0.003
+    assert abs(turns.sin().mean()) < 0.003
+
+
+def test_door_trajectories_change_rooms(data):
+    changes = data.changes_room()
+    assert changes[data.door].float().mean() > 0.6
+    assert changes[~data.door].float().mean() < 0.03
+    assert 0.2 < changes.float().mean() < 0.3
+
+
+def test_data_replays_through_the_environment_step(data):
+    few = data[:500]
+    pos = few.positions[:, 0]
+    for t in range(16):
+        pos = step(pos, few.actions[:, t], few.layouts)
+        assert torch.equal(pos, few.positions[:, t + 1])  # one transition function
+    frames = few.frames(slice(0, 3))
+    assert frames.shape == (3, 17, 2, 65, 65)
+
+
+def test_same_seed_same_data():
+    a, b = generate_trajectories(64, seed=7), generate_trajectories(64, seed=7)
+    c = generate_trajectories(64, seed=torch.Generator().manual_seed(7))
+    for field in ("positions", "actions", "layouts", "door"):
+        assert torch.equal(getattr(a, field), getattr(b, field))
+        assert torch.equal(getattr(a, field), getattr(c, field))
+    assert not torch.equal(a.positions, generate_trajectories(64, seed=8).positions)
+
+
+# ----------------------------------------------------------------- episodes
+
+
+def test_episodes_start_and_goal_in_opposite_rooms():
+    episodes = make_episodes(1000, seed=3)
+    check_positions(episodes.starts, episodes.layouts)
+    check_positions(episodes.goals, episodes.layouts)
+    start_rooms = room_of(episodes.starts, episodes.layouts)
+    assert (start_rooms != room_of(episodes.goals, episodes.layouts)).all()
+    assert 0.4 < start_rooms.float().mean() < 0.6
+    again = make_episodes(1000, seed=3)
+    assert torch.equal(episodes.goals, again.goals) and torch.equal(episodes.starts, again.starts)
+    assert not torch.equal(make_episodes(1000, seed=4).starts, episodes.starts)
+
+
+def test_environment_steps_and_scores():
+    env = TwoRoomsEnv()
+    obs = env.reset(n=8, seed=0)
+    assert obs.shape == (8, 2, 65, 65) and env.goal_images().shape == (8, 2, 65, 65)
+    goal_dot = env.goal_images()[:, 0].flatten(1).argmax(1)
+    goal_px = env.goals.round().long()
+    assert torch.equal(goal_dot, goal_px[:, 1] * 65 + goal_px[:, 0])
+    start = env.positions.clone()
+    env.step(torch.tensor([[0.6, 0.8]] * 8))
+    assert env.steps_taken == 1
+    assert torch.allclose(env.positions, step(start, torch.tensor([[0.6, 0.8]] * 8), env.layouts))
+    assert not env.success().any()  # goals are in the other room, far away
+    env.positions = env.goals.clone()
+    assert env.success().all() and torch.equal(env.distance_to_goal(), torch.zeros(8))
+    with pytest.raises(ValueError, match=r"shape \(8, 2\)"):
+        env.step(torch.zeros(4, 2))
+    with pytest.raises(RuntimeError, match="reset"):
+        TwoRoomsEnv().observe()
