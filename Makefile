@@ -13,7 +13,6 @@ TORCH ?= torch==2.13.0
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
-export EBJEPA_SCALE ?= class
 
 .PHONY: setup lab test test-fast book student bench lint clean
 

@@ -1,0 +1,194 @@
+"""The online book: book.yml checks (fast), then a real ci-scale build read in headless Chromium."""
+
+from __future__ import annotations
+
+import functools
+import http.server
+import re
+import shutil
+import subprocess
+import threading
+from html import escape as html_escape
+from html.parser import HTMLParser
+from pathlib import Path
+from urllib.parse import urljoin, urlparse
+
+import pytest
+from PIL import Image, ImageStat
+
+from ebjepa_tutorial import book as bk
+
+BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
+BROWSER_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                 # no host names resolve, so a page that needs the web fails here too
+                 "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1")
+
+
+def write_book(tmp_path: Path, text: str, chapters=("notebooks/00_a.ipynb",)) -> Path:
+    """A book.yml in ``tmp_path`` with empty chapter files; return its path."""
+    for chapter in chapters:
+        (tmp_path / chapter).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / chapter).write_text("{}")
+    path = tmp_path / "book.yml"
+    path.write_text(text)
+    return path
+
+
+def test_load_book_reads_every_setting(tmp_path):
+    path = write_book(tmp_path, "title: T\nauthors: Ada\nchapters: [notebooks/00_a.ipynb]\n"
+                                "execute: {scale: ci, cache: false, timeout: 60}\n")
+    book = bk.load_book(path)
+    assert (book.title, book.authors, book.chapters) == ("T", ("Ada",), ("notebooks/00_a.ipynb",))
+    assert (book.scale, book.cache, book.timeout, book.root) == ("ci", False, 60, tmp_path)
+
+
+@pytest.mark.parametrize("text, problem", [
+    ("title: T\nchapters: [notebooks/00_a.ipynb]\ncolour: red\n", "unknown keys"),
+    ("title: T\nchapters: [notebooks/09_missing.ipynb]\n", "does not exist"),
+    ("title: T\nchapters: [../outside.ipynb]\n", "inside"),
+    ("title: T\nchapters: [notebooks/00_a.ipynb]\nexecute: {scale: huge}\n", "not one of"),
+    ("chapters: [notebooks/00_a.ipynb]\n", "needs a `title`"),
+])
+def test_load_book_names_the_problem(tmp_path, text, problem):
+    with pytest.raises(bk.BookError, match=problem):
+        bk.load_book(write_book(tmp_path, text))
+
+
+def test_scale_comes_from_flag_then_environment_then_book(tmp_path):
+    book = bk.load_book(write_book(tmp_path, "title: T\nchapters: [notebooks/00_a.ipynb]\n"
+                                             "execute: {scale: full}\n"))
+    assert bk.resolve_scale(book, None, {}) == "full"
+    assert bk.resolve_scale(book, None, {"EBJEPA_SCALE": "CI"}) == "ci"
+    assert bk.resolve_scale(book, "class", {"EBJEPA_SCALE": "ci"}) == "class"
+    with pytest.raises(bk.BookError, match="not one of"):
+        bk.resolve_scale(book, None, {"EBJEPA_SCALE": "tiny"})
+
+
+def test_generated_project_is_offline_and_lists_chapters(tmp_path):
+    chapters = ("notebooks/00_a.ipynb", "notebooks/01_b.ipynb")
+    book = bk.load_book(write_book(tmp_path, "title: My Book\nchapters: [notebooks/00_a.ipynb, "
+                                             "notebooks/01_b.ipynb]\n", chapters))
+    conf = bk.conf_py(book, tmp_path / "cache")
+    assert "mathjax_path = 'mathjax/MathJax.js'" in conf and "http" not in conf
+    assert "nb_execution_raise_on_error = True" in conf
+    index = bk.index_md(book, "ci")
+    assert index.startswith("# My Book") and "`ci`" in index
+    assert index.index("notebooks/00_a\n") < index.index("notebooks/01_b\n")
+
+
+def test_failure_message_names_notebook_cell_and_error():
+    log = ("\x1b[31mValueError\x1b[39m: boom\nAn error occurred while executing the following "
+           "cell:\n------------------\nx = 1 / 0\n------------------\n\nZeroDivisionError: "
+           "division by zero\n [mystnb.exec]\nTraceback\n  myst_nb.ExecutionError: "
+           "/b/book-src/notebooks/03_x.ipynb\nValueError: unrelated\n")
+    message = bk.explain_failure(log, "ci", 2)
+    assert "03_x.ipynb" in message and "x = 1 / 0" in message
+    assert "ZeroDivisionError: division by zero" in message and "EBJEPA_SCALE=ci" in message
+
+
+# ---- the real book, built at ci scale and opened in a browser (slow) ----
+
+
+class LinkCollector(HTMLParser):
+    """Collects the hrefs of links inside the sidebar's chapter navigation."""
+
+    def __init__(self):
+        super().__init__()
+        self.depth, self.links = 0, []
+
+    def handle_starttag(self, tag, attrs):
+        attrs = dict(attrs)
+        if tag == "nav" and "bd-docs-nav" in (attrs.get("class") or ""):
+            self.depth = 1
+        elif tag == "nav" and self.depth:
+            self.depth += 1
+        elif tag == "a" and self.depth:
+            self.links.append(attrs.get("href", ""))
+
+    def handle_endtag(self, tag):
+        if tag == "nav" and self.depth:
+            self.depth -= 1
+
+
+class QuietHandler(http.server.SimpleHTTPRequestHandler):
+    """Serves the built site without logging every request."""
+
+    def log_message(self, *args):
+        pass
+
+
+def find_browser() -> str:
+    for name in BROWSERS:
+        if path := shutil.which(name):
+            return path
+    pytest.skip("no headless Chromium found: install one (Debian: `apt-get install chromium`) "
+                "to read the built book in a browser")
+
+
+def run_browser(url: str, profile: Path, *args: str) -> str:
+    """Open ``url`` in headless Chromium, let scripts run 10 s of virtual time; return stdout."""
+    command = [find_browser(), *BROWSER_FLAGS, f"--user-data-dir={profile}",
+               "--virtual-time-budget=10000", *args, url]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=180)
+    assert result.returncode == 0, result.stderr[-2000:]
+    return result.stdout
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory):
+    """Build the book described by the repository's book.yml at ci scale; serve it locally."""
+    work = tmp_path_factory.mktemp("book")
+    html = bk.build_book(bk.DEFAULT_CONFIG, scale="ci", work=work)
+    handler = functools.partial(QuietHandler, directory=str(html))
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)  # a free port
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    yield bk.load_book(bk.DEFAULT_CONFIG), html, f"http://127.0.0.1:{server.server_port}/", work
+    server.shutdown()
+
+
+@pytest.mark.slow
+def test_site_loads_nothing_from_the_network(site):
+    _, html, _, _ = site
+    assert (html / "_static" / "mathjax" / "MathJax.js").is_file()
+    assert bk.find_external_assets(html) == []
+
+
+@pytest.mark.slow
+@pytest.mark.browser
+def test_index_shows_title_and_chapter_navigation(site):
+    book, _, url, work = site
+    dom = run_browser(url + "index.html", work / "profile-index", "--dump-dom")
+    title = html_escape(book.title, quote=False)
+    assert f"<title>{title}" in dom
+    assert re.search(rf"<h1[^>]*>\s*{re.escape(title)}\s*<", dom), "no title heading"
+    nav = LinkCollector()
+    nav.feed(dom)
+    pages = [urlparse(urljoin(url, href)).path.lstrip("/") for href in nav.links]
+    for chapter in book.chapters:
+        assert str(Path(chapter).with_suffix(".html")) in pages, (chapter, pages)
+
+
+@pytest.mark.slow
+@pytest.mark.browser
+def test_first_chapter_renders_math_and_figures(site):
+    book, html, url, work = site
+    page = str(Path(book.chapters[0]).with_suffix(".html"))
+    dom = run_browser(url + page, work / "profile-dom", "--dump-dom")
+    assert "<title>" in dom and "bd-docs-nav" in dom
+    assert re.search(r'class="MathJax(_Display)?"', dom), "MathJax rendered no math"
+    visible = re.sub(r"<script\b.*?</script>", "", dom, flags=re.S)
+    assert "\\(" not in visible and "\\[" not in visible, "raw TeX left on the page"
+    assert "Math Processing Error" not in visible
+    images = re.findall(r'<img\b[^>]*\bsrc="([^"]*_images/[^"]+\.png)"', dom)
+    assert images, "no figure (PNG output of a notebook cell) on the page"
+    with Image.open(html / Path(page).parent / images[0]) as figure:
+        assert min(figure.size) > 50
+
+    shot = work / "chapter-00.png"
+    run_browser(url + page, work / "profile-shot", f"--screenshot={shot}",
+                "--window-size=1280,2000", "--hide-scrollbars")
+    with Image.open(shot) as picture:
+        assert picture.size == (1280, 2000)
+        assert max(ImageStat.Stat(picture.convert("L")).stddev) > 10, "blank screenshot"
+    print(f"screenshot of {page}: {shot}")
