@@ -1,0 +1,284 @@
+"""Moving MNIST, generated in code: digits bouncing in a 64x64 frame.
+
+Srivastava et al. (2015) made videos of two MNIST digits moving in straight
+lines and bouncing off the edges of a 64x64 frame. We build the same videos
+from any stack of digits, in a few tensor operations (no Python loop over
+clips), and keep what a detection probe needs: where every digit is in every
+frame, exactly.
+
+How a clip is made:
+
+- each digit gets a start position (top-left corner of its 28x28 patch, drawn
+  uniformly in ``[0, 64 - 28] = [0, 36]``) and a velocity of fixed ``speed``
+  (default 3.6 px/frame, a tenth of the free range, as in the usual script)
+  in a uniformly random direction;
+- positions are floats; when a digit would leave the frame its position is
+  reflected at the edge and that velocity component changes sign, so the
+  28x28 patch never leaves the frame;
+- the patch is pasted at the rounded position; overlapping digits are
+  combined by a pixel-wise maximum.
+
+What comes back, per digit and frame (``MovingMNISTBatch``): the integer
+top-left of the pasted patch (``offsets``); the *ink* bounding box, the tight
+box around the digit's non-zero pixels as pasted (``boxes``, ``(x0, y0, x1,
+y1)`` with exclusive ends, so ``x1 - x0`` is the width); and ``centres``, the
+centre of that ink box in pixel units (pixel ``i`` covers ``[i, i + 1)``).
+The ink box is used rather than the 28x28 patch because MNIST digits are
+not centred in their patch, and a probe should find the digit, not its margin.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ebjepa_tutorial.data.paths import DataNotFoundError, cache_dir, data_dir
+from ebjepa_tutorial.utils import make_generator
+
+FRAME_SIZE = 64
+DEFAULT_SPEED = 3.6  # px per frame: 0.1 of the free range 64 - 28 = 36
+MOVING_MNIST_URL = "http://www.cs.toronto.edu/~nitish/unsupervised_video/mnist_test_seq.npy"
+SEQ_FILE = "mnist_test_seq.npy"
+
+
+@dataclass
+class MovingMNISTBatch:
+    """Clips and the exact position of every digit in every frame.
+
+    ``N`` clips, ``T`` frames, ``K`` digits per clip, frames ``S x S``:
+
+    - ``clips``: uint8 ``(N, T, 1, S, S)``
+    - ``centres``: float32 ``(N, T, K, 2)``, ``(x, y)`` centre of the ink box
+    - ``boxes``: int64 ``(N, T, K, 4)``, ink box ``(x0, y0, x1, y1)``, ends exclusive
+    - ``offsets``: int64 ``(N, T, K, 2)``, ``(x, y)`` top-left of the pasted patch
+    - ``velocities``: float32 ``(N, T, K, 2)``, velocity from frame ``t`` to ``t + 1``
+    - ``digit_ids``: int64 ``(N, K)``, which row of ``digits`` each digit is
+    """
+
+    clips: torch.Tensor
+    centres: torch.Tensor
+    boxes: torch.Tensor
+    offsets: torch.Tensor
+    velocities: torch.Tensor
+    digit_ids: torch.Tensor
+
+    def __len__(self) -> int:
+        return self.clips.shape[0]
+
+
+def _as_generator(seed: int | torch.Generator) -> torch.Generator:
+    if isinstance(seed, torch.Generator):
+        return seed
+    return make_generator(seed)
+
+
+def check_digits(digits) -> torch.Tensor:
+    """Return ``digits`` as a uint8 ``(N, H, W)`` tensor, or raise a clear error.
+
+    Accepts uint8 ``(N, 1, H, W)`` (our image layout) or ``(N, H, W)``, as a
+    tensor or a NumPy array.
+    """
+    if isinstance(digits, np.ndarray):
+        digits = torch.from_numpy(digits)
+    if not isinstance(digits, torch.Tensor):
+        raise TypeError(f"digits must be a tensor or array, got {type(digits).__name__}")
+    if digits.ndim == 4 and digits.shape[1] == 1:
+        digits = digits[:, 0]
+    if digits.ndim != 3 or digits.shape[0] == 0:
+        raise ValueError(
+            f"digits must be (N, 1, H, W) or (N, H, W) with N >= 1, got {tuple(digits.shape)}; "
+            "pass the images returned by load_mnist"
+        )
+    if digits.dtype != torch.uint8:
+        raise TypeError(
+            f"digits must be uint8 in 0..255, got {digits.dtype}; convert floats in [0, 1] "
+            "with (x * 255).round().to(torch.uint8)"
+        )
+    return digits
+
+
+def split_digits(digits, n_train: int = 8000, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Split digits ``(N, ...)`` into ``n_train`` training and ``N - n_train`` held-out digits.
+
+    The split is a seeded permutation (the official MNIST test file is not in
+    random order: its two halves come from different writers), so evaluation
+    clips can be built only from digits the model never saw. Same seed, same split.
+    """
+    n = len(digits)
+    if not 0 < n_train < n:
+        raise ValueError(f"n_train must be between 1 and {n - 1} for {n} digits, got {n_train}")
+    order = torch.randperm(n, generator=make_generator(seed))
+    return digits[order[:n_train]], digits[order[n_train:]]
+
+
+def ink_boxes(digits: torch.Tensor) -> torch.Tensor:
+    """Tight box around the non-zero pixels of each digit: ``(N, H, W)`` -> int64 ``(N, 4)``.
+
+    ``(x0, y0, x1, y1)`` in the digit's own patch, ends exclusive. A blank
+    digit (no ink) gets the whole patch ``(0, 0, W, H)``.
+    """
+    ink = digits > 0
+    n, h, w = ink.shape
+    boxes = []
+    for any_ink, size in ((ink.any(dim=1), w), (ink.any(dim=2), h)):  # columns, then rows
+        first = any_ink.int().argmax(dim=1)
+        last = size - any_ink.flip(1).int().argmax(dim=1)
+        blank = ~any_ink.any(dim=1)
+        boxes.append((first.masked_fill(blank, 0), last.masked_fill(blank, size)))
+    (x0, x1), (y0, y1) = boxes
+    return torch.stack([x0, y0, x1, y1], dim=1).long()
+
+
+def bounce_trajectories(
+    start: torch.Tensor, velocity: torch.Tensor, n_frames: int, limit: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Move points in straight lines inside ``[0, limit]``, reflecting at the edges.
+
+    ``start``, ``velocity``: ``(..., 2)``. Returns ``positions`` and
+    ``velocities``, each ``(n_frames, ..., 2)``: ``positions[t + 1]`` is
+    ``positions[t] + velocities[t]``, reflected at 0 or ``limit`` if it
+    crossed one, and ``velocities[t + 1]`` is ``velocities[t]`` with the sign
+    of each reflected component flipped. Needs ``|velocity| <= limit`` so a
+    step crosses at most one edge per axis. The loop runs over frames only.
+    """
+    if velocity.abs().max() > limit:
+        raise ValueError(f"speed per axis must be at most the free range {limit}")
+    position, velocity = start.clone(), velocity.clone()
+    positions, velocities = [], []
+    for _ in range(n_frames):
+        positions.append(position.clone())
+        velocities.append(velocity.clone())
+        position = position + velocity
+        below, above = position < 0, position > limit
+        position = torch.where(below, -position, position)
+        position = torch.where(above, 2 * limit - position, position)
+        velocity = torch.where(below | above, -velocity, velocity)
+    return torch.stack(positions), torch.stack(velocities)
+
+
+def paste_digits(frames: torch.Tensor, patches: torch.Tensor, offsets: torch.Tensor) -> None:
+    """Paste patches into ``frames`` in place, combining overlaps by maximum.
+
+    ``frames``: uint8 ``(M, S, S)``, contiguous (usually zeros);
+    ``patches``: uint8 ``(M, K, h, w)``; ``offsets``: int64 ``(M, K, 2)``,
+    ``(x, y)`` top-left of each patch, inside the frame. One ``scatter_reduce``
+    with ``amax`` writes every pixel of every patch at its flat index
+    ``(y + i) * S + (x + j)``: no Python loop over frames or digits.
+    """
+    m, k, h, w = patches.shape
+    size = frames.shape[-1]
+    rows, cols = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    pixel = (rows * size + cols).reshape(1, 1, h * w)
+    corner = (offsets[..., 1] * size + offsets[..., 0]).unsqueeze(-1)
+    index = (corner + pixel).reshape(m, k * h * w)
+    flat = frames.view(m, size * size)  # a view, so the scatter writes into frames
+    flat.scatter_reduce_(1, index, patches.reshape(m, k * h * w), reduce="amax")
+
+
+def generate_moving_mnist(
+    digits,
+    n_clips: int,
+    n_frames: int = 10,
+    n_digits: int = 2,
+    speed: float = DEFAULT_SPEED,
+    size: int = FRAME_SIZE,
+    seed: int | torch.Generator = 0,
+    chunk: int = 128,
+) -> MovingMNISTBatch:
+    """Make ``n_clips`` Moving MNIST clips of ``n_frames`` frames from ``digits``.
+
+    ``digits``: uint8 ``(D, 1, h, w)`` or ``(D, h, w)`` (for held-out
+    evaluation, pass the second half of :func:`split_digits`). Each clip shows
+    ``n_digits`` digits drawn with replacement. ``seed`` is an int or a
+    ``torch.Generator``; the same seed gives identical clips. Pasting works on
+    ``chunk`` clips at a time to bound memory. See the module docstring for
+    what each field of the returned :class:`MovingMNISTBatch` means.
+    """
+    digits = check_digits(digits)
+    h, w = digits.shape[1:]
+    counts = {"n_clips": n_clips, "n_frames": n_frames, "n_digits": n_digits, "chunk": chunk}
+    for name, value in counts.items():
+        if not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be a positive int, got {value!r}")
+    if h != w or h > size:
+        raise ValueError(f"digits must be square and fit in {size}x{size} frames, got {h}x{w}")
+    limit = float(size - h)
+    if not 0 <= speed <= limit:
+        raise ValueError(f"speed must be in [0, {limit}] px/frame (the free range), got {speed}")
+    generator = _as_generator(seed)
+
+    digit_ids = torch.randint(len(digits), (n_clips, n_digits), generator=generator)
+    start = torch.rand(n_clips, n_digits, 2, generator=generator) * limit
+    angle = torch.rand(n_clips, n_digits, generator=generator) * (2 * math.pi)
+    velocity = speed * torch.stack([angle.cos(), angle.sin()], dim=-1)
+    positions, velocities = bounce_trajectories(start, velocity, n_frames, limit)
+    offsets = positions.round().long().transpose(0, 1).contiguous()  # (N, T, K, 2)
+
+    clips = torch.empty(n_clips, n_frames, 1, size, size, dtype=torch.uint8)
+    for lo in range(0, n_clips, chunk):  # chunks bound the index memory and stay in cache
+        hi = min(lo + chunk, n_clips)
+        clips[lo:hi].zero_()
+        patches = digits[digit_ids[lo:hi]].unsqueeze(1).expand(-1, n_frames, -1, -1, -1)
+        paste_digits(
+            clips[lo:hi].view(-1, size, size),
+            patches.reshape(-1, n_digits, h, w),
+            offsets[lo:hi].reshape(-1, n_digits, 2),
+        )
+
+    ink = ink_boxes(digits[digit_ids.flatten()]).view(n_clips, 1, n_digits, 4)  # in the patch
+    boxes = ink + offsets.repeat(1, 1, 1, 2)
+    centres = (boxes[..., :2] + boxes[..., 2:]).float() / 2
+    return MovingMNISTBatch(
+        clips=clips,
+        centres=centres,
+        boxes=boxes,
+        offsets=offsets,
+        velocities=velocities.transpose(0, 1).contiguous(),
+        digit_ids=digit_ids,
+    )
+
+
+def centres_to_grid(centres: torch.Tensor, size: int = FRAME_SIZE, grid: int = 8) -> torch.Tensor:
+    """Detection targets: which cells of a ``grid x grid`` tiling hold a digit centre.
+
+    ``centres``: ``(..., K, 2)`` as ``(x, y)`` pixels in a ``size x size``
+    frame. Returns float32 ``(..., grid, grid)`` of 0/1, indexed ``[row, col]``
+    = ``[y cell, x cell]``; a cell with two centres is still 1.
+    """
+    cell = torch.div(centres, size / grid, rounding_mode="floor").long().clamp(0, grid - 1)
+    flat = cell[..., 1] * grid + cell[..., 0]  # (..., K)
+    target = torch.zeros(*flat.shape[:-1], grid * grid)
+    target.scatter_(-1, flat, 1.0)
+    return target.view(*flat.shape[:-1], grid, grid)
+
+
+def load_moving_mnist_file(path: str | Path | None = None, n_clips: int | None = None):
+    """Read the standard ``mnist_test_seq.npy`` into our layout: uint8 ``(N, T, 1, 64, 64)``.
+
+    The file holds 10,000 clips of 20 frames stored time-first, ``(20, 10000,
+    64, 64)``. It has no digit positions, so it cannot give detection targets.
+    ``path`` defaults to ``mnist_test_seq.npy`` in the data directory
+    (``$EBJEPA_DATA`` or ``data/``), then in the cache directory.
+    ``n_clips`` keeps only the first clips (the file is memory-mapped).
+    """
+    candidates = (
+        [Path(path)] if path is not None else [data_dir() / SEQ_FILE, cache_dir() / SEQ_FILE]
+    )
+    found = [p for p in candidates if p.is_file()]
+    if not found:
+        raise DataNotFoundError(
+            f"no {SEQ_FILE} at {' or '.join(map(str, candidates))}. Download it from "
+            f"{MOVING_MNIST_URL} and save it there (or pass its path), or make clips "
+            "with generate_moving_mnist, which also gives digit positions."
+        )
+    seq = np.load(found[0], mmap_mode="r")
+    if seq.ndim != 4 or seq.dtype != np.uint8:
+        raise ValueError(
+            f"{found[0]} should hold uint8 (T, N, H, W) frames, got {seq.dtype} {seq.shape}"
+        )
+    seq = seq[:, :n_clips] if n_clips is not None else seq
+    return torch.from_numpy(np.ascontiguousarray(seq.transpose(1, 0, 2, 3)))[:, :, None]

@@ -1,0 +1,104 @@
+"""Detection average precision (AP) for the Moving MNIST probe, without sklearn.
+
+The probe scores every cell of an 8x8 grid in every frame; a cell is a
+positive if it holds a digit centre. We rank *all* cells of *all* clips of the
+evaluation set together, for one prediction horizon at a time, and summarise
+the ranking by its average precision:
+
+    AP = sum_k (R_k - R_{k-1}) P_k
+
+where ``k`` runs over the distinct score thresholds from highest to lowest,
+``P_k`` and ``R_k`` are the precision and recall of "score >= threshold k",
+and ``R_0 = 0``. This is the step-wise area under the precision-recall curve
+(no interpolation), the definition of sklearn's ``average_precision_score``.
+Tied scores form one threshold: they enter the ranking together, so the
+order of tied cells cannot change the AP.
+
+The reference code averages AP over batches; an AP of a batch depends on
+what else happens to be in it, so we compute it over the whole set instead.
+mAP is the mean of the per-horizon APs.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def _check_scores_targets(scores: torch.Tensor, targets: torch.Tensor) -> None:
+    if not isinstance(scores, torch.Tensor) or not isinstance(targets, torch.Tensor):
+        raise TypeError("scores and targets must be tensors")
+    if scores.shape != targets.shape:
+        raise ValueError(
+            f"scores {tuple(scores.shape)} and targets {tuple(targets.shape)} differ in shape"
+        )
+    if scores.numel() == 0:
+        raise ValueError("scores is empty: AP needs at least one scored cell")
+    if not torch.isfinite(scores).all():
+        raise ValueError("scores contain NaN or infinity; check the model's outputs")
+    if not ((targets == 0) | (targets == 1)).all():
+        raise ValueError("targets must be binary (0/1 or bool), e.g. from centres_to_grid")
+
+
+def precision_recall_curve(
+    scores: torch.Tensor, targets: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Precision and recall at every distinct score threshold, highest first.
+
+    ``scores``, ``targets``: any equal shapes, flattened together. Returns
+    float64 ``precision`` and ``recall``, and the ``thresholds`` (scores, in
+    their own dtype), each ``(n_distinct,)``: entry ``k`` describes predicting positive every cell
+    with ``score >= thresholds[k]``. Raises if there is no positive target
+    (recall, hence AP, is then undefined).
+    """
+    _check_scores_targets(scores, targets)
+    scores = scores.detach().flatten().cpu()
+    targets = targets.detach().flatten().double().cpu()
+    n_positive = targets.sum()
+    if n_positive == 0:
+        raise ValueError(
+            "targets hold no positive cell, so recall and AP are undefined; "
+            "evaluate on clips that contain digits"
+        )
+    scores, order = torch.sort(scores, descending=True, stable=True)
+    true_pos = targets[order].cumsum(0)
+    seen = torch.arange(1, len(scores) + 1, dtype=torch.float64)
+    # The last cell of each run of tied scores closes a threshold: all ties count together.
+    last_of_tie = torch.ones(len(scores), dtype=torch.bool)
+    last_of_tie[:-1] = scores[1:] != scores[:-1]
+    true_pos, seen = true_pos[last_of_tie], seen[last_of_tie]
+    return true_pos / seen, true_pos / n_positive, scores[last_of_tie]
+
+
+def average_precision(scores: torch.Tensor, targets: torch.Tensor) -> float:
+    """``AP = sum_k (R_k - R_{k-1}) P_k`` over all cells of ``scores`` / ``targets``.
+
+    Shapes are any, equal; everything is ranked together. Perfect ranking
+    gives 1; a random ranking gives about the fraction of positive cells.
+    """
+    precision, recall, _ = precision_recall_curve(scores, targets)
+    recall_step = torch.diff(recall, prepend=recall.new_zeros(1))
+    return float((recall_step * precision).sum())
+
+
+def average_precision_per_horizon(
+    scores: torch.Tensor, targets: torch.Tensor, horizon_dim: int = 1
+) -> torch.Tensor:
+    """One AP per horizon: ``scores``, ``targets`` ``(N, H, ...)`` -> float64 ``(H,)``.
+
+    For horizon ``h`` the AP ranks every cell of every clip at that horizon
+    (``scores.select(horizon_dim, h)``), over the whole evaluation set.
+    """
+    _check_scores_targets(scores, targets)
+    n_horizons = scores.shape[horizon_dim]
+    aps = [
+        average_precision(scores.select(horizon_dim, h), targets.select(horizon_dim, h))
+        for h in range(n_horizons)
+    ]
+    return torch.tensor(aps, dtype=torch.float64)
+
+
+def mean_average_precision(
+    scores: torch.Tensor, targets: torch.Tensor, horizon_dim: int = 1
+) -> float:
+    """mAP: the mean over horizons of :func:`average_precision_per_horizon`."""
+    return float(average_precision_per_horizon(scores, targets, horizon_dim).mean())

@@ -1,0 +1,116 @@
+"""Average precision: hand-computed cases, ties, errors, per-horizon mAP."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from ebjepa_tutorial.metrics import (
+    average_precision,
+    average_precision_per_horizon,
+    mean_average_precision,
+    precision_recall_curve,
+)
+
+
+def brute_force_ap(scores: list[float], targets: list[int]) -> float:
+    """AP straight from the definition: one threshold per distinct score, highest first."""
+    n_pos, ap, last_recall = sum(targets), 0.0, 0.0
+    for threshold in sorted(set(scores), reverse=True):
+        chosen = [t for s, t in zip(scores, targets, strict=True) if s >= threshold]
+        precision, recall = sum(chosen) / len(chosen), sum(chosen) / n_pos
+        ap += (recall - last_recall) * precision
+        last_recall = recall
+    return ap
+
+
+def test_ap_by_hand():
+    # ranks 1..5 hit, miss, hit, miss, hit: P = 1, 1/2, 2/3, 2/4, 3/5 and R = 1/3, 1/3, 2/3, 2/3, 1
+    # AP = 1/3 * 1 + 1/3 * 2/3 + 1/3 * 3/5 = 34/45
+    scores = torch.tensor([0.9, 0.8, 0.7, 0.6, 0.5])
+    targets = torch.tensor([1, 0, 1, 0, 1])
+    assert average_precision(scores, targets) == pytest.approx(34 / 45)
+    shuffled = torch.tensor([3, 0, 4, 1, 2])  # input order does not matter, only the ranking
+    assert average_precision(scores[shuffled], targets[shuffled]) == pytest.approx(34 / 45)
+
+
+def test_curve_by_hand():
+    precision, recall, thresholds = precision_recall_curve(
+        torch.tensor([0.1, 0.9, 0.5, 0.5]), torch.tensor([1, 0, 1, 0])
+    )
+    assert torch.equal(thresholds, torch.tensor([0.9, 0.5, 0.1]))
+    assert torch.allclose(precision, torch.tensor([0.0, 1 / 3, 2 / 4], dtype=torch.float64))
+    assert torch.allclose(recall, torch.tensor([0.0, 1 / 2, 1.0], dtype=torch.float64))
+
+
+def test_ties_enter_the_ranking_together():
+    # 0.9: P 0, R 0; the tied pair at 0.5: P 1/3, R 1/2; 0.1: P 2/4, R 1 -> AP = 1/6 + 1/4
+    scores = torch.tensor([0.9, 0.5, 0.5, 0.1])
+    for targets in ([0, 1, 0, 1], [0, 0, 1, 1]):  # either order of the tied pair
+        assert average_precision(scores, torch.tensor(targets)) == pytest.approx(5 / 12)
+    # one tied group for everything: AP is the fraction of positives
+    assert average_precision(torch.zeros(8), torch.tensor([1, 0, 0, 1, 0, 0, 0, 0])) == 0.25
+
+
+def test_perfect_and_worst_ranking():
+    targets = torch.tensor([0, 1, 0, 1, 1, 0, 0])
+    assert average_precision(targets.float() * 3 - 1, targets) == 1.0
+    # both positives ranked last of four: P = 1/3 then 2/4 at recall 1/2 and 1
+    worst = average_precision(torch.tensor([4.0, 3.0, 2.0, 1.0]), torch.tensor([0, 0, 1, 1]))
+    assert worst == pytest.approx(0.5 * 1 / 3 + 0.5 * 2 / 4)
+
+
+def test_matches_the_definition_on_random_scores_with_ties():
+    g = torch.Generator().manual_seed(0)
+    for _ in range(20):
+        scores = torch.randint(0, 6, (60,), generator=g).float() / 5  # many ties
+        targets = (torch.rand(60, generator=g) < 0.3).long()
+        targets[0] = 1
+        expected = brute_force_ap(scores.tolist(), targets.tolist())
+        assert average_precision(scores, targets) == pytest.approx(expected)
+
+
+def test_bool_targets_and_any_shape():
+    scores = torch.tensor([[0.9, 0.8], [0.7, 0.6]])
+    targets = torch.tensor([[True, False], [False, True]])
+    assert average_precision(scores, targets) == pytest.approx(0.5 * 1 + 0.5 * 2 / 4)
+
+
+def test_bad_input_is_a_clear_error():
+    with pytest.raises(ValueError, match="no positive"):
+        average_precision(torch.rand(10), torch.zeros(10))
+    with pytest.raises(ValueError, match="differ in shape"):
+        average_precision(torch.rand(10), torch.zeros(9))
+    with pytest.raises(ValueError, match="binary"):
+        average_precision(torch.rand(3), torch.tensor([0.0, 0.5, 1.0]))
+    with pytest.raises(ValueError, match="NaN"):
+        average_precision(torch.tensor([0.1, float("nan")]), torch.tensor([1, 0]))
+    with pytest.raises(ValueError, match="empty"):
+        average_precision(torch.zeros(0), torch.zeros(0))
+
+
+def test_per_horizon_ap_ranks_the_whole_set():
+    g = torch.Generator().manual_seed(1)
+    targets = (torch.rand(6, 3, 8, 8, generator=g) < 0.05).float()
+    targets[:, :, 0, 0] = 1
+    scores = torch.rand(6, 3, 8, 8, generator=g)
+    scores[:, 0] = targets[:, 0]  # horizon 0: perfect
+    aps = average_precision_per_horizon(scores, targets)
+    assert aps.shape == (3,) and aps[0] == 1.0
+    for h in (1, 2):
+        assert aps[h] == pytest.approx(average_precision(scores[:, h], targets[:, h]))
+    assert mean_average_precision(scores, targets) == pytest.approx(float(aps.mean()))
+    moved = average_precision_per_horizon(scores.movedim(1, 0), targets.movedim(1, 0), 0)
+    assert torch.equal(moved, aps)
+
+
+def test_whole_set_ap_is_not_the_mean_of_batch_aps():
+    # Batch A ranks well on its own scale, batch B on a lower one; pooled, B's positive
+    # falls below A's negative, which per-batch averaging would hide.
+    scores_a, targets_a = torch.tensor([0.9, 0.8]), torch.tensor([1, 0])
+    scores_b, targets_b = torch.tensor([0.3, 0.2]), torch.tensor([1, 0])
+    ap_a, ap_b = average_precision(scores_a, targets_a), average_precision(scores_b, targets_b)
+    per_batch = (ap_a + ap_b) / 2
+    pooled = average_precision(torch.cat([scores_a, scores_b]), torch.cat([targets_a, targets_b]))
+    assert per_batch == 1.0
+    assert pooled == pytest.approx(0.5 * 1 + 0.5 * 2 / 3)
