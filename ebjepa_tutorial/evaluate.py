@@ -1,0 +1,208 @@
+"""How good is a frozen representation? Linear probe and k-nearest-neighbour accuracy.
+
+The standard offline protocol: run the encoder once, in eval mode, over the
+un-augmented train and test images (:func:`extract_features`), then fit a
+classifier on the frozen train features and report its accuracy on the test
+features. Two classifiers:
+
+- :func:`linear_probe`: a linear layer on standardised features, trained with
+  mini-batch Adam and a cosine learning rate (seconds on a CPU for CIFAR-10).
+- :func:`knn_accuracy`: cosine similarity to every train feature, the ``k``
+  nearest vote for their label with weights ``exp(similarity / temperature)``
+  (the weighted kNN of Wu et al. 2018, InstDisc, also used by DINO), or one
+  vote each with ``temperature=None``.
+
+Never choose hyper-parameters on the test split: pass ``holdout_fraction`` to
+:func:`linear_probe`, or use :func:`holdout_split`, to score choices on a
+slice of the train split. Features ``(N, D)``, labels ``(N,)`` int64.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+from tqdm.auto import tqdm
+
+from .augment import normalize
+
+
+@torch.no_grad()
+def extract_features(
+    encoder: nn.Module,
+    images_uint8: torch.Tensor,
+    batch_size: int = 512,
+    device: torch.device | str | None = None,
+    progress: bool = True,
+) -> torch.Tensor:
+    """Embed un-augmented images: uint8 ``(N, 3, H, W)`` -> float32 ``(N, D)`` on the CPU.
+
+    The images are normalised with the CIFAR-10 statistics (as the training
+    views were) and the encoder runs in eval mode (BatchNorm uses its running
+    statistics); its previous mode is restored afterwards.
+    """
+    if images_uint8.dtype != torch.uint8:
+        raise TypeError(
+            f"extract_features expects the stored uint8 images, got {images_uint8.dtype}; "
+            "pass the (N, 3, H, W) uint8 tensor of the data set"
+        )
+    device = torch.device(device) if device is not None else next(encoder.parameters()).device
+    was_training = encoder.training
+    encoder.eval()
+    chunks = []
+    batches = range(0, len(images_uint8), batch_size)
+    disable = not progress or len(batches) < 5
+    try:
+        for start in tqdm(batches, desc="features", leave=False, disable=disable):
+            batch = normalize(images_uint8[start : start + batch_size].to(device))
+            chunks.append(encoder(batch).float().cpu())
+    finally:
+        encoder.train(was_training)
+    return torch.cat(chunks)
+
+
+def holdout_split(
+    features: torch.Tensor, labels: torch.Tensor, fraction: float, seed: int = 0
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Split off a random ``fraction`` of the rows: ``(fit_x, fit_y, holdout_x, holdout_y)``."""
+    if not 0 < fraction < 1:
+        raise ValueError(f"holdout fraction must be in (0, 1), got {fraction}")
+    order = torch.randperm(len(features), generator=torch.Generator().manual_seed(seed))
+    n_holdout = max(1, round(fraction * len(features)))
+    hold, fit = order[:n_holdout], order[n_holdout:]
+    return features[fit], labels[fit], features[hold], labels[hold]
+
+
+def _check_pair(features: torch.Tensor, labels: torch.Tensor, name: str) -> None:
+    if features.ndim != 2 or labels.ndim != 1 or len(features) != len(labels):
+        raise ValueError(
+            f"{name}: need features (N, D) and labels (N,), got {tuple(features.shape)} "
+            f"and {tuple(labels.shape)}"
+        )
+
+
+def accuracy(logits: torch.Tensor, labels: torch.Tensor) -> float:
+    """Fraction of rows of ``logits`` ``(N, C)`` whose arg-max is the label ``(N,)``."""
+    return (logits.argmax(dim=1) == labels).float().mean().item()
+
+
+@dataclass
+class ProbeResult:
+    """What :func:`linear_probe` returns; accuracies are fractions in [0, 1]."""
+
+    test_accuracy: float
+    train_accuracy: float
+    holdout_accuracy: float | None  # None unless holdout_fraction > 0
+    head: nn.Linear  # expects standardised features: (x - mean) / std
+    mean: torch.Tensor  # (D,) train-feature mean used for standardising
+    std: torch.Tensor  # (D,)
+
+
+def linear_probe(
+    train_features: torch.Tensor,
+    train_labels: torch.Tensor,
+    test_features: torch.Tensor,
+    test_labels: torch.Tensor,
+    epochs: int = 30,
+    batch_size: int = 512,
+    lr: float = 1e-3,
+    weight_decay: float = 1e-4,
+    holdout_fraction: float = 0.0,
+    seed: int = 0,
+) -> ProbeResult:
+    """Train a linear classifier on frozen features; report its test accuracy.
+
+    Features are standardised with the (fit part of the) train split's mean and
+    std, then ``nn.Linear(D, C)`` is trained with mini-batch Adam, ``lr`` decaying
+    along a cosine to 0, for ``epochs`` passes. ``C`` is ``max(label) + 1``.
+    With ``holdout_fraction > 0`` that fraction of the train split is kept out
+    of training and scored separately (for choosing ``lr``, ``epochs``...).
+    """
+    _check_pair(train_features, train_labels, "train")
+    _check_pair(test_features, test_labels, "test")
+    holdout = None
+    if holdout_fraction > 0:
+        train_features, train_labels, *holdout = holdout_split(
+            train_features, train_labels, holdout_fraction, seed
+        )
+    mean, std = train_features.mean(dim=0), train_features.std(dim=0) + 1e-6
+    x_train = (train_features - mean) / std
+    num_classes = int(max(train_labels.max(), test_labels.max())) + 1
+    generator = torch.Generator().manual_seed(seed)
+    head = nn.Linear(x_train.shape[1], num_classes).to(x_train.device)
+    with torch.no_grad():  # seeded initialisation, independent of the global RNG
+        head.weight.copy_(torch.randn(head.weight.shape, generator=generator) * 0.01)
+        head.bias.zero_()
+    optimizer = torch.optim.Adam(head.parameters(), lr=lr, weight_decay=weight_decay)
+    steps_per_epoch = math.ceil(len(x_train) / batch_size)
+    scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, epochs * steps_per_epoch)
+    for _ in range(epochs):
+        order = torch.randperm(len(x_train), generator=generator)
+        for start in range(0, len(x_train), batch_size):
+            rows = order[start : start + batch_size]
+            loss = F.cross_entropy(head(x_train[rows]), train_labels[rows])
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+            scheduler.step()
+    with torch.no_grad():
+        train_acc = accuracy(head(x_train), train_labels)
+        test_acc = accuracy(head((test_features - mean) / std), test_labels)
+        hold_acc = accuracy(head((holdout[0] - mean) / std), holdout[1]) if holdout else None
+    return ProbeResult(test_acc, train_acc, hold_acc, head, mean, std)
+
+
+@torch.no_grad()
+def knn_predict(
+    train_features: torch.Tensor,
+    train_labels: torch.Tensor,
+    query_features: torch.Tensor,
+    k: int = 20,
+    temperature: float | None = 0.07,
+    chunk_size: int = 512,
+) -> torch.Tensor:
+    """Labels ``(Q,)`` predicted for queries ``(Q, D)`` by their ``k`` nearest train rows.
+
+    Similarity is cosine. Each neighbour votes for its label with weight
+    ``exp(similarity / temperature)``, or 1 when ``temperature`` is None (plain
+    majority; ties go to the smaller label). Queries are processed in chunks of
+    ``chunk_size`` to bound memory (chunk x N similarities at a time).
+    """
+    _check_pair(train_features, train_labels, "train")
+    k = min(k, len(train_features))
+    num_classes = int(train_labels.max()) + 1
+    train = F.normalize(train_features.float(), dim=1)
+    predictions = []
+    for start in range(0, len(query_features), chunk_size):
+        query = F.normalize(query_features[start : start + chunk_size].float(), dim=1)
+        similarity, index = (query @ train.T).topk(k, dim=1)  # (q, k)
+        if temperature is None:
+            weights = torch.ones_like(similarity)
+        else:
+            weights = (similarity / temperature).exp()
+        votes = torch.zeros(len(query), num_classes, device=query.device)
+        votes.scatter_add_(1, train_labels[index], weights)
+        predictions.append(votes.argmax(dim=1))
+    return torch.cat(predictions)
+
+
+def knn_accuracy(
+    train_features: torch.Tensor,
+    train_labels: torch.Tensor,
+    test_features: torch.Tensor,
+    test_labels: torch.Tensor,
+    k: int = 20,
+    temperature: float | None = 0.07,
+) -> float:
+    """Test accuracy (a fraction) of :func:`knn_predict` with ``k`` and ``temperature``.
+
+    No training, no hyper-parameters beyond ``k`` and ``temperature``, which
+    makes it a quick check during training; it usually lands a few points
+    below the linear probe.
+    """
+    _check_pair(test_features, test_labels, "test")
+    predicted = knn_predict(train_features, train_labels, test_features, k, temperature)
+    return (predicted == test_labels).float().mean().item()

@@ -1,0 +1,158 @@
+"""SIGReg: push embeddings towards an isotropic Gaussian with 1-D Gaussianity tests.
+
+LeJEPA (Balestriero & LeCun, 2025) regularises a joint-embedding model by
+asking its embeddings ``z`` of shape ``(B, D)`` to look like samples of
+N(0, I). Testing that in D dimensions is hard; testing it along one direction
+is easy. So each step draws ``num_slices`` random unit directions ``a``,
+projects ``x = z @ a`` (B numbers per direction), and scores each projection
+with the Epps-Pulley statistic, which compares characteristic functions:
+
+    phi_N(t) = (1/N) sum_n exp(i t x_n)        empirical characteristic function
+    phi(t)   = exp(-t^2 / 2)                   that of N(0, 1)
+    EP       = N * integral_{-T}^{T} |phi_N(t) - phi(t)|^2 w(t) dt,
+    w(t)     = exp(-t^2 / (2 sigma^2))         Gaussian weight
+
+By the Cramer-Wold theorem, a distribution whose every 1-D projection is
+N(0, 1) is N(0, I). Unlike VICReg's variance and covariance terms, this also
+constrains higher moments. The projections are NOT standardised first: the
+statistic must see the mean and the scale, or it could not prevent collapse.
+
+Scaling convention (read this before choosing ``lam``): LeJEPA multiplies the
+integral by the sample size N (``scale_by_n=True``, our default), which makes
+the statistic O(1) for Gaussian samples whatever the batch size (about 1.05
+with the default knots), while a collapsed batch scores about 0.4 N. An
+earlier release of the EB-JEPA reference code omits the factor N, so its
+statistic is N times smaller and its coefficient must be N times larger (its
+default lambda is 10; at batch 256 that is about 0.04 in our convention);
+later releases multiply by N and use lambda 0.1 on CIFAR-10. Switching
+``scale_by_n`` off divides the effective lambda by N (the batch size): keep
+``lam * N`` fixed when you switch. With the factor N, a lambda carries over
+from one batch size to another; without it, lambda must grow with the batch.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .losses import _check_embeddings, invariance_term
+
+
+def _at_least_float32(x: torch.Tensor) -> torch.Tensor:
+    # cos(t x) of large arguments loses every digit in half precision (e.g. under autocast).
+    return x.float() if x.dtype in (torch.float16, torch.bfloat16) else x
+
+
+def epps_pulley(
+    x: torch.Tensor,
+    knots: int = 17,
+    t_max: float = 3.0,
+    sigma: float = 1.0,
+    scale_by_n: bool = True,
+) -> torch.Tensor:
+    """Epps-Pulley statistic of 1-D samples against N(0, 1): ``(N,) -> ()`` or ``(N, M) -> (M,)``.
+
+    ``x``: N samples of one projection, or of M projections (one per column).
+    The integrand is even in t (cos is even, sin is odd and squared), so we
+    integrate over [0, t_max] with ``knots`` trapezoid knots and double it.
+    ``sigma`` is the width of the Gaussian weight w(t); ``scale_by_n``
+    multiplies by N (see the module docstring). Zero iff the empirical
+    characteristic function matches exp(-t^2/2) at every knot.
+    """
+    if x.ndim not in (1, 2) or x.shape[0] < 2:
+        raise ValueError(
+            f"epps_pulley needs at least 2 samples along dimension 0 of a (N,) or (N, M) "
+            f"tensor, got shape {tuple(x.shape)}; a characteristic function of one sample "
+            "says nothing about its distribution"
+        )
+    if knots < 2:
+        raise ValueError(f"the trapezoid rule needs at least 2 knots, got {knots}")
+    x = _at_least_float32(x)
+    n = x.shape[0]
+    t = torch.linspace(0.0, t_max, knots, device=x.device, dtype=x.dtype)  # (K,)
+
+    xt = x.unsqueeze(-1) * t  # (N, K) or (N, M, K): t * x_n for every sample and knot
+    ecf_real = torch.cos(xt).mean(dim=0)  # Re phi_N(t)
+    ecf_imag = torch.sin(xt).mean(dim=0)  # Im phi_N(t)
+    gaussian_cf = torch.exp(-(t**2) / 2)  # phi(t) of N(0, 1): real
+    weight = torch.exp(-(t**2) / (2 * sigma**2))  # w(t)
+
+    squared_gap = (ecf_real - gaussian_cf) ** 2 + ecf_imag**2  # |phi_N(t) - phi(t)|^2
+    half_integral = torch.trapezoid(weight * squared_gap, t, dim=-1)  # over [0, t_max]
+    statistic = 2 * half_integral  # over [-t_max, t_max], by symmetry
+    return statistic * n if scale_by_n else statistic
+
+
+def random_directions(
+    dim: int,
+    num_slices: int,
+    generator: torch.Generator | None = None,
+    device: torch.device | str | None = None,
+) -> torch.Tensor:
+    """``num_slices`` random unit vectors in R^dim: the columns of a ``(dim, num_slices)`` matrix.
+
+    Drawn on the generator's device (CPU by default) and moved to ``device``,
+    so one CPU generator gives the same directions on every machine.
+    """
+    gen_device = generator.device if generator is not None else "cpu"
+    directions = torch.randn(dim, num_slices, generator=generator, device=gen_device)
+    directions = directions / directions.norm(dim=0, keepdim=True)
+    return directions.to(device) if device is not None else directions
+
+
+def sigreg(
+    z: torch.Tensor,
+    num_slices: int = 256,
+    generator: torch.Generator | None = None,
+    directions: torch.Tensor | None = None,
+    knots: int = 17,
+    t_max: float = 3.0,
+    sigma: float = 1.0,
+    scale_by_n: bool = True,
+) -> torch.Tensor:
+    """Sliced Epps-Pulley statistic of embeddings ``z`` ``(B, D)``, averaged over slices: ``()``.
+
+    Fresh directions are drawn from ``generator`` on every call (so a training
+    loop tests new directions each step), unless ``directions`` ``(D, M)`` are
+    given. ``knots``, ``t_max``, ``sigma`` and ``scale_by_n`` go to :func:`epps_pulley`.
+    The cost is O(B * num_slices * knots); the reference uses 1024 slices on a
+    GPU, 256 is enough to see the effect on a CPU.
+    """
+    _check_embeddings(z, "z", min_batch=2)
+    if directions is None:
+        directions = random_directions(z.shape[1], num_slices, generator, z.device)
+    if directions.ndim != 2 or directions.shape[0] != z.shape[1]:
+        raise ValueError(
+            f"directions must be (D, M) with D = {z.shape[1]}, got {tuple(directions.shape)}"
+        )
+    z = _at_least_float32(z)
+    projected = z @ directions.to(z.device, z.dtype)  # (B, M)
+    return epps_pulley(projected, knots, t_max, sigma, scale_by_n).mean()
+
+
+def sigreg_loss(
+    z_a: torch.Tensor,
+    z_b: torch.Tensor,
+    lam: float = 0.1,
+    num_slices: int = 256,
+    generator: torch.Generator | None = None,
+    knots: int = 17,
+    t_max: float = 3.0,
+    sigma: float = 1.0,
+    scale_by_n: bool = True,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Invariance + ``lam`` * SIGReg on two views ``(B, D)``: returns ``(total, terms)``.
+
+    Invariance is the mean squared distance between the views
+    (:func:`ebjepa_tutorial.losses.invariance_term`, as in VICReg); SIGReg is
+    applied to each view with the same random directions and averaged.
+    ``terms`` holds the unweighted terms as floats, like ``losses.vicreg_loss``.
+    The default ``lam = 0.1`` is the EB-JEPA CIFAR-10 setting for ``scale_by_n=True``.
+    """
+    inv = invariance_term(z_a, z_b)
+    _check_embeddings(z_a, "z_a", min_batch=2)
+    directions = random_directions(z_a.shape[1], num_slices, generator, z_a.device)
+    options = dict(directions=directions, knots=knots, t_max=t_max, sigma=sigma)
+    options["scale_by_n"] = scale_by_n
+    reg = (sigreg(z_a, **options) + sigreg(z_b, **options)) / 2
+    total = inv + lam * reg
+    return total, {"invariance": inv.item(), "sigreg": reg.item()}

@@ -1,0 +1,109 @@
+"""Augmentations: per-image randomness, shapes, normalisation, determinism, clear errors."""
+
+import pytest
+import torch
+
+from ebjepa_tutorial.augment import (
+    CIFAR10_MEAN,
+    CIFAR10_STD,
+    AugmentConfig,
+    augment,
+    build_augmentation,
+    denormalize,
+    normalize,
+    to_float_images,
+    two_views,
+)
+from ebjepa_tutorial.utils import make_generator
+
+
+def _images(n=8, seed=0):
+    return torch.randint(0, 256, (n, 3, 32, 32), dtype=torch.uint8, generator=make_generator(seed))
+
+
+def test_views_differ_per_image_when_the_image_is_repeated():
+    image = _images(1)
+    views = augment(image.repeat(64, 1, 1, 1), generator=make_generator(0))
+    flat = views.flatten(1)
+    distances = torch.cdist(flat, flat)
+    off_diagonal = distances[~torch.eye(64, dtype=torch.bool)]
+    assert off_diagonal.min() > 0  # no two of the 64 views are identical
+
+
+def test_parameters_are_drawn_per_image():
+    pipeline = build_augmentation()
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(0)
+        params = pipeline.forward_parameters(torch.Size([64, 3, 32, 32]))
+    by_name = {p.name.split("_")[0]: p.data for p in params}
+    boxes = by_name["RandomResizedCrop"]["src"]  # (64, 4, 2) corners of each crop
+    # Crop corners are whole pixels, so two of 64 boxes may coincide by chance.
+    assert len(torch.unique(boxes.flatten(1), dim=0)) >= 60
+    brightness = by_name["ColorJitter"]["brightness_factor"]
+    assert len(torch.unique(brightness)) == 64
+    flips = by_name["RandomHorizontalFlip"]["batch_prob"].float()
+    assert 0 < flips.mean() < 1  # some flipped, some not
+
+
+def test_output_shape_dtype_and_range():
+    views = augment(_images(16), generator=make_generator(1))
+    assert views.shape == (16, 3, 32, 32) and views.dtype == torch.float32
+    # Normalised values lie within [(0 - mean) / std, (1 - mean) / std] per channel.
+    mean = torch.tensor(CIFAR10_MEAN).view(1, 3, 1, 1)
+    std = torch.tensor(CIFAR10_STD).view(1, 3, 1, 1)
+    assert (views >= (0 - mean) / std - 1e-4).all() and (views <= (1 - mean) / std + 1e-4).all()
+    raw = augment(
+        _images(16), build_augmentation(AugmentConfig(normalize=False)), make_generator(1)
+    )
+    assert raw.min() >= 0 and raw.max() <= 1
+    assert torch.allclose(views, normalize(raw), atol=1e-5)
+
+
+def test_output_size_follows_the_config():
+    pipeline = build_augmentation(AugmentConfig(size=16))
+    assert augment(_images(4), pipeline, make_generator(0)).shape == (4, 3, 16, 16)
+
+
+def test_normalize_by_hand_and_round_trip():
+    images = torch.zeros(1, 3, 2, 2, dtype=torch.uint8)
+    images[0, :, 0, 0] = 255
+    out = normalize(images)
+    assert out[0, 0, 1, 1].item() == pytest.approx(-0.4914 / 0.2470, rel=1e-5)
+    assert out[0, 2, 0, 0].item() == pytest.approx((1 - 0.4465) / 0.2616, rel=1e-5)
+    floats = to_float_images(_images(2))
+    assert torch.allclose(denormalize(normalize(floats)), floats, atol=1e-6)
+
+
+def test_uint8_and_float_inputs_give_the_same_views():
+    images = _images(4)
+    from_uint8 = augment(images, generator=make_generator(3))
+    from_float = augment(images.float() / 255, generator=make_generator(3))
+    assert torch.allclose(from_uint8, from_float)
+
+
+def test_same_generator_state_gives_same_views_and_leaves_global_rng_alone():
+    images = _images(8)
+    torch.manual_seed(123)
+    before = torch.rand(1)
+    torch.manual_seed(123)
+    a1, b1 = two_views(images, generator=make_generator(7))
+    after = torch.rand(1)
+    a2, b2 = two_views(images, generator=make_generator(7))
+    assert torch.equal(a1, a2) and torch.equal(b1, b2)
+    assert not torch.equal(a1, b1)  # the two views of one call differ
+    assert not torch.equal(a1, two_views(images, generator=make_generator(8))[0])
+    assert torch.equal(before, after)  # augmenting did not consume the global RNG
+
+
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        (torch.rand(3, 32, 32), "batch"),
+        (torch.rand(2, 1, 32, 32), "3 colour channels"),
+        (torch.rand(2, 32, 32, 3), "3 colour channels"),
+        (torch.rand(2, 3, 32, 32) * 4 - 2, r"\[0, 1\]"),
+    ],
+)
+def test_bad_input_is_named(bad, match):
+    with pytest.raises(ValueError, match=match):
+        augment(bad)

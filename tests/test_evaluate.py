@@ -1,0 +1,112 @@
+"""Linear probe and kNN on synthetic features; feature extraction from a frozen encoder."""
+
+import pytest
+import torch
+
+from ebjepa_tutorial.evaluate import (
+    extract_features,
+    holdout_split,
+    knn_accuracy,
+    knn_predict,
+    linear_probe,
+)
+from ebjepa_tutorial.models import build_encoder
+from ebjepa_tutorial.utils import make_generator
+
+
+def _clusters(n, num_classes=4, dim=16, spread=0.3, seed=0):
+    """Points around ``num_classes`` random centres on the unit sphere: separable classes."""
+    gen = make_generator(seed)
+    centres = torch.nn.functional.normalize(
+        torch.randn(num_classes, dim, generator=make_generator(99)), dim=1
+    )
+    labels = torch.randint(0, num_classes, (n,), generator=gen)
+    return centres[labels] * 3 + spread * torch.randn(n, dim, generator=gen), labels
+
+
+def test_linear_probe_separable_data():
+    x_train, y_train = _clusters(600, seed=0)
+    x_test, y_test = _clusters(300, seed=1)
+    result = linear_probe(x_train, y_train, x_test, y_test, epochs=10)
+    assert result.test_accuracy > 0.98 and result.train_accuracy > 0.98
+    assert result.holdout_accuracy is None
+    logits = result.head((x_test - result.mean) / result.std)
+    assert logits.shape == (300, 4)
+
+
+def test_linear_probe_random_labels_is_at_chance():
+    gen = make_generator(0)
+    x_train, x_test = torch.randn(1000, 16, generator=gen), torch.randn(1000, 16, generator=gen)
+    y_train = torch.randint(0, 10, (1000,), generator=gen)
+    y_test = torch.randint(0, 10, (1000,), generator=gen)
+    result = linear_probe(x_train, y_train, x_test, y_test, epochs=5, holdout_fraction=0.2)
+    assert 0.04 < result.test_accuracy < 0.17  # chance is 0.10
+    assert 0.03 < result.holdout_accuracy < 0.19
+
+
+def test_linear_probe_is_seeded():
+    x, y = _clusters(200)
+    a = linear_probe(x, y, x, y, epochs=2, seed=3)
+    b = linear_probe(x, y, x, y, epochs=2, seed=3)
+    assert torch.equal(a.head.weight, b.head.weight)
+
+
+def test_knn_separable_and_random():
+    x_train, y_train = _clusters(500, seed=0)
+    x_test, y_test = _clusters(200, seed=1)
+    assert knn_accuracy(x_train, y_train, x_test, y_test, k=20) > 0.98
+    assert knn_accuracy(x_train, y_train, x_test, y_test, k=20, temperature=None) > 0.98
+    gen = make_generator(2)
+    noise_train, noise_test = (
+        torch.randn(2000, 16, generator=gen),
+        torch.randn(1000, 16, generator=gen),
+    )
+    labels_train = torch.randint(0, 10, (2000,), generator=gen)
+    labels_test = torch.randint(0, 10, (1000,), generator=gen)
+    assert 0.05 < knn_accuracy(noise_train, labels_train, noise_test, labels_test) < 0.16
+
+
+def test_knn_votes_by_hand():
+    train = torch.tensor([[1.0, 0.0], [0.9, 0.1], [0.0, 1.0]])
+    labels = torch.tensor([0, 0, 1])
+    query = torch.tensor([[0.6, 0.8], [1.0, 0.05]])
+    # k = 3: majority says class 0 for both; the temperature weights favour the
+    # much closer class-1 neighbour for the first query (cosine 0.8 vs 0.6 and 0.68).
+    assert knn_predict(train, labels, query, k=3, temperature=None).tolist() == [0, 0]
+    assert knn_predict(train, labels, query, k=3, temperature=0.05).tolist() == [1, 0]
+    assert knn_predict(train, labels, query, k=1, chunk_size=1).tolist() == [1, 0]
+
+
+def test_holdout_split_sizes_and_disjointness():
+    x = torch.arange(100.0).unsqueeze(1)
+    y = torch.arange(100)
+    fit_x, fit_y, hold_x, hold_y = holdout_split(x, y, 0.1, seed=0)
+    assert len(hold_y) == 10 and len(fit_y) == 90
+    assert set(fit_y.tolist()).isdisjoint(hold_y.tolist())
+    with pytest.raises(ValueError, match="fraction"):
+        holdout_split(x, y, 1.5)
+
+
+def test_extract_features_frozen_and_mode_restored():
+    torch.manual_seed(0)
+    encoder = build_encoder("resnet18", widths=(4, 8, 8, 8))
+    encoder.train()
+    images = torch.randint(0, 256, (10, 3, 32, 32), dtype=torch.uint8, generator=make_generator(0))
+    feats = extract_features(encoder, images, batch_size=4)
+    assert feats.shape == (10, 8) and feats.dtype == torch.float32 and not feats.requires_grad
+    assert encoder.training  # the caller's mode is restored
+    # Eval mode: each image's features do not depend on the rest of its batch.
+    again = extract_features(encoder, images[:3], batch_size=1)
+    assert torch.allclose(feats[:3], again, atol=1e-5)
+    with pytest.raises(TypeError, match="uint8"):
+        extract_features(encoder, images.float())
+
+
+def test_shape_errors_are_named():
+    with pytest.raises(ValueError, match="features"):
+        linear_probe(
+            torch.randn(5, 3),
+            torch.zeros(4, dtype=torch.long),
+            torch.randn(2, 3),
+            torch.zeros(2, dtype=torch.long),
+        )

@@ -1,0 +1,93 @@
+"""Encoders and projector: shapes, the CIFAR stem, clear errors, and one VICReg training step."""
+
+import pytest
+import torch
+
+from ebjepa_tutorial.augment import two_views
+from ebjepa_tutorial.losses import vicreg_loss
+from ebjepa_tutorial.models import Projector, ResNet18, ViT, build_encoder, build_projector
+from ebjepa_tutorial.utils import make_generator
+
+SMALL = (8, 16, 32, 64)
+
+
+def test_resnet18_shapes_and_width():
+    torch.manual_seed(0)
+    encoder = build_encoder("resnet18", widths=SMALL)
+    x = torch.randn(2, 3, 32, 32)
+    assert encoder(x).shape == (2, 64) and encoder.out_dim == 64
+    # The 3x3 stride-1 stem with padding 1 keeps 32x32 (padding 2 would give 34x34);
+    # three stride-2 stages then give 4x4 maps.
+    assert encoder.stem(x).shape == (2, 8, 32, 32)
+    assert encoder.feature_maps(x).shape == (2, 64, 4, 4)
+    assert build_encoder("resnet18").out_dim == 512
+
+
+def test_resnet18_has_the_resnet18_layout():
+    encoder = ResNet18()
+    convs = [m for m in encoder.modules() if isinstance(m, torch.nn.Conv2d)]
+    # 1 stem + 8 blocks x 2 convolutions + 3 shortcut projections.
+    assert len(convs) == 1 + 16 + 3
+    assert not any(isinstance(m, torch.nn.MaxPool2d) for m in encoder.modules())
+    params = sum(p.numel() for p in encoder.parameters())
+    assert 11.0e6 < params < 11.3e6  # the CIFAR ResNet-18 has about 11.2 M parameters
+
+
+def test_vit_small_shapes():
+    torch.manual_seed(0)
+    vit = build_encoder("vit_s", patch_size=8, depth=2)
+    assert vit(torch.randn(2, 3, 32, 32)).shape == (2, 384)
+    tiny = ViT(patch_size=4, dim=32, depth=1, heads=2)
+    assert tiny(torch.randn(3, 3, 32, 32)).shape == (3, 32)
+    assert tiny.pos_embed.shape == (1, 64 + 1, 32)  # 8x8 patches and a class token
+
+
+def test_projector_layers_and_identity():
+    projector = build_projector(64, hidden_dim=128, out_dim=32)
+    assert isinstance(projector, Projector)
+    kinds = [type(m).__name__ for m in projector]
+    assert kinds == ["Linear", "BatchNorm1d", "ReLU"] * 2 + ["Linear"]
+    assert projector(torch.randn(4, 64)).shape == (4, 32) and projector.out_dim == 32
+    identity = build_projector(64, depth=0)
+    x = torch.randn(4, 64)
+    assert torch.equal(identity(x), x) and identity.out_dim == 64
+    with pytest.raises(ValueError, match="depth"):
+        Projector(64, depth=-1)
+
+
+def test_unknown_encoder_name():
+    with pytest.raises(ValueError, match="unknown encoder 'resnet50'.*resnet18"):
+        build_encoder("resnet50")
+
+
+@pytest.mark.parametrize("name, kwargs", [("resnet18", {"widths": SMALL}), ("vit_s", {"depth": 1})])
+def test_bad_inputs_are_named(name, kwargs):
+    encoder = build_encoder(name, **kwargs)
+    with pytest.raises(ValueError, match="input channels"):
+        encoder(torch.randn(2, 1, 32, 32))
+    with pytest.raises(ValueError, match=r"\(batch, 3, height, width\)"):
+        encoder(torch.randn(3, 32, 32))
+    with pytest.raises(TypeError, match="float"):
+        encoder(torch.zeros(2, 3, 32, 32, dtype=torch.uint8))
+
+
+def test_vit_rejects_the_wrong_image_size():
+    with pytest.raises(ValueError, match="32x32"):
+        ViT(depth=1)(torch.randn(1, 3, 16, 16))
+
+
+def test_one_vicreg_training_step_runs():
+    torch.manual_seed(0)
+    encoder = build_encoder("resnet18", widths=SMALL)
+    projector = build_projector(encoder.out_dim, hidden_dim=64, out_dim=32)
+    params = list(encoder.parameters()) + list(projector.parameters())
+    optimizer = torch.optim.SGD(params, lr=0.01)
+    images = torch.randint(0, 256, (8, 3, 32, 32), dtype=torch.uint8, generator=make_generator(0))
+    view_a, view_b = two_views(images, generator=make_generator(1))
+    z = projector(encoder(torch.cat([view_a, view_b])))  # both views in one batch
+    loss, terms = vicreg_loss(*z.chunk(2), inv_coeff=25.0, std_coeff=25.0, cov_coeff=1.0)
+    optimizer.zero_grad()
+    loss.backward()
+    optimizer.step()
+    assert torch.isfinite(loss) and set(terms) == {"invariance", "variance", "covariance"}
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in params)

@@ -1,0 +1,110 @@
+"""SIGReg: the Epps-Pulley statistic against hand and numerical integrals, and its behaviour."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from ebjepa_tutorial.sigreg import epps_pulley, random_directions, sigreg, sigreg_loss
+from ebjepa_tutorial.utils import make_generator
+
+
+def test_two_symmetric_points_match_the_closed_form():
+    # For x = {a, -a}: phi_N(t) = cos(a t). Over the whole real line, with w(t) = exp(-t^2/2),
+    #   int w (cos(a t) - e^{-t^2/2})^2 dt
+    #   = sqrt(2 pi) (1 + e^{-2 a^2}) / 2 - 2 sqrt(pi) e^{-a^2 / 4} + sqrt(2 pi / 3)
+    # (each piece is a Gaussian integral  int e^{-c t^2} cos(b t) dt = sqrt(pi / c) e^{-b^2 / 4c}).
+    a = 0.7
+    exact = (
+        math.sqrt(2 * math.pi) * (1 + math.exp(-2 * a**2)) / 2
+        - 2 * math.sqrt(math.pi) * math.exp(-(a**2) / 4)
+        + math.sqrt(2 * math.pi / 3)
+    )
+    x = torch.tensor([a, -a], dtype=torch.float64)
+    ours = epps_pulley(x, knots=4001, t_max=12.0, scale_by_n=False).item()
+    assert ours == pytest.approx(exact, rel=1e-5)
+    assert epps_pulley(x, knots=4001, t_max=12.0).item() == pytest.approx(2 * exact, rel=1e-5)
+
+
+def _numpy_epps_pulley(x, t_max, sigma, points):
+    t = np.linspace(-t_max, t_max, points)
+    ecf = np.exp(1j * np.outer(t, x)).mean(axis=1)  # complex arithmetic, the textbook formula
+    integrand = np.exp(-(t**2) / (2 * sigma**2)) * np.abs(ecf - np.exp(-(t**2) / 2)) ** 2
+    return len(x) * np.trapezoid(integrand, t)
+
+
+@pytest.mark.parametrize("sigma", [1.0, 0.5])
+def test_default_quadrature_against_a_fine_numpy_integral(sigma):
+    x = np.array([0.3, -1.2, 2.0, 0.1, 0.8])
+    reference = _numpy_epps_pulley(x, 3.0, sigma, 200_001)
+    fine = epps_pulley(torch.tensor(x), knots=10_001, sigma=sigma).item()
+    assert fine == pytest.approx(reference, rel=1e-6)
+    coarse = epps_pulley(torch.tensor(x), sigma=sigma).item()  # 17 knots on [0, 3]
+    assert coarse == pytest.approx(reference, rel=1e-2)
+
+
+def test_columns_are_independent_slices():
+    x = torch.randn(50, 3, generator=make_generator(0))
+    per_column = torch.stack([epps_pulley(x[:, j]) for j in range(3)])
+    assert torch.allclose(epps_pulley(x), per_column)
+
+
+def test_small_on_gaussian_large_on_collapsed_or_uniform():
+    gen = make_generator(0)
+    n, d = 1024, 16
+    gaussian = sigreg(torch.randn(n, d, generator=gen), 64, gen).item()
+    collapsed = sigreg(torch.full((n, d), 0.3), 64, gen).item()
+    uniform = sigreg(torch.rand(n, d, generator=gen), 64, gen).item()
+    # N * EP is about 1 under the null (its mean is int w (1 - e^{-t^2}) dt ~ 1.05).
+    assert 0.3 < gaussian < 3
+    assert collapsed > 100 * gaussian and uniform > 100 * gaussian
+    unscaled = sigreg(torch.randn(n, d, generator=gen), 64, gen, scale_by_n=False).item()
+    assert unscaled < 3 / n  # without the factor N it is near zero, O(1/N)
+
+
+def test_unit_variance_uniform_is_detected_with_enough_samples():
+    gen = make_generator(1)
+    x = (torch.rand(4096, generator=gen) - 0.5) * math.sqrt(12)  # mean 0, variance 1
+    assert epps_pulley(x).item() > 20 * epps_pulley(torch.randn(4096, generator=gen)).item()
+
+
+def test_directions_are_unit_and_seeded():
+    d1 = random_directions(8, 5, make_generator(3))
+    assert d1.shape == (8, 5) and torch.allclose(d1.norm(dim=0), torch.ones(5))
+    assert torch.equal(d1, random_directions(8, 5, make_generator(3)))
+
+
+def test_same_generator_same_value_fresh_slices_each_call():
+    z = torch.randn(64, 10, generator=make_generator(0))
+    assert sigreg(z, 16, make_generator(5)) == sigreg(z, 16, make_generator(5))
+    gen = make_generator(5)
+    assert sigreg(z, 16, gen) != sigreg(z, 16, gen)  # the generator moved on: new directions
+
+
+def test_sigreg_loss_terms_and_gradient():
+    gen = make_generator(0)
+    z_a = torch.randn(32, 8, generator=gen, requires_grad=True)
+    z_b = (z_a.detach() + 0.1 * torch.randn(32, 8, generator=gen)).requires_grad_()
+    total, terms = sigreg_loss(z_a, z_b, lam=0.5, num_slices=32, generator=make_generator(1))
+    assert set(terms) == {"invariance", "sigreg"}
+    assert total.item() == pytest.approx(terms["invariance"] + 0.5 * terms["sigreg"], rel=1e-5)
+    assert terms["invariance"] == pytest.approx(((z_a - z_b) ** 2).mean().item(), rel=1e-6)
+    total.backward()
+    assert torch.isfinite(z_a.grad).all() and z_a.grad.abs().sum() > 0
+
+
+def test_batch_of_one_is_a_clear_error():
+    with pytest.raises(ValueError, match="at least 2"):
+        sigreg(torch.randn(1, 8))
+    with pytest.raises(ValueError, match="at least 2"):
+        epps_pulley(torch.randn(1))
+    with pytest.raises(ValueError, match="at least 2"):
+        sigreg_loss(torch.randn(1, 8), torch.randn(1, 8))
+
+
+def test_half_precision_inputs_are_computed_in_float32():
+    z = torch.randn(64, 8, generator=make_generator(0))
+    full = sigreg(z, 16, make_generator(2))
+    half = sigreg(z.bfloat16(), 16, make_generator(2))
+    assert half.dtype == torch.float32 and half.item() == pytest.approx(full.item(), rel=0.05)
