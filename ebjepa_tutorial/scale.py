@@ -12,7 +12,9 @@ Each notebook asks for its own preset: ``cfg = preset("00")``.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+
+from .image_jepa import ImageJEPAConfig
 
 SCALES = ("ci", "class", "full")
 DEFAULT_SCALE = "class"
@@ -41,12 +43,59 @@ class CollapsePreset:
     lr: float = 3e-3
 
 
+@dataclass(frozen=True)
+class TwoRoomsWorldPreset:
+    """Notebook 04: how much of the Two Rooms world to generate and look at (no training)."""
+
+    n_trajectories: int = 4096  # data-policy trajectories for the statistics and figures
+    steps: int = 16  # actions per trajectory: 17 frames, the paper's training clips
+    n_episodes: int = 200  # evaluation episodes for the random-policy baseline
+    episode_steps: int = 200  # steps per evaluation episode, as in the paper
+
+
+@dataclass(frozen=True)
+class ImagePreset:
+    """Notebooks 01 and 02: the CIFAR-10 runs (the VICReg config; others derive from it)."""
+
+    config: ImageJEPAConfig  # the VICReg run; SIGReg and ablations use dataclasses.replace
+    train_images: int = 50_000  # CIFAR-10 train images used to train and to fit the probe
+    test_images: int = 10_000  # CIFAR-10 test images the probe and kNN are scored on
+    sweep_steps: int = 500  # steps per run of notebook 02's sweeps and ablations
+
+
+_IMAGE_CI = ImageJEPAConfig(widths=(8, 8, 16, 16), projector=(64, 64), batch_size=32,
+                            steps=15, warmup_steps=3)
+_IMAGE_CLASS = ImageJEPAConfig()  # ResNet-18 at widths 16-128 on 16-px views, 2,000 AdamW steps
+_IMAGE_FULL = ImageJEPAConfig(  # the paper: 300 epochs of batch 256 with LARS
+    widths=(64, 128, 256, 512), image_size=32, projector=(2048, 2048), batch_size=256,
+    steps=300 * 195, warmup_steps=10 * 195, optimizer="lars", lr=0.3, weight_decay=1e-4,
+)
+
+
+def image_preset(scale: str, loss: str) -> ImagePreset:
+    """The preset of notebook 01 (``loss="vicreg"``) or 02 (``"sigreg"``) at ``scale``."""
+    base = {"ci": _IMAGE_CI, "class": _IMAGE_CLASS, "full": _IMAGE_FULL}[scale]
+    if loss == "sigreg" and scale == "full":  # the paper: lambda 10, 2048-128 projector
+        base = replace(base, projector=(2048, 128), sigreg_lambda=10.0, sigreg_scale_by_n=False)
+    config = replace(base, loss=loss)
+    if scale == "ci":
+        return ImagePreset(config, train_images=2000, test_images=1000, sweep_steps=5)
+    return ImagePreset(config)
+
+
 PRESETS: dict[str, dict[str, object]] = {
     "00": {
         "ci": CollapsePreset(n_points=256, steps=60),
         "class": CollapsePreset(),
         "full": CollapsePreset(n_points=4096, steps=2000),
     },
+    "04": {
+        "ci": TwoRoomsWorldPreset(n_trajectories=512, n_episodes=32),
+        "class": TwoRoomsWorldPreset(),
+        "full": TwoRoomsWorldPreset(n_trajectories=100_000, n_episodes=1000),
+    },
+    "01": {scale: image_preset(scale, "vicreg") for scale in SCALES},
+    "02": {scale: image_preset(scale, "sigreg") for scale in SCALES},
 }
 
 

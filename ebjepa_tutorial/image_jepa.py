@@ -1,0 +1,164 @@
+"""Image JEPA on CIFAR-10: the training recipe of notebooks 01 (VICReg) and 02 (SIGReg).
+
+Two augmented views of each image go through one encoder and a projector;
+the energy of a pair is the squared distance between the two embeddings
+(the predictor is the identity), and a regulariser keeps the embeddings from
+collapsing: VICReg's variance and covariance terms, or SIGReg.
+
+The encoder is what we keep; the projector exists only for training. Quality
+is measured with a linear probe and a kNN classifier on frozen encoder
+features of un-augmented images (see :mod:`ebjepa_tutorial.evaluate`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from . import augment, evaluate, losses, optim, sigreg
+from .models.encoders import build_encoder
+from .models.heads import build_projector
+from .train import History, fit, resume
+
+LOSSES = ("vicreg", "sigreg", "invariance")
+
+
+@dataclass(frozen=True)
+class ImageJEPAConfig:
+    """Everything that defines a training run. Defaults: the class-scale VICReg run."""
+
+    loss: str = "vicreg"  # "vicreg", "sigreg", or "invariance" (no regulariser: collapses)
+    encoder: str = "resnet18"  # or "vit_s"
+    widths: tuple[int, int, int, int] = (16, 32, 64, 128)  # ResNet-18 stage widths
+    image_size: int = 16  # views (and evaluation images) are this many pixels wide
+    projector: tuple[int, int] | None = (1024, 1024)  # (hidden, output); None: no projector
+    batch_size: int = 256
+    steps: int = 2000
+    warmup_steps: int = 200  # linear warm-up from step 0, then cosine to 0
+    optimizer: str = "adamw"  # "adamw" (CPU scales) or "lars" (the paper's)
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    inv_coeff: float = 1.0  # VICReg, in the EB-JEPA paper's convention (covariance / D(D-1))
+    std_coeff: float = 1.0
+    cov_coeff: float = 80.0
+    sigreg_lambda: float = 0.1  # SIGReg weight ...
+    sigreg_scale_by_n: bool = True  # ... on the statistic times N (LeJEPA); False: the paper's
+    sigreg_slices: int = 256
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.loss not in LOSSES:
+            raise ValueError(f"unknown loss {self.loss!r}; choose one of {', '.join(LOSSES)}")
+        if self.optimizer not in ("adamw", "lars"):
+            raise ValueError(f"unknown optimizer {self.optimizer!r}; choose 'adamw' or 'lars'")
+
+
+class ImageJEPA(nn.Module):
+    """Encoder followed by a projector: ``(B, 3, S, S) -> (B, D_out)``; ``.encoder`` is kept."""
+
+    def __init__(self, config: ImageJEPAConfig):
+        super().__init__()
+        kwargs = {"widths": config.widths} if config.encoder == "resnet18" else {
+            "image_size": config.image_size}
+        self.encoder = build_encoder(config.encoder, **kwargs)
+        hidden, out = config.projector if config.projector is not None else (0, 0)
+        depth = 3 if config.projector is not None else 0
+        self.projector = build_projector(self.encoder.out_dim, hidden, out, depth=depth)
+
+    def forward(self, views: torch.Tensor) -> torch.Tensor:
+        return self.projector(self.encoder(views))
+
+
+def resize(images: torch.Tensor, size: int) -> torch.Tensor:
+    """Normalise uint8 images ``(B, 3, 32, 32)`` and resize them to ``size`` (antialiased)."""
+    images = augment.normalize(images)
+    if images.shape[-1] == size:
+        return images
+    return F.interpolate(images, size=size, mode="bilinear", antialias=True, align_corners=False)
+
+
+def jepa_loss(config: ImageJEPAConfig, z_a, z_b, generator=None):
+    """The training loss of two embedded views ``(B, D)``: returns ``(loss, terms)``."""
+    if config.loss == "vicreg":
+        return losses.vicreg_loss(z_a, z_b, config.inv_coeff, config.std_coeff, config.cov_coeff)
+    if config.loss == "sigreg":
+        return sigreg.sigreg_loss(z_a, z_b, lam=config.sigreg_lambda,
+                                  num_slices=config.sigreg_slices, generator=generator,
+                                  scale_by_n=config.sigreg_scale_by_n)
+    invariance = losses.invariance_term(z_a, z_b)
+    return invariance, {"invariance": invariance.item()}
+
+
+def make_optimizer(model: nn.Module, config: ImageJEPAConfig):
+    """AdamW or LARS, with biases and norm parameters excluded from weight decay."""
+    if config.optimizer == "lars":
+        return optim.LARS(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    groups = optim.split_decay_params(model, config.weight_decay)
+    return torch.optim.AdamW(groups, lr=config.lr)
+
+
+def train_image_jepa(
+    config: ImageJEPAConfig,
+    images: torch.Tensor,
+    checkpoint: str | Path | None = None,
+    device: torch.device | str = "cpu",
+    progress: bool = True,
+    checkpoint_every: int = 250,
+) -> tuple[ImageJEPA, History]:
+    """Train on uint8 ``images`` ``(N, 3, 32, 32)``; resume from ``checkpoint`` if it exists.
+
+    Batch ``step`` (indices and augmentations) is drawn from a generator seeded
+    with ``(seed, step)``, so a resumed run matches an uninterrupted one.
+    """
+    torch.manual_seed(config.seed)
+    model = ImageJEPA(config).to(device)
+    optimizer = make_optimizer(model, config)
+    scheduler = optim.warmup_cosine_scheduler(optimizer, config.steps, config.warmup_steps)
+    pipeline = augment.build_augmentation(augment.AugmentConfig(size=config.image_size))
+    start, history = (0, History()) if checkpoint is None else resume(
+        checkpoint, model, optimizer, scheduler)
+
+    def batch(step: int):
+        generator = torch.Generator().manual_seed(config.seed * 1_000_003 + step)
+        index = torch.randint(0, len(images), (config.batch_size,), generator=generator)
+        views = augment.two_views(images[index].to(device), pipeline, generator)
+        return views, generator
+
+    def loss(views_and_generator):
+        (view_a, view_b), generator = views_and_generator
+        return jepa_loss(config, model(view_a), model(view_b), generator)
+
+    fit(model, optimizer, loss, batch, config.steps, scheduler=scheduler, history=history,
+        start_step=start, checkpoint=checkpoint, checkpoint_every=checkpoint_every, log_every=10,
+        desc=f"{config.loss} training", progress=progress)
+    return model, history
+
+
+@torch.no_grad()
+def embed(encoder: nn.Module, images: torch.Tensor, size: int, batch_size: int = 1000):
+    """Frozen features of un-augmented uint8 images ``(N, 3, 32, 32)`` at ``size``: ``(N, D)``."""
+    device = next(encoder.parameters()).device
+    was_training = encoder.training
+    encoder.eval()
+    chunks = [encoder(resize(images[i:i + batch_size].to(device), size)).float().cpu()
+              for i in range(0, len(images), batch_size)]
+    encoder.train(was_training)
+    return torch.cat(chunks)
+
+
+def probe_encoder(encoder, config: ImageJEPAConfig, train, test, knn_k: int = 20) -> dict:
+    """Probe and kNN test accuracy of frozen features; ``train``, ``test``: (images, labels)."""
+    train_features = embed(encoder, train[0], config.image_size)
+    test_features = embed(encoder, test[0], config.image_size)
+    probe = evaluate.linear_probe(train_features, train[1], test_features, test[1])
+    knn = evaluate.knn_accuracy(train_features, train[1], test_features, test[1], k=knn_k)
+    return {"probe_acc": probe.test_accuracy, "knn_acc": knn}
+
+
+def config_dict(config: ImageJEPAConfig) -> dict:
+    """The config as a plain dict (what checkpoints store to recognise a matching run)."""
+    return asdict(config)
