@@ -8,11 +8,13 @@ import pytest
 import torch
 
 from ebjepa_tutorial import exercises, student
+from ebjepa_tutorial.envs import check_wall_collision
 
 NOTEBOOKS = sorted(Path(__file__).resolve().parents[1].glob("notebooks/*.ipynb"))
 CHECKERS = {
     "variance_term": exercises.check_variance_term,
     "covariance_term": exercises.check_covariance_term,
+    "wall_collision": check_wall_collision,
 }
 
 
