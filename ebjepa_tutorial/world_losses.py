@@ -1,0 +1,166 @@
+"""The loss of the action-conditioned world model (notebook 05), one function per term.
+
+For latents ``z`` of a batch of trajectories ``(B, T, D)`` and the actions
+between their frames ``(B, T-1, A)``, the paper trains the encoder,
+predictor and inverse-dynamics head together on
+
+    L = L_pred + alpha v(Z) + beta c(Z) + delta L_sim + omega L_idm
+
+with alpha 16 (variance), beta 8 (covariance), delta 12 (temporal
+similarity), omega 1 (inverse dynamics), K 8 prediction steps. The variance
+and covariance terms (:mod:`ebjepa_tutorial.losses`) keep the latent from
+collapsing; temporal similarity makes it change slowly along a trajectory
+(so that a straight path in latent space is a short path in the world); the
+inverse-dynamics head forces the latent to keep what the action changed
+(the dot), which the static walls cannot explain. Every term averages over
+its elements, so each coefficient does not depend on ``B``, ``T`` or ``D``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from .losses import covariance_term, variance_term
+
+
+@dataclass(frozen=True)
+class WorldLossCoeffs:
+    """Weights of the terms; the defaults are the paper's."""
+
+    prediction: float = 1.0
+    variance: float = 16.0
+    covariance: float = 8.0
+    temporal: float = 12.0
+    inverse_dynamics: float = 1.0
+
+
+def _check_sequence(z: torch.Tensor, actions: torch.Tensor | None = None) -> None:
+    if not isinstance(z, torch.Tensor) or z.ndim != 3 or z.shape[1] < 2:
+        got = tuple(z.shape) if isinstance(z, torch.Tensor) else type(z).__name__
+        raise ValueError(f"latents must be (batch, time >= 2, dim), got {got}")
+    if actions is None:
+        return
+    b, t = z.shape[:2]
+    if not isinstance(actions, torch.Tensor) or actions.ndim != 3 or actions.shape[:2] != (
+        b, t - 1
+    ):
+        got = tuple(actions.shape) if isinstance(actions, torch.Tensor) else type(actions).__name__
+        raise ValueError(
+            f"actions must be (batch, time - 1, action_dim) = ({b}, {t - 1}, A): one action "
+            f"between each pair of consecutive frames; got {got}"
+        )
+    if not torch.isfinite(actions).all():
+        raise ValueError("actions contain NaN or infinite values")
+
+
+def multistep_prediction_loss(
+    predict: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    z: torch.Tensor,
+    actions: torch.Tensor,
+    steps: int = 8,
+    detach_targets: bool = False,
+) -> torch.Tensor:
+    """Mean squared error of a ``steps``-step autoregressive rollout from the first latent.
+
+    ``L_pred = (1/K) sum_{k=1..K} (1/(B D)) sum_b ||zhat_k - z_k||^2`` with
+    ``zhat_0 = z_0`` and ``zhat_k = P(zhat_{k-1}, a_{k-1})``: the predictor runs
+    on its own predictions under the true actions, as a planner will use it.
+
+    ``predict(z (B, D), a (B, A)) -> (B, D)``; ``z``: ``(B, T, D)`` encoded
+    frames; ``actions``: ``(B, T-1, A)``; ``1 <= steps <= T-1``.
+
+    Targets are NOT detached by default, as in the paper's reference code: the
+    gradient reaches the encoder through both ``zhat_k`` and ``z_k``, and the
+    variance and covariance terms keep that from collapsing the latent.
+    ``detach_targets=True`` stops the gradient at ``z_k`` (a common variant).
+    """
+    _check_sequence(z, actions)
+    if not 1 <= steps <= z.shape[1] - 1:
+        raise ValueError(f"steps must be in 1..{z.shape[1] - 1} (T - 1), got {steps}")
+    targets = z.detach() if detach_targets else z
+    zhat, total = z[:, 0], z.new_zeros(())
+    for k in range(1, steps + 1):
+        zhat = predict(zhat, actions[:, k - 1])
+        total = total + F.mse_loss(zhat, targets[:, k])
+    return total / steps
+
+
+def variance_covariance_loss(z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Variance hinge ``v`` and covariance ``c`` over every frame: ``(B, T, D)`` -> two 0-d tensors.
+
+    The latents are flattened to ``(B*T, D)``, so the statistics are taken over
+    all frames of all trajectories together (the paper's setting): a dimension
+    that varies only along time, like the dot's position, counts as varied.
+    ``v(Z) = (1/D) sum_d max(0, 1 - sqrt(Var(z_d) + eps))``,
+    ``c(Z) = sum_{i != j} C_ij^2 / (D (D - 1))``.
+    """
+    _check_sequence(z)
+    flat = z.reshape(-1, z.shape[-1])
+    return variance_term(flat), covariance_term(flat)
+
+
+def temporal_similarity_loss(z: torch.Tensor) -> torch.Tensor:
+    """Mean squared change between consecutive latents: ``(B, T, D)`` -> 0-d tensor.
+
+    ``L_sim = (1/(B (T-1) D)) sum_{b,t} ||z_{t+1} - z_t||^2``: averaged over
+    dimensions too (as the reference code does), so it is the per-dimension
+    mean of ``||z_{t+1} - z_t||^2`` and the coefficient 12 does not scale with D.
+    """
+    _check_sequence(z)
+    return (z[:, 1:] - z[:, :-1]).pow(2).mean()
+
+
+def inverse_dynamics_loss(
+    predict_actions: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    z: torch.Tensor,
+    actions: torch.Tensor,
+) -> torch.Tensor:
+    """MSE between the actions predicted from consecutive latents and the true ones.
+
+    ``L_idm = (1/(B (T-1) A)) sum_{b,t} ||g(z_t, z_{t+1}) - a_t||^2``.
+    ``predict_actions(z_t (..., D), z_next (..., D)) -> (..., A)``; ``z``:
+    ``(B, T, D)``; ``actions``: ``(B, T-1, A)``.
+    """
+    _check_sequence(z, actions)
+    return F.mse_loss(predict_actions(z[:, :-1], z[:, 1:]), actions)
+
+
+def world_model_loss(
+    model,
+    frames: torch.Tensor,
+    actions: torch.Tensor,
+    coeffs: WorldLossCoeffs = WorldLossCoeffs(),
+    steps: int = 8,
+    detach_targets: bool = False,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """The weighted total for a batch of trajectories, and each unweighted term.
+
+    ``model``: a :class:`~ebjepa_tutorial.models.world.WorldModel`; ``frames``:
+    ``(B, T, 2, 65, 65)``; ``actions``: ``(B, T-1, 2)``; ``steps``: K. Returns
+    ``(total, terms)``: a 0-d tensor to back-propagate and a dict of floats
+    (``prediction``, ``variance``, ``covariance``, ``temporal``,
+    ``inverse_dynamics``) for the history.
+    """
+    if not bool(model.input_stats_fitted):
+        raise RuntimeError(
+            "the model's input statistics are not set: call model.fit_input_stats(frames) "
+            "on a few hundred training trajectories first (without it the faint dot channel "
+            "is drowned by the walls and the latent tends to ignore the agent)"
+        )
+    if not isinstance(frames, torch.Tensor) or frames.ndim != 5:
+        got = tuple(frames.shape) if isinstance(frames, torch.Tensor) else type(frames).__name__
+        raise ValueError(f"frames must be (batch, time, 2, 65, 65) trajectories, got {got}")
+    z = model.encode(frames)
+    _check_sequence(z, actions)
+    terms = {
+        "prediction": multistep_prediction_loss(model.predict, z, actions, steps, detach_targets),
+        "temporal": temporal_similarity_loss(z),
+        "inverse_dynamics": inverse_dynamics_loss(model.predict_actions, z, actions),
+    }
+    terms["variance"], terms["covariance"] = variance_covariance_loss(z)
+    total = sum(getattr(coeffs, name) * value for name, value in terms.items())
+    return total, {name: value.item() for name, value in terms.items()}

@@ -1,0 +1,218 @@
+"""World model (notebooks 04-05): shapes, loss terms by hand, the position probe, bad input."""
+
+import math
+from dataclasses import replace
+
+import pytest
+import torch
+
+from ebjepa_tutorial import world_losses as wl
+from ebjepa_tutorial.envs import generate_trajectories
+from ebjepa_tutorial.models.world import WORLD_CONFIGS, WorldConfig, WorldModel
+from ebjepa_tutorial.probe import (
+    encode_trajectories,
+    fit_position_probe,
+    mean_baseline_px,
+    probe_error_px,
+)
+
+TINY = WorldConfig(widths=(4, 8), blocks=1, input_size=17, latent_dim=8,
+                   action_embed_dim=8, idm_hidden=16)
+
+
+@pytest.fixture(scope="module")
+def data():
+    trajectories = generate_trajectories(6, steps=4, seed=0)
+    return trajectories, trajectories.frames()
+
+
+def tiny_model(frames=None, seed=0):
+    torch.manual_seed(seed)
+    model = WorldModel(TINY)
+    return model if frames is None else model.fit_input_stats(frames)
+
+
+# -- the model ---------------------------------------------------------------------------
+def test_shapes_of_encode_predict_rollout(data):
+    trajectories, frames = data  # frames (6, 5, 2, 65, 65)
+    model = tiny_model(frames)
+    z = model.encode(frames)
+    assert z.shape == (6, 5, 8)
+    assert model.encode(frames[:, 0]).shape == (6, 8)
+    assert torch.allclose(model.encode(frames[:, 0]), z[:, 0], atol=1e-5)
+    assert model.predict(z[:, 0], trajectories.actions[:, 0]).shape == (6, 8)
+    assert model.rollout(z[:, 0], trajectories.actions).shape == (6, 4, 8)
+    assert model.predict_actions(z[:, :-1], z[:, 1:]).shape == (6, 4, 2)
+
+
+def test_rollout_is_repeated_predict(data):
+    trajectories, frames = data
+    model = tiny_model(frames)
+    with torch.no_grad():  # make the predictor move: its output layer starts at zero
+        model.predictor.out.weight.normal_(0, 0.3, generator=torch.Generator().manual_seed(1))
+    z, actions = model.encode(frames[:, 0]), trajectories.actions
+    rolled = model.rollout(z, actions)
+    for k in range(actions.shape[1]):
+        z = model.predict(z, actions[:, k])
+        assert torch.allclose(rolled[:, k], z, atol=1e-6)
+
+
+def test_untrained_predictor_is_the_identity(data):
+    trajectories, frames = data
+    model = tiny_model(frames)
+    z = model.encode(frames[:, 0])
+    assert torch.equal(model.predict(z, trajectories.actions[:, 0]), z)
+
+
+def test_input_stats_standardise_each_channel(data):
+    _, frames = data
+    model = WorldModel(replace(TINY, input_size=65)).fit_input_stats(frames)
+    x = model.normalize(frames.flatten(0, 1))
+    assert bool(model.input_stats_fitted)
+    assert torch.allclose(x.mean(dim=(0, 2, 3)), torch.zeros(2), atol=1e-4)
+    assert torch.allclose(x.std(dim=(0, 2, 3)), torch.ones(2), atol=1e-3)
+    # the dot covers far fewer pixels than the walls, so its std is much smaller
+    assert model.input_std[0] < model.input_std[1] / 3
+
+
+def test_checkpoint_carries_config_and_input_stats(data):
+    _, frames = data
+    model = tiny_model(frames)
+    state = model.state_dict()
+    loaded = WorldModel.from_state_dict(state)
+    assert loaded.config == model.config
+    assert torch.equal(loaded.input_std, model.input_std)
+    assert torch.equal(loaded.encode(frames), model.encode(frames))
+    other = WorldModel(WorldConfig(widths=(4, 8), blocks=1, input_size=17, latent_dim=4,
+                                   action_embed_dim=8, idm_hidden=16))
+    with pytest.raises(ValueError, match="latent_dim: the checkpoint has 8, this model has 4"):
+        other.load_state_dict(state)
+
+
+def test_presets_build():
+    for name, config in WORLD_CONFIGS.items():
+        assert WorldModel(config).latent_dim == config.latent_dim, name
+
+
+# -- the loss terms by hand --------------------------------------------------------------
+def test_temporal_similarity_by_hand():
+    z = torch.tensor([[[0.0, 0.0], [1.0, 2.0], [1.0, 0.0]]])  # (1, 3, 2)
+    # differences (1, 2) and (0, -2): squares 1 + 4 + 0 + 4 = 9 over 4 elements
+    assert wl.temporal_similarity_loss(z).item() == pytest.approx(9 / 4)
+
+
+def test_inverse_dynamics_with_a_hand_set_linear_head():
+    z = torch.tensor([[[0.0, 0.0], [1.0, 2.0], [1.0, 0.0]]])
+    actions = torch.tensor([[[1.0, 2.0], [0.0, 0.0]]])
+    head = lambda z_t, z_next: z_next - z_t  # noqa: E731  exact for the first step
+    # predicted (1, 2) and (0, -2): errors 0, 0, 0, -2 -> 4 / 4 elements
+    assert wl.inverse_dynamics_loss(head, z, actions).item() == pytest.approx(1.0)
+
+
+def test_multistep_prediction_with_z_plus_a():
+    actions = torch.tensor([[[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]])  # (1, 3, 2)
+    exact = torch.cat([torch.zeros(1, 1, 2), actions.cumsum(dim=1)], dim=1)  # (1, 4, 2)
+    add = lambda z, a: z + a  # noqa: E731
+    assert wl.multistep_prediction_loss(add, exact, actions, steps=3).item() == 0.0
+    shifted = exact.clone()
+    shifted[:, 2] += torch.tensor([2.0, 0.0])  # target 2 off by (2, 0)
+    # k=1: 0; k=2: (4 + 0)/2 = 2; k=3: 0 (the rollout ignores targets) -> mean 2/3
+    assert wl.multistep_prediction_loss(add, shifted, actions, steps=3).item() == pytest.approx(
+        2 / 3
+    )
+    # K=1 only looks at the first step
+    assert wl.multistep_prediction_loss(add, shifted, actions, steps=1).item() == 0.0
+
+
+def test_detached_targets_stop_the_gradient():
+    z = torch.zeros(1, 3, 2, requires_grad=True)
+    actions = torch.ones(1, 2, 2)
+    add = lambda z, a: z + a  # noqa: E731
+    wl.multistep_prediction_loss(add, z, actions, steps=2, detach_targets=True).backward()
+    # only zhat's path remains: d/dz0 of mean((z0+1)^2)/2 + mean((z0+2)^2)/2 at 0 is (1+2)/2
+    assert torch.allclose(z.grad[0, 0], torch.full((2,), 1.5))
+    assert torch.equal(z.grad[0, 1:], torch.zeros(2, 2))
+
+
+def test_variance_covariance_flatten_time():
+    z = torch.tensor([[[1.0, 0.0], [-1.0, 0.0]], [[1.0, 0.0], [-1.0, 0.0]]])  # (2, 2, 2)
+    var, cov = wl.variance_covariance_loss(z)
+    # dim 0: values 1, -1, 1, -1 -> var 4/3, std 1.155 > 1; dim 1: constant -> 1 - 0.01
+    assert var.item() == pytest.approx((1 - math.sqrt(1e-4)) / 2, abs=1e-6)
+    assert cov.item() == 0.0
+
+
+def test_world_model_loss_combines_terms(data):
+    trajectories, frames = data
+    model = tiny_model(frames)
+    coeffs = wl.WorldLossCoeffs()
+    total, terms = wl.world_model_loss(model, frames, trajectories.actions, coeffs, steps=3)
+    assert set(terms) == {"prediction", "variance", "covariance", "temporal", "inverse_dynamics"}
+    expected = sum(getattr(coeffs, name) * value for name, value in terms.items())
+    assert total.item() == pytest.approx(expected, rel=1e-5)
+    total.backward()
+    assert model.encoder.linear.weight.grad.abs().sum() > 0
+    assert model.inverse_dynamics[0].weight.grad.abs().sum() > 0
+
+
+# -- the probe ---------------------------------------------------------------------------
+def test_probe_on_an_invertible_map_of_positions_is_exact():
+    g = torch.Generator().manual_seed(0)
+    positions = 1.5 + 61 * torch.rand(600, 2, generator=g)
+    mixing = torch.randn(2, 6, generator=g)
+    latents = positions @ mixing + 3.0
+    probe = fit_position_probe(latents[:400], positions[:400], ridge=1e-9)
+    assert probe_error_px(probe, latents[400:], positions[400:]) < 1e-2
+
+
+def test_probe_on_random_latents_is_no_better_than_the_mean():
+    g = torch.Generator().manual_seed(0)
+    positions = 1.5 + 61 * torch.rand(1000, 2, generator=g)
+    latents = torch.randn(1000, 16, generator=g)
+    baseline = mean_baseline_px(positions[:800], positions[800:])
+    for hidden in (0, 16):
+        probe = fit_position_probe(latents[:800], positions[:800], hidden=hidden, steps=100)
+        error = probe_error_px(probe, latents[800:], positions[800:])
+        assert 0.9 * baseline < error < 1.3 * baseline
+
+
+def test_encode_trajectories_pairs_latents_with_positions(data):
+    trajectories, frames = data
+    model = tiny_model(frames)
+    latents, positions = encode_trajectories(model, trajectories, batch_size=4)
+    assert latents.shape == (30, 8) and positions.shape == (30, 2)
+    assert torch.allclose(latents[5:10], model.encode(frames[1]), atol=1e-5)
+    assert torch.equal(positions[5:10], trajectories.positions[1])
+
+
+# -- bad input ---------------------------------------------------------------------------
+def test_bad_inputs_give_clear_errors(data):
+    trajectories, frames = data
+    model = tiny_model(frames)
+    z = model.encode(frames[:, 0])
+    with pytest.raises(ValueError, match=r"actions must have shape \(6, 2\)"):
+        model.predict(z, trajectories.actions)
+    with pytest.raises(ValueError, match=r"actions must have shape \(6, 'H', 2\)"):
+        model.rollout(z, trajectories.actions[:, 0])
+    with pytest.raises(ValueError, match=r"\(6, 4, 2\)"):
+        model.rollout(z, trajectories.actions[:, :, :1])
+    nan_actions = trajectories.actions.clone()
+    nan_actions[0, 1, 0] = float("nan")
+    with pytest.raises(ValueError, match="NaN"):
+        model.rollout(z, nan_actions)
+    with pytest.raises(ValueError, match="NaN"):
+        wl.world_model_loss(model, frames, nan_actions)
+    with pytest.raises(ValueError, match=r"each frame must be \(2, 65, 65\)"):
+        model.encode(frames[:, :, :1])
+    with pytest.raises(ValueError, match=r"each frame must be \(2, 65, 65\)"):
+        model.encode(frames[..., :64, :64])
+    with pytest.raises(ValueError, match="latents of shape"):
+        model.rollout(z[:, :4], trajectories.actions)
+    with pytest.raises(ValueError, match=r"time - 1"):
+        wl.world_model_loss(model, frames, trajectories.actions[:, :3])
+    with pytest.raises(ValueError, match="steps must be in"):
+        wl.world_model_loss(model, frames, trajectories.actions, steps=5)
+    with pytest.raises(RuntimeError, match="fit_input_stats"):
+        wl.world_model_loss(tiny_model(), frames, trajectories.actions)
+    with pytest.raises(ValueError, match="same N"):
+        fit_position_probe(torch.zeros(5, 3), torch.zeros(4, 2))
