@@ -153,29 +153,46 @@ def resume(
     return state["step"], History(state["history"])
 
 
+SHIPPED_DIR = Path(__file__).resolve().parents[1] / "checkpoints"
+
+
+def checkpoint_paths(name: str) -> tuple[Path, Path]:
+    """Where a notebook's run called ``name`` is saved, and where a shipped copy would be.
+
+    Runs trained on your machine go to ``data/cache/checkpoints/<name>.pt``
+    (git-ignored); checkpoints that come with the course are in
+    ``checkpoints/<name>.pt``, made by the command documented in checkpoints/README.md.
+    """
+    from .data.paths import cache_dir  # the data package owns the cache location
+
+    return cache_dir() / "checkpoints" / f"{name}.pt", SHIPPED_DIR / f"{name}.pt"
+
+
 def load_or_train(
     path: str | Path,
     model: torch.nn.Module,
     train: Callable[[], History],
     config: dict[str, Any],
+    shipped: str | Path | None = None,
 ) -> History:
-    """Load ``model`` from ``path`` if it was trained with ``config``, else train and save.
+    """Load ``model`` from a checkpoint trained with ``config``, else train it and save to ``path``.
 
-    ``train()`` trains ``model`` in place and returns its history. The saved
-    file holds the weights, the history and ``config``; a file whose config
-    differs (other sizes, other coefficients) is not loaded but replaced.
-    Prints which of the two happened, so a class knows whether it waited.
+    ``shipped`` (a checkpoint that comes with the course) is tried first, then
+    ``path``. ``train()`` trains ``model`` in place and returns its history. A
+    file whose stored config differs (other sizes, other coefficients) is not
+    loaded. Prints which of the two happened, so a class knows whether it waited.
     """
-    path = Path(path)
-    if path.is_file():
-        state = load_checkpoint(path, map_location=next(model.parameters()).device)
+    device = next(model.parameters()).device
+    for candidate in (shipped, path):
+        if candidate is None or not Path(candidate).is_file():
+            continue
+        state = load_checkpoint(candidate, map_location=device)
         if state.get("config") == config:
             model.load_state_dict(state["model"])
-            print(f"Loaded a trained model from {path} (skip training).")
+            print(f"Loaded a trained model from {candidate} (skip training).")
             return History(state["history"])
-        print(f"{path} was trained with another configuration; training anew.")
+        print(f"{candidate} was trained with another configuration; not using it.")
     history = train()
     save_checkpoint(path, model=model.state_dict(), history=dict(history), config=config)
     print(f"Trained and saved to {path}.")
     return history
-

@@ -110,3 +110,23 @@ def test_load_or_train_trains_once_then_loads(tmp_path, capsys):
                         {"steps": 20, "lr": 0.2})
     assert "another configuration" in capsys.readouterr().out
     assert len(calls) == 2
+
+
+def test_load_or_train_prefers_a_matching_shipped_checkpoint(tmp_path, capsys):
+    model, optimizer, loss_fn, batch = _problem()
+    history = train.fit(model, optimizer, loss_fn, batch, steps=5, progress=False)
+    shipped = train.save_checkpoint(tmp_path / "shipped.pt", model=model.state_dict(),
+                                    history=dict(history), config={"steps": 5})
+    fresh = _problem(seed=3)[0]
+    train.load_or_train(tmp_path / "cache.pt", fresh, lambda: 1 / 0, {"steps": 5},
+                        shipped=shipped)
+    assert "Loaded" in capsys.readouterr().out
+    assert torch.equal(fresh.weight, model.weight)
+    assert not (tmp_path / "cache.pt").exists()
+
+
+def test_checkpoint_paths_separate_cache_and_shipped(monkeypatch, tmp_path):
+    monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
+    cache, shipped = train.checkpoint_paths("vicreg_class")
+    assert cache == tmp_path / "checkpoints" / "vicreg_class.pt"
+    assert shipped.parent.name == "checkpoints" and shipped.name == "vicreg_class.pt"
