@@ -15,6 +15,8 @@ import os
 from dataclasses import dataclass, replace
 
 from .image_jepa import ImageJEPAConfig
+from .models.world import WORLD_CONFIGS
+from .world_training import WorldTrainConfig
 
 SCALES = ("ci", "class", "full")
 DEFAULT_SCALE = "class"
@@ -83,6 +85,27 @@ def image_preset(scale: str, loss: str) -> ImagePreset:
     return ImagePreset(config)
 
 
+
+@dataclass(frozen=True)
+class WorldModelPreset:
+    """Notebook 05: the world-model training run, and how much we evaluate it on."""
+
+    train: WorldTrainConfig  # the run; the no-inverse-dynamics ablation changes only its coeffs
+    n_probe: int = 1000  # fresh 17-frame trajectories the position probe is fitted on
+    n_test: int = 200  # held-out trajectories for probe errors and open-loop rollouts
+    horizon: int = 32  # actions per held-out trajectory: how far rollouts go (training: K = 8)
+    n_layouts: int = 64  # layouts x dot positions for the "dot or walls?" variance split
+    n_positions: int = 32
+
+
+_WORLD_CI = WorldTrainConfig(model=WORLD_CONFIGS["ci"], n_trajectories=2000, batch_size=16,
+                             steps=30)
+_WORLD_FULL = WorldTrainConfig(  # the paper: batch 384, 12 epochs of 100,000 trajectories
+    model=WORLD_CONFIGS["full"], n_trajectories=100_000, batch_size=384,
+    steps=12 * 100_000 // 384,
+)
+
+
 PRESETS: dict[str, dict[str, object]] = {
     "00": {
         "ci": CollapsePreset(n_points=256, steps=60),
@@ -96,6 +119,12 @@ PRESETS: dict[str, dict[str, object]] = {
     },
     "01": {scale: image_preset(scale, "vicreg") for scale in SCALES},
     "02": {scale: image_preset(scale, "sigreg") for scale in SCALES},
+    "05": {
+        "ci": WorldModelPreset(_WORLD_CI, n_probe=100, n_test=32, horizon=16, n_layouts=16,
+                               n_positions=16),
+        "class": WorldModelPreset(WorldTrainConfig()),  # exactly the CLI's run (shipped)
+        "full": WorldModelPreset(_WORLD_FULL, n_probe=5000, n_test=1000, horizon=48),
+    },
 }
 
 

@@ -6,6 +6,8 @@ returns it, so notebooks can lay out several panels side by side.
 
 from __future__ import annotations
 
+import re
+
 import matplotlib.pyplot as plt
 import torch
 
@@ -65,3 +67,43 @@ def plot_energy_map(coords, energy, anchor, points=None, ax=None, title: str = "
     ax.set(title=title, xticks=[], yticks=[])
     plt.colorbar(image, ax=ax, fraction=0.046)
     return ax
+
+
+# -- Two Rooms (notebooks 04 to 06) ---------------------------------------------------------
+TWO_ROOMS_WALL_RGB = torch.tensor([0.35, 0.4, 0.5])
+TWO_ROOMS_DOT_RGB = torch.tensor([0.85, 0.1, 0.1])
+
+
+def two_rooms_rgb(obs: torch.Tensor):
+    """One Two Rooms observation ``(2, H, W)`` -> an ``(H, W, 3)`` picture for ``imshow``.
+
+    White floor, grey walls, a red dot (channel 0 is the dot, channel 1 the walls).
+    """
+    obs = obs.detach().cpu().float()
+    dot, wall = obs[0, ..., None], obs[1, ..., None]
+    floor = 1 - wall * (1 - TWO_ROOMS_WALL_RGB)
+    return (floor * (1 - dot) + TWO_ROOMS_DOT_RGB * dot).numpy()
+
+
+# Matplotlib's HTML animation player takes its button icons from a web font on
+# a CDN; offline (a class, the book) they would be blank. Plain characters instead.
+_PLAYER_ICONS = {"minus": "\u2212", "fast-backward": "\u23ee", "step-backward": "\u23f4\u23f4",
+                 "play": "\u25b6", "pause": "\u23f8", "step-forward": "\u23f5\u23f5",
+                 "fast-forward": "\u23ed", "plus": "+"}
+
+
+def play(animation, mode: str = "loop"):
+    """Show a ``matplotlib.animation.Animation`` as an HTML player that needs no network.
+
+    Close its figure first (``plt.close(fig)``) so the last frame is not shown twice.
+    """
+    from IPython.display import HTML
+
+    html = animation.to_jshtml(default_mode=mode)
+    html = re.sub(r'<link rel="stylesheet"\s+href="https://[^"]*font-awesome[^"]*">', "", html)
+    rules = "".join(f".anim-buttons .fa-{name}::before {{content: '{char}';}}"
+                    for name, char in _PLAYER_ICONS.items())
+    style = ("<style>.anim-buttons .fa {font-style: normal;} "
+             ".anim-buttons .fa-flip-horizontal {display: inline-block; transform: scaleX(-1);} "
+             f"{rules}</style>")
+    return HTML(style + html)

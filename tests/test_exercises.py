@@ -15,6 +15,8 @@ CHECKERS = {
     "variance_term": exercises.check_variance_term,
     "covariance_term": exercises.check_covariance_term,
     "wall_collision": check_wall_collision,
+    "temporal_similarity": exercises.check_temporal_similarity,
+    "inverse_dynamics": exercises.check_inverse_dynamics,
 }
 
 
@@ -62,7 +64,22 @@ def _covariance_divided_by_d(z):
     return (cov - torch.diag(torch.diagonal(cov))).pow(2).sum() / z.shape[1]
 
 
+def _temporal_similarity_summed(z):
+    return (z[:, 1:] - z[:, :-1]).pow(2).sum(dim=-1).mean()
+
+
+def _temporal_similarity_swapped_axes(z):
+    return (z[1:] - z[:-1]).pow(2).mean()
+
+
+def _inverse_dynamics_swapped_frames(predict_actions, z, actions):
+    return (predict_actions(z[:, 1:], z[:, :-1]) - actions).pow(2).mean()
+
+
 @pytest.mark.parametrize("checker, wrong, message", [
+    (exercises.check_temporal_similarity, _temporal_similarity_summed, "but the answer is"),
+    (exercises.check_temporal_similarity, _temporal_similarity_swapped_axes, "but the answer is"),
+    (exercises.check_inverse_dynamics, _inverse_dynamics_swapped_frames, "but the answer is"),
     (exercises.check_variance_term, _biased_variance, "but the answer is"),
     (exercises.check_variance_term, _per_dimension_variance, "a single number"),
     (exercises.check_variance_term, lambda z, gamma=1.0, eps=1e-4: 0.0, "expected a torch tensor"),
