@@ -42,7 +42,10 @@ class ImageJEPAConfig:
     optimizer: str = "adamw"  # "adamw" (CPU scales) or "lars" (the paper's)
     lr: float = 2e-3
     weight_decay: float = 1e-4
-    inv_coeff: float = 1.0  # VICReg, in the EB-JEPA paper's convention (covariance / D(D-1))
+    # VICReg weights, covariance averaged over D(D-1) entries as in the EB-JEPA paper, but
+    # the two views' regularisers averaged (losses.vicreg_loss), where the papers add them:
+    # the paper's 1 / 1 / 80 reads 1 / 2 / 160 here (the `full` preset uses that).
+    inv_coeff: float = 1.0
     std_coeff: float = 1.0
     cov_coeff: float = 80.0
     sigreg_lambda: float = 0.1  # SIGReg weight ...
@@ -119,8 +122,9 @@ def train_image_jepa(
     optimizer = make_optimizer(model, config)
     scheduler = optim.warmup_cosine_scheduler(optimizer, config.steps, config.warmup_steps)
     pipeline = augment.build_augmentation(augment.AugmentConfig(size=config.image_size))
-    start, history = (0, History()) if checkpoint is None else resume(
-        checkpoint, model, optimizer, scheduler)
+    start, history = (0, History())
+    if checkpoint is not None:
+        start, history = resume(checkpoint, model, optimizer, scheduler, config_dict(config))
 
     def batch(step: int):
         generator = torch.Generator().manual_seed(config.seed * 1_000_003 + step)
@@ -134,7 +138,8 @@ def train_image_jepa(
 
     fit(model, optimizer, loss, batch, config.steps, scheduler=scheduler, history=history,
         start_step=start, checkpoint=checkpoint, checkpoint_every=checkpoint_every, log_every=10,
-        desc=f"{config.loss} training", progress=progress)
+        desc=f"{config.loss} training", progress=progress,
+        config=config_dict(config))
     return model, history
 
 

@@ -92,6 +92,7 @@ def fit(
     log_every: int = 1,
     desc: str = "training",
     progress: bool = True,
+    config: dict[str, Any] | None = None,
 ) -> History:
     """Train for ``steps`` optimiser steps; return the :class:`History` of logged terms.
 
@@ -99,7 +100,8 @@ def fit(
     ``terms`` a dict of floats to log (the total is logged as ``"loss"``).
     ``batch_fn(step)`` returns the batch for optimiser step ``step``.
     With ``checkpoint``, the model, optimiser, scheduler, history and step are
-    saved every ``checkpoint_every`` steps and at the end; see :func:`resume`.
+    saved every ``checkpoint_every`` steps and at the end, with ``config`` (a
+    plain dict describing the run) so that :func:`resume` recognises its own runs.
     """
     history = History() if history is None else history
     model.train()
@@ -118,19 +120,16 @@ def fit(
             bar.set_postfix(loss=f"{loss.item():.4f}", refresh=False)
         done = step + 1
         if checkpoint is not None and (done % checkpoint_every == 0 or done == steps):
-            _save_training_state(checkpoint, model, optimizer, scheduler, history, done)
+            save_checkpoint(
+                checkpoint,
+                model=model.state_dict(),
+                optimizer=optimizer.state_dict(),
+                scheduler=None if scheduler is None else scheduler.state_dict(),
+                history=dict(history),
+                step=done,
+                config=config,
+            )
     return history
-
-
-def _save_training_state(path, model, optimizer, scheduler, history, step) -> None:
-    save_checkpoint(
-        path,
-        model=model.state_dict(),
-        optimizer=optimizer.state_dict(),
-        scheduler=None if scheduler is None else scheduler.state_dict(),
-        history=dict(history),
-        step=step,
-    )
 
 
 def resume(
@@ -138,14 +137,20 @@ def resume(
     model: torch.nn.Module,
     optimizer: torch.optim.Optimizer,
     scheduler: Any = None,
+    config: dict[str, Any] | None = None,
 ) -> tuple[int, History]:
     """Restore the state saved by :func:`fit`; return ``(step, history)`` to continue from.
 
-    Returns ``(0, History())`` when there is no checkpoint yet.
+    Returns ``(0, History())`` when there is no checkpoint yet, or when the
+    file was written by a run with another ``config`` (it is then left alone
+    and overwritten by the new run's first checkpoint).
     """
     if not Path(path).is_file():
         return 0, History()
     state = load_checkpoint(path, map_location=next(model.parameters()).device)
+    if state.get("config") != config:
+        print(f"{path} belongs to a run with another configuration; starting afresh.")
+        return 0, History()
     model.load_state_dict(state["model"])
     optimizer.load_state_dict(state["optimizer"])
     if scheduler is not None and state.get("scheduler") is not None:

@@ -70,7 +70,9 @@ def train_world_model(
     model = new_model(config, data).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr,
                                   weight_decay=config.weight_decay)
-    start, history = (0, History()) if checkpoint is None else resume(checkpoint, model, optimizer)
+    start, history = (0, History())
+    if checkpoint is not None:
+        start, history = resume(checkpoint, model, optimizer, config=config_dict(config))
     buffer = torch.empty(config.batch_size, data.positions.shape[1], 2, 65, 65)
 
     def batch(step: int):
@@ -84,7 +86,7 @@ def train_world_model(
 
     fit(model, optimizer, loss, batch, config.steps, history=history, start_step=start,
         checkpoint=checkpoint, checkpoint_every=250, log_every=10, desc="world model",
-        progress=progress)
+        progress=progress, config=config_dict(config))
     model.eval()
     return model, history
 

@@ -61,6 +61,16 @@ def test_resumed_run_equals_uninterrupted_run(tmp_path):
     assert torch.allclose(model3.weight, model.weight)
 
 
+def test_resume_ignores_a_run_with_another_config(tmp_path, capsys):
+    model, optimizer, loss_fn, batch = _problem()
+    ckpt = tmp_path / "run.pt"
+    train.fit(model, optimizer, loss_fn, batch, steps=3, checkpoint=ckpt, progress=False,
+              config={"lr": 0.1})
+    assert train.resume(ckpt, model, optimizer, config={"lr": 0.1})[0] == 3
+    assert train.resume(ckpt, model, optimizer, config={"lr": 0.2}) == (0, {})
+    assert "another configuration" in capsys.readouterr().out
+
+
 def test_resume_without_checkpoint_starts_at_zero(tmp_path):
     model, optimizer, _, _ = _problem()
     assert train.resume(tmp_path / "none.pt", model, optimizer) == (0, {})
