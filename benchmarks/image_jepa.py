@@ -17,7 +17,7 @@ from dataclasses import replace
 
 import torch
 
-from ebjepa_tutorial.data import load_cifar10
+from ebjepa_tutorial.data import load_cifar10, random_subset
 from ebjepa_tutorial.image_jepa import ImageJEPA, probe_encoder, train_image_jepa
 from ebjepa_tutorial.scale import SCALES, image_preset
 
@@ -33,8 +33,8 @@ def main() -> None:
 
     preset = image_preset(args.scale, args.loss)
     config = preset.config if args.steps is None else replace(preset.config, steps=args.steps)
-    train = tuple(t[: preset.train_images] for t in load_cifar10("train"))
-    test = tuple(t[: preset.test_images] for t in load_cifar10("test"))
+    train = random_subset(*load_cifar10("train"), preset.train_images)
+    test = random_subset(*load_cifar10("test"), preset.test_images)
     print(f"{args.scale} scale, {config}")
 
     random_init = probe_encoder(ImageJEPA(config).encoder, config, train, test)

@@ -456,3 +456,15 @@ def test_to_float():
     assert torch.allclose(out, torch.tensor([[[[0.0, 0.2, 1.0]]]]))
     with pytest.raises(TypeError, match="uint8"):
         to_float(out)
+
+
+def test_random_subset_mixes_classes_and_keeps_everything_when_asked():
+    from ebjepa_tutorial.data import random_subset
+
+    labels = torch.arange(10).repeat_interleave(100)  # stored class by class
+    images = torch.arange(1000)
+    some, some_labels = random_subset(images, labels, 50, seed=0)
+    assert len(some) == 50 and len(some_labels.unique()) >= 8
+    assert torch.equal(labels[some], some_labels)
+    assert torch.equal(random_subset(images, labels, 50, seed=0)[0], some)
+    assert random_subset(images, labels, 5000)[0] is images

@@ -19,6 +19,21 @@ def to_float(images: torch.Tensor) -> torch.Tensor:
     return images.to(torch.float32).div_(255.0)
 
 
+def random_subset(
+    images: torch.Tensor, labels: torch.Tensor, n: int, seed: int = 0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n`` of the ``(N, ...)`` images and their labels, drawn at random with ``seed``.
+
+    All of them, unchanged, when ``n >= N``. Never take the first ``n``: a copy
+    stored class by class (like the JPEG folders) would give a single class.
+    """
+    if n >= len(images):
+        return images, labels
+    keep = torch.randperm(len(images), generator=torch.Generator().manual_seed(seed))[:n]
+    keep = keep.sort().values
+    return images[keep], labels[keep]
+
+
 __all__ = [
     "CIFAR10_CLASSES",
     "CorruptDataError",
@@ -27,5 +42,6 @@ __all__ = [
     "data_dir",
     "load_cifar10",
     "load_mnist",
+    "random_subset",
     "to_float",
 ]
