@@ -107,3 +107,45 @@ def play(animation, mode: str = "loop"):
              ".anim-buttons .fa-flip-horizontal {display: inline-block; transform: scaleX(-1);} "
              f"{rules}</style>")
     return HTML(style + html)
+
+
+# -- CIFAR-10 (notebooks 01 and 02) ---------------------------------------------------------
+def show_views(images: torch.Tensor, views, normalized: bool = True, max_images: int = 8):
+    """A grid of images and their augmented views: one column per image, one row per view.
+
+    ``images``: ``(N, 3, H, W)`` uint8 or float in ``[0, 1]``; ``views``: a list of
+    tensors ``(N, 3, S, S)``, as the augmentation pipeline returns them
+    (standardised with the CIFAR-10 statistics when ``normalized``, else in
+    ``[0, 1]``). Shows the first ``max_images``; returns the axes, ``(1 + len(views), n)``.
+    """
+    from .augment import denormalize, to_float_images
+
+    n = min(len(images), max_images)
+    rows = [to_float_images(images[:n])]
+    rows += [denormalize(v[:n].float()) if normalized else v[:n].float().clamp(0, 1)
+             for v in views]
+    fig, axes = plt.subplots(len(rows), n, figsize=(1.2 * n, 1.25 * len(rows)), squeeze=False)
+    for r, (row, batch) in enumerate(zip(axes, rows)):
+        for ax, image in zip(row, batch):
+            ax.imshow(image.detach().cpu().permute(1, 2, 0).numpy(), interpolation="nearest")
+            ax.set(xticks=[], yticks=[])
+        size = batch.shape[-1]
+        row[0].set_ylabel("original" if r == 0 else f"view {r}\n({size} px)", fontsize=8)
+    return axes
+
+
+def plot_dimension_std(stds: dict[str, torch.Tensor], ax=None, target: float | None = None):
+    """Standard deviation of each embedding dimension, sorted (log scale), one line per run.
+
+    ``stds``: ``{label: (D,) tensor}``. ``target`` draws the variance hinge's
+    threshold (gamma = 1 for VICReg's embeddings) as a dashed line.
+    """
+    ax = _axes(ax)
+    for label, values in stds.items():
+        values = values.detach().cpu().sort(descending=True).values
+        ax.semilogy(torch.arange(1, len(values) + 1), values.clamp_min(1e-8), label=label)
+    if target is not None:
+        ax.axhline(target, color="k", ls="--", lw=0.8, label=f"hinge threshold {target:g}")
+    ax.set(xlabel="dimension (sorted)", ylabel="std over images")
+    ax.legend(fontsize=8)
+    return ax

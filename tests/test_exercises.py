@@ -17,6 +17,8 @@ CHECKERS = {
     "wall_collision": check_wall_collision,
     "temporal_similarity": exercises.check_temporal_similarity,
     "inverse_dynamics": exercises.check_inverse_dynamics,
+    "vicreg": exercises.check_vicreg,
+    "vicreg_paper_to_ebjepa": exercises.check_vicreg_paper_to_ebjepa,
 }
 
 
@@ -76,7 +78,19 @@ def _inverse_dynamics_swapped_frames(predict_actions, z, actions):
     return (predict_actions(z[:, 1:], z[:, :-1]) - actions).pow(2).mean()
 
 
+def _vicreg_regularising_one_view(z_a, z_b, inv_coeff, std_coeff, cov_coeff):
+    from ebjepa_tutorial import losses
+
+    return (inv_coeff * losses.invariance_term(z_a, z_b)
+            + std_coeff * losses.variance_term(z_a) + cov_coeff * losses.covariance_term(z_a))
+
+
 @pytest.mark.parametrize("checker, wrong, message", [
+    (exercises.check_vicreg, _vicreg_regularising_one_view, "but the answer is"),
+    (exercises.check_vicreg_paper_to_ebjepa, lambda inv, std, cov, dim: (inv, std, cov * dim),
+     "but the answer is"),
+    (exercises.check_vicreg_paper_to_ebjepa, lambda inv, std, cov, dim: cov * dim,
+     "expected a tuple of three"),
     (exercises.check_temporal_similarity, _temporal_similarity_summed, "but the answer is"),
     (exercises.check_temporal_similarity, _temporal_similarity_swapped_axes, "but the answer is"),
     (exercises.check_inverse_dynamics, _inverse_dynamics_swapped_frames, "but the answer is"),
