@@ -53,6 +53,7 @@ def save_checkpoint(path: str | Path, **state: Any) -> Path:
     try:
         with os.fdopen(fd, "wb") as f:
             torch.save(state, f)
+        os.chmod(tmp, 0o644)  # mkstemp makes the file private; a checkpoint is shareable
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

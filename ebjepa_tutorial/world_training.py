@@ -124,10 +124,12 @@ def main(argv: list[str] | None = None) -> None:
     config = WorldTrainConfig(steps=args.steps, seed=args.seed)
     if args.no_inverse_dynamics:
         config = replace(config, coeffs=replace(config.coeffs, inverse_dynamics=0.0))
-    model, history = train_world_model(config, checkpoint=Path(args.out).with_suffix(".partial"))
+    partial = Path(args.out).with_suffix(".partial")  # resumable while training
+    model, history = train_world_model(config, checkpoint=partial)
     report = probe_report(model)
     save_checkpoint(args.out, model=model.state_dict(), history=dict(history),
                     config=config_dict(config), probe_px=report["probe_px"])
+    partial.unlink()
     print(f"saved {args.out}: probe error {report['probe_px']:.2f} px "
           f"(mean-position baseline {report['baseline_px']:.2f} px)")
 
