@@ -149,3 +149,89 @@ def plot_dimension_std(stds: dict[str, torch.Tensor], ax=None, target: float | N
     ax.set(xlabel="dimension (sorted)", ylabel="std over images")
     ax.legend(fontsize=8)
     return ax
+
+
+# -- SIGReg (notebook 02) -------------------------------------------------------------------
+def plot_characteristic_functions(samples: dict[str, torch.Tensor], t_max: float = 3.0,
+                                  sigma: float = 1.0, axes=None):
+    """Three panels per call: the samples, their characteristic functions, the weighted gap.
+
+    ``samples``: ``{label: (N,) tensor}``, 1-D samples to test against N(0, 1).
+    Left: histograms and the N(0, 1) density. Middle: Re and |phi_N(t)| of each
+    sample against exp(-t^2/2). Right: ``N w(t) |phi_N(t) - phi(t)|^2``, whose
+    area over [-t_max, t_max] is the Epps-Pulley statistic (printed in the legend).
+    Returns the three axes.
+    """
+    from .sigreg import epps_pulley
+
+    if axes is None:
+        axes = plt.subplots(1, 3, figsize=(13, 3.4))[1]
+    t = torch.linspace(-t_max, t_max, 241)
+    gaussian_cf = torch.exp(-(t**2) / 2)
+    grid = torch.linspace(-4, 4, 161)
+    axes[0].plot(grid, torch.exp(-(grid**2) / 2) / (2 * torch.pi) ** 0.5, "k--", label="N(0, 1)")
+    axes[1].plot(t, gaussian_cf, "k--", lw=2, label="exp(-t²/2), N(0, 1)")
+    for i, (label, x) in enumerate(samples.items()):
+        x = x.detach().float().cpu()
+        color = f"C{i}"
+        axes[0].hist(x.clamp(-4, 4), bins=48, range=(-4, 4), density=True, alpha=0.45,
+                     color=color, label=label)
+        xt = x[:, None] * t  # (N, T)
+        real, imag = torch.cos(xt).mean(dim=0), torch.sin(xt).mean(dim=0)
+        axes[1].plot(t, real, color=color, label=label)
+        axes[1].plot(t, torch.sqrt(real**2 + imag**2), color=color, ls=":")
+        gap = len(x) * torch.exp(-(t**2) / (2 * sigma**2)) * ((real - gaussian_cf) ** 2 + imag**2)
+        statistic = epps_pulley(x, t_max=t_max, sigma=sigma).item()
+        gap = gap.clamp_min(1e-4)  # log scale
+        axes[2].semilogy(t, gap, color=color, label=f"{label}: EP = {statistic:.3g}")
+        axes[2].fill_between(t, 1e-4, gap, color=color, alpha=0.15)
+    axes[0].set(xlabel="x", ylabel="density", ylim=(0, 0.8), title="samples")
+    axes[1].set(xlabel="t", title="Re φ_N(t) (solid) and |φ_N(t)| (dotted)")
+    axes[2].set(xlabel="t", ylim=(1e-4, None), title="N · w(t) · |φ_N(t) − φ(t)|²")
+    for ax in axes:
+        ax.legend(fontsize=7)
+    return axes
+
+
+def plot_sweep(rows: list[dict], ax=None, baseline: float | None = None,
+               labels: dict[str, str] | None = None):
+    """Probe accuracy against each coefficient's multiple of its default (log x), per sweep.
+
+    ``rows``: result rows of :func:`ebjepa_tutorial.sweeps.run_sweep` with a
+    ``factor``. ``baseline``: the random-init encoder's accuracy, drawn dashed.
+    """
+    ax = _axes(ax)
+    labels = labels or {}
+    for sweep in dict.fromkeys(row["sweep"] for row in rows):
+        points = sorted((row["factor"], row["probe_acc"]) for row in rows if row["sweep"] == sweep)
+        xs, ys = zip(*points)
+        ax.semilogx(xs, [100 * y for y in ys], marker="o", label=labels.get(sweep, sweep))
+    if baseline is not None:
+        ax.axhline(100 * baseline, color="k", ls="--", lw=0.8, label="random init")
+    ax.axvline(1.0, color="0.7", lw=0.8)
+    ax.set(xlabel="coefficient, as a multiple of its default", ylabel="linear probe (%)")
+    ax.legend(fontsize=8)
+    return ax
+
+
+def plot_projector_ablation(rows: list[dict], ax=None, baseline: float | None = None,
+                            labels: dict[str, str] | None = None):
+    """Grouped bars: probe accuracy per projector output width (``None``: no projector)."""
+    ax = _axes(ax)
+    labels = labels or {}
+    sweeps = list(dict.fromkeys(row["sweep"] for row in rows))
+    values = list(dict.fromkeys(row["value"] for row in rows))
+    width = 0.8 / len(sweeps)
+    for i, sweep in enumerate(sweeps):
+        accuracy = {row["value"]: 100 * row["probe_acc"] for row in rows if row["sweep"] == sweep}
+        xs = [j + (i - (len(sweeps) - 1) / 2) * width for j in range(len(values))]
+        ax.bar(xs, [accuracy.get(v, float("nan")) for v in values], width,
+               label=labels.get(sweep, sweep))
+    if baseline is not None:
+        ax.axhline(100 * baseline, color="k", ls="--", lw=0.8, label="random init")
+    lowest = min([100 * row["probe_acc"] for row in rows] + [100 * (baseline or 1.0)])
+    ax.set_ylim(bottom=max(0.0, lowest - 5))  # bars from 0 would hide differences of a point
+    ax.set_xticks(range(len(values)), ["none" if v is None else str(v) for v in values])
+    ax.set(xlabel="projector output width", ylabel="linear probe (%)")
+    ax.legend(fontsize=8)
+    return ax

@@ -19,6 +19,7 @@ CHECKERS = {
     "inverse_dynamics": exercises.check_inverse_dynamics,
     "vicreg": exercises.check_vicreg,
     "vicreg_paper_to_ebjepa": exercises.check_vicreg_paper_to_ebjepa,
+    "epps_pulley_1d": exercises.check_epps_pulley,
 }
 
 
@@ -85,7 +86,14 @@ def _vicreg_regularising_one_view(z_a, z_b, inv_coeff, std_coeff, cov_coeff):
             + std_coeff * losses.variance_term(z_a) + cov_coeff * losses.covariance_term(z_a))
 
 
+def _epps_pulley_without_n(x, knots=17, t_max=3.0, scale_by_n=True):
+    from ebjepa_tutorial import sigreg
+
+    return sigreg.epps_pulley(x, knots=knots, t_max=t_max, scale_by_n=False)
+
+
 @pytest.mark.parametrize("checker, wrong, message", [
+    (exercises.check_epps_pulley, _epps_pulley_without_n, "N times too small"),
     (exercises.check_vicreg, _vicreg_regularising_one_view, "but the answer is"),
     (exercises.check_vicreg_paper_to_ebjepa, lambda inv, std, cov, dim: (inv, std, cov * dim),
      "but the answer is"),

@@ -1,0 +1,217 @@
+"""Notebook 02's sweeps: how much does the probe depend on the coefficients and the projector?
+
+Two families of short training runs of the CIFAR-10 recipe (``cfg.sweep_steps``
+steps each, from the same initial weights), each scored with the usual frozen
+protocol (:func:`ebjepa_tutorial.image_jepa.probe_encoder`):
+
+- **sensitivity** (the EB-JEPA paper's Figure 3, at our scale): SIGReg's one
+  weight ``sigreg_lambda``, and VICReg's two, ``std_coeff`` and ``cov_coeff``
+  (each with the other at its default), multiplied by the same factors;
+- **projector**: SIGReg and VICReg without a projector, and with outputs of
+  several widths (the bottleneck) after a hidden layer of the default width.
+
+At ``class`` scale that is about twenty runs, too many for a class period, so
+the results come from this command and are stored in a small JSON file::
+
+    python -m ebjepa_tutorial.sweeps --scale class --out checkpoints/sweeps_class.json
+
+The notebook reads that file if it holds its runs, and otherwise trains the
+missing ones live (seconds at ``ci`` scale). The file is rewritten after every
+run, so an interrupted sweep resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import torch
+
+from .image_jepa import ImageJEPAConfig, config_dict, probe_encoder, train_image_jepa
+from .scale import SCALES, preset
+
+FACTORS = {"ci": (0.1, 1.0, 10.0), "class": (0.01, 0.1, 1.0, 10.0, 100.0),
+           "full": (0.01, 0.1, 1.0, 10.0, 100.0)}  # multiples of each default coefficient
+SWEEP_LABELS = {
+    "sigreg_lambda": "SIGReg: lambda",
+    "std_coeff": "VICReg: variance weight",
+    "cov_coeff": "VICReg: covariance weight",
+    "projector_sigreg": "SIGReg",
+    "projector_vicreg": "VICReg",
+}
+PROTOCOL = ("linear probe (fit on the train split, scored on the test split) and kNN (k = 20) "
+            "on frozen encoder features of un-augmented images")
+
+
+@dataclass(frozen=True)
+class Run:
+    """One training run of a sweep: the sweep's name, the value it sets, and the full config.
+
+    ``factor`` is ``value`` as a multiple of the default (sensitivity sweeps; None otherwise).
+    """
+
+    sweep: str
+    value: float | int | None
+    config: ImageJEPAConfig
+    factor: float | None = None
+
+
+def shorten(config: ImageJEPAConfig, steps: int) -> ImageJEPAConfig:
+    """``config`` cut to ``steps`` steps, its warm-up cut to at most a tenth of them."""
+    return replace(config, steps=steps, warmup_steps=min(config.warmup_steps, steps // 10))
+
+
+def sensitivity_runs(sigreg_config: ImageJEPAConfig, vicreg_config: ImageJEPAConfig,
+                     factors=FACTORS["class"]) -> list[Run]:
+    """SIGReg's ``sigreg_lambda``, VICReg's ``std_coeff`` and ``cov_coeff``, times ``factors``."""
+    runs = []
+    for name, base in [("sigreg_lambda", sigreg_config), ("std_coeff", vicreg_config),
+                       ("cov_coeff", vicreg_config)]:
+        default = getattr(base, name)
+        for factor in factors:
+            value = float(f"{default * factor:.6g}")  # 0.1 * 0.1 is 0.01, not 0.010000000000000002
+            runs.append(Run(name, value, replace(base, **{name: value}), factor))
+    return runs
+
+
+def projector_runs(sigreg_config: ImageJEPAConfig, vicreg_config: ImageJEPAConfig,
+                   outputs=(None, 64, 256, 1024)) -> list[Run]:
+    """Both methods with no projector (``None``) and with each output width in ``outputs``.
+
+    The hidden width is the SIGReg config's (1024 at ``class`` scale).
+    """
+    hidden = (sigreg_config.projector or vicreg_config.projector or (1024, 1024))[0]
+    runs = []
+    for name, base in [("projector_sigreg", sigreg_config), ("projector_vicreg", vicreg_config)]:
+        for out in outputs:
+            projector = None if out is None else (hidden, out)
+            runs.append(Run(name, out, replace(base, projector=projector)))
+    return runs
+
+
+def plan(scale: str) -> dict[str, list[Run]]:
+    """The runs of both sweeps at ``scale``: ``{"sensitivity": [...], "projector": [...]}``."""
+    sizes = preset("02", scale)
+    sigreg_config = shorten(sizes.config, sizes.sweep_steps)
+    vicreg_config = shorten(preset("01", scale).config, sizes.sweep_steps)
+    hidden = (sigreg_config.projector or (1024, 1024))[0]
+    outputs = (None, hidden // 16, hidden // 4, hidden)  # class: none, 64, 256, 1024
+    outputs = (None, hidden) if scale == "ci" else outputs  # ci: fewer runs, it only checks
+    return {"sensitivity": sensitivity_runs(sigreg_config, vicreg_config, FACTORS[scale]),
+            "projector": projector_runs(sigreg_config, vicreg_config, outputs)}
+
+
+def _key(config: ImageJEPAConfig | dict, n_train: int, n_test: int) -> str:
+    """What identifies a result: the config as JSON (tuples become lists) and the data sizes."""
+    config = config_dict(config) if isinstance(config, ImageJEPAConfig) else config
+    return json.dumps([config, n_train, n_test], sort_keys=True)
+
+
+def load_meta(path: str | Path | None) -> dict:
+    """Everything a sweep file holds (scale, data, protocol, command, ``runs``), or ``{}``."""
+    if path is None or not Path(path).is_file():
+        return {}
+    with open(path) as f:
+        return json.load(f)
+
+
+def load_results(path: str | Path | None) -> list[dict]:
+    """The result rows stored in a sweep file, or ``[]`` when there is none."""
+    return load_meta(path).get("runs", [])
+
+
+def _save_results(path: Path, rows: list[dict], meta: dict) -> None:
+    """Write ``{**meta, "runs": rows}`` as JSON atomically (a temp file, then a rename)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    with os.fdopen(fd, "w") as f:
+        json.dump({**meta, "runs": rows}, f, indent=1)
+    os.chmod(tmp, 0o644)
+    os.replace(tmp, path)
+
+
+def train_and_probe(run: Run, train, test, device="cpu", progress: bool = True) -> dict:
+    """Train ``run.config`` on ``train`` images, probe its encoder: one result row."""
+    start = time.perf_counter()
+    model, history = train_image_jepa(run.config, train[0], device=device, progress=progress)
+    scores = probe_encoder(model.encoder.cpu(), run.config, train, test)
+    final = {name: values[-1] for name, values in history.items() if name != "step"}
+    return {"sweep": run.sweep, "value": run.value, "factor": run.factor, **scores,
+            "final_terms": final, "seconds": round(time.perf_counter() - start, 1),
+            "n_train": len(train[0]), "n_test": len(test[0]), "config": config_dict(run.config)}
+
+
+def run_sweep(runs: list[Run], train, test, path: str | Path | None = None,
+              shipped: str | Path | None = None, device="cpu", progress: bool = True,
+              meta: dict | None = None) -> list[dict]:
+    """One result row per run, in order: found in ``shipped`` or ``path``, else trained now.
+
+    ``train``, ``test``: ``(uint8 images (N, 3, 32, 32), labels (N,))``. A stored
+    row is used only if it was made with the same config and data sizes. Newly
+    trained rows are added to ``path`` (JSON) as soon as each run finishes.
+    """
+    sizes = (len(train[0]), len(test[0]))
+    stored = {_key(row["config"], row["n_train"], row["n_test"]): row
+              for row in load_results(shipped) + load_results(path)}
+    todo = [run for run in runs if _key(run.config, *sizes) not in stored]
+    where = " or ".join(str(p) for p in (shipped, path) if p is not None) or "no file"
+    print(f"{len(runs) - len(todo)} of {len(runs)} runs found in {where}; "
+          f"training {len(todo)} now.")
+    own = load_results(path)
+    for i, run in enumerate(todo, start=1):
+        row = train_and_probe(run, train, test, device, progress)
+        stored[_key(run.config, *sizes)] = row
+        print(f"[{i}/{len(todo)}] {run.sweep} = {run.value}: probe {row['probe_acc']:.1%}, "
+              f"kNN {row['knn_acc']:.1%} ({row['seconds']:.0f} s)")
+        if path is not None:
+            own.append(row)
+            _save_results(Path(path), own, meta or {"protocol": PROTOCOL})
+    return [{**stored[_key(run.config, *sizes)], "sweep": run.sweep, "value": run.value,
+             "factor": run.factor} for run in runs]
+
+
+def describe_data() -> str:
+    """Which copy of CIFAR-10 the loaders read: every accuracy depends on it."""
+    from .data import data_dir
+    from .data.cifar10 import find_cifar10
+
+    source = find_cifar10(data_dir(), "train")
+    if source is None:
+        return "CIFAR-10 (not found)"
+    jpeg = source.kind in ("tree", "packed")
+    return f"CIFAR-10{' (JPEG copy)' if jpeg else ''}, read from {source.path}"
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Run both sweeps (or one) at a scale and store the results: the documented command."""
+    from .data import load_cifar10, random_subset
+    from .utils import get_device
+
+    parser = argparse.ArgumentParser(description="Notebook 02's sensitivity and projector sweeps.")
+    parser.add_argument("--scale", choices=SCALES, default="class")
+    parser.add_argument("--out", required=True, help="the JSON file to write (and resume)")
+    parser.add_argument("--only", choices=("sensitivity", "projector"), default=None)
+    args = parser.parse_args(argv)
+    sizes = preset("02", args.scale)
+    train = random_subset(*load_cifar10("train"), sizes.train_images)
+    test = random_subset(*load_cifar10("test"), sizes.test_images)
+    runs = plan(args.scale)
+    selected = [run for name, group in runs.items() if args.only in (None, name) for run in group]
+    unique = list({_key(run.config, 0, 0): run for run in selected}.values())  # shared defaults
+    only = f" --only {args.only}" if args.only else ""
+    meta = {"scale": args.scale, "data": describe_data(), "protocol": PROTOCOL,
+            "command": f"python -m ebjepa_tutorial.sweeps --scale {args.scale} --out {args.out}"
+                       f"{only}",
+            "torch_threads": torch.get_num_threads()}
+    start = time.perf_counter()
+    run_sweep(unique, train, test, path=args.out, device=get_device(), meta=meta)
+    print(f"done in {(time.perf_counter() - start) / 60:.1f} min; results in {args.out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,109 @@
+"""Notebook 02's sweeps: the plan of runs, the JSON file they are stored in, and resuming."""
+
+import json
+
+import pytest
+import torch
+
+from ebjepa_tutorial import sweeps
+from ebjepa_tutorial.image_jepa import ImageJEPAConfig
+from ebjepa_tutorial.scale import preset
+
+TINY = ImageJEPAConfig(loss="sigreg", widths=(4, 4, 4, 4), projector=(8, 8), batch_size=8,
+                       steps=2, warmup_steps=0, sigreg_slices=8)
+
+
+def _data(n, seed):
+    g = torch.Generator().manual_seed(seed)
+    images = torch.randint(0, 256, (n, 3, 32, 32), generator=g, dtype=torch.uint8)
+    return images, torch.arange(n) % 10
+
+
+def _unique(runs):
+    return {sweeps._key(run.config, 0, 0) for run in runs}
+
+
+def test_class_plan_sweeps_each_coefficient_alone():
+    plan = sweeps.plan("class")
+    sensitivity, projector = plan["sensitivity"], plan["projector"]
+    assert len(sensitivity) == 3 * len(sweeps.FACTORS["class"]) and len(projector) == 8
+    steps = preset("02", "class").sweep_steps
+    for run in sensitivity + projector:
+        assert run.config.steps == steps and run.config.warmup_steps <= steps // 10
+    lambdas = [r for r in sensitivity if r.sweep == "sigreg_lambda"]
+    assert [r.config.sigreg_lambda for r in lambdas] == [0.001, 0.01, 0.1, 1.0, 10.0]
+    assert all(r.config.loss == "sigreg" for r in lambdas)
+    covs = [r for r in sensitivity if r.sweep == "cov_coeff"]
+    assert [r.config.cov_coeff for r in covs] == [0.8, 8.0, 80.0, 800.0, 8000.0]
+    assert all(r.config.std_coeff == 1.0 and r.config.loss == "vicreg" for r in covs)
+    assert [r.config.projector for r in projector[:4]] == [None, (1024, 64), (1024, 256),
+                                                           (1024, 1024)]
+    # the default VICReg run is shared by the two VICReg sweeps, the defaults by both plans
+    assert len(_unique(sensitivity)) == len(sensitivity) - 1
+    assert len(_unique(sensitivity + projector)) == 20
+
+
+def test_ci_plan_is_small():
+    plan = sweeps.plan("ci")
+    assert len(_unique(plan["sensitivity"] + plan["projector"])) <= 10
+    assert [r.value for r in plan["projector"]] == [None, 64, None, 64]
+
+
+def test_run_sweep_writes_each_run_and_reloads_instead_of_training(tmp_path, monkeypatch):
+    train, test = _data(48, 0), _data(20, 1)
+    runs = sweeps.sensitivity_runs(TINY, TINY, factors=(0.5, 2.0))[:2]  # two lambdas
+    path = tmp_path / "sweep.json"
+    rows = sweeps.run_sweep(runs, train, test, path=path, progress=False)
+    assert [r["value"] for r in rows] == [0.05, 0.2]
+    assert all(0.0 <= r["probe_acc"] <= 1.0 and 0.0 <= r["knn_acc"] <= 1.0 for r in rows)
+    stored = json.loads(path.read_text())
+    assert len(stored["runs"]) == 2 and "protocol" in stored
+
+    def no_training(*args, **kwargs):
+        raise AssertionError("a stored run was trained again")
+
+    monkeypatch.setattr(sweeps, "train_and_probe", no_training)
+    again = sweeps.run_sweep(runs, train, test, path=path, progress=False)
+    assert [r["probe_acc"] for r in again] == [r["probe_acc"] for r in rows]
+    # a stored row from the shipped file is relabelled for the sweep that asks for it
+    relabelled = sweeps.Run("other_sweep", 7, runs[0].config)
+    assert sweeps.run_sweep([relabelled], train, test, shipped=path)[0]["sweep"] == "other_sweep"
+
+
+def test_rows_of_other_data_sizes_are_not_reused(tmp_path, monkeypatch):
+    path = tmp_path / "sweep.json"
+    runs = [sweeps.Run("sigreg_lambda", 0.1, TINY, 1.0)]
+    sweeps.run_sweep(runs, _data(48, 0), _data(20, 1), path=path, progress=False)
+    calls = []
+
+    def fake(run, train, test, device="cpu", progress=True):
+        calls.append(run)
+        return {"probe_acc": 0.5, "knn_acc": 0.5, "seconds": 0.0, "n_train": len(train[0]),
+                "n_test": len(test[0]), "config": sweeps.config_dict(run.config)}
+
+    monkeypatch.setattr(sweeps, "train_and_probe", fake)
+    sweeps.run_sweep(runs, _data(40, 0), _data(20, 1), path=path, progress=False)
+    assert len(calls) == 1
+    assert len(sweeps.load_results(path)) == 2
+
+
+def test_command_runs_the_selected_sweep_once_per_config(tmp_path, monkeypatch):
+    from ebjepa_tutorial import data
+
+    monkeypatch.setattr(data, "load_cifar10", lambda split: _data(30, 0))
+    seen = {}
+
+    def capture(runs, train, test, path=None, device="cpu", meta=None, **kwargs):
+        seen.update(runs=runs, path=path, meta=meta, sizes=(len(train[0]), len(test[0])))
+
+    monkeypatch.setattr(sweeps, "run_sweep", capture)
+    out = tmp_path / "sweeps_ci.json"
+    sweeps.main(["--scale", "ci", "--out", str(out), "--only", "sensitivity"])
+    assert len(seen["runs"]) == 8  # 3 x 3 runs, the VICReg default shared
+    assert seen["path"] == str(out) and "--only sensitivity" in seen["meta"]["command"]
+    assert seen["sizes"] == (30, 30)
+
+
+def test_bad_scale_is_refused():
+    with pytest.raises(SystemExit):
+        sweeps.main(["--scale", "huge", "--out", "x.json"])
