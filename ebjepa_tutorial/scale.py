@@ -86,7 +86,6 @@ def image_preset(scale: str, loss: str) -> ImagePreset:
     return ImagePreset(config)
 
 
-
 @dataclass(frozen=True)
 class WorldModelPreset:
     """Notebook 05: the world-model training run, and how much we evaluate it on."""
@@ -113,13 +112,13 @@ PRESETS: dict[str, dict[str, object]] = {
         "class": CollapsePreset(),
         "full": CollapsePreset(n_points=4096, steps=2000),
     },
+    "01": {scale: image_preset(scale, "vicreg") for scale in SCALES},
+    "02": {scale: image_preset(scale, "sigreg") for scale in SCALES},
     "04": {
         "ci": TwoRoomsWorldPreset(n_trajectories=512, n_episodes=32),
         "class": TwoRoomsWorldPreset(),
         "full": TwoRoomsWorldPreset(n_trajectories=100_000, n_episodes=1000),
     },
-    "01": {scale: image_preset(scale, "vicreg") for scale in SCALES},
-    "02": {scale: image_preset(scale, "sigreg") for scale in SCALES},
     "05": {
         "ci": WorldModelPreset(_WORLD_CI, n_probe=100, n_test=32, horizon=16, n_layouts=16,
                                n_positions=16),
