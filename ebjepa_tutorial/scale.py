@@ -71,7 +71,6 @@ _IMAGE_CLASS = ImageJEPAConfig()  # ResNet-18 at widths 16-128 on 16-px views, 2
 _IMAGE_FULL = ImageJEPAConfig(  # the paper: 300 epochs of batch 256 with LARS
     widths=(64, 128, 256, 512), image_size=32, projector=(2048, 2048), batch_size=256,
     steps=300 * 195, warmup_steps=10 * 195, optimizer="lars", lr=0.3, weight_decay=1e-4,
-    std_coeff=2.0, cov_coeff=160.0,  # the paper's 1 / 1 / 80: it adds the views, we average
 )
 
 
