@@ -1,0 +1,192 @@
+"""Video JEPA (chapter 03): shapes, the rollout loss by hand, tbptt, the checker, probe, errors."""
+
+from dataclasses import replace
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from ebjepa_tutorial.data.moving_mnist import centres_to_grid, generate_moving_mnist
+from ebjepa_tutorial.exercises import ExerciseError
+from ebjepa_tutorial.metrics import average_precision
+from ebjepa_tutorial.models.video import (
+    VIDEO_MODEL_CONFIGS,
+    DetectionHead,
+    FrameDecoder,
+    VideoJEPA,
+    VideoModelConfig,
+)
+from ebjepa_tutorial.video_jepa import (
+    VIDEO_CONFIGS,
+    check_rollout_loss,
+    detection_report,
+    fit_decoder,
+    fit_detection_probe,
+    rollout,
+    rollout_loss,
+    train_video_jepa,
+)
+
+CI = VIDEO_CONFIGS["ci"]
+
+
+@pytest.fixture(scope="module")
+def digits():
+    """Stand-in digits: a filled 10x10 square in a 28x28 patch (the model never sees MNIST here)."""
+    patches = torch.zeros(8, 1, 28, 28, dtype=torch.uint8)
+    patches[:, :, 9:19, 9:19] = 255
+    return patches
+
+
+def shift_predictor(c):
+    """The last latent plus ``c``: order k of a rollout is ``z_last + k c``."""
+    return lambda window: window[:, -1] + c
+
+
+@pytest.mark.parametrize("scale", ["ci", "class", "full"])
+def test_shapes(scale):
+    config = VIDEO_MODEL_CONFIGS[scale]
+    model = VideoJEPA(config).eval()
+    c, s = config.latent_channels, config.latent_side
+    assert s == {"ci": 8, "class": 16, "full": 64}[scale]
+    with torch.no_grad():
+        z = model.encode(torch.randint(0, 256, (2, 3, 1, 64, 64), dtype=torch.uint8))
+        assert z.shape == (2, 3, c, s, s)
+        assert model.predictor(z[:, :2]).shape == (2, c, s, s)
+        assert model.project(z).shape == (2 * 3 * s * s, config.projector_dim)
+        assert DetectionHead(c)(z[:, 0]).shape == (2, 8, 8)
+        assert FrameDecoder(c, s)(z[:, 0]).shape == (2, 1, 64, 64)
+
+
+def test_residual_predictor_starts_as_copy_of_last_latent():
+    model = VideoJEPA(VIDEO_MODEL_CONFIGS["ci"]).eval()
+    window = torch.randn(3, 2, 8, 8, 8)
+    assert torch.equal(model.predictor(window), window[:, -1])
+
+
+def test_rollout_loss_by_hand():
+    # z_t = t everywhere: the true latent moves by 1 per frame. "last + c" predicts
+    # z_{s+1} + k c for the frame z_{s+1+k} = z_{s+1} + k, so the error of order k is k (1 - c).
+    z = torch.arange(8.0).view(1, 8, 1, 1, 1).expand(2, 8, 3, 2, 2)
+    for c in (0.0, 0.5, 1.0):
+        expected = (1 - c) ** 2 * (1 + 4 + 9) / 3  # mean over k = 1, 2, 3 of (k (1 - c))^2
+        got = rollout_loss(shift_predictor(c), z, context=2, steps=3)
+        assert got.shape == ()
+        assert got.item() == pytest.approx(expected)
+    # teacher forcing would see the true z_{s+k} and always be off by exactly 1 - c = 1
+    assert rollout_loss(shift_predictor(0.0), z, steps=1).item() == pytest.approx(1.0)
+
+
+def test_rollout_feeds_predictions_back():
+    window = torch.zeros(1, 2, 1, 1, 1)
+    window[:, 1] = 1.0
+    out = rollout(lambda w: 2 * w[:, -1] - w[:, -2], window, steps=3)  # constant velocity
+    assert out.flatten().tolist() == [2.0, 3.0, 4.0]
+
+
+def test_tbptt_changes_gradients_not_the_loss():
+    g = torch.Generator().manual_seed(0)
+    z = torch.randn(2, 9, 3, 2, 2, generator=g)
+    weight0 = torch.randn(2, 3, 3, generator=g) / 2
+
+    def loss_and_grad(tbptt):
+        weight = weight0.clone().requires_grad_()
+        predictor = lambda w: torch.tanh(torch.einsum("nkchw,kcd->ndhw", w, weight))  # noqa: E731
+        loss = rollout_loss(predictor, z, context=2, steps=5, tbptt=tbptt)
+        return loss.detach(), torch.autograd.grad(loss, weight)[0]
+
+    full_loss, full_grad = loss_and_grad(None)
+    for m in (1, 2):
+        loss, grad = loss_and_grad(m)
+        assert torch.allclose(loss, full_loss)
+        assert not torch.allclose(grad, full_grad)
+    assert torch.allclose(loss_and_grad(5)[1], full_grad)  # truncating beyond K changes nothing
+
+
+def test_checker_accepts_reference_and_rejects_wrong_answers(capsys):
+    assert check_rollout_loss(rollout_loss)
+    assert "Correct" in capsys.readouterr().out
+
+    def teacher_forcing(predictor, z, context=2, steps=4, tbptt=None):
+        n = z.shape[1] - context - steps + 1
+        errors = [F.mse_loss(predictor(z[:, s + k:s + k + context]), z[:, s + k + context])
+                  for s in range(n) for k in range(steps)]
+        return torch.stack(errors).mean()
+
+    def context_two(predictor, z, context=2, steps=4, tbptt=None):
+        return rollout_loss(predictor, z, 2, steps, tbptt)
+
+    def detached_targets(predictor, z, context=2, steps=4, tbptt=None):
+        return rollout_loss(predictor, torch.cat([z[:, :-1], z[:, -1:].detach()], 1),
+                            context, steps, tbptt)
+
+    def ignores_tbptt(predictor, z, context=2, steps=4, tbptt=None):
+        return rollout_loss(predictor, z, context, steps)
+
+    for wrong in (teacher_forcing, context_two, detached_targets, ignores_tbptt):
+        with pytest.raises(ExerciseError):
+            check_rollout_loss(wrong)
+
+
+def test_checker_without_tbptt_argument(capsys):
+    def no_tbptt(predictor, z, context=2, steps=4):
+        return rollout_loss(predictor, z, context, steps)
+
+    assert check_rollout_loss(no_tbptt)
+    assert "skipped" in capsys.readouterr().out
+
+
+def test_detection_probe_on_separable_latents():
+    g = torch.Generator().manual_seed(0)
+    centres = torch.rand(64, 2, 2, generator=g) * 64  # two digit centres per frame
+    targets = centres_to_grid(centres)  # (64, 8, 8)
+    noise = torch.randn(64, 1, 8, 8, generator=g)
+    features = torch.cat([targets[:, None] * 3, noise], dim=1)  # channel 0 marks the centres
+    probe = fit_detection_probe(features, targets, steps=50, batch_size=64, lr=2e-2)
+    with torch.no_grad():
+        assert average_precision(probe(features), targets) > 0.99
+
+
+def test_bad_inputs_raise_clear_errors():
+    z = torch.randn(2, 5, 3, 2, 2)
+    with pytest.raises(ValueError, match="too short"):
+        rollout_loss(shift_predictor(0.0), z, context=2, steps=4)
+    with pytest.raises(ValueError, match="steps"):
+        rollout_loss(shift_predictor(0.0), z, steps=0)
+    with pytest.raises(ValueError, match="tbptt"):
+        rollout_loss(shift_predictor(0.0), z, steps=2, tbptt=0)
+    with pytest.raises(ValueError, match="batch, time"):
+        rollout_loss(shift_predictor(0.0), z[:, 0], steps=2)
+    with pytest.raises(ValueError, match="latent side"):
+        VideoModelConfig(strides=(2, 2, 2), predictor_levels=4)
+    model = VideoJEPA(VIDEO_MODEL_CONFIGS["ci"])
+    with pytest.raises(ValueError, match="windows"):
+        model.predictor(torch.randn(2, 3, 8, 8, 8))
+    short = torch.zeros(4, 5, 1, 64, 64, dtype=torch.uint8)
+    with pytest.raises(ValueError, match="at least 6"):
+        train_video_jepa(CI, short, progress=False)
+    with pytest.raises(TypeError, match="uint8"):
+        train_video_jepa(CI, torch.zeros(4, 8, 1, 64, 64), progress=False)
+
+
+def test_training_resumes_and_evaluation_runs(digits, tmp_path):
+    clips = generate_moving_mnist(digits, 32, 10, seed=1).clips
+    config = replace(CI, steps=4, batch_size=4)
+    model, history = train_video_jepa(config, clips, progress=False)
+    assert {"prediction", "variance", "covariance"} <= set(history)
+    path = tmp_path / "video.pt"
+    train_video_jepa(config, clips, checkpoint=path, progress=False)
+    again, _ = train_video_jepa(config, clips, checkpoint=path, progress=False)  # restored, done
+    for a, b in zip(model.state_dict().values(), again.state_dict().values()):
+        assert torch.equal(a, b)
+
+    probe_data = generate_moving_mnist(digits, 8, 10, seed=2)
+    eval_data = generate_moving_mnist(digits, 8, 10, seed=3)
+    report = detection_report(model, probe_data, eval_data, horizons=7, probe_steps=3)
+    for name in ("ap", "ap_encoded", "ap_copy"):
+        assert report[name].shape == (7,) and ((report[name] >= 0) & (report[name] <= 1)).all()
+    assert report["map"] == pytest.approx(float(report["ap"].mean()))
+    decoder = fit_decoder(model, clips, steps=2, batch_size=4)
+    with torch.no_grad():
+        z = model.encode(clips[:2])[:, 0]
+        assert torch.sigmoid(decoder(z)).shape == (2, 1, 64, 64)
