@@ -33,9 +33,12 @@ def test_class_plan_sweeps_each_coefficient_alone():
     lambdas = [r for r in sensitivity if r.sweep == "sigreg_lambda"]
     assert [r.config.sigreg_lambda for r in lambdas] == [0.001, 0.01, 0.1, 1.0, 10.0]
     assert all(r.config.loss == "sigreg" for r in lambdas)
+    vicreg = preset("01", "class").config  # each VICReg weight is swept around its default
     covs = [r for r in sensitivity if r.sweep == "cov_coeff"]
-    assert [r.config.cov_coeff for r in covs] == [0.8, 8.0, 80.0, 800.0, 8000.0]
-    assert all(r.config.std_coeff == 1.0 and r.config.loss == "vicreg" for r in covs)
+    assert [r.config.cov_coeff for r in covs] == pytest.approx(
+        [f * vicreg.cov_coeff for f in sweeps.FACTORS["class"]])
+    assert all(r.config.std_coeff == vicreg.std_coeff and r.config.loss == "vicreg"
+               for r in covs)
     assert [r.config.projector for r in projector[:4]] == [None, (1024, 64), (1024, 256),
                                                            (1024, 1024)]
     # the default VICReg run is shared by the two VICReg sweeps, the defaults by both plans
