@@ -22,7 +22,7 @@ from torch import nn
 from . import augment, evaluate, losses, optim, sigreg
 from .models.encoders import build_encoder
 from .models.heads import build_projector
-from .train import History, fit, resume
+from .train import History, checkpoint_paths, fit, load_or_train, resume
 
 LOSSES = ("vicreg", "sigreg", "invariance")
 
@@ -168,3 +168,26 @@ def probe_encoder(encoder, config: ImageJEPAConfig, train, test, knn_k: int = 20
 def config_dict(config: ImageJEPAConfig) -> dict:
     """The config as a plain dict (what checkpoints store to recognise a matching run)."""
     return asdict(config)
+
+
+def train_or_load(config: ImageJEPAConfig, name: str, images: torch.Tensor, device="cpu"):
+    """The model of ``config``: loaded if a run with exactly this config was saved, else trained.
+
+    Looks for ``checkpoints/<name>.pt`` (shipped with the course), then
+    ``data/cache/checkpoints/<name>.pt``; otherwise trains on ``images``
+    (resumable from ``<name>.partial`` in the cache) and saves. Returns
+    ``(model in eval mode, history)``.
+    """
+    torch.manual_seed(config.seed)
+    model = ImageJEPA(config).to(device)
+    cache_path, shipped = checkpoint_paths(name)
+    partial = cache_path.with_suffix(".partial")
+
+    def train() -> History:
+        trained, history = train_image_jepa(config, images, checkpoint=partial, device=device)
+        model.load_state_dict(trained.state_dict())
+        partial.unlink()  # finished: the saved model replaces it
+        return history
+
+    history = load_or_train(cache_path, model, train, config_dict(config), shipped)
+    return model.eval(), history

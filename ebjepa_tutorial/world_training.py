@@ -20,7 +20,7 @@ from .envs import generate_trajectories
 from .envs.trajectories import Trajectories
 from .models.world import WORLD_CONFIGS, WorldConfig, WorldModel
 from .probe import encode_trajectories, fit_position_probe, mean_baseline_px, probe_error_px
-from .train import History, fit, resume, save_checkpoint
+from .train import History, checkpoint_paths, fit, load_or_train, resume, save_checkpoint
 from .utils import get_device
 from .world_losses import WorldLossCoeffs, world_model_loss
 
@@ -89,6 +89,28 @@ def train_world_model(
         progress=progress, config=config_dict(config))
     model.eval()
     return model, history
+
+
+def train_or_load(config: WorldTrainConfig, name: str) -> tuple[WorldModel, History]:
+    """The model of ``config``: loaded if a run with exactly this config was saved, else trained.
+
+    Looks for ``checkpoints/<name>.pt`` (shipped with the course), then
+    ``data/cache/checkpoints/<name>.pt``; otherwise trains (resumable from
+    ``<name>.partial`` in the cache) and saves. Returns ``(model in eval mode, history)``.
+    """
+    data = make_data(config)
+    model = new_model(config, data)
+    cache_path, shipped = checkpoint_paths(name)
+    partial = cache_path.with_suffix(".partial")
+
+    def train() -> History:
+        trained, history = train_world_model(config, data, checkpoint=partial)
+        model.load_state_dict(trained.state_dict())
+        partial.unlink()  # finished: the saved model replaces it
+        return history
+
+    history = load_or_train(cache_path, model, train, config_dict(config), shipped)
+    return model.eval(), history
 
 
 def probe_report(model: WorldModel, n_fit: int = 1000, n_test: int = 300, seed: int = 12345):

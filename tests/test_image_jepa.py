@@ -77,3 +77,15 @@ def test_probe_encoder_reports_both_accuracies():
     result = image_jepa.probe_encoder(model.encoder, TINY, (images, labels), (images, labels))
     assert set(result) == {"probe_acc", "knn_acc"}
     assert 0.0 <= result["probe_acc"] <= 1.0
+
+
+def test_train_or_load_trains_once_then_loads(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
+    images = _images()
+    first, history = image_jepa.train_or_load(TINY, "tiny_run", images)
+    assert "Trained and saved" in capsys.readouterr().out
+    assert not (tmp_path / "checkpoints" / "tiny_run.partial").exists()
+    again, history2 = image_jepa.train_or_load(TINY, "tiny_run", images)
+    assert "Loaded" in capsys.readouterr().out
+    assert history2 == history and not again.training
+    assert all(torch.equal(p, q) for p, q in zip(first.parameters(), again.parameters()))
