@@ -17,6 +17,7 @@ arrays are cached, so only the first load of each split is slow.
 from __future__ import annotations
 
 import codecs
+import gzip
 import io
 import os
 import pickle
@@ -144,12 +145,24 @@ def _read_batch(raw: bytes) -> tuple[np.ndarray, np.ndarray]:
     return data.reshape(-1, 3, SIZE, SIZE), np.asarray(batch[b"labels"], dtype=np.int64)
 
 
+def _check_complete(path: Path) -> None:
+    """Decompress ``path`` once to its end: a truncated .tar.gz raises EOFError here.
+
+    Reading a tar stream alone is not enough: a cut inside the archive can end
+    the member listing early without an error, and whole classes go missing.
+    """
+    with gzip.open(path, "rb") as stream:
+        while stream.read(1 << 20):
+            pass
+
+
 def _read_official(source: Source, split: str) -> tuple[np.ndarray, np.ndarray]:
     names = _batch_names(split)
     if source.kind == "batches":
         raws = {name: (source.path / name).read_bytes() for name in names}
     else:
         raws = {}
+        _check_complete(source.path)
         with tarfile.open(source.path, "r|gz") as archive:
             for member in archive:
                 name = PurePosixPath(member.name).name
@@ -209,6 +222,7 @@ def _read_packed(path: Path, split: str) -> tuple[np.ndarray, np.ndarray]:
     """Images stored as ``[<top>/]<split>/<class>/<file>`` inside a tar.gz."""
     index = {name: label for label, name in enumerate(CIFAR10_CLASSES)}
     items = []
+    _check_complete(path)
     with tarfile.open(path, "r|gz") as archive:
         for member in archive:
             parts = PurePosixPath(member.name).parts
