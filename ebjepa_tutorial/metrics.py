@@ -102,3 +102,18 @@ def mean_average_precision(
 ) -> float:
     """mAP: the mean over horizons of :func:`average_precision_per_horizon`."""
     return float(average_precision_per_horizon(scores, targets, horizon_dim).mean())
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson score interval of a success rate ``successes / n`` (95% for ``z = 1.96``).
+
+    ``(p + z^2/2n +- z sqrt(p(1-p)/n + z^2/4n^2)) / (1 + z^2/n)``: unlike the
+    textbook ``p +- z sqrt(p(1-p)/n)`` it stays inside [0, 1] and does not
+    shrink to a point at 0% or 100%.
+    """
+    if not 0 <= successes <= n or n < 1:
+        raise ValueError(f"need 0 <= successes <= n and n >= 1, got {successes} of {n}")
+    p = successes / n
+    centre = (p + z**2 / (2 * n)) / (1 + z**2 / n)
+    half = z * (p * (1 - p) / n + z**2 / (4 * n**2)) ** 0.5 / (1 + z**2 / n)
+    return max(0.0, centre - half), min(1.0, centre + half)

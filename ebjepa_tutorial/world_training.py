@@ -129,6 +129,17 @@ def probe_report(model: WorldModel, n_fit: int = 1000, n_test: int = 300, seed: 
             "baseline_px": mean_baseline_px(xy_fit, xy_test), "probe": probe}
 
 
+ABLATABLE_TERMS = ("variance", "covariance", "temporal", "inverse_dynamics")
+
+
+def ablation_config(config: WorldTrainConfig, *without: str) -> WorldTrainConfig:
+    """``config`` with the coefficients of the terms in ``without`` set to 0 (paper, Table 4)."""
+    unknown = set(without) - set(ABLATABLE_TERMS)
+    if unknown:
+        raise ValueError(f"unknown loss terms {sorted(unknown)}; choose from {ABLATABLE_TERMS}")
+    return replace(config, coeffs=replace(config.coeffs, **{term: 0.0 for term in without}))
+
+
 def config_dict(config: WorldTrainConfig) -> dict:
     """A plain dict of the config (stored in checkpoints to recognise a matching run)."""
     return asdict(config)
@@ -139,13 +150,14 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description="Train the Two Rooms world model.")
     parser.add_argument("--out", required=True, help="where to write the trained model")
     parser.add_argument("--steps", type=int, default=WorldTrainConfig.steps)
+    parser.add_argument("--without", action="append", default=[], choices=ABLATABLE_TERMS,
+                        help="an ablation: set this term's coefficient to 0 (repeatable)")
     parser.add_argument("--no-inverse-dynamics", action="store_true",
-                        help="the ablation: inverse-dynamics coefficient 0")
+                        help="the same as --without inverse_dynamics")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    config = WorldTrainConfig(steps=args.steps, seed=args.seed)
-    if args.no_inverse_dynamics:
-        config = replace(config, coeffs=replace(config.coeffs, inverse_dynamics=0.0))
+    without = args.without + (["inverse_dynamics"] if args.no_inverse_dynamics else [])
+    config = ablation_config(WorldTrainConfig(steps=args.steps, seed=args.seed), *without)
     partial = Path(args.out).with_suffix(".partial")  # resumable while training
     model, history = train_world_model(config, checkpoint=partial)
     report = probe_report(model)

@@ -1,0 +1,279 @@
+"""Goal-conditioned planning with a world model: MPPI and CEM on a latent energy (notebook 06).
+
+The planner never sees positions. It encodes the current observation and
+the goal image, imagines ``N`` action sequences of ``H`` steps with the
+world model's predictor, and scores each with the planning energy (the
+paper's Eq. 13): the distance in latent space between the imagined states
+and the encoded goal,
+
+    S(a_1..a_H) = sum_{k=1..H} || zhat_k - z_goal ||       (cost="sum", the paper's)
+    S(a_1..a_H) =               || zhat_H - z_goal ||       (cost="last", its ablation)
+
+MPPI (the paper's Algorithm 1) then keeps the ``Q`` cheapest sequences
+(the elites), weights them by ``exp(-(S_i - S_min) / tau)``, moves the mean
+plan (and the spread) to their weighted average, and repeats ``J`` times.
+CEM is the same loop with equal weights. The agent executes the first ``m``
+actions of the mean plan and re-plans from the new observation, starting
+from the previous plan shifted by ``m`` steps (warm start).
+
+Everything is batched over episodes: ``B`` episodes x ``N`` samples are one
+call to :meth:`~ebjepa_tutorial.models.world.WorldModel.rollout`. Each
+episode has its own seed, which fixes its task and its planner's noise, so
+any episode can be replayed on its own.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+
+from .envs import EPISODE_STEPS, MAX_STEP, SUCCESS_RADIUS, Episodes, TwoRoomsEnv, make_episodes
+from .metrics import wilson_interval
+
+METHODS = ("mppi", "cem")
+COSTS = ("sum", "last")
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    """One planner. The defaults are the class-scale MPPI of notebook 06."""
+
+    method: str = "mppi"  # "mppi" (weighted elites) or "cem" (plain mean of elites)
+    cost: str = "sum"  # "sum": distance summed over the horizon; "last": final step only
+    horizon: int = 64  # H, imagined steps per plan
+    samples: int = 200  # N, action sequences per iteration
+    elites: int = 20  # Q, the best of them that move the plan
+    iterations: int = 6  # J, refinements per re-plan
+    temperature: float = 0.05  # tau, MPPI's softness (latent-distance units)
+    init_std: float = 1.5  # spread of the sampled actions at the start of a re-plan, px
+    min_std: float = 0.05
+    max_std: float = 2.0
+    execute: int = 4  # m, actions executed before re-planning
+    action_bound: float = MAX_STEP  # sampled actions are clipped to what the data contained
+
+    def __post_init__(self):
+        if self.method not in METHODS or self.cost not in COSTS:
+            raise ValueError(f"method must be one of {METHODS} and cost one of {COSTS}, "
+                             f"got method={self.method!r}, cost={self.cost!r}")
+        for name in ("horizon", "samples", "elites", "iterations", "execute"):
+            if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
+                raise ValueError(f"{name} must be an int >= 1, got {getattr(self, name)!r}")
+        if self.elites > self.samples:
+            raise ValueError(f"elites (Q={self.elites}) cannot exceed samples (N={self.samples})")
+        if self.execute > self.horizon:
+            raise ValueError(f"execute (m={self.execute}) cannot exceed horizon "
+                             f"(H={self.horizon})")
+        if not self.temperature > 0 or not 0 < self.min_std <= self.max_std:
+            raise ValueError("temperature must be > 0 and 0 < min_std <= max_std")
+
+
+# -- the energy ------------------------------------------------------------------------------
+def planning_cost(model, z0: torch.Tensor, z_goal: torch.Tensor, actions: torch.Tensor,
+                  cost: str = "sum") -> torch.Tensor:
+    """Energy of each imagined plan: ``z0 (B, D), z_goal (B, D), actions (B, N, H, A) -> (B, N)``.
+
+    ``model.rollout`` imagines the ``H`` latents of each of the ``B x N`` plans in
+    one batch; the cost is the Euclidean latent distance to the goal, summed over
+    the horizon (``"sum"``) or at the last step (``"last"``).
+    """
+    if cost not in COSTS:
+        raise ValueError(f"cost must be one of {COSTS}, got {cost!r}")
+    b, n, h, _ = actions.shape
+    z = model.rollout(z0.repeat_interleave(n, dim=0), actions.flatten(0, 1)).view(b, n, h, -1)
+    distance = (z - z_goal[:, None, None]).norm(dim=-1)  # (B, N, H)
+    return distance.sum(dim=-1) if cost == "sum" else distance[..., -1]
+
+
+# -- one update of the plan: MPPI and CEM ----------------------------------------------------
+def _check_update_args(actions: torch.Tensor, costs: torch.Tensor, elites: int) -> None:
+    if actions.ndim != 4 or costs.shape != actions.shape[:2]:
+        raise ValueError(f"need actions (B, N, H, A) and costs (B, N), got "
+                         f"{tuple(actions.shape)} and {tuple(costs.shape)}")
+    if not 1 <= elites <= actions.shape[1]:
+        raise ValueError(f"elites must be in 1..N={actions.shape[1]}, got {elites}")
+
+
+def select_elites(actions: torch.Tensor, costs: torch.Tensor, elites: int):
+    """The ``Q`` cheapest plans of each episode, cheapest first: ``(B, Q, H, A), (B, Q)``."""
+    _check_update_args(actions, costs, elites)
+    elite_costs, index = costs.topk(elites, dim=1, largest=False)
+    elite_actions = actions.gather(1, index[:, :, None, None].expand(-1, -1, *actions.shape[2:]))
+    return elite_actions, elite_costs
+
+
+def mppi_weights(elite_costs: torch.Tensor, temperature: float) -> torch.Tensor:
+    """``w_i = exp(-(S_i - S_min) / tau) / sum_j exp(-(S_j - S_min) / tau)``: ``(B, Q) -> (B, Q)``.
+
+    Subtracting ``S_min`` changes nothing mathematically (it cancels in the
+    ratio) but keeps ``exp`` from underflowing to 0/0 when costs are large.
+    """
+    shifted = elite_costs - elite_costs.min(dim=1, keepdim=True).values
+    return torch.softmax(-shifted / temperature, dim=1)
+
+
+def weighted_mean_std(elite_actions: torch.Tensor, weights: torch.Tensor):
+    """Mean and std of the elites under ``weights`` (B, Q): two ``(B, H, A)`` tensors."""
+    w = weights[:, :, None, None]
+    mean = (w * elite_actions).sum(dim=1)
+    std = (w * (elite_actions - mean[:, None]).pow(2)).sum(dim=1).sqrt()
+    return mean, std
+
+
+def mppi_update(actions: torch.Tensor, costs: torch.Tensor, elites: int, temperature: float):
+    """One MPPI update: sampled plans ``(B, N, H, A)`` and costs ``(B, N)`` -> new mean, std."""
+    elite_actions, elite_costs = select_elites(actions, costs, elites)
+    return weighted_mean_std(elite_actions, mppi_weights(elite_costs, temperature))
+
+
+def cem_update(actions: torch.Tensor, costs: torch.Tensor, elites: int):
+    """One CEM update: the plain mean and std of the ``Q`` elites."""
+    elite_actions, _ = select_elites(actions, costs, elites)
+    uniform = elite_actions.new_full(elite_actions.shape[:2], 1.0 / elites)
+    return weighted_mean_std(elite_actions, uniform)
+
+
+# -- a whole re-plan -------------------------------------------------------------------------
+def sample_plans(mean: torch.Tensor, std: torch.Tensor, samples: int,
+                 generators: Sequence[torch.Generator], bound: float) -> torch.Tensor:
+    """``N`` plans around each mean ``(B, H, A)`` -> ``(B, N, H, A)``, clipped to ``+-bound``.
+
+    Episode ``b`` draws its noise from ``generators[b]`` alone, so its plans do
+    not depend on which other episodes share the batch. Sample 0 is the mean
+    itself, so a good plan is never lost to unlucky noise.
+    """
+    noise = torch.stack([torch.randn(samples, *mean.shape[1:], generator=g) for g in generators])
+    noise[:, 0] = 0
+    return (mean[:, None] + std[:, None] * noise.to(mean.device)).clamp(-bound, bound)
+
+
+@dataclass
+class Plan:
+    """The result of :func:`plan`: the mean plan ``(B, H, A)``, its spread, the cost history.
+
+    ``costs``: ``(B, J)``, the cost of the cheapest sampled plan at each
+    iteration. ``history`` (when recorded): per iteration, the sampled plans
+    ``(B, N, H, A)`` and their costs ``(B, N)``, for pictures.
+    """
+
+    mean: torch.Tensor
+    std: torch.Tensor
+    costs: torch.Tensor
+    history: list[tuple[torch.Tensor, torch.Tensor]] | None = None
+
+
+@torch.no_grad()
+def plan(model, z0: torch.Tensor, z_goal: torch.Tensor, config: PlannerConfig,
+         generators: Sequence[torch.Generator], mean: torch.Tensor | None = None,
+         record: bool = False) -> Plan:
+    """Run ``J`` MPPI or CEM iterations from latents ``z0`` to goals ``z_goal`` (both ``(B, D)``).
+
+    ``mean``: a warm start ``(B, H, A)`` (default zeros: stand still).
+    """
+    b, h = z0.shape[0], config.horizon
+    if mean is None:
+        mean = z0.new_zeros(b, h, model.config.action_dim)
+    if mean.shape != (b, h, model.config.action_dim) or len(generators) != b:
+        raise ValueError(f"need a mean plan ({b}, {h}, {model.config.action_dim}) and {b} "
+                         f"generators, got {tuple(mean.shape)} and {len(generators)}")
+    std = torch.full_like(mean, config.init_std)
+    best, history = [], [] if record else None
+    for _ in range(config.iterations):
+        actions = sample_plans(mean, std, config.samples, generators, config.action_bound)
+        costs = planning_cost(model, z0, z_goal, actions, config.cost)
+        if config.method == "mppi":
+            mean, std = mppi_update(actions, costs, config.elites, config.temperature)
+        else:
+            mean, std = cem_update(actions, costs, config.elites)
+        std = std.clamp(config.min_std, config.max_std)
+        best.append(costs.min(dim=1).values)
+        if record:
+            history.append((actions.cpu(), costs.cpu()))
+    return Plan(mean, std, torch.stack(best, dim=1), history)
+
+
+def shift_plan(mean: torch.Tensor, executed: int) -> torch.Tensor:
+    """The warm start for the next re-plan: drop the executed actions, pad with zeros."""
+    return torch.cat([mean[:, executed:], torch.zeros_like(mean[:, :executed])], dim=1)
+
+
+# -- episodes --------------------------------------------------------------------------------
+@dataclass
+class EpisodeResults:
+    """What happened in a batch of episodes (one row per seed)."""
+
+    seeds: list[int]
+    episodes: Episodes
+    paths: torch.Tensor  # (B, steps + 1, 2) dot positions, start first
+    success: torch.Tensor  # (B,) bool: within SUCCESS_RADIUS of the goal at the end
+    first_arrival: torch.Tensor  # (B,) long: first step within the radius, -1 if never
+    cpu_seconds: float  # process CPU time of the whole batch
+    wall_seconds: float
+
+    @property
+    def success_rate(self) -> float:
+        return self.success.float().mean().item()
+
+    def interval(self, z: float = 1.96) -> tuple[float, float]:
+        """The Wilson 95% interval of the success rate."""
+        return wilson_interval(int(self.success.sum()), len(self.seeds), z)
+
+    def mean_first_arrival(self) -> float:
+        """Mean first-arrival step over the episodes that arrived (nan if none did)."""
+        arrived = self.first_arrival[self.first_arrival >= 0]
+        return arrived.float().mean().item() if len(arrived) else math.nan
+
+    @property
+    def cpu_seconds_per_episode(self) -> float:
+        return self.cpu_seconds / len(self.seeds)
+
+    def summary(self) -> str:
+        low, high = self.interval()
+        return (f"success {self.success_rate:.0%} (95% CI {low:.0%}-{high:.0%}) over "
+                f"{len(self.seeds)} episodes, mean first arrival "
+                f"{self.mean_first_arrival():.0f} steps, "
+                f"{self.cpu_seconds_per_episode:.2f} s CPU per episode")
+
+
+def episode_generators(seeds: Sequence[int]) -> tuple[Episodes, list[torch.Generator]]:
+    """The task of each seed and the generator its planner continues with."""
+    if len(seeds) < 1:
+        raise ValueError("need at least one episode seed")
+    generators = [torch.Generator().manual_seed(int(seed)) for seed in seeds]
+    tasks = [make_episodes(1, g) for g in generators]
+    episodes = Episodes(*(torch.cat([getattr(t, name) for t in tasks])
+                          for name in ("layouts", "starts", "goals")))
+    return episodes, generators
+
+
+@torch.no_grad()
+def run_episodes(model, seeds: Sequence[int], config: PlannerConfig = PlannerConfig(),
+                 steps: int = EPISODE_STEPS, radius: float = SUCCESS_RADIUS) -> EpisodeResults:
+    """Plan and act in one episode per seed, all at once; the agent re-plans every ``m`` steps.
+
+    Episode ``seed`` draws its layout, start and goal (opposite rooms) and then
+    its planner's noise from ``torch.Generator().manual_seed(seed)``.
+    """
+    model.eval()
+    device = next(model.parameters()).device
+    episodes, generators = episode_generators(seeds)
+    env = TwoRoomsEnv(device)
+    cpu, wall = time.process_time(), time.perf_counter()
+    observation = env.reset(episodes=episodes)
+    z_goal = model.encode(env.goal_images())
+    paths = [env.positions.cpu()]
+    first = torch.full((len(seeds),), -1, dtype=torch.long)
+    mean = None
+    while env.steps_taken < steps:
+        result = plan(model, model.encode(observation), z_goal, config, generators, mean)
+        for action in result.mean[:, : min(config.execute, steps - env.steps_taken)].unbind(1):
+            observation = env.step(action)
+            paths.append(env.positions.cpu())
+            first[(first < 0) & env.success(radius).cpu()] = env.steps_taken
+        mean = shift_plan(result.mean, config.execute)
+    return EpisodeResults(list(seeds), episodes, torch.stack(paths, dim=1),
+                          env.success(radius).cpu(), first,
+                          time.process_time() - cpu, time.perf_counter() - wall)

@@ -1,0 +1,204 @@
+"""MPPI and CEM: the update against its formula, optima of known costs, goals in known dynamics."""
+
+import math
+from types import SimpleNamespace
+
+import pytest
+import torch
+from torch import nn
+
+from ebjepa_tutorial import planning
+from ebjepa_tutorial.envs import SUCCESS_RADIUS, render
+from ebjepa_tutorial.metrics import wilson_interval
+from ebjepa_tutorial.planning import PlannerConfig
+
+
+class LinearLatentModel(nn.Module):
+    """Hand-written dynamics ``z' = z + M a`` in 2-D; ``encode`` reads the dot's centroid."""
+
+    def __init__(self, matrix=((1.0, 0.0), (0.0, 1.0))):
+        super().__init__()
+        self.config = SimpleNamespace(action_dim=2)
+        self.register_buffer("matrix", torch.tensor(matrix))
+        self.unused = nn.Parameter(torch.zeros(()))  # so the planner can find a device
+
+    def encode(self, frames):
+        dot = frames[:, 0].clamp_min(0)
+        ys, xs = torch.meshgrid(torch.arange(65.0), torch.arange(65.0), indexing="ij")
+        centroid = [(dot * grid).sum(dim=(1, 2)) for grid in (xs, ys)]
+        return torch.stack(centroid, dim=1) / dot.sum(dim=(1, 2))[:, None]
+
+    def rollout(self, z0, actions):
+        return z0[:, None] + (actions @ self.matrix.T).cumsum(dim=1)
+
+
+def generators(n, seed=0):
+    return [torch.Generator().manual_seed(seed + i) for i in range(n)]
+
+
+def test_mppi_weights_match_the_formula():
+    costs = torch.tensor([[3.0, 1.0, 2.0, 1.5]])
+    tau = 0.7
+    expected = torch.exp(-(costs - 1.0) / tau)
+    expected = expected / expected.sum()
+    assert torch.allclose(planning.mppi_weights(costs, tau), expected)
+    huge = costs + 1e6  # the S_min shift keeps exp from underflowing
+    assert torch.allclose(planning.mppi_weights(huge, tau), expected)
+
+
+def test_mppi_update_by_hand():
+    # Two plans of one step in 1-D-like actions: elites {cost 0: a=1, cost 1: a=3}, tau=1.
+    actions = torch.tensor([[1.0, 3.0, 10.0]]).view(1, 3, 1, 1).expand(1, 3, 1, 2).clone()
+    costs = torch.tensor([[0.0, 1.0, 5.0]])
+    mean, std = planning.mppi_update(actions, costs, elites=2, temperature=1.0)
+    w0, w1 = 1 / (1 + math.exp(-1)), math.exp(-1) / (1 + math.exp(-1))
+    expected_mean = w0 * 1 + w1 * 3
+    expected_std = math.sqrt(w0 * (1 - expected_mean) ** 2 + w1 * (3 - expected_mean) ** 2)
+    assert torch.allclose(mean, torch.full((1, 1, 2), expected_mean))
+    assert torch.allclose(std, torch.full((1, 1, 2), expected_std))
+    mean, std = planning.cem_update(actions, costs, elites=2)
+    assert torch.allclose(mean, torch.full((1, 1, 2), 2.0))
+    assert torch.allclose(std, torch.full((1, 1, 2), 1.0))
+
+
+def test_low_temperature_mppi_picks_the_best_elite():
+    actions = torch.randn(2, 8, 3, 2, generator=torch.Generator().manual_seed(0))
+    costs = torch.rand(2, 8, generator=torch.Generator().manual_seed(1))
+    mean, _ = planning.mppi_update(actions, costs, elites=4, temperature=1e-6)
+    best = costs.argmin(dim=1)
+    assert torch.allclose(mean, actions[torch.arange(2), best])
+
+
+@pytest.mark.parametrize("method", ["mppi", "cem"])
+def test_the_loop_finds_the_optimum_of_a_quadratic(method):
+    # Cost ||a - target||^2 summed over the plan: the optimum is the target itself.
+    target = torch.tensor([[0.7, -0.4], [1.2, 0.3], [-0.5, -1.0]])
+    mean, std = torch.zeros(1, 3, 2), torch.ones(1, 3, 2)
+    gens = generators(1)
+    for _ in range(30):
+        actions = planning.sample_plans(mean, std, 300, gens, bound=2.0)
+        costs = (actions - target).pow(2).sum(dim=(2, 3))
+        if method == "mppi":
+            mean, std = planning.mppi_update(actions, costs, elites=30, temperature=0.1)
+        else:
+            mean, std = planning.cem_update(actions, costs, elites=30)
+        std = std.clamp_min(1e-3)
+    assert torch.allclose(mean[0], target, atol=0.05)
+
+
+def test_sampled_plans_are_clipped_and_keep_the_mean():
+    mean = torch.full((2, 5, 2), 1.0)
+    actions = planning.sample_plans(mean, torch.full_like(mean, 3.0), 50, generators(2), bound=1.8)
+    assert actions.abs().max() <= 1.8
+    assert torch.equal(actions[:, 0], mean)
+
+
+def test_sampling_does_not_depend_on_the_batch():
+    mean = torch.zeros(3, 4, 2)
+    together = planning.sample_plans(mean, torch.ones_like(mean), 10, generators(3), 1.8)
+    alone = planning.sample_plans(mean[1:2], torch.ones(1, 4, 2), 10, generators(1, seed=1), 1.8)
+    assert torch.equal(together[1], alone[0])
+
+
+LINEAR = ((0.0, -1.0), (2.0, 0.0))  # a rotation and a stretch: actions do not map to latents 1:1
+
+
+@pytest.mark.parametrize("method", ["mppi", "cem"])
+def test_replanning_reaches_a_goal_under_linear_latent_dynamics(method):
+    model = LinearLatentModel(LINEAR)
+    config = PlannerConfig(method=method, horizon=12, samples=200, elites=20, iterations=4,
+                           execute=2, init_std=1.0)
+    z, goal = torch.tensor([[0.0, 0.0], [5.0, -3.0]]), torch.tensor([[12.0, -15.0], [-4.0, 9.0]])
+    gens, mean = generators(2), None
+    for _ in range(20):
+        result = planning.plan(model, z, goal, config, gens, mean)
+        z = model.rollout(z, result.mean[:, : config.execute])[:, -1]
+        mean = planning.shift_plan(result.mean, config.execute)
+    assert (z - goal).norm(dim=1).max() < 1.0  # from 19 and 13 latent units away
+    assert result.costs.shape == (2, config.iterations)
+
+
+@pytest.mark.parametrize("method", ["mppi", "cem"])
+def test_last_state_cost_plans_to_end_at_the_goal(method):
+    # Only the end of the plan counts: the imagined last state lands on the goal.
+    model = LinearLatentModel(LINEAR)
+    config = PlannerConfig(method=method, cost="last", horizon=12, iterations=15, init_std=1.0)
+    z, goal = torch.zeros(2, 2), torch.tensor([[12.0, -15.0], [-4.0, 9.0]])
+    result = planning.plan(model, z, goal, config, generators(2))
+    assert (model.rollout(z, result.mean)[:, -1] - goal).norm(dim=1).max() < 1.0
+
+
+def test_costs_fall_over_iterations():
+    model = LinearLatentModel()
+    config = PlannerConfig(horizon=10, iterations=6, execute=1)
+    result = planning.plan(model, torch.zeros(4, 2), torch.full((4, 2), 8.0), config,
+                           generators(4), record=True)
+    assert (result.costs[:, -1] < result.costs[:, 0]).all()
+    assert len(result.history) == 6 and result.history[0][0].shape == (4, 200, 10, 2)
+
+
+def test_planning_cost_sum_and_last():
+    model = LinearLatentModel()
+    actions = torch.ones(1, 1, 3, 2)  # imagined latents (1,1), (2,2), (3,3) from the origin
+    goal = torch.tensor([[3.0, 3.0]])
+    distances = torch.tensor([2.0, 1.0, 0.0]) * math.sqrt(2)
+    z0 = torch.zeros(1, 2)
+    assert torch.allclose(planning.planning_cost(model, z0, goal, actions, "sum"),
+                          distances.sum().view(1, 1))
+    assert torch.allclose(planning.planning_cost(model, z0, goal, actions, "last"),
+                          torch.zeros(1, 1))
+
+
+def test_episodes_reproduce_from_their_seed():
+    model = LinearLatentModel()
+    config = PlannerConfig(horizon=8, samples=32, elites=4, iterations=2, execute=4)
+    batch = planning.run_episodes(model, [11, 12, 13], config, steps=16)
+    again = planning.run_episodes(model, [11, 12, 13], config, steps=16)
+    alone = planning.run_episodes(model, [12], config, steps=16)
+    assert torch.equal(batch.paths, again.paths)
+    assert torch.allclose(batch.paths[1], alone.paths[0], atol=1e-4)
+    assert batch.paths.shape == (3, 17, 2)
+
+
+def test_success_and_first_arrival_agree_with_the_paths():
+    model = LinearLatentModel()  # no walls in its imagination: some episodes get stuck
+    config = PlannerConfig(horizon=16, samples=64, elites=8, iterations=3, execute=4)
+    result = planning.run_episodes(model, range(8), config, steps=120)
+    distance = (result.paths - result.episodes.goals[:, None]).norm(dim=-1)
+    assert torch.equal(result.success, distance[:, -1] <= SUCCESS_RADIUS)
+    within = distance <= SUCCESS_RADIUS
+    expected_first = torch.where(within.any(1), within.float().argmax(1), torch.tensor(-1))
+    assert torch.equal(result.first_arrival, expected_first)
+    low, high = result.interval()
+    assert (low, high) == wilson_interval(int(result.success.sum()), 8)
+    assert "episodes" in result.summary()
+
+
+def test_wilson_interval_by_hand():
+    low, high = wilson_interval(0, 10)
+    assert low == 0 and high == pytest.approx(1.96**2 / (10 + 1.96**2))
+    low, high = wilson_interval(50, 100)
+    assert (low, high) == pytest.approx((0.4038, 0.5962), abs=1e-4)
+    with pytest.raises(ValueError):
+        wilson_interval(5, 3)
+
+
+@pytest.mark.parametrize("kwargs, words", [
+    (dict(horizon=0), "horizon"), (dict(samples=0), "samples"), (dict(elites=300), "elites"),
+    (dict(method="adam"), "method"), (dict(execute=100), "execute"),
+    (dict(temperature=0.0), "temperature"),
+])
+def test_bad_planner_configs_name_the_problem(kwargs, words):
+    with pytest.raises(ValueError, match=words):
+        PlannerConfig(**kwargs)
+
+
+def test_a_goal_image_of_the_wrong_shape_is_named():
+    from ebjepa_tutorial.models.world import WORLD_CONFIGS, WorldModel
+    model = WorldModel(WORLD_CONFIGS["ci"]).fit_input_stats(render(
+        torch.tensor([[10.0, 10.0]]), torch.tensor([[30, 30]])))
+    with pytest.raises(ValueError, match="each frame must be"):
+        model.encode(torch.zeros(1, 3, 65, 65))
+    with pytest.raises(ValueError, match="mean plan"):
+        planning.plan(model, torch.zeros(2, 32), torch.zeros(2, 32), PlannerConfig(horizon=4),
+                      generators(2), mean=torch.zeros(2, 5, 2))
