@@ -16,6 +16,7 @@ from dataclasses import dataclass, replace
 
 from .image_jepa import ImageJEPAConfig
 from .models.world import WORLD_CONFIGS
+from .video_jepa import VIDEO_CONFIGS, VideoJEPAConfig
 from .world_training import WorldTrainConfig
 
 SCALES = ("ci", "class", "full")
@@ -43,6 +44,21 @@ class CollapsePreset:
     hidden: int = 64  # width of the MLP encoder
     steps: int = 600  # full-batch Adam steps per training run
     lr: float = 3e-3
+
+
+@dataclass(frozen=True)
+class VideoPreset:
+    """Notebook 03: the video JEPA run on Moving MNIST, its K ablation, and the evaluation sizes."""
+
+    train: VideoJEPAConfig  # the main run (K = 4, seed 0); the ablation changes K and the seed
+    rollout_steps: tuple[int, ...] = (1, 2, 4)  # the K of the ablation (the paper's Figure 4b)
+    seeds: tuple[int, ...] = (0, 1, 2)  # training seeds per K: other clips, other initial weights
+    n_train_digits: int = 8000  # of the 10,000 MNIST test digits; the other 2,000 are held out
+    n_probe: int = 500  # clips of training digits that the detection probe is fitted on
+    n_eval: int = 500  # clips of held-out digits that AP is measured on
+    horizons: int = 7  # AP 1..7 steps ahead, as in the paper
+    probe_steps: int = 400  # Adam steps of the detection probe
+    decoder_steps: int = 500  # Adam steps of the decoder that draws pictures of latents
 
 
 @dataclass(frozen=True)
@@ -113,6 +129,13 @@ PRESETS: dict[str, dict[str, object]] = {
     },
     "01": {scale: image_preset(scale, "vicreg") for scale in SCALES},
     "02": {scale: image_preset(scale, "sigreg") for scale in SCALES},
+    "03": {
+        "ci": VideoPreset(VIDEO_CONFIGS["ci"], seeds=(0,), n_probe=64, n_eval=64,
+                          probe_steps=60, decoder_steps=40),
+        "class": VideoPreset(VIDEO_CONFIGS["class"]),  # 600 steps of 16 clips: ~10 min per run
+        "full": VideoPreset(VIDEO_CONFIGS["full"], n_probe=2000, n_eval=2000, probe_steps=2000,
+                            decoder_steps=5000),
+    },
     "04": {
         "ci": TwoRoomsWorldPreset(n_trajectories=512, n_episodes=32),
         "class": TwoRoomsWorldPreset(),

@@ -20,13 +20,19 @@ and averages the error over the clip's ground-truth context frames too; ours
 rolls one true context forward, exactly as evaluation (and a planner) uses
 the predictor, and averages over predicted frames only. Its prediction error
 is also taken after the projector; ours on the latents themselves.
+
+The notebook's runs (the K ablation) can be trained ahead of a class with
+``python -m ebjepa_tutorial.video_jepa --scale class`` (see :func:`main`).
 """
 
 from __future__ import annotations
 
+import argparse
+import hashlib
 import inspect
+import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -43,7 +49,7 @@ from .models.video import (
     VideoJEPA,
     VideoModelConfig,
 )
-from .train import History, fit, resume
+from .train import History, checkpoint_paths, fit, load_or_train, resume
 from .utils import get_device
 
 Predictor = Callable[[torch.Tensor], torch.Tensor]  # (N, context, C, H, W) -> (N, C, H, W)
@@ -209,6 +215,45 @@ def config_dict(config: VideoJEPAConfig) -> dict:
     return asdict(config)
 
 
+def digits_fingerprint(digits: torch.Tensor) -> str:
+    """A short hash of the training digits: a saved run is reused only with the same digits."""
+    return hashlib.sha1(digits.contiguous().numpy().tobytes()).hexdigest()[:12]
+
+
+def run_name(scale: str, config: VideoJEPAConfig) -> str:
+    """Notebook 03's checkpoint name for ``config``: ``video_jepa_<scale>_K<K>_seed<seed>``."""
+    return f"video_jepa_{scale}_K{config.rollout_steps}_seed{config.seed}"
+
+
+def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor,
+                  device: torch.device | str | None = None, progress: bool = True):
+    """The model of ``config``: loaded if a run with exactly this config was saved, else trained.
+
+    Looks for ``checkpoints/<name>.pt`` (shipped with the course), then
+    ``data/cache/checkpoints/<name>.pt``; a file counts only if it stores this
+    config and the same ``train_digits`` (uint8 ``(D, 1, 28, 28)``, compared by
+    :func:`digits_fingerprint`). Otherwise makes the run's clips, trains
+    (resumable from ``<name>.partial`` in the cache) and saves. Notebook 03.
+    Returns ``(model in eval mode, history)``.
+    """
+    torch.manual_seed(config.seed)
+    model = VideoJEPA(config.model).to(get_device(device))
+    cache_path, shipped = checkpoint_paths(name)
+    partial = cache_path.with_suffix(".partial")
+
+    def train() -> History:
+        clips = make_clips(config, train_digits)
+        trained, history = train_video_jepa(config, clips, checkpoint=partial, progress=progress,
+                                            device=device)
+        model.load_state_dict(trained.state_dict())
+        partial.unlink()  # finished: the saved model replaces it
+        return history
+
+    stored = {**config_dict(config), "train_digits": digits_fingerprint(train_digits)}
+    history = load_or_train(cache_path, model, train, stored, shipped)
+    return model.eval(), history
+
+
 # --- evaluation: a detection probe on frozen latents, AP per prediction horizon ---------------
 
 
@@ -324,6 +369,66 @@ def fit_decoder(model: VideoJEPA, clips: torch.Tensor, steps: int = 200, batch_s
     return decoder.eval()
 
 
+# --- notebook 03's protocol and runs, from the command line ----------------------------------
+
+PROBE_SEED, EVAL_SEED = 1001, 1002  # seeds of the evaluation clips (training clips use 0, 1, ...)
+
+
+def evaluation_clips(train_digits: torch.Tensor, held_out: torch.Tensor, n_probe: int,
+                     n_eval: int, n_frames: int = 10):
+    """The protocol's two sets of clips, the same for every model compared.
+
+    Probe clips (fresh clips of the training digits) fit the detection probe;
+    evaluation clips, made only of ``held_out`` digits, are where AP is measured.
+    """
+    return (generate_moving_mnist(train_digits, n_probe, n_frames, seed=PROBE_SEED),
+            generate_moving_mnist(held_out, n_eval, n_frames, seed=EVAL_SEED))
+
+
+def ablation_configs(config: VideoJEPAConfig, rollout_steps=(1, 2, 4), seeds=(0, 1, 2)):
+    """``config`` with every ``K`` in ``rollout_steps`` and every seed (clips and weights)."""
+    return [replace(config, rollout_steps=k, seed=s) for k in rollout_steps for s in seeds]
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Train (or load) and evaluate notebook 03's runs at a scale, printing AP per horizon.
+
+    ``python -m ebjepa_tutorial.video_jepa --scale class`` trains the K ablation
+    (K 1, 2, 4 times three seeds, about ten minutes each on 2 CPU cores) into
+    ``data/cache/checkpoints/``, where the notebook finds them; an interrupted
+    run resumes. Same digits, clips and probe protocol as the notebook.
+    """
+    from .data.mnist import load_mnist
+    from .data.moving_mnist import split_digits
+    from .scale import SCALES, preset
+
+    parser = argparse.ArgumentParser(description="Train and evaluate notebook 03's video JEPAs.")
+    parser.add_argument("--scale", default="class", choices=SCALES)
+    parser.add_argument("--K", type=int, action="append", help="only these K (repeatable)")
+    parser.add_argument("--seed", type=int, action="append", help="only these seeds (repeatable)")
+    args = parser.parse_args(argv)
+    cfg = preset("03", args.scale)
+    train_digits, held_out = split_digits(load_mnist("test")[0], n_train=cfg.n_train_digits)
+    probe_data, eval_data = evaluation_clips(train_digits, held_out, cfg.n_probe, cfg.n_eval,
+                                             cfg.train.n_frames)
+    print(f"protocol: AP per horizon 1..{cfg.horizons} of a detection probe on frozen latents, "
+          f"fitted on {cfg.n_probe} clips of training digits, scored on {cfg.n_eval} clips of "
+          f"{len(held_out)} held-out MNIST test digits")
+    torch.manual_seed(cfg.train.seed)
+    runs = [("random init", VideoJEPA(cfg.train.model).eval())]
+    for config in ablation_configs(cfg.train, args.K or cfg.rollout_steps, args.seed or cfg.seeds):
+        start = time.perf_counter()
+        model, _ = train_or_load(config, run_name(args.scale, config), train_digits)
+        print(f"{run_name(args.scale, config)}: ready in {time.perf_counter() - start:.0f} s")
+        runs.append((f"K={config.rollout_steps} seed={config.seed}", model))
+    for label, model in runs:
+        report = detection_report(model.cpu(), probe_data, eval_data, cfg.horizons,
+                                  cfg.probe_steps)
+        aps = " ".join(f"{ap:.3f}" for ap in report["ap"].tolist())
+        print(f"{label}: mAP {report['map']:.3f} (AP {aps}; true encodings "
+              f"{report['map_encoded']:.3f}, copy last frame {report['map_copy']:.3f})")
+
+
 # --- the exercise of notebook 03: "implement the K-step rollout loss" -----------------------
 
 
@@ -404,3 +509,7 @@ def check_rollout_loss(fn: Callable) -> bool:
         print("(your function has no tbptt argument: the truncation cases are skipped)")
     return compare(_run_rollout_loss(fn), _run_rollout_loss(rollout_loss),
                    [Case(description, args) for description, args in cases])
+
+
+if __name__ == "__main__":
+    main()

@@ -109,6 +109,99 @@ def play(animation, mode: str = "loop"):
     return HTML(style + html)
 
 
+# -- Moving MNIST (notebook 03) -------------------------------------------------------------
+def _gray(frame: torch.Tensor):
+    """One frame ``(1, H, W)`` or ``(H, W)``, uint8 or float in [0, 1] -> ``(H, W)`` array."""
+    frame = frame.detach().cpu()
+    frame = frame.float() / 255 if frame.dtype == torch.uint8 else frame.float()
+    return frame.reshape(frame.shape[-2:]).numpy()
+
+
+def animate_clips(clips: torch.Tensor, centres: torch.Tensor | None = None, grid: int = 0,
+                  interval: int = 250):
+    """Clips side by side as an animation for :func:`play`; closes its own figure.
+
+    ``clips``: ``(N, T, 1, H, W)`` uint8 or float in [0, 1]; ``centres``:
+    optional ``(N, T, K, 2)`` ``(x, y)`` pixels, drawn as red crosses; ``grid``:
+    if > 0, the ``grid x grid`` cells of the detection targets, drawn as lines.
+    """
+    from matplotlib.animation import FuncAnimation
+
+    n, t, size = clips.shape[0], clips.shape[1], clips.shape[-1]
+    fig, axes = plt.subplots(1, n, figsize=(1.9 * n, 2.2), dpi=80, squeeze=False)
+    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.02, top=0.85, wspace=0.05)
+    images = [ax.imshow(_gray(clips[i, 0]), cmap="gray", vmin=0, vmax=1)
+              for i, ax in enumerate(axes[0])]
+    marks = [ax.plot([], [], "+", color="tab:red", ms=10, mew=2)[0] for ax in axes[0]]
+    for i, ax in enumerate(axes[0]):
+        for line in torch.arange(1, grid) * size / max(grid, 1) - 0.5:
+            ax.axhline(line, color="tab:blue", lw=0.4, alpha=0.6)
+            ax.axvline(line, color="tab:blue", lw=0.4, alpha=0.6)
+        ax.set(xticks=[], yticks=[], title=f"clip {i}")
+        ax.title.set_fontsize(9)
+
+    def draw(frame: int):
+        for i in range(n):
+            images[i].set_data(_gray(clips[i, frame]))
+            if centres is not None:  # a pixel i covers [i, i + 1): its centre is drawn at i
+                marks[i].set_data(centres[i, frame, :, 0] - 0.5, centres[i, frame, :, 1] - 0.5)
+            axes[0, i].set_title(f"clip {i}, frame {frame}", fontsize=9)
+        return images + marks
+
+    animation = FuncAnimation(fig, draw, frames=t, interval=interval)
+    plt.close(fig)
+    return animation
+
+
+def show_frame_rows(rows: dict[str, tuple[int, torch.Tensor]], n_frames: int,
+                    cell: float = 0.95):
+    """A grid of frames: one labelled row per entry, column ``t`` is frame ``t``.
+
+    ``rows``: ``{label: (first, frames)}``, ``frames`` ``(n, 1, H, W)`` or
+    ``(n, H, W)`` shown in columns ``first .. first + n - 1`` (earlier columns
+    stay blank). Returns the axes ``(len(rows), n_frames)``.
+    """
+    fig, axes = plt.subplots(len(rows), n_frames, figsize=(cell * n_frames, cell * len(rows)),
+                             squeeze=False)
+    for row, (label, (first, frames)) in zip(axes, rows.items()):
+        for t, ax in enumerate(row):
+            ax.set(xticks=[], yticks=[])
+            if first <= t < first + len(frames):
+                ax.imshow(_gray(frames[t - first]), cmap="gray", vmin=0, vmax=1)
+            else:
+                ax.axis("off")
+        row[0].set_ylabel(label, fontsize=8, rotation=0, ha="right", va="center")
+        row[0].axis("on")
+        row[0].set(xticks=[], yticks=[])
+        for spine in row[0].spines.values():
+            spine.set_visible(first == 0)
+    for t, ax in enumerate(axes[0]):
+        ax.set_title(f"t={t}", fontsize=8)
+    return axes
+
+
+def plot_ap_curves(curves: dict[str, torch.Tensor], ax=None, spread: dict | None = None,
+                   styles: dict[str, dict] | None = None):
+    """Detection AP against the prediction horizon ``k = 1 .. H``, one line per label.
+
+    ``curves``: ``{label: (H,) AP}``; ``spread``: optional ``{label: (low, high)}``
+    (e.g. the smallest and largest over seeds), drawn as a band; ``styles``:
+    optional matplotlib keyword arguments per label.
+    """
+    ax = _axes(ax)
+    spread, styles = spread or {}, styles or {}
+    for label, ap in curves.items():
+        horizons = torch.arange(1, len(ap) + 1)
+        style = {"marker": "o", "ms": 4, **styles.get(label, {})}
+        line = ax.plot(horizons, ap, label=label, **style)[0]
+        if label in spread:
+            low, high = spread[label]
+            ax.fill_between(horizons, low, high, color=line.get_color(), alpha=0.2, lw=0)
+    ax.set(xlabel="steps ahead k", ylabel="detection AP", ylim=(0, 1))
+    ax.legend(fontsize=8)
+    return ax
+
+
 # -- CIFAR-10 (notebooks 01 and 02) ---------------------------------------------------------
 def show_views(images: torch.Tensor, views, normalized: bool = True, max_images: int = 8):
     """A grid of images and their augmented views: one column per image, one row per view.

@@ -54,3 +54,18 @@ def test_seed_must_be_an_integer():
 def test_device_choice():
     assert get_device("cpu") == torch.device("cpu")
     assert get_device().type in {"cuda", "mps", "cpu"}
+
+
+def test_video_preset_fits_its_clips_and_budget():
+    for name in scale.SCALES:
+        cfg = scale.preset("03", name)
+        context = cfg.train.model.context
+        assert cfg.train.rollout_steps in cfg.rollout_steps and cfg.train.seed in cfg.seeds
+        assert cfg.train.n_frames >= context + max(cfg.rollout_steps), name  # the longest K fits
+        assert cfg.train.n_frames >= context + cfg.horizons, name  # AP 1..horizons fits
+        assert cfg.n_train_digits < 10_000  # some MNIST test digits are held out
+    ci, class_ = scale.preset("03", "ci"), scale.preset("03", "class")
+    assert set(class_.rollout_steps) >= {1, 2, 4} and len(class_.seeds) == 3
+    # ~10 minutes per class run on 2 CPU cores: about 1 s per step of 16 clips
+    assert (class_.train.batch_size, class_.train.steps, class_.train.n_clips) == (16, 600, 4000)
+    assert ci.train.steps * ci.train.batch_size * len(ci.seeds) < 1000  # ci: seconds

@@ -6,6 +6,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from ebjepa_tutorial import video_jepa, viz
 from ebjepa_tutorial.data.moving_mnist import centres_to_grid, generate_moving_mnist
 from ebjepa_tutorial.exercises import ExerciseError
 from ebjepa_tutorial.metrics import average_precision
@@ -18,12 +19,16 @@ from ebjepa_tutorial.models.video import (
 )
 from ebjepa_tutorial.video_jepa import (
     VIDEO_CONFIGS,
+    ablation_configs,
     check_rollout_loss,
     detection_report,
+    evaluation_clips,
     fit_decoder,
     fit_detection_probe,
     rollout,
     rollout_loss,
+    run_name,
+    train_or_load,
     train_video_jepa,
 )
 
@@ -190,3 +195,76 @@ def test_training_resumes_and_evaluation_runs(digits, tmp_path):
     with torch.no_grad():
         z = model.encode(clips[:2])[:, 0]
         assert torch.sigmoid(decoder(z)).shape == (2, 1, 64, 64)
+
+
+def test_train_or_load_trains_once_then_loads(digits, tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))  # checkpoints go to tmp_path/checkpoints
+    config = replace(CI, n_clips=16, steps=2, batch_size=2)
+    model, history = train_or_load(config, "video_test", digits, device="cpu", progress=False)
+    assert "Trained and saved" in capsys.readouterr().out
+    assert (tmp_path / "checkpoints" / "video_test.pt").is_file()
+    assert not (tmp_path / "checkpoints" / "video_test.partial").exists()
+    again, history_again = train_or_load(config, "video_test", digits, progress=False)
+    assert "Loaded a trained model" in capsys.readouterr().out
+    assert history_again == history and not again.training
+    for a, b in zip(model.state_dict().values(), again.state_dict().values()):
+        assert torch.equal(a, b)
+    # other training digits (or another config) must not reuse the saved run
+    train_or_load(config, "video_test", 255 - digits, progress=False)
+    assert "another configuration" in capsys.readouterr().out
+
+
+def test_run_names_and_ablation_configs():
+    runs = ablation_configs(CI, rollout_steps=(1, 4), seeds=(0, 2))
+    assert [(r.rollout_steps, r.seed) for r in runs] == [(1, 0), (1, 2), (4, 0), (4, 2)]
+    assert all(replace(r, rollout_steps=CI.rollout_steps, seed=CI.seed) == CI for r in runs)
+    assert run_name("ci", runs[1]) == "video_jepa_ci_K1_seed2"
+    assert len({run_name("class", r) for r in runs}) == len(runs)
+
+
+def test_evaluation_clips_use_their_own_digits_and_seeds(digits):
+    held_out = digits.clone()
+    held_out[:, :, 9:19, 9:19] = 128  # grey squares: recognisably other digits
+    probe_data, eval_data = evaluation_clips(digits, held_out, 4, 3)
+    assert probe_data.clips.shape == (4, 10, 1, 64, 64) and eval_data.clips.shape[0] == 3
+    assert set(probe_data.clips.unique().tolist()) == {0, 255}
+    assert set(eval_data.clips.unique().tolist()) == {0, 128}
+    again, _ = evaluation_clips(digits, held_out, 4, 3)
+    assert torch.equal(again.clips, probe_data.clips)  # fixed seeds: the same for every model
+
+
+def test_moving_mnist_figures(digits):
+    import matplotlib
+
+    matplotlib.use("agg")
+    batch = generate_moving_mnist(digits, 2, 5, seed=0)
+    html = viz.play(viz.animate_clips(batch.clips, batch.centres, grid=8))
+    assert "<script" in html.data and "font-awesome" not in html.data  # plays offline
+    axes = viz.show_frame_rows({"real": (0, batch.clips[0]), "late": (2, batch.clips[1, :3])},
+                               n_frames=5)
+    assert axes.shape == (2, 5) and not axes[1, 1].axison and axes[1, 2].axison
+    ax = viz.plot_ap_curves({"a": torch.tensor([0.5, 0.4])},
+                            spread={"a": (torch.tensor([0.4, 0.3]), torch.tensor([0.6, 0.5]))})
+    assert len(ax.get_lines()) == 1
+
+
+@pytest.mark.slow
+def test_command_line_trains_and_reports(digits, tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
+    stand_in = digits.repeat(20, 1, 1, 1)  # 160 "digits": the ci preset holds out all but 8000
+    monkeypatch.setattr("ebjepa_tutorial.data.mnist.load_mnist",
+                        lambda split: (stand_in, torch.zeros(len(stand_in), dtype=torch.long)))
+    monkeypatch.setattr("ebjepa_tutorial.scale.PRESETS", {"03": {"ci": replace(
+        video_jepa_preset(), n_train_digits=120, n_probe=8, n_eval=8, probe_steps=5)}})
+    video_jepa.main(["--scale", "ci", "--K", "1"])
+    out = capsys.readouterr().out
+    assert "video_jepa_ci_K1_seed0" in out and (tmp_path / "checkpoints").is_dir()
+    assert "random init: mAP" in out and "K=1 seed=0: mAP" in out
+
+
+def video_jepa_preset():
+    """The ci preset of notebook 03, with a shorter run for the command-line test."""
+    from ebjepa_tutorial.scale import PRESETS
+
+    ci = PRESETS["03"]["ci"]
+    return replace(ci, train=replace(ci.train, n_clips=16, steps=2, batch_size=2))
