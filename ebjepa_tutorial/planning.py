@@ -53,13 +53,14 @@ class PlannerConfig:
     min_std: float = 0.05
     max_std: float = 2.0
     execute: int = 4  # m, actions executed before re-planning
+    noise_period: int = 1  # 1: i.i.d. noise per step (Algorithm 1); p > 1: smooth noise
     action_bound: float = MAX_STEP  # sampled actions are clipped to what the data contained
 
     def __post_init__(self):
         if self.method not in METHODS or self.cost not in COSTS:
             raise ValueError(f"method must be one of {METHODS} and cost one of {COSTS}, "
                              f"got method={self.method!r}, cost={self.cost!r}")
-        for name in ("horizon", "samples", "elites", "iterations", "execute"):
+        for name in ("horizon", "samples", "elites", "iterations", "execute", "noise_period"):
             if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
                 raise ValueError(f"{name} must be an int >= 1, got {getattr(self, name)!r}")
         if self.elites > self.samples:
@@ -137,15 +138,34 @@ def cem_update(actions: torch.Tensor, costs: torch.Tensor, elites: int):
 
 
 # -- a whole re-plan -------------------------------------------------------------------------
+def smooth_noise(samples: int, horizon: int, dims: int, period: int,
+                 generator: torch.Generator) -> torch.Tensor:
+    """Standard normal noise ``(samples, horizon, dims)``, correlated over ``period`` steps.
+
+    Independent draws at steps ``0, period, 2 period, ...`` joined by straight
+    lines (``period=1``: i.i.d. per step). Smooth perturbations move a plan
+    coherently, so a few iterations explore much farther than white noise,
+    whose displacement grows only as the square root of the horizon.
+    """
+    knots = torch.randn(samples, dims, horizon // period + 2, generator=generator)
+    if period == 1:
+        return knots[..., :horizon].transpose(1, 2)
+    line = torch.nn.functional.interpolate(knots, scale_factor=period, mode="linear",
+                                           align_corners=True)[..., :horizon]
+    return (line / line.std(dim=(0, 2), keepdim=True).clamp_min(1e-6)).transpose(1, 2)
+
+
 def sample_plans(mean: torch.Tensor, std: torch.Tensor, samples: int,
-                 generators: Sequence[torch.Generator], bound: float) -> torch.Tensor:
+                 generators: Sequence[torch.Generator], bound: float,
+                 period: int = 1) -> torch.Tensor:
     """``N`` plans around each mean ``(B, H, A)`` -> ``(B, N, H, A)``, clipped to ``+-bound``.
 
     Episode ``b`` draws its noise from ``generators[b]`` alone, so its plans do
     not depend on which other episodes share the batch. Sample 0 is the mean
     itself, so a good plan is never lost to unlucky noise.
     """
-    noise = torch.stack([torch.randn(samples, *mean.shape[1:], generator=g) for g in generators])
+    _, h, a = mean.shape
+    noise = torch.stack([smooth_noise(samples, h, a, period, g) for g in generators])
     noise[:, 0] = 0
     return (mean[:, None] + std[:, None] * noise.to(mean.device)).clamp(-bound, bound)
 
@@ -182,7 +202,8 @@ def plan(model, z0: torch.Tensor, z_goal: torch.Tensor, config: PlannerConfig,
     std = torch.full_like(mean, config.init_std)
     best, history = [], [] if record else None
     for _ in range(config.iterations):
-        actions = sample_plans(mean, std, config.samples, generators, config.action_bound)
+        actions = sample_plans(mean, std, config.samples, generators, config.action_bound,
+                               config.noise_period)
         costs = planning_cost(model, z0, z_goal, actions, config.cost)
         if config.method == "mppi":
             mean, std = mppi_update(actions, costs, config.elites, config.temperature)
@@ -212,6 +233,18 @@ class EpisodeResults:
     first_arrival: torch.Tensor  # (B,) long: first step within the radius, -1 if never
     cpu_seconds: float  # process CPU time of the whole batch
     wall_seconds: float
+
+    @classmethod
+    def concat(cls, parts: Sequence[EpisodeResults]) -> EpisodeResults:
+        """One result from batches run one after the other (times add up)."""
+        def cat(name):
+            return torch.cat([getattr(p, name) for p in parts])
+
+        episodes = Episodes(*(torch.cat([getattr(p.episodes, name) for p in parts])
+                              for name in ("layouts", "starts", "goals")))
+        return cls([s for p in parts for s in p.seeds], episodes, cat("paths"), cat("success"),
+                   cat("first_arrival"), sum(p.cpu_seconds for p in parts),
+                   sum(p.wall_seconds for p in parts))
 
     @property
     def success_rate(self) -> float:
@@ -251,12 +284,19 @@ def episode_generators(seeds: Sequence[int]) -> tuple[Episodes, list[torch.Gener
 
 @torch.no_grad()
 def run_episodes(model, seeds: Sequence[int], config: PlannerConfig = PlannerConfig(),
-                 steps: int = EPISODE_STEPS, radius: float = SUCCESS_RADIUS) -> EpisodeResults:
-    """Plan and act in one episode per seed, all at once; the agent re-plans every ``m`` steps.
+                 steps: int = EPISODE_STEPS, radius: float = SUCCESS_RADIUS,
+                 batch: int | None = None) -> EpisodeResults:
+    """Plan and act in one episode per seed; the agent re-plans every ``m`` steps.
 
     Episode ``seed`` draws its layout, start and goal (opposite rooms) and then
-    its planner's noise from ``torch.Generator().manual_seed(seed)``.
+    its planner's noise from ``torch.Generator().manual_seed(seed)``. ``batch``
+    episodes run at once (default: all of them).
     """
+    seeds = list(seeds)
+    batch = batch or len(seeds)
+    if batch < len(seeds):
+        return EpisodeResults.concat([run_episodes(model, seeds[i:i + batch], config, steps, radius)
+                                      for i in range(0, len(seeds), batch)])
     model.eval()
     device = next(model.parameters()).device
     episodes, generators = episode_generators(seeds)
@@ -274,6 +314,6 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig = PlannerCon
             paths.append(env.positions.cpu())
             first[(first < 0) & env.success(radius).cpu()] = env.steps_taken
         mean = shift_plan(result.mean, config.execute)
-    return EpisodeResults(list(seeds), episodes, torch.stack(paths, dim=1),
+    return EpisodeResults(seeds, episodes, torch.stack(paths, dim=1),
                           env.success(radius).cpu(), first,
                           time.process_time() - cpu, time.perf_counter() - wall)

@@ -20,7 +20,15 @@ from .envs import generate_trajectories
 from .envs.trajectories import Trajectories
 from .models.world import WORLD_CONFIGS, WorldConfig, WorldModel
 from .probe import encode_trajectories, fit_position_probe, mean_baseline_px, probe_error_px
-from .train import History, checkpoint_paths, fit, load_or_train, resume, save_checkpoint
+from .train import (
+    History,
+    checkpoint_paths,
+    fit,
+    load_checkpoint,
+    load_or_train,
+    resume,
+    save_checkpoint,
+)
 from .utils import get_device
 from .world_losses import WorldLossCoeffs, world_model_loss
 
@@ -111,6 +119,25 @@ def train_or_load(config: WorldTrainConfig, name: str) -> tuple[WorldModel, Hist
 
     history = load_or_train(cache_path, model, train, config_dict(config), shipped)
     return model.eval(), history
+
+
+def load_world_model(path: str | Path, config: WorldConfig | None = None) -> WorldModel:
+    """The trained model saved at ``path`` by :func:`main` (or by any ``{"model": state_dict}``).
+
+    With ``config``, the checkpoint must have been trained with exactly that
+    architecture; a mismatch raises a ``ValueError`` naming each difference.
+    Returns the model in eval mode, on the CPU.
+    """
+    state = load_checkpoint(path)
+    weights = state.get("model") if isinstance(state, dict) else None
+    if not isinstance(weights, dict) or "_extra_state" not in weights:
+        raise ValueError(f"{path} holds no world model (expected a file written by "
+                         "python -m ebjepa_tutorial.world_training --out PATH)")
+    if config is None:
+        return WorldModel.from_state_dict(weights).eval()
+    model = WorldModel(config)
+    model.load_state_dict(weights)
+    return model.eval()
 
 
 def probe_report(model: WorldModel, n_fit: int = 1000, n_test: int = 300, seed: int = 12345):

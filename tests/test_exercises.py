@@ -7,7 +7,7 @@ import nbformat
 import pytest
 import torch
 
-from ebjepa_tutorial import exercises, student
+from ebjepa_tutorial import exercises, student, video_jepa
 from ebjepa_tutorial.envs import check_wall_collision
 
 NOTEBOOKS = sorted(Path(__file__).resolve().parents[1].glob("notebooks/*.ipynb"))
@@ -20,6 +20,8 @@ CHECKERS = {
     "vicreg": exercises.check_vicreg,
     "vicreg_paper_to_ebjepa": exercises.check_vicreg_paper_to_ebjepa,
     "epps_pulley_1d": exercises.check_epps_pulley,
+    "rollout_loss": video_jepa.check_rollout_loss,
+    "mppi_update": exercises.check_mppi_update,
 }
 
 
@@ -92,6 +94,26 @@ def _epps_pulley_without_n(x, knots=17, t_max=3.0, scale_by_n=True):
     return sigreg.epps_pulley(x, knots=knots, t_max=t_max, scale_by_n=False)
 
 
+def _mppi_without_shift(actions, costs, elites, temperature):
+    from ebjepa_tutorial import planning
+
+    elite_actions, elite_costs = planning.select_elites(actions, costs, elites)
+    weights = torch.exp(-elite_costs / temperature)
+    return planning.weighted_mean_std(elite_actions, weights / weights.sum(1, keepdim=True))
+
+
+def _mppi_weighting_every_sample(actions, costs, elites, temperature):
+    from ebjepa_tutorial import planning
+
+    return planning.mppi_update(actions, costs, actions.shape[1], temperature)
+
+
+def _mppi_plain_mean(actions, costs, elites, temperature):
+    from ebjepa_tutorial import planning
+
+    return planning.cem_update(actions, costs, elites)
+
+
 @pytest.mark.parametrize("checker, wrong, message", [
     (exercises.check_epps_pulley, _epps_pulley_without_n, "N times too small"),
     (exercises.check_vicreg, _vicreg_regularising_one_view, "but the answer is"),
@@ -107,6 +129,11 @@ def _epps_pulley_without_n(x, knots=17, t_max=3.0, scale_by_n=True):
     (exercises.check_variance_term, lambda z, gamma=1.0, eps=1e-4: 0.0, "expected a torch tensor"),
     (exercises.check_covariance_term, _covariance_with_diagonal, "but the answer is"),
     (exercises.check_covariance_term, _covariance_divided_by_d, "but the answer is"),
+    (exercises.check_mppi_update, _mppi_without_shift, "underflow"),
+    (exercises.check_mppi_update, _mppi_weighting_every_sample, "but the answer is"),
+    (exercises.check_mppi_update, _mppi_plain_mean, "but the answer is"),
+    (exercises.check_mppi_update, lambda actions, costs, elites, temperature: actions.mean(1),
+     "must return a pair"),
 ])
 def test_checker_rejects_wrong_answers(checker, wrong, message):
     with pytest.raises(exercises.ExerciseError, match=message):

@@ -79,7 +79,7 @@ def test_the_loop_finds_the_optimum_of_a_quadratic(method):
         actions = planning.sample_plans(mean, std, 300, gens, bound=2.0)
         costs = (actions - target).pow(2).sum(dim=(2, 3))
         if method == "mppi":
-            mean, std = planning.mppi_update(actions, costs, elites=30, temperature=0.1)
+            mean, std = planning.mppi_update(actions, costs, elites=30, temperature=1.0)
         else:
             mean, std = planning.cem_update(actions, costs, elites=30)
         std = std.clamp_min(1e-3)
@@ -202,3 +202,26 @@ def test_a_goal_image_of_the_wrong_shape_is_named():
     with pytest.raises(ValueError, match="mean plan"):
         planning.plan(model, torch.zeros(2, 32), torch.zeros(2, 32), PlannerConfig(horizon=4),
                       generators(2), mean=torch.zeros(2, 5, 2))
+
+
+def test_batches_run_one_after_the_other_give_the_same_episodes():
+    model = LinearLatentModel()
+    config = PlannerConfig(horizon=8, samples=32, elites=4, iterations=2, execute=4)
+    whole = planning.run_episodes(model, [3, 4, 5], config, steps=8)
+    split = planning.run_episodes(model, [3, 4, 5], config, steps=8, batch=2)
+    assert split.seeds == [3, 4, 5]
+    assert torch.allclose(whole.paths, split.paths, atol=1e-4)
+    assert torch.equal(whole.episodes.goals, split.episodes.goals)
+
+
+def test_loading_a_checkpoint_names_what_is_wrong(tmp_path):
+    from ebjepa_tutorial.models.world import WORLD_CONFIGS, WorldModel
+    from ebjepa_tutorial.train import save_checkpoint
+    from ebjepa_tutorial.world_training import load_world_model
+    path = save_checkpoint(tmp_path / "ci.pt", model=WorldModel(WORLD_CONFIGS["ci"]).state_dict())
+    assert load_world_model(path).latent_dim == WORLD_CONFIGS["ci"].latent_dim
+    with pytest.raises(ValueError, match="latent_dim: the checkpoint has 32"):
+        load_world_model(path, WORLD_CONFIGS["class"])
+    other = save_checkpoint(tmp_path / "other.pt", model={"weight": torch.zeros(2)})
+    with pytest.raises(ValueError, match="holds no world model"):
+        load_world_model(other)
