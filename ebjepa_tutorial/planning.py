@@ -246,6 +246,15 @@ class EpisodeResults:
                    cat("first_arrival"), sum(p.cpu_seconds for p in parts),
                    sum(p.wall_seconds for p in parts))
 
+    def first(self, n: int) -> EpisodeResults:
+        """The first ``n`` episodes (times: this batch's, pro rata)."""
+        share = n / len(self.seeds)
+        episodes = Episodes(self.episodes.layouts[:n], self.episodes.starts[:n],
+                            self.episodes.goals[:n])
+        return EpisodeResults(self.seeds[:n], episodes, self.paths[:n], self.success[:n],
+                              self.first_arrival[:n], self.cpu_seconds * share,
+                              self.wall_seconds * share)
+
     @property
     def success_rate(self) -> float:
         return self.success.float().mean().item()
@@ -317,3 +326,29 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig = PlannerCon
     return EpisodeResults(seeds, episodes, torch.stack(paths, dim=1),
                           env.success(radius).cpu(), first,
                           time.process_time() - cpu, time.perf_counter() - wall)
+
+
+# -- pictures --------------------------------------------------------------------------------
+@torch.no_grad()
+def energy_map(model, layout: torch.Tensor, goal: torch.Tensor, spacing: float = 1.0):
+    """The planner's view of one layout: ``||Enc(o_x) - Enc(o_goal)||`` for every dot position x.
+
+    ``layout``: ``(2,)`` long; ``goal``: ``(2,)`` px. Returns ``(coords (G,),
+    energy (G, G))`` with ``energy[i, j]`` at ``(x=coords[j], y=coords[i])``
+    (image orientation), NaN where the dot cannot be (walls).
+    """
+    from .envs.two_rooms import HIGH, LOW, render, wall_bounds
+
+    coords = torch.arange(LOW, HIGH + 1e-6, spacing)
+    ys, xs = torch.meshgrid(coords, coords, indexing="ij")
+    positions = torch.stack([xs.flatten(), ys.flatten()], dim=1)
+    layouts = layout.view(1, 2).expand(len(positions), 2)
+    x_lo, x_hi, y_lo, y_hi = wall_bounds(layouts)
+    x, y = positions.unbind(1)
+    free = ~((x > x_lo) & (x < x_hi) & ((y < y_lo) | (y > y_hi)))
+    z_goal = model.encode(render(goal.view(1, 2), layout.view(1, 2)))
+    energy = torch.full((len(positions),), math.nan)
+    for chunk in free.nonzero().squeeze(1).split(1024):
+        z = model.encode(render(positions[chunk], layouts[chunk]))
+        energy[chunk] = (z - z_goal).norm(dim=1)
+    return coords, energy.view(len(coords), len(coords))

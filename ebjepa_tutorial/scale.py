@@ -16,6 +16,7 @@ from dataclasses import dataclass, replace
 
 from .image_jepa import ImageJEPAConfig
 from .models.world import WORLD_CONFIGS
+from .planning import PlannerConfig
 from .video_jepa import VIDEO_CONFIGS, VideoJEPAConfig
 from .world_training import WorldTrainConfig
 
@@ -121,6 +122,21 @@ _WORLD_FULL = WorldTrainConfig(  # the paper: batch 384, 12 epochs of 100,000 tr
 )
 
 
+@dataclass(frozen=True)
+class PlanningPreset:
+    """Notebook 06: which world model plans, with which planner, on how many episodes."""
+
+    world: WorldTrainConfig  # notebook 05's run; the ablations change only its coefficients
+    planner: PlannerConfig  # MPPI with the summed cost; CEM and "last" change one field
+    n_episodes: int = 100  # seeds first_seed.. for the main success rate
+    n_compare: int = 20  # episodes (the first seeds of the same list) per other planner / model
+    episode_steps: int = 200  # the paper's step budget
+    first_seed: int = 10_000
+
+
+_PLANNER_CI = PlannerConfig(horizon=8, samples=32, elites=4, iterations=2, execute=4)
+
+
 PRESETS: dict[str, dict[str, object]] = {
     "00": {
         "ci": CollapsePreset(n_points=256, steps=60),
@@ -146,6 +162,12 @@ PRESETS: dict[str, dict[str, object]] = {
                                n_positions=16),
         "class": WorldModelPreset(WorldTrainConfig()),  # exactly the CLI's run (shipped)
         "full": WorldModelPreset(_WORLD_FULL, n_probe=5000, n_test=1000, horizon=48),
+    },
+    "06": {
+        "ci": PlanningPreset(_WORLD_CI, _PLANNER_CI, n_episodes=4, n_compare=2, episode_steps=40),
+        "class": PlanningPreset(WorldTrainConfig(), PlannerConfig()),  # the shipped checkpoints
+        "full": PlanningPreset(_WORLD_FULL, PlannerConfig(horizon=90, iterations=20, execute=1),
+                               n_compare=100),  # the reference code's planner
     },
 }
 

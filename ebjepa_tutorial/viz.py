@@ -328,3 +328,62 @@ def plot_projector_ablation(rows: list[dict], ax=None, baseline: float | None = 
     ax.set(xlabel="projector output width", ylabel="linear probe (%)")
     ax.legend(fontsize=8)
     return ax
+
+
+def draw_two_rooms(ax, layout: torch.Tensor, goal=None, start=None):
+    """The walls of ``layout`` ``(2,)`` on ``ax`` (pixel coordinates), goal and start marked."""
+    from .envs.two_rooms import wall_images
+
+    walls = wall_images(layout.view(1, 2))[0].float()
+    ax.imshow(two_rooms_rgb(torch.stack([torch.zeros_like(walls), walls])), origin="upper")
+    if goal is not None:
+        ax.add_patch(plt.Circle(tuple(goal.tolist()), 4.5, fill=False, color="green", lw=1.5))
+        ax.scatter([goal[0]], [goal[1]], marker="*", s=120, c="green", zorder=3)
+    if start is not None:
+        ax.scatter([start[0]], [start[1]], marker="o", s=40, c="black", zorder=3)
+    ax.set(xticks=[], yticks=[], xlim=(-0.5, 64.5), ylim=(64.5, -0.5))
+    return ax
+
+
+def plot_imagined_paths(ax, paths: torch.Tensor, costs: torch.Tensor, layout, goal, start,
+                        title: str = ""):
+    """Sampled plans decoded to pixels ``(N, H, 2)``, cheap ones dark: the planner's imagination."""
+    draw_two_rooms(ax, layout, goal, start)
+    order = costs.argsort(descending=True)  # draw the cheapest last, on top
+    shade = (costs[order] - costs.min()) / (costs.max() - costs.min()).clamp_min(1e-9)
+    for path, s in zip(paths[order], shade.tolist()):
+        ax.plot(path[:, 0], path[:, 1], color=plt.cm.viridis(s), lw=0.6,
+                alpha=0.35 + 0.4 * (1 - s))
+    ax.set_title(title)
+    return ax
+
+
+def animate_episodes(results, indices: list[int], every: int = 2, titles: list[str] | None = None):
+    """An animation of some episodes of a :class:`~ebjepa_tutorial.planning.EpisodeResults`.
+
+    Each panel shows the walls, the goal (green, with the 4.5 px success circle)
+    and the dot's trail. ``every``: steps per frame. Show it with :func:`play`.
+    """
+    from matplotlib.animation import FuncAnimation
+
+    fig, axes = plt.subplots(1, len(indices), figsize=(3 * len(indices), 3.2), squeeze=False)
+    trails, dots = [], []
+    for k, (ax, i) in enumerate(zip(axes[0], indices)):
+        draw_two_rooms(ax, results.episodes.layouts[i], results.episodes.goals[i],
+                       results.episodes.starts[i])
+        ax.set_title(titles[k] if titles else f"seed {results.seeds[i]}", fontsize=9)
+        trails.append(ax.plot([], [], color="tab:red", lw=1)[0])
+        dots.append(ax.plot([], [], "o", color="tab:red", ms=6)[0])
+    steps = list(range(0, results.paths.shape[1], every))
+
+    def draw(t):
+        for line, dot, i in zip(trails, dots, indices):
+            path = results.paths[i, : t + 1]
+            line.set_data(path[:, 0], path[:, 1])
+            dot.set_data(path[-1:, 0], path[-1:, 1])
+        fig.suptitle(f"step {t}", fontsize=10)
+        return trails + dots
+
+    animation = FuncAnimation(fig, draw, frames=steps, interval=80, blit=False)
+    plt.close(fig)
+    return animation

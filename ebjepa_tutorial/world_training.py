@@ -157,6 +157,8 @@ def probe_report(model: WorldModel, n_fit: int = 1000, n_test: int = 300, seed: 
 
 
 ABLATABLE_TERMS = ("variance", "covariance", "temporal", "inverse_dynamics")
+ABLATION_SUFFIXES = {"variance": "no_variance", "covariance": "no_covariance",
+                     "temporal": "no_temporal", "inverse_dynamics": "no_idm"}  # file names
 
 
 def ablation_config(config: WorldTrainConfig, *without: str) -> WorldTrainConfig:

@@ -225,3 +225,12 @@ def test_loading_a_checkpoint_names_what_is_wrong(tmp_path):
     other = save_checkpoint(tmp_path / "other.pt", model={"weight": torch.zeros(2)})
     with pytest.raises(ValueError, match="holds no world model"):
         load_world_model(other)
+
+
+def test_the_first_episodes_of_a_batch_are_a_smaller_batch():
+    model = LinearLatentModel()
+    config = PlannerConfig(horizon=8, samples=32, elites=4, iterations=2, execute=4)
+    whole = planning.run_episodes(model, [3, 4, 5], config, steps=8)
+    part = whole.first(2)
+    assert part.seeds == [3, 4] and torch.equal(part.paths, whole.paths[:2])
+    assert part.cpu_seconds == pytest.approx(whole.cpu_seconds * 2 / 3)

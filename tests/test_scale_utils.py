@@ -69,3 +69,12 @@ def test_video_preset_fits_its_clips_and_budget():
     # ~10 minutes per class run on 2 CPU cores: about 1 s per step of 16 clips
     assert (class_.train.batch_size, class_.train.steps, class_.train.n_clips) == (16, 600, 4000)
     assert ci.train.steps * ci.train.batch_size * len(ci.seeds) < 1000  # ci: seconds
+
+
+@pytest.mark.parametrize("name", scale.SCALES)
+def test_planning_uses_the_world_model_of_notebook_05(name):
+    # Notebook 06 loads chapter 05's checkpoint by name: the configs must be the same run.
+    planning_preset, world_preset = scale.preset("06", name), scale.preset("05", name)
+    assert planning_preset.world == world_preset.train
+    assert planning_preset.n_compare <= planning_preset.n_episodes
+    assert planning_preset.planner.horizon >= planning_preset.planner.execute
