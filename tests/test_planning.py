@@ -234,3 +234,24 @@ def test_the_first_episodes_of_a_batch_are_a_smaller_batch():
     part = whole.first(2)
     assert part.seeds == [3, 4] and torch.equal(part.paths, whole.paths[:2])
     assert part.cpu_seconds == pytest.approx(whole.cpu_seconds * 2 / 3)
+
+
+def test_the_benchmark_prints_its_figures(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from ebjepa_tutorial.models.world import WORLD_CONFIGS, WorldModel
+    from ebjepa_tutorial.train import save_checkpoint
+    model = WorldModel(WORLD_CONFIGS["ci"]).fit_input_stats(
+        render(torch.tensor([[10.0, 10.0], [50.0, 40.0]]), torch.tensor([[30, 30], [30, 30]])))
+    path = save_checkpoint(tmp_path / "ci.pt", model=model.state_dict())
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "planning.py"
+    out = subprocess.run(
+        [sys.executable, str(script), "--checkpoint", str(path), "--episodes", "3", "--batch", "2",
+         "--horizon", "4", "--samples", "8", "--elites", "2", "--iterations", "1",
+         "--threads", "1"],
+        capture_output=True, text=True, check=True).stdout
+    last = dict(item.split("=") for item in out.strip().splitlines()[-1].split())
+    assert set(last) == {"success", "ci_low", "ci_high", "s_per_episode"}
+    assert 0 <= float(last["ci_low"]) <= float(last["success"]) <= float(last["ci_high"]) <= 1
