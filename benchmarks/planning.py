@@ -23,6 +23,12 @@ from ebjepa_tutorial.planning import PlannerConfig, run_episodes
 from ebjepa_tutorial.world_training import load_world_model
 
 
+def _yes_no(text: str) -> bool:
+    if text.lower() not in ("true", "false", "yes", "no", "1", "0"):
+        raise argparse.ArgumentTypeError(f"expected true or false, got {text!r}")
+    return text.lower() in ("true", "yes", "1")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", default="checkpoints/world_model_class.pt")
@@ -31,8 +37,8 @@ def main() -> None:
     parser.add_argument("--first-seed", type=int, default=10_000)
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     for field in dataclasses.fields(PlannerConfig):  # --method, --cost, --horizon, ...
-        parser.add_argument(f"--{field.name.replace('_', '-')}", type=type(field.default),
-                            default=field.default)
+        kind = _yes_no if isinstance(field.default, bool) else type(field.default)
+        parser.add_argument(f"--{field.name.replace('_', '-')}", type=kind, default=field.default)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     config = PlannerConfig(**{f.name: getattr(args, f.name)

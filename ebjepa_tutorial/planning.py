@@ -50,6 +50,7 @@ class PlannerConfig:
     iterations: int = 6  # J, refinements per re-plan
     temperature: float = 0.05  # tau, MPPI's softness (latent-distance units)
     init_std: float = 1.5  # spread of the sampled actions at the start of a re-plan, px
+    update_std: bool = True  # False: keep init_std for every iteration (move the mean only)
     min_std: float = 0.05
     max_std: float = 2.0
     execute: int = 4  # m, actions executed before re-planning
@@ -206,10 +207,11 @@ def plan(model, z0: torch.Tensor, z_goal: torch.Tensor, config: PlannerConfig,
                                config.noise_period)
         costs = planning_cost(model, z0, z_goal, actions, config.cost)
         if config.method == "mppi":
-            mean, std = mppi_update(actions, costs, config.elites, config.temperature)
+            mean, new_std = mppi_update(actions, costs, config.elites, config.temperature)
         else:
-            mean, std = cem_update(actions, costs, config.elites)
-        std = std.clamp(config.min_std, config.max_std)
+            mean, new_std = cem_update(actions, costs, config.elites)
+        if config.update_std:
+            std = new_std.clamp(config.min_std, config.max_std)
         best.append(costs.min(dim=1).values)
         if record:
             history.append((actions.cpu(), costs.cpu()))

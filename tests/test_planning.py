@@ -255,3 +255,14 @@ def test_the_benchmark_prints_its_figures(tmp_path):
     last = dict(item.split("=") for item in out.strip().splitlines()[-1].split())
     assert set(last) == {"success", "ci_low", "ci_high", "s_per_episode"}
     assert 0 <= float(last["ci_low"]) <= float(last["success"]) <= float(last["ci_high"]) <= 1
+
+
+def test_a_fixed_spread_keeps_exploring():
+    model = LinearLatentModel()
+    config = PlannerConfig(horizon=6, samples=50, elites=5, iterations=3, update_std=False,
+                           init_std=0.7)
+    result = planning.plan(model, torch.zeros(1, 2), torch.full((1, 2), 5.0), config,
+                           generators(1), record=True)
+    assert torch.equal(result.std, torch.full((1, 6, 2), 0.7))
+    spread = result.history[-1][0][0, 1:].std(dim=0)  # the last iteration still samples widely
+    assert spread.mean() > 0.5
