@@ -1,11 +1,14 @@
 """Image-JEPA benchmark: training speed and linear-probe / kNN accuracy on CIFAR-10.
 
-Run: ``python benchmarks/image_jepa.py [--scale class] [--loss vicreg] [--steps N]``.
-Trains the notebook's configuration at that scale from scratch (no checkpoint),
-then evaluates the frozen encoder on un-augmented images: a linear probe and a
-kNN classifier fitted on the train split and scored on the test split
-(CIFAR-10, the JPEG copy where ``EBJEPA_DATA`` points at it). The random-init
-encoder is scored the same way for comparison. Last line:
+Run: ``python benchmarks/image_jepa.py [--scale class] [--loss vicreg] [--steps N]
+[--eval-size PX]``. Trains the notebook's configuration at that scale from
+scratch (no checkpoint), then evaluates the frozen encoder on un-augmented
+images at the preset's ``eval_image_size`` (32 px, CIFAR-10's native size, at
+class and full scale, whatever size the training views had; 16 px at ci scale;
+``--eval-size 16`` gives the earlier 16-px protocol): a linear probe and a kNN
+classifier fitted on the train split and scored on the test split (CIFAR-10,
+the JPEG copy where ``EBJEPA_DATA`` points at it). The random-init encoder is
+scored the same way for comparison. Last line:
 ``images_per_s=... minutes=... probe_acc=... knn_acc=...``.
 """
 
@@ -18,7 +21,7 @@ from dataclasses import replace
 import torch
 
 from ebjepa_tutorial.data import load_cifar10, random_subset
-from ebjepa_tutorial.image_jepa import ImageJEPA, probe_encoder, train_image_jepa
+from ebjepa_tutorial.image_jepa import ImageJEPA, probe_encoder, protocol, train_image_jepa
 from ebjepa_tutorial.scale import SCALES, image_preset
 
 
@@ -27,15 +30,20 @@ def main() -> None:
     parser.add_argument("--scale", choices=SCALES, default="class")
     parser.add_argument("--loss", choices=("vicreg", "sigreg", "invariance"), default="vicreg")
     parser.add_argument("--steps", type=int, default=None, help="override the preset's steps")
+    parser.add_argument("--eval-size", type=int, default=None,
+                        help="side in px of the images the probe and kNN see (class preset: 32)")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
     preset = image_preset(args.scale, args.loss)
     config = preset.config if args.steps is None else replace(preset.config, steps=args.steps)
+    if args.eval_size is not None:
+        config = replace(config, eval_image_size=args.eval_size)
     train = random_subset(*load_cifar10("train"), preset.train_images)
     test = random_subset(*load_cifar10("test"), preset.test_images)
     print(f"{args.scale} scale, {config}")
+    print(f"evaluation: {protocol(config)}")
 
     random_init = probe_encoder(ImageJEPA(config).encoder, config, train, test)
     start = time.perf_counter()

@@ -2,7 +2,8 @@
 
 Two families of short training runs of the CIFAR-10 recipe (``cfg.sweep_steps``
 steps each, from the same initial weights), each scored with the usual frozen
-protocol (:func:`ebjepa_tutorial.image_jepa.probe_encoder`):
+protocol (:func:`ebjepa_tutorial.image_jepa.probe_encoder`, at the config's
+``eval_image_size``; a stored result is reused only at the same size):
 
 - **sensitivity** (the EB-JEPA paper's Figure 3, at our scale): SIGReg's one
   weight ``sigreg_lambda``, and VICReg's two, ``std_coeff`` and ``cov_coeff``
@@ -32,7 +33,7 @@ from pathlib import Path
 
 import torch
 
-from .image_jepa import ImageJEPAConfig, config_dict, probe_encoder, train_image_jepa
+from .image_jepa import ImageJEPAConfig, config_dict, probe_encoder, protocol, train_image_jepa
 from .scale import SCALES, preset
 
 FACTORS = {"ci": (0.1, 1.0, 10.0), "class": (0.01, 0.1, 1.0, 10.0, 100.0),
@@ -44,8 +45,6 @@ SWEEP_LABELS = {
     "projector_sigreg": "SIGReg",
     "projector_vicreg": "VICReg",
 }
-PROTOCOL = ("linear probe (fit on the train split, scored on the test split) and kNN (k = 20) "
-            "on frozen encoder features of un-augmented images")
 
 
 @dataclass(frozen=True)
@@ -107,7 +106,10 @@ def plan(scale: str) -> dict[str, list[Run]]:
 
 
 def _key(config: ImageJEPAConfig | dict, n_train: int, n_test: int) -> str:
-    """What identifies a result: the config as JSON (tuples become lists) and the data sizes."""
+    """What identifies a result: the config as JSON (tuples become lists) and the data sizes.
+
+    The config includes ``eval_image_size``: a run probed at another size is another result.
+    """
     config = config_dict(config) if isinstance(config, ImageJEPAConfig) else config
     return json.dumps([config, n_train, n_test], sort_keys=True)
 
@@ -170,7 +172,7 @@ def run_sweep(runs: list[Run], train, test, path: str | Path | None = None,
               f"kNN {row['knn_acc']:.1%} ({row['seconds']:.0f} s)")
         if path is not None:
             own.append(row)
-            _save_results(Path(path), own, meta or {"protocol": PROTOCOL})
+            _save_results(Path(path), own, meta or {"protocol": protocol(run.config)})
     return [{**stored[_key(run.config, *sizes)], "sweep": run.sweep, "value": run.value,
              "factor": run.factor} for run in runs]
 
@@ -204,7 +206,7 @@ def main(argv: list[str] | None = None) -> None:
     selected = [run for name, group in runs.items() if args.only in (None, name) for run in group]
     unique = list({_key(run.config, 0, 0): run for run in selected}.values())  # shared defaults
     only = f" --only {args.only}" if args.only else ""
-    meta = {"scale": args.scale, "data": describe_data(), "protocol": PROTOCOL,
+    meta = {"scale": args.scale, "data": describe_data(), "protocol": protocol(sizes.config),
             "command": f"python -m ebjepa_tutorial.sweeps --scale {args.scale} --out {args.out}"
                        f"{only}",
             "torch_threads": torch.get_num_threads()}

@@ -1,10 +1,15 @@
-"""The image-JEPA recipe: config checks, loss choice, reproducible and resumable training."""
+"""The image-JEPA recipe: config checks, loss choice, reproducible and resumable training,
+and the evaluation protocol (frozen features of un-augmented images at ``eval_image_size``)."""
+
+import dataclasses
 
 import pytest
 import torch
+from torch import nn
 
-from ebjepa_tutorial import image_jepa
+from ebjepa_tutorial import augment, image_jepa
 from ebjepa_tutorial.image_jepa import ImageJEPAConfig
+from ebjepa_tutorial.scale import preset
 
 TINY = ImageJEPAConfig(widths=(4, 4, 8, 8), projector=(16, 16), batch_size=8, steps=4,
                        warmup_steps=1, image_size=16)
@@ -15,11 +20,49 @@ def _images(n=32, seed=0):
     return torch.randint(0, 256, (n, 3, 32, 32), dtype=torch.uint8, generator=generator)
 
 
+class ShapeRecorder(nn.Module):
+    """A stand-in encoder: ``(B, 3, S, S) -> (B, 4)`` by average pool and a linear layer.
+
+    It keeps every batch it is given, to check what the evaluation feeds it.
+    """
+
+    def __init__(self):
+        super().__init__()
+        self.linear = nn.Linear(3, 4)
+        self.inputs = []
+
+    def forward(self, x):
+        self.inputs.append(x.clone())
+        return self.linear(x.mean(dim=(2, 3)))
+
+
 def test_unknown_names_are_rejected():
     with pytest.raises(ValueError, match="unknown loss 'simclr'"):
         ImageJEPAConfig(loss="simclr")
     with pytest.raises(ValueError, match="unknown optimizer"):
         ImageJEPAConfig(optimizer="sgd")
+
+
+@pytest.mark.parametrize("field", ["image_size", "eval_image_size"])
+@pytest.mark.parametrize("value", [0, -16, 16.0, "32", True, None])
+def test_image_sizes_must_be_positive_ints(field, value):
+    with pytest.raises(ValueError, match=f"^{field} must be a positive int"):
+        ImageJEPAConfig(**{field: value})
+
+
+def test_a_vit_is_probed_at_the_size_it_was_built_for():
+    with pytest.raises(ValueError, match="ViT is built for one image size"):
+        ImageJEPAConfig(encoder="vit_s", image_size=16)  # eval_image_size: 32 by default
+    assert ImageJEPAConfig(encoder="vit_s", image_size=32).eval_image_size == 32
+
+
+def test_evaluation_is_at_the_native_32_px_whatever_the_training_size():
+    assert ImageJEPAConfig().eval_image_size == 32
+    for notebook in ("01", "02"):
+        for scale in ("class", "full"):  # ci probes at 16 px: it only checks that code runs
+            assert preset(notebook, scale).config.eval_image_size == 32, (notebook, scale)
+        assert preset(notebook, "ci").config.eval_image_size == 16
+    assert preset("01", "class").config.image_size == 16  # trained small, probed at 32 px
 
 
 @pytest.mark.parametrize("loss, terms", [
@@ -79,6 +122,35 @@ def test_probe_encoder_reports_both_accuracies():
     assert 0.0 <= result["probe_acc"] <= 1.0
 
 
+@pytest.mark.parametrize("eval_size", [32, 24, 16])
+def test_probe_and_knn_see_images_of_eval_image_size(eval_size):
+    config = dataclasses.replace(TINY, eval_image_size=eval_size)  # trained on 16-px views
+    encoder = ShapeRecorder()
+    train, test = _images(40), _images(20, seed=1)
+    image_jepa.probe_encoder(encoder, config, (train, torch.arange(40) % 4),
+                             (test, torch.arange(20) % 4))
+    assert {tuple(x.shape[1:]) for x in encoder.inputs} == {(3, eval_size, eval_size)}
+    assert sum(len(x) for x in encoder.inputs) == 40 + 20  # every image once, none augmented
+    if eval_size == 32:  # CIFAR-10's own size: normalised, not resampled
+        seen = torch.cat(encoder.inputs)
+        assert torch.equal(seen, augment.normalize(torch.cat([train, test])))
+
+
+def test_a_resnet_takes_any_image_size():
+    # the global average pool is what lets a network trained on 16 px be probed at 32 px
+    encoder = image_jepa.ImageJEPA(TINY).encoder.eval()
+    for size in (16, 32):
+        assert image_jepa.embed(encoder, _images(4), size).shape == (4, encoder.out_dim)
+
+
+def test_protocol_names_both_sizes():
+    words = image_jepa.protocol(TINY)
+    assert "32-px images (their native size, no resizing)" in words
+    assert "trained on 16-px views" in words
+    assert "resized from 32 px" in image_jepa.protocol(
+        dataclasses.replace(TINY, eval_image_size=16))
+
+
 def test_train_or_load_trains_once_then_loads(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
     images = _images()
@@ -89,3 +161,16 @@ def test_train_or_load_trains_once_then_loads(tmp_path, monkeypatch, capsys):
     assert "Loaded" in capsys.readouterr().out
     assert history2 == history and not again.training
     assert all(torch.equal(p, q) for p, q in zip(first.parameters(), again.parameters()))
+
+
+def test_checkpoints_do_not_depend_on_the_evaluation_size(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
+    images = _images()
+    assert "eval_image_size" in image_jepa.config_dict(TINY)
+    assert "eval_image_size" not in image_jepa.training_dict(TINY)
+    image_jepa.train_or_load(TINY, "tiny_run", images)
+    capsys.readouterr()
+    image_jepa.train_or_load(dataclasses.replace(TINY, eval_image_size=24), "tiny_run", images)
+    assert "Loaded" in capsys.readouterr().out  # probing at another size is the same run
+    image_jepa.train_or_load(dataclasses.replace(TINY, image_size=8), "tiny_run", images)
+    assert "Trained and saved" in capsys.readouterr().out  # training at another size is not

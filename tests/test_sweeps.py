@@ -1,9 +1,11 @@
 """Notebook 02's sweeps: the plan of runs, the JSON file they are stored in, and resuming."""
 
+import dataclasses
 import json
 
 import pytest
 import torch
+from torch import nn
 
 from ebjepa_tutorial import sweeps
 from ebjepa_tutorial.image_jepa import ImageJEPAConfig
@@ -60,7 +62,8 @@ def test_run_sweep_writes_each_run_and_reloads_instead_of_training(tmp_path, mon
     assert [r["value"] for r in rows] == [0.05, 0.2]
     assert all(0.0 <= r["probe_acc"] <= 1.0 and 0.0 <= r["knn_acc"] <= 1.0 for r in rows)
     stored = json.loads(path.read_text())
-    assert len(stored["runs"]) == 2 and "protocol" in stored
+    assert len(stored["runs"]) == 2 and "32-px images" in stored["protocol"]
+    assert all(row["config"]["eval_image_size"] == 32 for row in stored["runs"])
 
     def no_training(*args, **kwargs):
         raise AssertionError("a stored run was trained again")
@@ -90,6 +93,47 @@ def test_rows_of_other_data_sizes_are_not_reused(tmp_path, monkeypatch):
     assert len(sweeps.load_results(path)) == 2
 
 
+def test_rows_probed_at_another_size_are_not_reused(tmp_path, monkeypatch):
+    path = tmp_path / "sweep.json"
+    train, test = _data(48, 0), _data(20, 1)
+    sweeps.run_sweep([sweeps.Run("sigreg_lambda", 0.1, TINY, 1.0)], train, test, path=path,
+                     progress=False)
+    calls = []
+
+    def fake(run, train, test, device="cpu", progress=True):
+        calls.append(run)
+        return {"probe_acc": 0.5, "knn_acc": 0.5, "seconds": 0.0, "n_train": len(train[0]),
+                "n_test": len(test[0]), "config": sweeps.config_dict(run.config)}
+
+    monkeypatch.setattr(sweeps, "train_and_probe", fake)
+    at_16 = dataclasses.replace(TINY, eval_image_size=16)
+    sweeps.run_sweep([sweeps.Run("sigreg_lambda", 0.1, at_16, 1.0)], train, test, path=path,
+                     progress=False)
+    assert [run.config.eval_image_size for run in calls] == [16]
+
+
+def test_sweep_runs_are_probed_at_eval_image_size(monkeypatch):
+    class Recorder(nn.Module):  # a stand-in for the trained encoder: keeps its input shapes
+        def __init__(self):
+            super().__init__()
+            self.linear, self.shapes = nn.Linear(3, 4), []
+
+        def forward(self, x):
+            self.shapes.append(tuple(x.shape[1:]))
+            return self.linear(x.mean(dim=(2, 3)))
+
+    encoder = Recorder()
+    model = nn.Module()
+    model.encoder = encoder
+    monkeypatch.setattr(sweeps, "train_image_jepa", lambda *a, **k: (model, {"loss": [1.0]}))
+    for size in (32, 24):
+        encoder.shapes.clear()
+        run = sweeps.Run("sigreg_lambda", 0.1, dataclasses.replace(TINY, eval_image_size=size))
+        row = sweeps.train_and_probe(run, _data(40, 0), _data(20, 1), progress=False)
+        assert set(encoder.shapes) == {(3, size, size)}
+        assert row["config"]["eval_image_size"] == size
+
+
 def test_command_runs_the_selected_sweep_once_per_config(tmp_path, monkeypatch):
     from ebjepa_tutorial import data
 
@@ -104,6 +148,9 @@ def test_command_runs_the_selected_sweep_once_per_config(tmp_path, monkeypatch):
     sweeps.main(["--scale", "ci", "--out", str(out), "--only", "sensitivity"])
     assert len(seen["runs"]) == 8  # 3 x 3 runs, the VICReg default shared
     assert seen["path"] == str(out) and "--only sensitivity" in seen["meta"]["command"]
+    size = preset("02", "ci").config.eval_image_size
+    assert f"{size}-px images" in seen["meta"]["protocol"]
+    assert all(run.config.eval_image_size == size for run in seen["runs"])
     assert seen["sizes"] == (30, 30)
 
 
