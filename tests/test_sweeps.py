@@ -76,10 +76,8 @@ def test_run_sweep_writes_each_run_and_reloads_instead_of_training(tmp_path, mon
     assert sweeps.run_sweep([relabelled], train, test, shipped=path)[0]["sweep"] == "other_sweep"
 
 
-def test_rows_of_other_data_sizes_are_not_reused(tmp_path, monkeypatch):
-    path = tmp_path / "sweep.json"
-    runs = [sweeps.Run("sigreg_lambda", 0.1, TINY, 1.0)]
-    sweeps.run_sweep(runs, _data(48, 0), _data(20, 1), path=path, progress=False)
+def _record_training(monkeypatch) -> list:
+    """Replace training by a stub that records each run it is asked for; returns the record."""
     calls = []
 
     def fake(run, train, test, device="cpu", progress=True):
@@ -88,6 +86,14 @@ def test_rows_of_other_data_sizes_are_not_reused(tmp_path, monkeypatch):
                 "n_test": len(test[0]), "config": sweeps.config_dict(run.config)}
 
     monkeypatch.setattr(sweeps, "train_and_probe", fake)
+    return calls
+
+
+def test_rows_of_other_data_sizes_are_not_reused(tmp_path, monkeypatch):
+    path = tmp_path / "sweep.json"
+    runs = [sweeps.Run("sigreg_lambda", 0.1, TINY, 1.0)]
+    sweeps.run_sweep(runs, _data(48, 0), _data(20, 1), path=path, progress=False)
+    calls = _record_training(monkeypatch)
     sweeps.run_sweep(runs, _data(40, 0), _data(20, 1), path=path, progress=False)
     assert len(calls) == 1
     assert len(sweeps.load_results(path)) == 2
@@ -98,14 +104,7 @@ def test_rows_probed_at_another_size_are_not_reused(tmp_path, monkeypatch):
     train, test = _data(48, 0), _data(20, 1)
     sweeps.run_sweep([sweeps.Run("sigreg_lambda", 0.1, TINY, 1.0)], train, test, path=path,
                      progress=False)
-    calls = []
-
-    def fake(run, train, test, device="cpu", progress=True):
-        calls.append(run)
-        return {"probe_acc": 0.5, "knn_acc": 0.5, "seconds": 0.0, "n_train": len(train[0]),
-                "n_test": len(test[0]), "config": sweeps.config_dict(run.config)}
-
-    monkeypatch.setattr(sweeps, "train_and_probe", fake)
+    calls = _record_training(monkeypatch)
     at_16 = dataclasses.replace(TINY, eval_image_size=16)
     sweeps.run_sweep([sweeps.Run("sigreg_lambda", 0.1, at_16, 1.0)], train, test, path=path,
                      progress=False)
