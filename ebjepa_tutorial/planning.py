@@ -242,8 +242,7 @@ class EpisodeResults:
         def cat(name):
             return torch.cat([getattr(p, name) for p in parts])
 
-        episodes = Episodes(*(torch.cat([getattr(p.episodes, name) for p in parts])
-                              for name in ("layouts", "starts", "goals")))
+        episodes = Episodes.concat([p.episodes for p in parts])
         return cls([s for p in parts for s in p.seeds], episodes, cat("paths"), cat("success"),
                    cat("first_arrival"), sum(p.cpu_seconds for p in parts),
                    sum(p.wall_seconds for p in parts))
@@ -251,9 +250,7 @@ class EpisodeResults:
     def first(self, n: int) -> EpisodeResults:
         """The first ``n`` episodes (times: this batch's, pro rata)."""
         share = n / len(self.seeds)
-        episodes = Episodes(self.episodes.layouts[:n], self.episodes.starts[:n],
-                            self.episodes.goals[:n])
-        return EpisodeResults(self.seeds[:n], episodes, self.paths[:n], self.success[:n],
+        return EpisodeResults(self.seeds[:n], self.episodes[:n], self.paths[:n], self.success[:n],
                               self.first_arrival[:n], self.cpu_seconds * share,
                               self.wall_seconds * share)
 
@@ -287,10 +284,7 @@ def episode_generators(seeds: Sequence[int]) -> tuple[Episodes, list[torch.Gener
     if len(seeds) < 1:
         raise ValueError("need at least one episode seed")
     generators = [torch.Generator().manual_seed(int(seed)) for seed in seeds]
-    tasks = [make_episodes(1, g) for g in generators]
-    episodes = Episodes(*(torch.cat([getattr(t, name) for t in tasks])
-                          for name in ("layouts", "starts", "goals")))
-    return episodes, generators
+    return Episodes.concat([make_episodes(1, g) for g in generators]), generators
 
 
 @torch.no_grad()

@@ -47,6 +47,16 @@ class Episodes:
     def to(self, device) -> Episodes:
         return Episodes(self.layouts.to(device), self.starts.to(device), self.goals.to(device))
 
+    def __getitem__(self, index) -> Episodes:
+        """A subset of the tasks (an int, slice, index tensor or mask)."""
+        return Episodes(self.layouts[index], self.starts[index], self.goals[index])
+
+    @staticmethod
+    def concat(parts: list[Episodes]) -> Episodes:
+        """Several batches of tasks as one, in order."""
+        return Episodes(*(torch.cat([getattr(p, name) for p in parts])
+                          for name in ("layouts", "starts", "goals")))
+
 
 def make_episodes(n: int, seed=0) -> Episodes:
     """``n`` tasks with start and goal in opposite rooms, uniform over each room's floor.
