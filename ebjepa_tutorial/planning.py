@@ -28,14 +28,17 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import torch
 
 from .envs import EPISODE_STEPS, MAX_STEP, SUCCESS_RADIUS, Episodes, TwoRoomsEnv, make_episodes
+from .envs.two_rooms import HIGH, LOW, render, transition, wall_bounds
 from .metrics import wilson_interval
 
 METHODS = ("mppi", "cem")
 COSTS = ("sum", "last")
+WORLDS = ("learned", "true", "true_xy")  # what run_episodes imagines with
 
 
 @dataclass(frozen=True)
@@ -290,30 +293,40 @@ def episode_generators(seeds: Sequence[int]) -> tuple[Episodes, list[torch.Gener
 @torch.no_grad()
 def run_episodes(model, seeds: Sequence[int], config: PlannerConfig = PlannerConfig(),
                  steps: int = EPISODE_STEPS, radius: float = SUCCESS_RADIUS,
-                 batch: int | None = None) -> EpisodeResults:
+                 batch: int | None = None, world: str = "learned") -> EpisodeResults:
     """Plan and act in one episode per seed; the agent re-plans every ``m`` steps.
 
     Episode ``seed`` draws its layout, start and goal (opposite rooms) and then
     its planner's noise from ``torch.Generator().manual_seed(seed)``. ``batch``
-    episodes run at once (default: all of them).
+    episodes run at once (default: all of them). ``world`` says what the
+    planner imagines with: ``"learned"``, the world model (the real task);
+    ``"true"`` and ``"true_xy"``, the diagnoses of :class:`TrueDynamics`.
     """
+    if world not in WORLDS:
+        raise ValueError(f"world must be one of {WORLDS}, got {world!r}")
     seeds = list(seeds)
     batch = batch or len(seeds)
     if batch < len(seeds):
-        return EpisodeResults.concat([run_episodes(model, seeds[i:i + batch], config, steps, radius)
-                                      for i in range(0, len(seeds), batch)])
+        return EpisodeResults.concat([
+            run_episodes(model, seeds[i:i + batch], config, steps, radius, world=world)
+            for i in range(0, len(seeds), batch)])
     model.eval()
     device = next(model.parameters()).device
     episodes, generators = episode_generators(seeds)
     env = TwoRoomsEnv(device)
     cpu, wall = time.process_time(), time.perf_counter()
     observation = env.reset(episodes=episodes)
-    z_goal = model.encode(env.goal_images())
+    if world == "learned":
+        imagine, z_goal = model, model.encode(env.goal_images())
+    else:
+        imagine = TrueDynamics(env.layouts, model if world == "true" else None)
+        z_goal = imagine.embed(env.goals)
     paths = [env.positions.cpu()]
     first = torch.full((len(seeds),), -1, dtype=torch.long)
     mean = None
     while env.steps_taken < steps:
-        result = plan(model, model.encode(observation), z_goal, config, generators, mean)
+        start = model.encode(observation) if world == "learned" else env.positions
+        result = plan(imagine, start, z_goal, config, generators, mean)
         for action in result.mean[:, : min(config.execute, steps - env.steps_taken)].unbind(1):
             observation = env.step(action)
             paths.append(env.positions.cpu())
@@ -322,6 +335,54 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig = PlannerCon
     return EpisodeResults(seeds, episodes, torch.stack(paths, dim=1),
                           env.success(radius).cpu(), first,
                           time.process_time() - cpu, time.perf_counter() - wall)
+
+
+# -- diagnosis: is it the predictor or the energy that fails? ------------------------------
+class TrueDynamics:
+    """A stand-in world model that imagines with the TRUE motion of Two Rooms (a diagnosis).
+
+    Its "latent" of a plan is found without the predictor: the dot moves by
+    :func:`~ebjepa_tutorial.envs.two_rooms.transition` in its episode's layout
+    and each visited position is looked up in a table of ``model``'s
+    encodings of the dot at every point of a grid (``spacing`` px, nearest
+    point). ``model=None`` scores positions directly: the energy is then the
+    Euclidean distance in pixels, the best a distance can do without knowing
+    about walls. ``layouts``: ``(B, 2)``, one per episode; rows of a rollout
+    batch belong to the episodes in order, ``N`` each (as :func:`planning_cost`
+    repeats them).
+    """
+
+    def __init__(self, layouts: torch.Tensor, model=None, spacing: float = 1.0):
+        self.config = SimpleNamespace(action_dim=2)
+        self.layouts, self.low, self.spacing = layouts, LOW, spacing
+        coords = torch.arange(LOW, HIGH + 1e-6, spacing, device=layouts.device)
+        self.side = len(coords)
+        ys, xs = torch.meshgrid(coords, coords, indexing="ij")
+        grid = torch.stack([xs.flatten(), ys.flatten()], dim=1)  # (G*G, 2), row-major in y
+        if model is None:
+            self.tables = grid.expand(len(layouts), -1, -1)
+        else:
+            self.tables = torch.stack([
+                torch.cat([model.encode(render(chunk, layout.expand(len(chunk), 2)))
+                           for chunk in grid.split(1024)])
+                for layout in layouts.view(-1, 1, 2)])  # (B, G*G, D)
+
+    def embed(self, positions: torch.Tensor, episode: torch.Tensor | None = None):
+        """The table's latents at ``positions`` ``(R, 2)`` of episodes ``episode`` ``(R,)``."""
+        if episode is None:
+            episode = torch.arange(len(positions), device=positions.device)
+        ij = ((positions - self.low) / self.spacing).round().long().clamp(0, self.side - 1)
+        return self.tables[episode, ij[:, 1] * self.side + ij[:, 0]]
+
+    def rollout(self, positions: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """Positions ``(B*N, 2)``, actions ``(B*N, H, 2)`` -> looked-up latents ``(B*N, H, D)``."""
+        rows = torch.arange(len(positions), device=positions.device)
+        episode = rows // (len(positions) // len(self.layouts))
+        layouts, out = self.layouts[episode], []
+        for action in actions.unbind(1):
+            positions = transition(positions, action, layouts)
+            out.append(self.embed(positions, episode))
+        return torch.stack(out, dim=1)
 
 
 # -- pictures --------------------------------------------------------------------------------
@@ -333,8 +394,6 @@ def energy_map(model, layout: torch.Tensor, goal: torch.Tensor, spacing: float =
     energy (G, G))`` with ``energy[i, j]`` at ``(x=coords[j], y=coords[i])``
     (image orientation), NaN where the dot cannot be (walls).
     """
-    from .envs.two_rooms import HIGH, LOW, render, wall_bounds
-
     coords = torch.arange(LOW, HIGH + 1e-6, spacing)
     ys, xs = torch.meshgrid(coords, coords, indexing="ij")
     positions = torch.stack([xs.flatten(), ys.flatten()], dim=1)

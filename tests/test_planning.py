@@ -9,6 +9,7 @@ from torch import nn
 
 from ebjepa_tutorial import planning
 from ebjepa_tutorial.envs import SUCCESS_RADIUS, render
+from ebjepa_tutorial.envs.two_rooms import transition
 from ebjepa_tutorial.metrics import wilson_interval
 from ebjepa_tutorial.planning import PlannerConfig
 
@@ -266,3 +267,31 @@ def test_a_fixed_spread_keeps_exploring():
     assert torch.equal(result.std, torch.full((1, 6, 2), 0.7))
     spread = result.history[-1][0][0, 1:].std(dim=0)  # the last iteration still samples widely
     assert spread.mean() > 0.5
+
+
+def test_true_dynamics_moves_each_row_in_its_own_episode_layout():
+    layouts = torch.tensor([[30, 50], [30, 15]])  # same wall, doors far apart
+    imagine = planning.TrueDynamics(layouts)  # model=None: the "latent" is the position
+    start = torch.tensor([[27.0, 15.0]]).repeat(6, 1)  # left of the wall, level with door 2
+    actions = torch.tensor([1.5, 0.0]).repeat(6, 4, 1)  # walk right for 4 steps
+    path = imagine.rollout(start, actions)  # rows 0-2: episode 0, rows 3-5: episode 1
+    expected, per_row = [start], layouts.repeat_interleave(3, dim=0)
+    for k in range(4):
+        expected.append(transition(expected[-1], actions[:, k], per_row))
+    assert (path - torch.stack(expected[1:], dim=1)).abs().max() <= 0.5  # 1-px grid
+    assert path[:3, -1, 0].max() < 28 and path[3:, -1, 0].min() > 32  # wall vs door
+
+
+def test_true_dynamics_looks_up_the_model_encoding_on_the_grid():
+    model, layout = LinearLatentModel(), torch.tensor([[40, 20]])
+    imagine = planning.TrueDynamics(layout, model)
+    on_grid = torch.tensor([[10.5, 33.5]])  # LOW = 1.5, spacing 1
+    assert torch.equal(imagine.embed(on_grid), model.encode(render(on_grid, layout)))
+
+
+def test_with_true_motion_and_the_euclidean_energy_the_planner_crosses_the_door():
+    result = planning.run_episodes(LinearLatentModel(), range(4), PlannerConfig(),
+                                   world="true_xy")
+    assert result.success.all()  # 7 of the first 8 seeds; these four all reach the goal
+    with pytest.raises(ValueError, match="world must be one of"):
+        planning.run_episodes(LinearLatentModel(), [0], PlannerConfig(), world="perfect")
