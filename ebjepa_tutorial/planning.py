@@ -407,3 +407,28 @@ def energy_map(model, layout: torch.Tensor, goal: torch.Tensor, spacing: float =
         z = model.encode(render(positions[chunk], layouts[chunk]))
         energy[chunk] = (z - z_goal).norm(dim=1)
     return coords, energy.view(len(coords), len(coords))
+
+
+@torch.no_grad()
+def energy_by_distance(model, episodes: Episodes, edges=(0, 5, 10, 15, 20, 30, 40, 60, 90),
+                       spacing: float = 2.0) -> torch.Tensor:
+    """The energy's shape: its mean in rings of pixel distance from the goal, ``(len(edges)-1,)``.
+
+    Each episode's layout and goal give an :func:`energy_map`; every free dot
+    position falls in ring ``i`` when ``edges[i] <= distance < edges[i + 1]``,
+    and each ring is averaged over all positions of all episodes (NaN if empty).
+    A useful energy keeps rising with distance; a flat tail means the planner
+    is blind out there.
+    """
+    edges = torch.as_tensor(edges, dtype=torch.float32)
+    rings = len(edges) - 1
+    sums, counts = torch.zeros(rings), torch.zeros(rings)
+    for layout, goal in zip(episodes.layouts.cpu(), episodes.goals.cpu()):
+        coords, energy = energy_map(model, layout, goal, spacing)
+        xy = torch.stack(torch.meshgrid(coords, coords, indexing="xy"), dim=-1)
+        free = energy.isfinite()
+        ring = torch.bucketize((xy - goal).norm(dim=-1)[free], edges, right=True) - 1
+        keep = (ring >= 0) & (ring < rings)
+        sums += torch.bincount(ring[keep], energy[free][keep], minlength=rings).float()
+        counts += torch.bincount(ring[keep], minlength=rings).float()
+    return sums / counts

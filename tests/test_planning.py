@@ -295,3 +295,15 @@ def test_with_true_motion_and_the_euclidean_energy_the_planner_crosses_the_door(
     assert result.success.all()  # 7 of the first 8 seeds; these four all reach the goal
     with pytest.raises(ValueError, match="world must be one of"):
         planning.run_episodes(LinearLatentModel(), [0], PlannerConfig(), world="perfect")
+
+
+def test_energy_by_distance_of_a_position_latent_is_the_ring_distance():
+    episodes, _ = planning.episode_generators([3, 4])
+    edges = (0, 10, 20, 40)
+    profile = planning.energy_by_distance(LinearLatentModel(), episodes, edges, spacing=1.0)
+    assert profile.shape == (3,)
+    # the latent is the dot's centroid, so the energy is the distance itself: each ring's
+    # mean lies inside the ring (the centroid is biased by < 0.5 px near the border)
+    for mean, low, high in zip(profile, edges[:-1], edges[1:]):
+        assert low - 0.5 < mean < high + 0.5
+    assert profile.diff().gt(0).all()
