@@ -1,0 +1,46 @@
+"""Every shipped checkpoint is the run its notebook asks for at class scale.
+
+``train.load_or_train`` loads a file only if its stored configuration equals
+the notebook's; a shipped file that drifted from the preset would be skipped
+silently and the class would wait for a retrain. These tests compare the
+stored configurations with the presets, without loading any weights.
+"""
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from ebjepa_tutorial import video_jepa, world_training
+from ebjepa_tutorial.data import DataNotFoundError, load_mnist
+from ebjepa_tutorial.data.moving_mnist import split_digits
+from ebjepa_tutorial.scale import preset
+
+SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints"
+
+
+def stored_config(name: str) -> dict:
+    path = SHIPPED / f"{name}.pt"
+    assert path.is_file(), f"{path} is documented in checkpoints/README.md but missing"
+    return torch.load(path, map_location="cpu", weights_only=False)["config"]
+
+
+@pytest.mark.parametrize("term", [None, *world_training.ABLATABLE_TERMS])
+def test_world_models_match_notebooks_05_and_06(term):
+    base = preset("06", "class").world
+    config = base if term is None else world_training.ablation_config(base, term)
+    suffix = "" if term is None else "_" + world_training.ABLATION_SUFFIXES[term]
+    assert stored_config(f"world_model_class{suffix}") == world_training.config_dict(config)
+
+
+def test_video_jepas_match_notebook_03():
+    cfg = preset("03", "class")
+    try:
+        digits = load_mnist("test", download=False)[0]
+    except DataNotFoundError:
+        pytest.skip("MNIST is not on this machine (set EBJEPA_DATA)")
+    train_digits, _ = split_digits(digits, n_train=cfg.n_train_digits)
+    fingerprint = video_jepa.digits_fingerprint(train_digits)
+    for config in video_jepa.ablation_configs(cfg.train, cfg.rollout_steps, cfg.seeds):
+        expected = {**video_jepa.config_dict(config), "train_digits": fingerprint}
+        assert stored_config(video_jepa.run_name("class", config)) == expected
