@@ -337,6 +337,16 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig = PlannerCon
                           time.process_time() - cpu, time.perf_counter() - wall)
 
 
+def dot_grid(spacing: float = 1.0, device=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Dot positions every ``spacing`` px over the arena: ``coords (G,)``, ``xy (G*G, 2)``.
+
+    Row ``i * G + j`` of ``xy`` is ``(x=coords[j], y=coords[i])``: image order.
+    """
+    coords = torch.arange(LOW, HIGH + 1e-6, spacing, device=device)
+    ys, xs = torch.meshgrid(coords, coords, indexing="ij")
+    return coords, torch.stack([xs.flatten(), ys.flatten()], dim=1)
+
+
 # -- diagnosis: is it the predictor or the energy that fails? ------------------------------
 class TrueDynamics:
     """A stand-in world model that imagines with the TRUE motion of Two Rooms (a diagnosis).
@@ -354,11 +364,9 @@ class TrueDynamics:
 
     def __init__(self, layouts: torch.Tensor, model=None, spacing: float = 1.0):
         self.config = SimpleNamespace(action_dim=2)
-        self.layouts, self.low, self.spacing = layouts, LOW, spacing
-        coords = torch.arange(LOW, HIGH + 1e-6, spacing, device=layouts.device)
+        self.layouts, self.spacing = layouts, spacing
+        coords, grid = dot_grid(spacing, layouts.device)
         self.side = len(coords)
-        ys, xs = torch.meshgrid(coords, coords, indexing="ij")
-        grid = torch.stack([xs.flatten(), ys.flatten()], dim=1)  # (G*G, 2), row-major in y
         if model is None:
             self.tables = grid.expand(len(layouts), -1, -1)
         else:
@@ -371,7 +379,7 @@ class TrueDynamics:
         """The table's latents at ``positions`` ``(R, 2)`` of episodes ``episode`` ``(R,)``."""
         if episode is None:
             episode = torch.arange(len(positions), device=positions.device)
-        ij = ((positions - self.low) / self.spacing).round().long().clamp(0, self.side - 1)
+        ij = ((positions - LOW) / self.spacing).round().long().clamp(0, self.side - 1)
         return self.tables[episode, ij[:, 1] * self.side + ij[:, 0]]
 
     def rollout(self, positions: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
@@ -394,9 +402,7 @@ def energy_map(model, layout: torch.Tensor, goal: torch.Tensor, spacing: float =
     energy (G, G))`` with ``energy[i, j]`` at ``(x=coords[j], y=coords[i])``
     (image orientation), NaN where the dot cannot be (walls).
     """
-    coords = torch.arange(LOW, HIGH + 1e-6, spacing)
-    ys, xs = torch.meshgrid(coords, coords, indexing="ij")
-    positions = torch.stack([xs.flatten(), ys.flatten()], dim=1)
+    coords, positions = dot_grid(spacing)
     layouts = layout.view(1, 2).expand(len(positions), 2)
     x_lo, x_hi, y_lo, y_hi = wall_bounds(layouts)
     x, y = positions.unbind(1)
@@ -424,10 +430,10 @@ def energy_by_distance(model, episodes: Episodes, edges=(0, 5, 10, 15, 20, 30, 4
     rings = len(edges) - 1
     sums, counts = torch.zeros(rings), torch.zeros(rings)
     for layout, goal in zip(episodes.layouts.cpu(), episodes.goals.cpu()):
-        coords, energy = energy_map(model, layout, goal, spacing)
-        xy = torch.stack(torch.meshgrid(coords, coords, indexing="xy"), dim=-1)
+        energy = energy_map(model, layout, goal, spacing)[1].flatten()  # rows of dot_grid
         free = energy.isfinite()
-        ring = torch.bucketize((xy - goal).norm(dim=-1)[free], edges, right=True) - 1
+        distance = (dot_grid(spacing)[1] - goal).norm(dim=-1)
+        ring = torch.bucketize(distance[free], edges, right=True) - 1
         keep = (ring >= 0) & (ring < rings)
         sums += torch.bincount(ring[keep], energy[free][keep], minlength=rings).float()
         counts += torch.bincount(ring[keep], minlength=rings).float()
