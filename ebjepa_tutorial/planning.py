@@ -429,10 +429,11 @@ def energy_by_distance(model, episodes: Episodes, edges=(0, 5, 10, 15, 20, 30, 4
     edges = torch.as_tensor(edges, dtype=torch.float32)
     rings = len(edges) - 1
     sums, counts = torch.zeros(rings), torch.zeros(rings)
+    positions = dot_grid(spacing)[1]  # the rows of every energy_map, flattened
     for layout, goal in zip(episodes.layouts.cpu(), episodes.goals.cpu()):
-        energy = energy_map(model, layout, goal, spacing)[1].flatten()  # rows of dot_grid
+        energy = energy_map(model, layout, goal, spacing)[1].flatten()
         free = energy.isfinite()
-        distance = (dot_grid(spacing)[1] - goal).norm(dim=-1)
+        distance = (positions - goal).norm(dim=-1)
         ring = torch.bucketize(distance[free], edges, right=True) - 1
         keep = (ring >= 0) & (ring < rings)
         sums += torch.bincount(ring[keep], energy[free][keep], minlength=rings).float()

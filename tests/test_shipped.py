@@ -3,18 +3,18 @@
 ``train.load_or_train`` loads a file only if its stored configuration equals
 the notebook's; a shipped file that drifted from the preset would be skipped
 silently and the class would wait for a retrain. These tests compare the
-stored configurations with the presets, without loading any weights.
+stored configurations with the presets; no model is built.
 """
 
 from pathlib import Path
 
 import pytest
-import torch
 
 from ebjepa_tutorial import video_jepa, world_training
 from ebjepa_tutorial.data import DataNotFoundError, load_mnist
 from ebjepa_tutorial.data.moving_mnist import split_digits
 from ebjepa_tutorial.scale import preset
+from ebjepa_tutorial.train import load_checkpoint
 
 SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints"
 
@@ -22,7 +22,7 @@ SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints"
 def stored_config(name: str) -> dict:
     path = SHIPPED / f"{name}.pt"
     assert path.is_file(), f"{path} is documented in checkpoints/README.md but missing"
-    return torch.load(path, map_location="cpu", weights_only=False)["config"]
+    return load_checkpoint(path)["config"]
 
 
 @pytest.mark.parametrize("term", [None, *world_training.ABLATABLE_TERMS])
