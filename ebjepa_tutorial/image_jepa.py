@@ -15,7 +15,9 @@ average pool, so one network takes images of any size.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+import argparse
+import time
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import torch
@@ -25,7 +27,7 @@ from torch import nn
 from . import augment, evaluate, losses, optim, sigreg
 from .models.encoders import build_encoder
 from .models.heads import build_projector
-from .train import History, checkpoint_paths, fit, load_or_train, resume
+from .train import History, checkpoint_paths, fit, load_or_train, resume, save_checkpoint
 
 LOSSES = ("vicreg", "sigreg", "invariance")
 EVAL_FIELDS = ("eval_image_size",)  # how a run is scored, not how it is trained
@@ -211,6 +213,23 @@ def training_dict(config: ImageJEPAConfig) -> dict:
     return {k: v for k, v in asdict(config).items() if k not in EVAL_FIELDS}
 
 
+def encoder_dict(config: ImageJEPAConfig) -> dict:
+    """What an encoder-only checkpoint stores to recognise its run: :func:`training_dict`, marked.
+
+    The mark keeps a file of encoder weights from ever being read as a whole model.
+    """
+    return {"weights": "encoder only", **training_dict(config)}
+
+
+def _train_into(module: nn.Module, config, images, name: str, device, keep) -> History:
+    """Train ``config`` (resumable from ``<name>.partial``), copy ``keep(model)`` into ``module``."""
+    partial = checkpoint_paths(name)[0].with_suffix(".partial")
+    trained, history = train_image_jepa(config, images, checkpoint=partial, device=device)
+    module.load_state_dict(keep(trained).state_dict())
+    partial.unlink()  # finished: the saved model replaces it
+    return history
+
+
 def train_or_load(config: ImageJEPAConfig, name: str, images: torch.Tensor, device="cpu"):
     """The model of ``config``: loaded if a run with exactly this config was saved, else trained.
 
@@ -224,13 +243,56 @@ def train_or_load(config: ImageJEPAConfig, name: str, images: torch.Tensor, devi
     torch.manual_seed(config.seed)
     model = ImageJEPA(config).to(device)
     cache_path, shipped = checkpoint_paths(name)
-    partial = cache_path.with_suffix(".partial")
-
-    def train() -> History:
-        trained, history = train_image_jepa(config, images, checkpoint=partial, device=device)
-        model.load_state_dict(trained.state_dict())
-        partial.unlink()  # finished: the saved model replaces it
-        return history
-
-    history = load_or_train(cache_path, model, train, training_dict(config), shipped)
+    history = load_or_train(cache_path, model, lambda: _train_into(
+        model, config, images, name, device, keep=lambda m: m), training_dict(config), shipped)
     return model.eval(), history
+
+
+def train_or_load_encoder(config: ImageJEPAConfig, name: str, images: torch.Tensor, device="cpu"):
+    """Like :func:`train_or_load`, but keeps only the encoder: ``(encoder in eval mode, history)``.
+
+    The longer runs that ship with the course are stored this way (the projector
+    is three quarters of the weights at class scale, and only training needs it);
+    ``python -m ebjepa_tutorial.image_jepa`` writes them.
+    """
+    torch.manual_seed(config.seed)
+    encoder = ImageJEPA(config).encoder.to(device)
+    cache_path, shipped = checkpoint_paths(name)
+    history = load_or_train(cache_path, encoder, lambda: _train_into(
+        encoder, config, images, name, device, keep=lambda m: m.encoder), encoder_dict(config),
+        shipped)
+    return encoder.eval(), history
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Train a class-scale run longer and save its encoder: the documented command for the
+    shipped ``checkpoints/<loss>_class_long.pt``. Resumable: rerun the same command after a stop.
+    """
+    from .data import load_cifar10, random_subset
+    from .scale import preset
+
+    parser = argparse.ArgumentParser(description="Train notebook 01's or 02's run for longer.")
+    parser.add_argument("--loss", choices=("vicreg", "sigreg"), default="vicreg")
+    parser.add_argument("--steps", type=int, required=True)
+    parser.add_argument("--out", required=True, help="where to write the encoder (a .pt file)")
+    args = parser.parse_args(argv)
+    sizes = preset("01" if args.loss == "vicreg" else "02", "class")
+    config = replace(sizes.config, steps=args.steps)
+    train = random_subset(*load_cifar10("train"), sizes.train_images)  # as the notebooks do
+    test = random_subset(*load_cifar10("test"), sizes.test_images)
+    start = time.perf_counter()
+    partial = Path(args.out).with_suffix(".partial")
+    model, history = train_image_jepa(config, train[0], checkpoint=partial)
+    minutes = (time.perf_counter() - start) / 60  # of this invocation: resumed runs add up
+    scores = probe_encoder(model.encoder, config, train, test)
+    half = {k: v.half() if v.is_floating_point() else v  # float16 halves the file; the
+            for k, v in model.encoder.state_dict().items()}  # probe reads the same to 0.1 point
+    save_checkpoint(args.out, model=half, history=dict(history), config=encoder_dict(config),
+                    minutes=round(minutes, 1), threads=torch.get_num_threads(), **scores)
+    partial.unlink()
+    print(f"saved {args.out}: {config.steps} steps in {minutes:.1f} min, linear probe "
+          f"{scores['probe_acc']:.1%}, kNN {scores['knn_acc']:.1%} ({protocol(config)})")
+
+
+if __name__ == "__main__":
+    main()

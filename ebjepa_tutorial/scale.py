@@ -80,6 +80,9 @@ class ImagePreset:
     train_images: int = 50_000  # CIFAR-10 train images used to train and to fit the probe
     test_images: int = 10_000  # CIFAR-10 test images the probe and kNN are scored on
     sweep_steps: int = 500  # steps per run of notebook 02's sweeps and ablations
+    # the longer run that notebooks 01 and 02 load (class: shipped, `python -m
+    # ebjepa_tutorial.image_jepa`); at full scale the main run is the long one
+    long_steps: int = 4000
 
 
 # ci probes at 16 px: it only checks that the code runs, and 32-px probes made the ci run of
@@ -101,8 +104,9 @@ def image_preset(scale: str, loss: str) -> ImagePreset:
         base = replace(base, projector=(2048, 128), sigreg_lambda=10.0, sigreg_scale_by_n=False)
     config = replace(base, loss=loss)
     if scale == "ci":
-        return ImagePreset(config, train_images=2000, test_images=1000, sweep_steps=5)
-    return ImagePreset(config)
+        return ImagePreset(config, train_images=2000, test_images=1000, sweep_steps=5,
+                           long_steps=30)
+    return ImagePreset(config, long_steps=config.steps if scale == "full" else 4000)
 
 
 @dataclass(frozen=True)

@@ -174,3 +174,39 @@ def test_checkpoints_do_not_depend_on_the_evaluation_size(tmp_path, monkeypatch,
     assert "Loaded" in capsys.readouterr().out  # probing at another size is the same run
     image_jepa.train_or_load(dataclasses.replace(TINY, image_size=8), "tiny_run", images)
     assert "Trained and saved" in capsys.readouterr().out  # training at another size is not
+
+
+def test_train_or_load_encoder_keeps_only_the_encoder(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
+    images = _images()
+    model, _ = image_jepa.train_or_load(TINY, "tiny_run", images)
+    encoder, history = image_jepa.train_or_load_encoder(TINY, "tiny_encoder", images)
+    assert "Trained and saved" in capsys.readouterr().out
+    assert all(torch.equal(p, q) for p, q in zip(model.encoder.parameters(), encoder.parameters()))
+    stored = torch.load(tmp_path / "checkpoints" / "tiny_encoder.pt", weights_only=False)
+    assert set(stored["model"]) == set(encoder.state_dict())  # no projector weights
+    again, history2 = image_jepa.train_or_load_encoder(TINY, "tiny_encoder", images)
+    assert "Loaded" in capsys.readouterr().out and history2 == history and not again.training
+    image_jepa.train_or_load(TINY, "tiny_encoder", images)  # a whole-model run of that name
+    assert "another configuration" in capsys.readouterr().out  # never reads encoder weights
+
+
+def test_long_run_command_writes_a_float16_encoder(tmp_path, monkeypatch, capsys):
+    train = _images(40), torch.arange(40) % 4
+    monkeypatch.setattr("ebjepa_tutorial.data.load_cifar10", lambda split: train)
+    monkeypatch.setattr("ebjepa_tutorial.scale.preset", lambda notebook, scale: dataclasses.replace(
+        preset("01", "ci"), config=TINY, train_images=40, test_images=40))
+    out = tmp_path / "long.pt"
+    image_jepa.main(["--loss", "vicreg", "--steps", "6", "--out", str(out)])
+    stored = torch.load(out, weights_only=False)
+    assert stored["config"] == image_jepa.encoder_dict(dataclasses.replace(TINY, steps=6))
+    assert all(v.dtype == torch.float16 for v in stored["model"].values() if v.is_floating_point())
+    assert 0 <= stored["probe_acc"] <= 1 and not out.with_suffix(".partial").exists()
+    assert "linear probe" in capsys.readouterr().out
+
+
+def test_long_presets_train_longer_than_the_main_run():
+    for notebook in ("01", "02"):
+        assert preset(notebook, "class").long_steps > preset(notebook, "class").config.steps
+        full = preset(notebook, "full")
+        assert full.long_steps == full.config.steps  # the paper's run is already the long one
