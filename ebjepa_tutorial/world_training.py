@@ -11,7 +11,8 @@ trains the class-scale model and writes it (see :func:`main`).
 from __future__ import annotations
 
 import argparse
-from dataclasses import asdict, dataclass, field, replace
+import math
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import torch
@@ -169,6 +170,23 @@ def ablation_config(config: WorldTrainConfig, *without: str) -> WorldTrainConfig
     return replace(config, coeffs=replace(config.coeffs, **{term: 0.0 for term in without}))
 
 
+def with_coeffs(config: WorldTrainConfig, pairs: list[str]) -> WorldTrainConfig:
+    """``config`` with loss weights set from ``"name=value"`` strings, e.g. ``["covariance=1"]``."""
+    names = [f.name for f in fields(WorldLossCoeffs)]
+    values = {}
+    for pair in pairs:
+        name, sep, value = pair.partition("=")
+        if not sep or name not in names:
+            raise ValueError(f"--coeff wants name=value with a name from {names}, got {pair!r}")
+        try:
+            values[name] = float(value)
+        except ValueError:
+            raise ValueError(f"--coeff {pair!r}: {value!r} is not a number") from None
+        if not math.isfinite(values[name]) or values[name] < 0:
+            raise ValueError(f"--coeff {pair!r}: a loss weight must be finite and >= 0")
+    return replace(config, coeffs=replace(config.coeffs, **values))
+
+
 def config_dict(config: WorldTrainConfig) -> dict:
     """A plain dict of the config (stored in checkpoints to recognise a matching run)."""
     return asdict(config)
@@ -183,10 +201,16 @@ def main(argv: list[str] | None = None) -> None:
                         help="an ablation: set this term's coefficient to 0 (repeatable)")
     parser.add_argument("--no-inverse-dynamics", action="store_true",
                         help="the same as --without inverse_dynamics")
+    parser.add_argument("--coeff", action="append", default=[], metavar="NAME=VALUE",
+                        help="set one loss weight, e.g. covariance=1 (repeatable)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     without = args.without + (["inverse_dynamics"] if args.no_inverse_dynamics else [])
-    config = ablation_config(WorldTrainConfig(steps=args.steps, seed=args.seed), *without)
+    try:
+        config = with_coeffs(WorldTrainConfig(steps=args.steps, seed=args.seed), args.coeff)
+    except ValueError as error:
+        parser.error(str(error))  # a usage message, not a traceback
+    config = ablation_config(config, *without)
     partial = Path(args.out).with_suffix(".partial")  # resumable while training
     model, history = train_world_model(config, checkpoint=partial)
     report = probe_report(model)

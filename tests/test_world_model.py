@@ -216,3 +216,18 @@ def test_bad_inputs_give_clear_errors(data):
         wl.world_model_loss(tiny_model(), frames, trajectories.actions)
     with pytest.raises(ValueError, match="same N"):
         fit_position_probe(torch.zeros(5, 3), torch.zeros(4, 2))
+
+
+def test_coeff_flag_sets_loss_weights_and_rejects_typos():
+    from ebjepa_tutorial.world_training import WorldTrainConfig, ablation_config, with_coeffs
+
+    config = with_coeffs(WorldTrainConfig(), ["covariance=1", "temporal=0.5"])
+    assert (config.coeffs.covariance, config.coeffs.temporal) == (1.0, 0.5)
+    assert config.coeffs.variance == WorldTrainConfig().coeffs.variance  # the rest untouched
+    assert with_coeffs(WorldTrainConfig(), []) == WorldTrainConfig()
+    assert ablation_config(config, "covariance").coeffs.covariance == 0.0  # --without wins
+    for bad, message in [("covariance", "name=value"), ("covarience=1", "name=value"),
+                         ("covariance=lots", "not a number"), ("variance=-1", ">= 0"),
+                         ("variance=nan", "finite")]:
+        with pytest.raises(ValueError, match=message):
+            with_coeffs(WorldTrainConfig(), [bad])
