@@ -127,6 +127,18 @@ def load_results(path: str | Path | None) -> list[dict]:
     return load_meta(path).get("runs", [])
 
 
+def stored_rows(*paths: str | Path | None) -> dict[str, dict]:
+    """The result rows of the sweep files ``paths``, by what identifies a run (later files win)."""
+    return {_key(row["config"], row["n_train"], row["n_test"]): row
+            for path in paths for row in load_results(path)}
+
+
+def missing_runs(runs: list[Run], n_train: int, n_test: int, *paths) -> list[Run]:
+    """The runs in ``runs`` that no file in ``paths`` holds for these data sizes."""
+    stored = stored_rows(*paths)
+    return [run for run in runs if _key(run.config, n_train, n_test) not in stored]
+
+
 def _save_results(path: Path, rows: list[dict], meta: dict) -> None:
     """Write ``{**meta, "runs": rows}`` as JSON atomically (a temp file, then a rename)."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -158,9 +170,8 @@ def run_sweep(runs: list[Run], train, test, path: str | Path | None = None,
     trained rows are added to ``path`` (JSON) as soon as each run finishes.
     """
     sizes = (len(train[0]), len(test[0]))
-    stored = {_key(row["config"], row["n_train"], row["n_test"]): row
-              for row in load_results(shipped) + load_results(path)}
-    todo = [run for run in runs if _key(run.config, *sizes) not in stored]
+    stored = stored_rows(shipped, path)
+    todo = missing_runs(runs, *sizes, shipped, path)
     where = " or ".join(str(p) for p in (shipped, path) if p is not None) or "no file"
     print(f"{len(runs) - len(todo)} of {len(runs)} runs found in {where}; "
           f"training {len(todo)} now.")
