@@ -3,14 +3,16 @@
 ``train.load_or_train`` loads a file only if its stored configuration equals
 the notebook's; a shipped file that drifted from the preset would be skipped
 silently and the class would wait for a retrain. These tests compare the
-stored configurations with the presets; no model is built.
+stored configurations with the presets (and the sweep file's runs with
+notebook 02's plan); no model is built.
 """
 
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
-from ebjepa_tutorial import video_jepa, world_training
+from ebjepa_tutorial import image_jepa, sweeps, video_jepa, world_training
 from ebjepa_tutorial.data import DataNotFoundError, load_mnist
 from ebjepa_tutorial.data.moving_mnist import split_digits
 from ebjepa_tutorial.scale import preset
@@ -44,3 +46,11 @@ def test_video_jepas_match_notebook_03():
     for config in video_jepa.ablation_configs(cfg.train, cfg.rollout_steps, cfg.seeds):
         expected = {**video_jepa.config_dict(config), "train_digits": fingerprint}
         assert stored_config(video_jepa.run_name("class", config)) == expected
+
+
+@pytest.mark.parametrize("notebook, loss", [("01", "vicreg"), ("02", "sigreg")])
+def test_long_image_encoders_match_notebooks_01_and_02(notebook, loss):
+    cfg = preset(notebook, "class")
+    expected = image_jepa.encoder_dict(replace(cfg.config, steps=cfg.long_steps))
+    assert stored_config(f"{loss}_class_long") == expected
+
