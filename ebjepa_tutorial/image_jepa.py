@@ -68,6 +68,11 @@ class ImageJEPAConfig:
             raise ValueError(f"unknown loss {self.loss!r}; choose one of {', '.join(LOSSES)}")
         if self.optimizer not in ("adamw", "lars"):
             raise ValueError(f"unknown optimizer {self.optimizer!r}; choose 'adamw' or 'lars'")
+        for name, least, why in [("steps", 1, ""), ("batch_size", 2, " (a batch of one has no "
+                                                             "variance to regularise)")]:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < least:
+                raise ValueError(f"{name} must be an int >= {least}{why}, got {value!r}")
         for name in ("image_size", "eval_image_size"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -283,7 +288,7 @@ def main(argv: list[str] | None = None) -> None:
     start = time.perf_counter()
     partial = Path(args.out).with_suffix(".partial")
     model, history = train_image_jepa(config, train[0], checkpoint=partial)
-    minutes = (time.perf_counter() - start) / 60  # of this invocation: resumed runs add up
+    minutes = (time.perf_counter() - start) / 60  # this invocation's (a resumed run: its part)
     scores = probe_encoder(model.encoder, config, train, test)
     half = {k: v.half() if v.is_floating_point() else v  # float16 halves the file; features
             for k, v in model.encoder.state_dict().items()}  # stay within 0.2% (measured)
