@@ -68,8 +68,8 @@ class ImageJEPAConfig:
             raise ValueError(f"unknown loss {self.loss!r}; choose one of {', '.join(LOSSES)}")
         if self.optimizer not in ("adamw", "lars"):
             raise ValueError(f"unknown optimizer {self.optimizer!r}; choose 'adamw' or 'lars'")
-        for name, least, why in [("steps", 1, ""), ("batch_size", 2, " (a batch of one has no "
-                                                             "variance to regularise)")]:
+        minimums = [("steps", 1, ""), ("batch_size", 2, " (a batch of one has no variance)")]
+        for name, least, why in minimums:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < least:
                 raise ValueError(f"{name} must be an int >= {least}{why}, got {value!r}")
