@@ -227,7 +227,7 @@ def encoder_dict(config: ImageJEPAConfig) -> dict:
 
 
 def _train_into(module: nn.Module, config, images, name: str, device, keep) -> History:
-    """Train ``config`` (resumable from ``<name>.partial``), copy ``keep(model)`` into ``module``."""
+    """Train ``config`` (resumable from ``<name>.partial``); copy ``keep(model)`` to ``module``."""
     partial = checkpoint_paths(name)[0].with_suffix(".partial")
     trained, history = train_image_jepa(config, images, checkpoint=partial, device=device)
     module.load_state_dict(keep(trained).state_dict())

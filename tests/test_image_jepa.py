@@ -212,9 +212,9 @@ def test_long_presets_train_longer_than_the_main_run():
         assert full.long_steps == full.config.steps  # the paper's run is already the long one
 
 
-@pytest.mark.parametrize("field, value, message", [("steps", 0, "steps must be an int >= 1"),
-                                                   ("batch_size", 1, "a batch of one"),
-                                                   ("batch_size", 2.5, "batch_size must be an int")])
+@pytest.mark.parametrize("field, value, message", [
+    ("steps", 0, "steps must be an int >= 1"), ("batch_size", 1, "a batch of one"),
+    ("batch_size", 2.5, "batch_size must be an int")])
 def test_run_lengths_and_batch_sizes_are_checked(field, value, message):
     with pytest.raises(ValueError, match=message):
         ImageJEPAConfig(**{field: value})

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from ebjepa_tutorial import image_jepa, sweeps, video_jepa, world_training
+from ebjepa_tutorial import image_jepa, video_jepa, world_training
 from ebjepa_tutorial.data import DataNotFoundError, load_mnist
 from ebjepa_tutorial.data.moving_mnist import split_digits
 from ebjepa_tutorial.scale import preset
