@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from ebjepa_tutorial import image_jepa, video_jepa, world_training
+from ebjepa_tutorial import image_jepa, sweeps, video_jepa, world_training
 from ebjepa_tutorial.data import DataNotFoundError, load_mnist
 from ebjepa_tutorial.data.moving_mnist import split_digits
 from ebjepa_tutorial.scale import preset
@@ -54,3 +54,12 @@ def test_long_image_encoders_match_notebooks_01_and_02(notebook, loss):
     expected = image_jepa.encoder_dict(replace(cfg.config, steps=cfg.long_steps))
     assert stored_config(f"{loss}_class_long") == expected
 
+
+
+def test_the_sweep_file_holds_every_run_of_notebook_02():
+    cfg = preset("02", "class")
+    runs = [run for group in sweeps.plan("class").values() for run in group]
+    path = SHIPPED / "sweeps_class.json"
+    assert path.is_file(), f"{path} is documented in checkpoints/README.md but missing"
+    missing = sweeps.missing_runs(runs, cfg.train_images, cfg.test_images, path)
+    assert not missing, f"{len(missing)} runs would be retrained: {missing[:2]}"
