@@ -68,15 +68,14 @@ class ImageJEPAConfig:
             raise ValueError(f"unknown loss {self.loss!r}; choose one of {', '.join(LOSSES)}")
         if self.optimizer not in ("adamw", "lars"):
             raise ValueError(f"unknown optimizer {self.optimizer!r}; choose 'adamw' or 'lars'")
-        minimums = [("steps", 1, ""), ("batch_size", 2, " (a batch of one has no variance)")]
-        for name, least, why in minimums:
+        pixels = (1, "a positive int (pixels per side)")
+        rules = {"steps": (1, "an int >= 1"),
+                 "batch_size": (2, "an int >= 2 (a batch of one has no variance)"),
+                 "image_size": pixels, "eval_image_size": pixels}
+        for name, (least, rule) in rules.items():
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < least:
-                raise ValueError(f"{name} must be an int >= {least}{why}, got {value!r}")
-        for name in ("image_size", "eval_image_size"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive int (pixels per side), got {value!r}")
+                raise ValueError(f"{name} must be {rule}, got {value!r}")
         if self.encoder == "vit_s" and self.eval_image_size != self.image_size:
             raise ValueError(
                 f"a ViT is built for one image size: eval_image_size ({self.eval_image_size}) "

@@ -133,9 +133,8 @@ def stored_rows(*paths: str | Path | None) -> dict[str, dict]:
             for path in paths for row in load_results(path)}
 
 
-def missing_runs(runs: list[Run], n_train: int, n_test: int, *paths) -> list[Run]:
-    """The runs in ``runs`` that no file in ``paths`` holds for these data sizes."""
-    stored = stored_rows(*paths)
+def missing_runs(runs: list[Run], n_train: int, n_test: int, stored: dict) -> list[Run]:
+    """The runs in ``runs`` that ``stored`` (see :func:`stored_rows`) lacks at these sizes."""
     return [run for run in runs if _key(run.config, n_train, n_test) not in stored]
 
 
@@ -171,7 +170,7 @@ def run_sweep(runs: list[Run], train, test, path: str | Path | None = None,
     """
     sizes = (len(train[0]), len(test[0]))
     stored = stored_rows(shipped, path)
-    todo = missing_runs(runs, *sizes, shipped, path)
+    todo = missing_runs(runs, *sizes, stored)
     where = " or ".join(str(p) for p in (shipped, path) if p is not None) or "no file"
     print(f"{len(runs) - len(todo)} of {len(runs)} runs found in {where}; "
           f"training {len(todo)} now.")

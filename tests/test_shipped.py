@@ -61,5 +61,6 @@ def test_the_sweep_file_holds_every_run_of_notebook_02():
     runs = [run for group in sweeps.plan("class").values() for run in group]
     path = SHIPPED / "sweeps_class.json"
     assert path.is_file(), f"{path} is documented in checkpoints/README.md but missing"
-    missing = sweeps.missing_runs(runs, cfg.train_images, cfg.test_images, path)
+    missing = sweeps.missing_runs(runs, cfg.train_images, cfg.test_images,
+                                  sweeps.stored_rows(path))
     assert not missing, f"{len(missing)} runs would be retrained: {missing[:2]}"
