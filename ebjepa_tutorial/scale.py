@@ -179,7 +179,8 @@ PRESETS: dict[str, dict[str, object]] = {
         # the shipped checkpoints. 100 + 6 x 15 episodes took 22 min on a loaded 2-core machine,
         # so a class plays 40 + 6 x 10 (benchmarks/planning.py measures 100 for the README)
         "class": PlanningPreset(WorldTrainConfig(), PlannerConfig(), n_episodes=40, n_compare=10),
-        "full": PlanningPreset(_WORLD_FULL, PlannerConfig(horizon=90, iterations=20, execute=1),
+        "full": PlanningPreset(_WORLD_FULL, PlannerConfig(horizon=90, iterations=20, execute=1,
+                                                             noise_period=1),
                                n_compare=100),  # the reference code's planner
     },
 }

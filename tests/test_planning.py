@@ -87,11 +87,23 @@ def test_the_loop_finds_the_optimum_of_a_quadratic(method):
     assert torch.allclose(mean[0], target, atol=0.05)
 
 
+def test_smooth_noise_carries_a_plan_farther_than_white_noise():
+    g = torch.Generator().manual_seed(0)
+    white, smooth = (planning.smooth_noise(4000, 64, 2, period, g) for period in (1, 8))
+    assert white.std().item() == pytest.approx(1.0, abs=0.02)  # same spread per step
+    assert smooth.std().item() == pytest.approx(1.0, abs=0.02)
+    # summed over 64 steps, white noise wanders sqrt(64) = 8 std; coherent noise much farther
+    assert white.sum(dim=1).std().item() == pytest.approx(8.0, rel=0.05)
+    assert smooth.sum(dim=1).std().item() > 3 * white.sum(dim=1).std().item()
+
+
 def test_sampled_plans_are_clipped_and_keep_the_mean():
     mean = torch.full((2, 5, 2), 1.0)
     actions = planning.sample_plans(mean, torch.full_like(mean, 3.0), 50, generators(2), bound=1.8)
-    assert actions.abs().max() <= 1.8
-    assert torch.equal(actions[:, 0], mean)
+    lengths = actions.norm(dim=-1)  # clipped on the step's length, as the world clips it
+    assert lengths.max() <= 1.8 + 1e-5
+    assert (lengths > 1.79).float().mean() > 0.5  # std 3 sends most samples to the bound
+    assert torch.equal(actions[:, 0], mean)  # (1, 1) is shorter than 1.8: kept as it is
 
 
 def test_sampling_does_not_depend_on_the_batch():
@@ -261,7 +273,7 @@ def test_the_benchmark_prints_its_figures(tmp_path):
 def test_a_fixed_spread_keeps_exploring():
     model = LinearLatentModel()
     config = PlannerConfig(horizon=6, samples=50, elites=5, iterations=3, update_std=False,
-                           init_std=0.7)
+                           init_std=0.7, noise_period=1)  # white noise: std 0.7 at every step
     result = planning.plan(model, torch.zeros(1, 2), torch.full((1, 2), 5.0), config,
                            generators(1), record=True)
     assert torch.equal(result.std, torch.full((1, 6, 2), 0.7))
