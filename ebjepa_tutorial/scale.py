@@ -82,7 +82,7 @@ class ImagePreset:
     sweep_steps: int = 500  # steps per run of notebook 02's sweeps and ablations
     # the longer run that notebooks 01 and 02 load (class: shipped, `python -m
     # ebjepa_tutorial.image_jepa`); at full scale the main run is the long one
-    long_steps: int = 8000
+    long_steps: int = 4000
 
 
 # ci probes at 16 px: it only checks that the code runs, and 32-px probes made the ci run of
