@@ -24,7 +24,9 @@ sampled step is clipped on its length, as the world and the data clip it.
 Everything is batched over episodes: ``B`` episodes x ``N`` samples are one
 call to :meth:`~ebjepa_tutorial.models.world.WorldModel.rollout`. Each
 episode has its own seed, which fixes its task and its planner's noise, so
-any episode can be replayed on its own.
+any episode can be replayed on its own, with the same number of torch
+threads (measured: another thread count changes the floating-point sums, and
+after a few re-plans that can change an episode's outcome).
 """
 
 from __future__ import annotations
