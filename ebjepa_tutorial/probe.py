@@ -11,12 +11,16 @@ example one that only encodes the walls) lands there.
 - :func:`probe_error_px`: mean ``||probe(z) - position||`` in pixels.
 - :func:`encode_trajectories`: latents and positions of every frame of a set
   of trajectories, in batches, without gradients.
+- :func:`middle_wall_test`: does the *predictor* know the middle wall? One step
+  at a time, on the steps of real trajectories that the wall stopped.
 """
 
 from __future__ import annotations
 
 import torch
 from torch import nn
+
+from .envs.two_rooms import HIGH, LOW, render
 
 
 class PositionProbe(nn.Module):
@@ -113,3 +117,36 @@ def encode_trajectories(model, trajectories, batch_size: int = 64):
         frames = trajectories.frames(slice(start, start + batch_size)).to(device)
         chunks.append(model.encode(frames).flatten(0, 1).cpu())
     return torch.cat(chunks), trajectories.positions.reshape(-1, 2)
+
+
+@torch.no_grad()
+def middle_wall_test(model, trajectories, min_stop: float = 0.8) -> dict[str, float]:
+    """Does the predictor stop the dot at the middle wall? One step at a time, on real data.
+
+    Takes every step of ``trajectories`` in which the middle wall cut the move
+    short by more than ``min_stop`` px (steps whose action would leave the
+    arena are skipped: the outer frame may be what stopped them). For each, it
+    compares the one-step prediction ``Pred(Enc(o_t), a_t)`` with two latents:
+    the real next one, ``Enc(o_{t+1})``, and ``Enc`` of the frame where the
+    action alone would have put the dot, inside the wall. Returns ``steps``
+    (how many), ``nearer_real`` (the fraction of predictions nearer the real
+    next latent: 1 for a predictor that knows the wall, about 0 for one that
+    moves the dot as if there were none) and the two mean distances
+    ``to_real``, ``to_no_wall``. ``model``: encode ``(B, 2, 65, 65) -> (B, D)``
+    and predict ``(B, D), (B, 2) -> (B, D)``.
+    """
+    positions, actions, layouts = trajectories.positions, trajectories.actions, trajectories.layouts
+    intended = positions[:, :-1] + actions
+    short = (positions[:, 1:] - intended).norm(dim=-1) > min_stop
+    inside = ((intended >= LOW) & (intended <= HIGH)).all(dim=-1)
+    b, t = (short & inside).nonzero().unbind(1)
+    if len(b) == 0:
+        raise ValueError(f"the middle wall stopped no step of these {len(positions)} "
+                         "trajectories by more than min_stop; use more of them")
+    device = next(model.parameters()).device
+    now, real, no_wall = (model.encode(render(p, layouts[b]).to(device)).cpu()
+                          for p in (positions[b, t], positions[b, t + 1], intended[b, t]))
+    guess = model.predict(now.to(device), actions[b, t].to(device)).cpu()
+    to_real, to_no_wall = (guess - real).norm(dim=1), (guess - no_wall).norm(dim=1)
+    return {"steps": len(b), "nearer_real": (to_real < to_no_wall).float().mean().item(),
+            "to_real": to_real.mean().item(), "to_no_wall": to_no_wall.mean().item()}

@@ -143,6 +143,7 @@ class PlanningPreset:
     n_compare: int = 20  # episodes (the first seeds of the same list) per other planner / model
     episode_steps: int = 200  # the paper's step budget
     first_seed: int = 10_000
+    n_wall_test: int = 400  # fresh data-policy trajectories for the one-step wall test
 
 
 _PLANNER_CI = PlannerConfig(horizon=8, samples=32, elites=4, iterations=2, execute=4)
@@ -175,7 +176,8 @@ PRESETS: dict[str, dict[str, object]] = {
         "full": WorldModelPreset(_WORLD_FULL, n_probe=5000, n_test=1000, horizon=48),
     },
     "06": {
-        "ci": PlanningPreset(_WORLD_CI, _PLANNER_CI, n_episodes=4, n_compare=2, episode_steps=40),
+        "ci": PlanningPreset(_WORLD_CI, _PLANNER_CI, n_episodes=4, n_compare=2, episode_steps=40,
+                             n_wall_test=100),
         # the shipped checkpoints. 100 + 6 x 15 episodes took 22 min on a loaded 2-core machine,
         # so a class plays 40 + 6 x 10 (benchmarks/planning.py measures 100 for the README)
         "class": PlanningPreset(WorldTrainConfig(), PlannerConfig(), n_episodes=40, n_compare=10),

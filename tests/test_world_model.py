@@ -7,12 +7,14 @@ import pytest
 import torch
 
 from ebjepa_tutorial import world_losses as wl
-from ebjepa_tutorial.envs import generate_trajectories
+from ebjepa_tutorial.envs import generate_trajectories, transition
+from ebjepa_tutorial.envs.trajectories import Trajectories
 from ebjepa_tutorial.models.world import WORLD_CONFIGS, WorldConfig, WorldModel
 from ebjepa_tutorial.probe import (
     encode_trajectories,
     fit_position_probe,
     mean_baseline_px,
+    middle_wall_test,
     probe_error_px,
 )
 
@@ -183,6 +185,54 @@ def test_encode_trajectories_pairs_latents_with_positions(data):
     assert latents.shape == (30, 8) and positions.shape == (30, 2)
     assert torch.allclose(latents[5:10], model.encode(frames[1]), atol=1e-5)
     assert torch.equal(positions[5:10], trajectories.positions[1])
+
+
+class StateReader(torch.nn.Module):
+    """A stand-in world model whose latent is the state read off the frame: (x, y, wall_x, door_y).
+
+    Its predictor moves the dot by the true rule of motion, or, with ``knows_walls=False``,
+    by the action alone, as if there were no walls.
+    """
+
+    def __init__(self, knows_walls: bool):
+        super().__init__()
+        self.knows_walls = knows_walls
+        self.unused = torch.nn.Parameter(torch.zeros(()))  # for the device lookup
+
+    def encode(self, frames):
+        dot, walls, grid = frames[:, 0], frames[:, 1, 1:-1, 1:-1], torch.arange(65.0)
+        # The dot's centroid, to 0.001 px: float error would put a dot resting on the wall's
+        # face a hair inside it, where the rule of motion lets it through.
+        x = ((dot.sum(1) * grid).sum(1) / dot.sum((1, 2)) * 1000).round() / 1000
+        y = ((dot.sum(2) * grid).sum(1) / dot.sum((1, 2)) * 1000).round() / 1000
+        per_column = walls.sum(1)  # (B, 63): the middle wall's 3 columns are the fullest
+        middle = (per_column == per_column.amax(1, keepdim=True)).float()
+        wall_x = 1 + (middle * grid[:63]).sum(1) / middle.sum(1)
+        column = walls[torch.arange(len(walls)), :, wall_x.long() - 1]  # (B, 63)
+        door_y = 1 + ((1 - column) * grid[:63]).sum(1) / (1 - column).sum(1)
+        return torch.stack([x, y, wall_x, door_y], dim=1)
+
+    def predict(self, z, actions):
+        xy, layouts = z[:, :2], z[:, 2:].round().long()
+        moved = transition(xy, actions, layouts) if self.knows_walls else xy + actions
+        return torch.cat([moved, z[:, 2:]], dim=1)
+
+
+def test_middle_wall_test_tells_a_walled_predictor_from_a_wall_blind_one():
+    trajectories = generate_trajectories(80, seed=3)
+    walled = middle_wall_test(StateReader(knows_walls=True), trajectories)
+    blind = middle_wall_test(StateReader(knows_walls=False), trajectories)
+    assert walled["steps"] == blind["steps"] >= 10
+    assert walled["nearer_real"] == 1.0 and walled["to_real"] < 0.05
+    assert blind["nearer_real"] == 0.0 and blind["to_no_wall"] < 0.05
+
+
+def test_middle_wall_test_needs_a_stopped_step():
+    standing = generate_trajectories(3, steps=2, seed=0)
+    still = Trajectories(standing.positions[:, :1].expand(-1, 3, -1).clone(),
+                         torch.zeros(3, 2, 2), standing.layouts, standing.door)
+    with pytest.raises(ValueError, match="stopped no step"):
+        middle_wall_test(StateReader(knows_walls=True), still)
 
 
 # -- bad input ---------------------------------------------------------------------------
