@@ -97,8 +97,8 @@ _IMAGE_FULL = ImageJEPAConfig(  # the paper: 300 epochs of batch 256 with LARS, 
 )
 
 
-# class: the shipped longer runs (checkpoints/README.md); VICReg's was trained longer again
-_LONG_STEPS = {"vicreg": 8000, "sigreg": 4000}
+# class: the shipped longer runs (checkpoints/README.md)
+_LONG_STEPS = {"vicreg": 8000, "sigreg": 8000}
 
 
 def image_preset(scale: str, loss: str) -> ImagePreset:
