@@ -120,33 +120,49 @@ def encode_trajectories(model, trajectories, batch_size: int = 64):
 
 
 @torch.no_grad()
-def middle_wall_test(model, trajectories, min_stop: float = 0.8) -> dict[str, float]:
-    """Does the predictor stop the dot at the middle wall? One step at a time, on real data.
+def middle_wall_test(model, trajectories, min_stop: float = 0.8, max_steps: int = 1000) -> dict:
+    """Does the predictor stop the dot at the middle wall, and move it elsewhere? Step by step.
 
-    Takes every step of ``trajectories`` in which the middle wall cut the move
-    short by more than ``min_stop`` px (steps whose action would leave the
-    arena are skipped: the outer frame may be what stopped them). For each, it
-    compares the one-step prediction ``Pred(Enc(o_t), a_t)`` with two latents:
-    the real next one, ``Enc(o_{t+1})``, and ``Enc`` of the frame where the
-    action alone would have put the dot, inside the wall. Returns ``steps``
-    (how many), ``nearer_real`` (the fraction of predictions nearer the real
-    next latent: 1 for a predictor that knows the wall, about 0 for one that
-    moves the dot as if there were none) and the two mean distances
-    ``to_real``, ``to_no_wall``. ``model``: encode ``(B, 2, 65, 65) -> (B, D)``
-    and predict ``(B, D), (B, 2) -> (B, D)``.
+    Stopped steps: every step of ``trajectories`` in which the middle wall cut
+    the move short by more than ``min_stop`` px (steps whose action would
+    leave the arena are skipped: the outer frame may be what stopped them).
+    For each, the one-step prediction ``Pred(Enc(o_t), a_t)`` is compared with
+    the real next latent ``Enc(o_{t+1})`` and with ``Enc`` of the frame where
+    the action alone would have put the dot, inside the wall. ``stopped`` is
+    the fraction nearer the real one: 1 for a predictor that knows the wall,
+    about 0 for one that moves the dot as if there were none.
+
+    A predictor that never moves anything also scores 1 there, so the control
+    is ``moved``: on steps that touched no wall and moved the dot at least
+    ``min_stop`` px, the fraction of predictions nearer the real next latent
+    than the current one. A good predictor scores near 1 on both. Each score
+    is taken over the first ``max_steps`` steps of its kind.
+
+    Returns ``stopped``, ``moved`` and how many steps each is over
+    (``n_stopped``, ``n_moved``). ``model``: encode ``(B, 2, 65, 65) -> (B, D)``,
+    predict ``(B, D), (B, 2) -> (B, D)``.
     """
     positions, actions, layouts = trajectories.positions, trajectories.actions, trajectories.layouts
-    intended = positions[:, :-1] + actions
-    short = (positions[:, 1:] - intended).norm(dim=-1) > min_stop
+    intended, reached = positions[:, :-1] + actions, positions[:, 1:]
     inside = ((intended >= LOW) & (intended <= HIGH)).all(dim=-1)
-    b, t = (short & inside).nonzero().unbind(1)
-    if len(b) == 0:
+    stopped = ((reached - intended).norm(dim=-1) > min_stop) & inside
+    moved = ((reached - intended).norm(dim=-1) < 1e-4) & (actions.norm(dim=-1) >= min_stop)
+    if not stopped.any():
         raise ValueError(f"the middle wall stopped no step of these {len(positions)} "
                          "trajectories by more than min_stop; use more of them")
     device = next(model.parameters()).device
-    now, real, no_wall = (model.encode(render(p, layouts[b]).to(device)).cpu()
-                          for p in (positions[b, t], positions[b, t + 1], intended[b, t]))
-    guess = model.predict(now.to(device), actions[b, t].to(device)).cpu()
-    to_real, to_no_wall = (guess - real).norm(dim=1), (guess - no_wall).norm(dim=1)
-    return {"steps": len(b), "nearer_real": (to_real < to_no_wall).float().mean().item(),
-            "to_real": to_real.mean().item(), "to_no_wall": to_no_wall.mean().item()}
+
+    def encode(b, t, where):  # latents of the dot at where[b, t] in layout b
+        return model.encode(render(where[b, t], layouts[b]).to(device)).cpu()
+
+    def nearer(steps, alternative):  # is Pred(z_t, a_t) nearer z_{t+1} than the alternative?
+        b, t = steps.nonzero()[:max_steps].unbind(1)
+        now = encode(b, t, positions[:, :-1])
+        guess = model.predict(now.to(device), actions[b, t].to(device)).cpu()
+        other = now if alternative is None else encode(b, t, alternative)
+        real = encode(b, t, reached)
+        return ((guess - real).norm(dim=1) < (guess - other).norm(dim=1)).float().mean().item()
+
+    return {"stopped": nearer(stopped, intended), "moved": nearer(moved, None),
+            "n_stopped": min(int(stopped.sum()), max_steps),
+            "n_moved": min(int(moved.sum()), max_steps)}

@@ -191,12 +191,12 @@ class StateReader(torch.nn.Module):
     """A stand-in world model whose latent is the state read off the frame: (x, y, wall_x, door_y).
 
     Its predictor moves the dot by the true rule of motion, or, with ``knows_walls=False``,
-    by the action alone, as if there were no walls.
+    by ``speed`` times the action alone, as if there were no walls.
     """
 
-    def __init__(self, knows_walls: bool):
+    def __init__(self, knows_walls: bool, speed: float = 1.0):
         super().__init__()
-        self.knows_walls = knows_walls
+        self.knows_walls, self.speed = knows_walls, speed
         self.unused = torch.nn.Parameter(torch.zeros(()))  # for the device lookup
 
     def encode(self, frames):
@@ -214,17 +214,20 @@ class StateReader(torch.nn.Module):
 
     def predict(self, z, actions):
         xy, layouts = z[:, :2], z[:, 2:].round().long()
-        moved = transition(xy, actions, layouts) if self.knows_walls else xy + actions
+        moved = transition(xy, actions, layouts) if self.knows_walls else xy + self.speed * actions
         return torch.cat([moved, z[:, 2:]], dim=1)
 
 
-def test_middle_wall_test_tells_a_walled_predictor_from_a_wall_blind_one():
+def test_middle_wall_test_tells_walled_wall_blind_and_frozen_predictors_apart():
     trajectories = generate_trajectories(80, seed=3)
     walled = middle_wall_test(StateReader(knows_walls=True), trajectories)
     blind = middle_wall_test(StateReader(knows_walls=False), trajectories)
-    assert walled["steps"] == blind["steps"] >= 10
-    assert walled["nearer_real"] == 1.0 and walled["to_real"] < 0.05
-    assert blind["nearer_real"] == 0.0 and blind["to_no_wall"] < 0.05
+    frozen = middle_wall_test(StateReader(knows_walls=False, speed=0.0), trajectories)
+    assert walled["n_stopped"] == blind["n_stopped"] >= 10 and walled["n_moved"] >= 100
+    assert (walled["stopped"], walled["moved"]) == (1.0, 1.0)
+    assert (blind["stopped"], blind["moved"]) == (0.0, 1.0)
+    assert (frozen["stopped"], frozen["moved"]) == (1.0, 0.0)  # why "moved" is there
+    assert middle_wall_test(StateReader(True), trajectories, max_steps=5)["n_moved"] == 5
 
 
 def test_middle_wall_test_needs_a_stopped_step():
