@@ -144,9 +144,10 @@ def middle_wall_test(model, trajectories, min_stop: float = 0.8, max_steps: int 
     """
     positions, actions, layouts = trajectories.positions, trajectories.actions, trajectories.layouts
     intended, reached = positions[:, :-1] + actions, positions[:, 1:]
+    shortfall = (reached - intended).norm(dim=-1)  # how much of each move a wall took away
     inside = ((intended >= LOW) & (intended <= HIGH)).all(dim=-1)
-    stopped = ((reached - intended).norm(dim=-1) > min_stop) & inside
-    moved = ((reached - intended).norm(dim=-1) < 1e-4) & (actions.norm(dim=-1) >= min_stop)
+    stopped = (shortfall > min_stop) & inside
+    moved = (shortfall < 1e-4) & (actions.norm(dim=-1) >= min_stop)
     if not stopped.any():
         raise ValueError(f"the middle wall stopped no step of these {len(positions)} "
                          "trajectories by more than min_stop; use more of them")
