@@ -165,6 +165,27 @@ def train_image_jepa(
     return model, history
 
 
+def seconds_per_step(config: ImageJEPAConfig, images: torch.Tensor, steps: int = 5,
+                     device: torch.device | str = "cpu") -> float:
+    """Wall time of one training step of ``config`` on this machine, in seconds.
+
+    Times a run of ``1 + steps`` steps and one of 1 step and divides the
+    difference by ``steps``: building the model and the first (slower) step
+    cancel out. A 1-step run before both pays the process's one-time costs
+    (measured: without it, the first call read about half the true time).
+    Turns a number of steps into minutes on the machine at hand.
+    """
+    def run(n: int) -> float:
+        start = time.perf_counter()
+        train_image_jepa(replace(config, steps=n, warmup_steps=0), images, device=device,
+                         progress=False)
+        return time.perf_counter() - start
+
+    run(1)
+    first = run(1)
+    return max(run(1 + steps) - first, 0.0) / steps
+
+
 @torch.no_grad()
 def embed(encoder: nn.Module, images: torch.Tensor, size: int, batch_size: int = 256):
     """Frozen features of un-augmented uint8 images ``(N, 3, 32, 32)`` at ``size``: ``(N, D)``.

@@ -218,3 +218,22 @@ def test_long_presets_train_longer_than_the_main_run():
 def test_run_lengths_and_batch_sizes_are_checked(field, value, message):
     with pytest.raises(ValueError, match=message):
         ImageJEPAConfig(**{field: value})
+
+
+def test_seconds_per_step_cancels_the_set_up_and_first_step(monkeypatch):
+    # a fake clock: every run costs 7 s of set-up, 3 s for its first step, 0.5 s per later step
+    clock = [100.0]
+    runs = []
+
+    def fake_train(config, images, device="cpu", progress=True):
+        runs.append((config.steps, config.warmup_steps))
+        clock[0] += 7.0 + 3.0 + 0.5 * (config.steps - 1)
+        return None, None
+
+    monkeypatch.setattr(image_jepa, "train_image_jepa", fake_train)
+    monkeypatch.setattr(image_jepa.time, "perf_counter", lambda: clock[0])
+    config = preset("01", "ci").config
+    assert image_jepa.seconds_per_step(config, torch.empty(0), steps=4) == pytest.approx(0.5)
+    assert runs == [(1, 0), (1, 0), (5, 0)]  # a warm-up run, then the two timed ones;
+    # no learning-rate warm-up: a 1-step run has none to do
+
