@@ -197,6 +197,8 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description="Train the Two Rooms world model.")
     parser.add_argument("--out", required=True, help="where to write the trained model")
     parser.add_argument("--steps", type=int, default=WorldTrainConfig.steps)
+    parser.add_argument("--trajectories", type=int, default=WorldTrainConfig.n_trajectories,
+                        help="size of the offline data set (the paper: 100,000)")
     parser.add_argument("--without", action="append", default=[], choices=ABLATABLE_TERMS,
                         help="an ablation: set this term's coefficient to 0 (repeatable)")
     parser.add_argument("--no-inverse-dynamics", action="store_true",
@@ -207,7 +209,8 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     without = args.without + (["inverse_dynamics"] if args.no_inverse_dynamics else [])
     try:
-        config = with_coeffs(WorldTrainConfig(steps=args.steps, seed=args.seed), args.coeff)
+        config = with_coeffs(WorldTrainConfig(steps=args.steps, seed=args.seed,
+                                              n_trajectories=args.trajectories), args.coeff)
     except ValueError as error:
         parser.error(str(error))  # a usage message, not a traceback
     config = ablation_config(config, *without)

@@ -284,3 +284,27 @@ def test_coeff_flag_sets_loss_weights_and_rejects_typos():
                          ("variance=nan", "finite")]:
         with pytest.raises(ValueError, match=message):
             with_coeffs(WorldTrainConfig(), [bad])
+
+
+def test_command_line_sets_steps_and_data_size(tmp_path, monkeypatch, capsys):
+    from ebjepa_tutorial import world_training
+
+    seen = {}
+
+    def fake_train(config, checkpoint=None):
+        seen["config"], seen["partial"] = config, checkpoint
+        return tiny_model(), {"loss": [1.0]}
+
+    monkeypatch.setattr(world_training, "train_world_model", fake_train)
+    monkeypatch.setattr(world_training, "probe_report",
+                        lambda model: {"probe_px": 1.5, "baseline_px": 20.0})
+    out = tmp_path / "long.pt"
+    out.with_suffix(".partial").write_bytes(b"")  # what a real run leaves until it ends
+    world_training.main(["--out", str(out), "--steps", "3000", "--trajectories", "100000",
+                         "--without", "covariance"])
+    config = seen["config"]
+    assert (config.steps, config.n_trajectories, config.coeffs.covariance) == (3000, 100_000, 0)
+    assert seen["partial"] == out.with_suffix(".partial") and not seen["partial"].exists()
+    state = torch.load(out, weights_only=False)
+    assert state["config"]["n_trajectories"] == 100_000 and state["probe_px"] == 1.5
+    assert "probe error 1.50 px" in capsys.readouterr().out
