@@ -2,6 +2,7 @@
 and the evaluation protocol (frozen features of un-augmented images at ``eval_image_size``)."""
 
 import dataclasses
+import math
 
 import pytest
 import torch
@@ -237,3 +238,24 @@ def test_seconds_per_step_cancels_the_set_up_and_first_step(monkeypatch):
     assert runs == [(1, 0), (1, 0), (5, 0)]  # a warm-up run, then the two timed ones;
     # no learning-rate warm-up: a 1-step run has none to do
 
+
+
+@pytest.mark.parametrize("notebook, projector", [("01", (2048, 2048)), ("02", (2048, 128))])
+def test_full_scale_is_the_papers_recipe_and_takes_a_step(notebook, projector):
+    config = preset(notebook, "full").config
+    epoch = 50_000 // 256  # optimiser steps per CIFAR-10 epoch at batch 256
+    assert (config.widths, config.image_size, config.eval_image_size) == ((64, 128, 256, 512),
+                                                                          32, 32)
+    assert (config.batch_size, config.steps, config.warmup_steps) == (256, 300 * epoch,
+                                                                      10 * epoch)
+    assert (config.optimizer, config.lr, config.weight_decay) == ("lars", 0.3, 1e-4)
+    assert config.projector == projector
+    if notebook == "01":  # the paper's 1 / 1 / 80, in this course's averaged convention
+        assert (config.inv_coeff, config.std_coeff, config.cov_coeff) == (1.0, 2.0, 160.0)
+    else:  # lambda 10 on the statistic without the factor N, as the paper's code
+        assert (config.sigreg_lambda, config.sigreg_scale_by_n) == (10.0, False)
+    # one LARS step of the full-width network on a small batch: the recipe runs unchanged
+    model, history = image_jepa.train_image_jepa(
+        dataclasses.replace(config, batch_size=4, steps=2, warmup_steps=1), _images(8),
+        progress=False)
+    assert model.encoder.out_dim == 512 and all(map(math.isfinite, history["loss"]))
