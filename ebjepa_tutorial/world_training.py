@@ -46,7 +46,16 @@ class WorldTrainConfig:
     lr: float = 1e-3  # AdamW, as in the paper
     weight_decay: float = 1e-5
     rollout_steps: int = 8  # K, the prediction horizon of the loss
+    # the last decay_steps steps lower the learning rate linearly towards 0 (0: constant, the
+    # class run). A constant rate keeps the model noisy; runs of thousands of steps end better
+    # annealed.
+    decay_steps: int = 0
     seed: int = 0
+
+    def __post_init__(self):
+        if not 0 <= self.decay_steps <= self.steps:
+            raise ValueError(f"decay_steps must be in 0..steps={self.steps}, "
+                             f"got {self.decay_steps}")
 
 
 def make_data(config: WorldTrainConfig) -> Trajectories:
@@ -59,6 +68,17 @@ def new_model(config: WorldTrainConfig, data: Trajectories) -> WorldModel:
     torch.manual_seed(config.seed)
     model = WorldModel(config.model)
     return model.fit_input_stats(data.frames(slice(0, 256)))
+
+
+def learning_rate_decay(optimizer, config: WorldTrainConfig):
+    """The schedule of ``config``: the base rate, then a linear decay over the last
+    ``decay_steps`` steps (step ``s`` uses ``min(1, (steps - s) / decay_steps)`` times the
+    base rate, so the last step uses ``1 / decay_steps`` of it). ``None`` when there is none.
+    """
+    if config.decay_steps == 0:
+        return None
+    return torch.optim.lr_scheduler.LambdaLR(
+        optimizer, lambda step: min(1.0, (config.steps - step) / config.decay_steps))
 
 
 def train_world_model(
@@ -79,9 +99,10 @@ def train_world_model(
     model = new_model(config, data).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr,
                                   weight_decay=config.weight_decay)
+    scheduler = learning_rate_decay(optimizer, config)
     start, history = (0, History())
     if checkpoint is not None:
-        start, history = resume(checkpoint, model, optimizer, config=config_dict(config))
+        start, history = resume(checkpoint, model, optimizer, scheduler, config_dict(config))
     buffer = torch.empty(config.batch_size, data.positions.shape[1], 2, 65, 65)
 
     def batch(step: int):
@@ -93,7 +114,8 @@ def train_world_model(
         frames, actions = frames_and_actions
         return world_model_loss(model, frames, actions, config.coeffs, config.rollout_steps)
 
-    fit(model, optimizer, loss, batch, config.steps, history=history, start_step=start,
+    fit(model, optimizer, loss, batch, config.steps, scheduler=scheduler, history=history,
+        start_step=start,
         checkpoint=checkpoint, checkpoint_every=250, log_every=10, desc="world model",
         progress=progress, config=config_dict(config))
     model.eval()
@@ -188,8 +210,15 @@ def with_coeffs(config: WorldTrainConfig, pairs: list[str]) -> WorldTrainConfig:
 
 
 def config_dict(config: WorldTrainConfig) -> dict:
-    """A plain dict of the config (stored in checkpoints to recognise a matching run)."""
-    return asdict(config)
+    """A plain dict of the config (stored in checkpoints to recognise a matching run).
+
+    ``decay_steps`` is left out when it is 0: the runs saved before it existed
+    (the shipped checkpoints among them) had a constant learning rate.
+    """
+    stored = asdict(config)
+    if stored["decay_steps"] == 0:
+        del stored["decay_steps"]
+    return stored
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -199,6 +228,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--steps", type=int, default=WorldTrainConfig.steps)
     parser.add_argument("--trajectories", type=int, default=WorldTrainConfig.n_trajectories,
                         help="size of the offline data set (the paper: 100,000)")
+    parser.add_argument("--decay-steps", type=int, default=0,
+                        help="lower the learning rate linearly to 0 over the last N steps")
     parser.add_argument("--without", action="append", default=[], choices=ABLATABLE_TERMS,
                         help="an ablation: set this term's coefficient to 0 (repeatable)")
     parser.add_argument("--no-inverse-dynamics", action="store_true",
@@ -210,7 +241,8 @@ def main(argv: list[str] | None = None) -> None:
     without = args.without + (["inverse_dynamics"] if args.no_inverse_dynamics else [])
     try:
         config = with_coeffs(WorldTrainConfig(steps=args.steps, seed=args.seed,
-                                              n_trajectories=args.trajectories), args.coeff)
+                                              n_trajectories=args.trajectories,
+                                              decay_steps=args.decay_steps), args.coeff)
     except ValueError as error:
         parser.error(str(error))  # a usage message, not a traceback
     config = ablation_config(config, *without)

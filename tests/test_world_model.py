@@ -286,7 +286,7 @@ def test_coeff_flag_sets_loss_weights_and_rejects_typos():
             with_coeffs(WorldTrainConfig(), [bad])
 
 
-def test_command_line_sets_steps_and_data_size(tmp_path, monkeypatch, capsys):
+def test_command_line_sets_steps_data_size_and_decay(tmp_path, monkeypatch, capsys):
     from ebjepa_tutorial import world_training
 
     seen = {}
@@ -301,10 +301,47 @@ def test_command_line_sets_steps_and_data_size(tmp_path, monkeypatch, capsys):
     out = tmp_path / "long.pt"
     out.with_suffix(".partial").write_bytes(b"")  # what a real run leaves until it ends
     world_training.main(["--out", str(out), "--steps", "3000", "--trajectories", "100000",
-                         "--without", "covariance"])
+                         "--decay-steps", "500", "--without", "covariance"])
     config = seen["config"]
-    assert (config.steps, config.n_trajectories, config.coeffs.covariance) == (3000, 100_000, 0)
+    assert (config.steps, config.n_trajectories, config.decay_steps) == (3000, 100_000, 500)
+    assert config.coeffs.covariance == 0
     assert seen["partial"] == out.with_suffix(".partial") and not seen["partial"].exists()
     state = torch.load(out, weights_only=False)
     assert state["config"]["n_trajectories"] == 100_000 and state["probe_px"] == 1.5
     assert "probe error 1.50 px" in capsys.readouterr().out
+
+
+def test_learning_rate_decays_linearly_over_the_last_steps():
+    from ebjepa_tutorial.world_training import (WorldTrainConfig, config_dict,
+                                                learning_rate_decay)
+
+    config = WorldTrainConfig(steps=6, decay_steps=4, lr=0.5)
+    optimizer = torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], lr=config.lr)
+    scheduler = learning_rate_decay(optimizer, config)
+    rates = []
+    for _ in range(config.steps):
+        rates.append(optimizer.param_groups[0]["lr"])
+        optimizer.step()
+        scheduler.step()
+    assert rates == pytest.approx([0.5, 0.5, 0.5, 0.375, 0.25, 0.125])  # (6 - s) / 4, capped
+    assert learning_rate_decay(optimizer, WorldTrainConfig()) is None  # the class run: constant
+    # stored configs: a constant-rate run matches checkpoints saved before decay_steps existed
+    assert "decay_steps" not in config_dict(WorldTrainConfig())
+    assert config_dict(config)["decay_steps"] == 4
+    for bad in (-1, 7):
+        with pytest.raises(ValueError, match="decay_steps must be in 0..steps=6"):
+            WorldTrainConfig(steps=6, decay_steps=bad)
+
+
+def test_a_decayed_run_trains_and_saves_its_schedule(tmp_path):
+    from ebjepa_tutorial.models.world import WORLD_CONFIGS
+    from ebjepa_tutorial.world_training import WorldTrainConfig, train_world_model
+
+    config = WorldTrainConfig(model=WORLD_CONFIGS["ci"], n_trajectories=32, batch_size=4,
+                              steps=3, decay_steps=2, rollout_steps=2)
+    partial = tmp_path / "run.partial"
+    model, history = train_world_model(config, checkpoint=partial, progress=False,
+                                       device="cpu")
+    assert history["step"] == [0, 2] and all(map(math.isfinite, history["loss"]))  # every 10th
+    state = torch.load(partial, weights_only=False)
+    assert state["step"] == 3 and state["scheduler"]["last_epoch"] == 3
