@@ -1,6 +1,6 @@
 """Planning benchmark: success rate of a planner with a world-model checkpoint in Two Rooms.
 
-Run: ``python benchmarks/planning.py [--checkpoint checkpoints/world_model_class.pt]
+Run: ``python benchmarks/planning.py [--checkpoint checkpoints/world_model_class_long.pt]
 [--method mppi|cem] [--cost sum|last] [--episodes 100] [--batch 10] [--threads 2]``.
 
 Protocol: one episode per seed ``first_seed .. first_seed + episodes - 1``
@@ -31,7 +31,8 @@ def _yes_no(text: str) -> bool:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--checkpoint", default="checkpoints/world_model_class.pt")
+    parser.add_argument("--checkpoint", default="checkpoints/world_model_class_long.pt",
+                        help="world model (chapter 05's 1,000-step run: world_model_class.pt)")
     parser.add_argument("--episodes", type=int, default=100)
     parser.add_argument("--batch", type=int, default=10,
                         help="episodes planned at once (small batches stay in a CPU cache)")

@@ -35,6 +35,12 @@ def test_world_models_match_notebooks_05_and_06(term):
     assert stored_config(f"world_model_class{suffix}") == world_training.config_dict(config)
 
 
+def test_long_world_model_matches_notebook_06():
+    config = preset("06", "class").long_world
+    assert config.n_trajectories == 100_000 and config.steps > preset("06", "class").world.steps
+    assert stored_config("world_model_class_long") == world_training.config_dict(config)
+
+
 def test_video_jepas_match_notebook_03():
     cfg = preset("03", "class")
     try:
