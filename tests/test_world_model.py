@@ -312,8 +312,7 @@ def test_command_line_sets_steps_data_size_and_decay(tmp_path, monkeypatch, caps
 
 
 def test_learning_rate_decays_linearly_over_the_last_steps():
-    from ebjepa_tutorial.world_training import (WorldTrainConfig, config_dict,
-                                                learning_rate_decay)
+    from ebjepa_tutorial.world_training import WorldTrainConfig, config_dict, learning_rate_decay
 
     config = WorldTrainConfig(steps=6, decay_steps=4, lr=0.5)
     optimizer = torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], lr=config.lr)
