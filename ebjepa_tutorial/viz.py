@@ -330,6 +330,32 @@ def plot_projector_ablation(rows: list[dict], ax=None, baseline: float | None = 
     return ax
 
 
+def plot_success_rates(rows: dict[str, tuple[float, float, float]], ax=None,
+                       reference: dict[str, float] | None = None, colors=None,
+                       reference_label: str = "the paper"):
+    """Bars of success rates with their 95% intervals, one per ``name: (rate, low, high)``.
+
+    ``reference``: rates to compare with (e.g. the paper's), drawn as black
+    ticks across the bars of the same names.
+    """
+    ax = _axes(ax)
+    names = list(rows)
+    rates, lows, highs = zip(*rows.values())
+    below = [rate - low for rate, low in zip(rates, lows)]
+    above = [high - rate for rate, high in zip(rates, highs)]
+    ax.bar(range(len(names)), rates, yerr=[below, above], color=colors, capsize=3)
+    marked = [(i, reference[name]) for i, name in enumerate(names) if name in (reference or {})]
+    if marked:
+        xs, ys = zip(*marked)
+        ax.hlines(ys, [x - 0.4 for x in xs], [x + 0.4 for x in xs], colors="k", lw=2,
+                  label=reference_label)
+        ax.legend(fontsize=8, loc="upper right")
+    ax.set_xticks(range(len(names)), names, rotation=25, ha="right", fontsize=8)
+    ax.set(ylim=(0, 1.15), yticks=[0, 0.2, 0.4, 0.6, 0.8, 1.0], ylabel="success rate")
+    ax.axhline(1.0, color="0.8", lw=0.8)  # the band above it holds the legend
+    return ax
+
+
 def draw_two_rooms(ax, layout: torch.Tensor, goal=None, start=None):
     """The walls of ``layout`` ``(2,)`` on ``ax`` (pixel coordinates), goal and start marked."""
     from .envs.two_rooms import wall_images

@@ -319,3 +319,22 @@ def test_energy_by_distance_of_a_position_latent_is_the_ring_distance():
     for mean, low, high in zip(profile, edges[:-1], edges[1:]):
         assert low - 0.5 < mean < high + 0.5
     assert profile.diff().gt(0).all()
+
+
+def test_success_bars_show_rates_intervals_and_the_reference_on_its_bar():
+    import matplotlib
+
+    matplotlib.use("agg")
+    from ebjepa_tutorial import viz
+
+    rows = {"full loss": (0.8, 0.65, 0.9), "without x": (0.1, 0.03, 0.25)}
+    ax = viz.plot_success_rates(rows, reference={"without x": 0.46, "not drawn": 0.5})
+    assert [bar.get_height() for bar in ax.patches] == pytest.approx([0.8, 0.1])
+    ticks = ax.collections[-1].get_segments()  # the reference, drawn last
+    assert len(ticks) == 1
+    (x0, y0), (x1, y1) = ticks[0]
+    assert (y0, y1) == (0.46, 0.46) and x0 < 1 < x1  # across the second bar only
+    whiskers = ax.containers[0].lines[2][0].get_segments()
+    ends = [end for seg in whiskers for end in (seg[0][1], seg[1][1])]
+    assert ends == pytest.approx([0.65, 0.9, 0.03, 0.25])
+    matplotlib.pyplot.close(ax.figure)
