@@ -146,11 +146,14 @@ class PlanningPreset:
     n_wall_test: int = 400  # fresh data-policy trajectories for the one-step wall test
     # the same model trained longer on more data (class: shipped); None: `world` is already long
     long_world: WorldTrainConfig | None = None
+    # loss terms whose ablation is also trained like `long_world` (class: shipped, ~100 min each)
+    long_ablations: tuple[str, ...] = ()
 
 
 # class: 10x the steps on the paper's 100,000 trajectories, constant rate (checkpoints/README.md);
 # a run of this length is past the class budget, so it is shipped
 _WORLD_CLASS_LONG = WorldTrainConfig(n_trajectories=100_000, steps=10_000)
+_LONG_ABLATIONS = ("inverse_dynamics", "covariance")  # the other two are not trained long yet
 _PLANNER_CI = PlannerConfig(horizon=8, samples=32, elites=4, iterations=2, execute=4)
 
 
@@ -182,11 +185,13 @@ PRESETS: dict[str, dict[str, object]] = {
     },
     "06": {
         "ci": PlanningPreset(_WORLD_CI, _PLANNER_CI, n_episodes=4, n_compare=2, episode_steps=40,
-                             n_wall_test=100, long_world=replace(_WORLD_CI, steps=60)),
+                             n_wall_test=100, long_world=replace(_WORLD_CI, steps=60),
+                             long_ablations=_LONG_ABLATIONS),
         # the shipped checkpoints. 100 + 6 x 15 episodes took 22 min on a loaded 2-core machine,
-        # so a class plays 40 + 6 x 10 (benchmarks/planning.py measures 100 for the README)
+        # so a class plays 40 x 4 models + 6 x 10: 514 s on 2 idle cores (benchmarks/planning.py
+        # measures 100 per model for the README); each long ablation adds about 75 s
         "class": PlanningPreset(WorldTrainConfig(), PlannerConfig(), n_episodes=40, n_compare=10,
-                                long_world=_WORLD_CLASS_LONG),
+                                long_world=_WORLD_CLASS_LONG, long_ablations=_LONG_ABLATIONS),
         "full": PlanningPreset(_WORLD_FULL, PlannerConfig(horizon=90, iterations=20, execute=1,
                                                              noise_period=1),
                                n_compare=100),  # the reference code's planner

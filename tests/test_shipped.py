@@ -41,6 +41,13 @@ def test_long_world_model_matches_notebook_06():
     assert stored_config("world_model_class_long") == world_training.config_dict(config)
 
 
+@pytest.mark.parametrize("term", preset("06", "class").long_ablations)
+def test_long_ablations_match_notebook_06(term):
+    config = world_training.ablation_config(preset("06", "class").long_world, term)
+    name = f"world_model_class_long_{world_training.ABLATION_SUFFIXES[term]}"
+    assert stored_config(name) == world_training.config_dict(config)
+
+
 def test_video_jepas_match_notebook_03():
     cfg = preset("03", "class")
     try:
