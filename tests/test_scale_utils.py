@@ -77,4 +77,5 @@ def test_planning_uses_the_world_model_of_notebook_05(name):
     planning_preset, world_preset = scale.preset("06", name), scale.preset("05", name)
     assert planning_preset.world == world_preset.train
     assert planning_preset.n_compare <= planning_preset.n_episodes
+    assert planning_preset.n_long_ablation <= planning_preset.n_episodes
     assert planning_preset.planner.horizon >= planning_preset.planner.execute
