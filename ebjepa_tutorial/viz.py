@@ -356,6 +356,21 @@ def plot_success_rates(rows: dict[str, tuple[float, float, float]], ax=None,
     return ax
 
 
+def plot_energy_shapes(profiles: dict[str, torch.Tensor], edges, ax=None, title: str = ""):
+    """Each ``name: profile`` of :func:`~ebjepa_tutorial.planning.energy_by_distance` (one
+    value per ring between ``edges``) over its ring middles, divided by its own maximum so
+    that the shapes of energies of any scale can be compared.
+    """
+    ax = _axes(ax)
+    middles = [(low + high) / 2 for low, high in zip(edges[:-1], edges[1:])]
+    for name, profile in profiles.items():
+        ax.plot(middles, profile / profile.max(), "o-", ms=3, label=name)
+    ax.set(xlabel="dot's distance to the goal, px (ring middle)", ylim=(0, 1.05),
+           ylabel="latent distance / its maximum", title=title)
+    ax.legend(fontsize=8)
+    return ax
+
+
 def draw_two_rooms(ax, layout: torch.Tensor, goal=None, start=None):
     """The walls of ``layout`` ``(2,)`` on ``ax`` (pixel coordinates), goal and start marked."""
     from .envs.two_rooms import wall_images

@@ -338,3 +338,19 @@ def test_success_bars_show_rates_intervals_and_the_reference_on_its_bar():
     ends = [end for seg in whiskers for end in (seg[0][1], seg[1][1])]
     assert ends == pytest.approx([0.65, 0.9, 0.03, 0.25])
     matplotlib.pyplot.close(ax.figure)
+
+
+def test_plot_energy_shapes_draws_each_profile_over_its_ring_middles_scaled_to_1():
+    import matplotlib
+
+    matplotlib.use("agg")
+    from ebjepa_tutorial import viz
+
+    ax = viz.plot_energy_shapes({"a": torch.tensor([1.0, 2.0, 4.0]),
+                                 "b": torch.tensor([3.0, 3.0, 6.0])}, (0, 2, 6, 10))
+    (xa, ya), (xb, yb) = (line.get_data() for line in ax.lines)
+    assert list(xa) == list(xb) == [1.0, 4.0, 8.0]
+    assert list(ya) == pytest.approx([0.25, 0.5, 1.0])
+    assert list(yb) == pytest.approx([0.5, 0.5, 1.0])
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["a", "b"]
+    matplotlib.pyplot.close(ax.figure)
