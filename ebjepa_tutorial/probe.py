@@ -13,6 +13,8 @@ example one that only encodes the walls) lands there.
   of trajectories, in batches, without gradients.
 - :func:`middle_wall_test`: does the *predictor* know the middle wall? One step
   at a time, on the steps of real trajectories that the wall stopped.
+- :func:`wall_test_by_door_distance`: the same, split by how far along the
+  wall from the door each stopped step was.
 """
 
 from __future__ import annotations
@@ -119,6 +121,38 @@ def encode_trajectories(model, trajectories, batch_size: int = 64):
     return torch.cat(chunks), trajectories.positions.reshape(-1, 2)
 
 
+def _wall_steps(trajectories, min_stop: float):
+    """Steps the middle wall cut short by more than ``min_stop`` px (those whose action would
+    leave the arena skipped) and free steps of at least ``min_stop`` px: two ``(B, T)`` masks."""
+    positions, actions = trajectories.positions, trajectories.actions
+    intended = positions[:, :-1] + actions
+    shortfall = (positions[:, 1:] - intended).norm(dim=-1)  # how much a wall took away
+    inside = ((intended >= LOW) & (intended <= HIGH)).all(dim=-1)
+    stopped = (shortfall > min_stop) & inside
+    if not stopped.any():
+        raise ValueError(f"the middle wall stopped no step of these {len(positions)} "
+                         "trajectories by more than min_stop; use more of them")
+    return stopped, (shortfall < 1e-4) & (actions.norm(dim=-1) >= min_stop)
+
+
+def _nearer(model, trajectories, steps, max_steps: int | None, through_wall: bool):
+    """For the first ``max_steps`` steps of the mask ``steps``: is ``Pred(z_t, a_t)`` nearer
+    the real ``z_{t+1}`` than the alternative (the dot moved by the action alone, inside the
+    wall; or, without ``through_wall``, ``z_t``)? Returns the flags and the steps' ``(b, t)``."""
+    positions, actions, layouts = trajectories.positions, trajectories.actions, trajectories.layouts
+    device = next(model.parameters()).device
+    b, t = steps.nonzero()[:max_steps].unbind(1)
+
+    def encode(where):  # latents of the dot at where in layout b
+        return model.encode(render(where, layouts[b]).to(device)).cpu()
+
+    now = encode(positions[b, t])
+    guess = model.predict(now.to(device), actions[b, t].to(device)).cpu()
+    other = encode(positions[b, t] + actions[b, t]) if through_wall else now
+    real = encode(positions[b, t + 1])
+    return (guess - real).norm(dim=1) < (guess - other).norm(dim=1), b, t
+
+
 @torch.no_grad()
 def middle_wall_test(model, trajectories, min_stop: float = 0.8, max_steps: int = 1000) -> dict:
     """Does the predictor stop the dot at the middle wall, and move it elsewhere? Step by step.
@@ -142,28 +176,30 @@ def middle_wall_test(model, trajectories, min_stop: float = 0.8, max_steps: int 
     (``n_stopped``, ``n_moved``). ``model``: encode ``(B, 2, 65, 65) -> (B, D)``,
     predict ``(B, D), (B, 2) -> (B, D)``.
     """
-    positions, actions, layouts = trajectories.positions, trajectories.actions, trajectories.layouts
-    intended, reached = positions[:, :-1] + actions, positions[:, 1:]
-    shortfall = (reached - intended).norm(dim=-1)  # how much of each move a wall took away
-    inside = ((intended >= LOW) & (intended <= HIGH)).all(dim=-1)
-    stopped = (shortfall > min_stop) & inside
-    moved = (shortfall < 1e-4) & (actions.norm(dim=-1) >= min_stop)
-    if not stopped.any():
-        raise ValueError(f"the middle wall stopped no step of these {len(positions)} "
-                         "trajectories by more than min_stop; use more of them")
-    device = next(model.parameters()).device
+    stopped, moved = _wall_steps(trajectories, min_stop)
+    stopped, moved = (_nearer(model, trajectories, steps, max_steps, through_wall)[0]
+                      for steps, through_wall in ((stopped, True), (moved, False)))
+    return {"stopped": stopped.float().mean().item(), "moved": moved.float().mean().item(),
+            "n_stopped": len(stopped), "n_moved": len(moved)}
 
-    def encode(b, t, where):  # latents of the dot at where[b, t] in layout b
-        return model.encode(render(where[b, t], layouts[b]).to(device)).cpu()
 
-    def nearer(steps, alternative):  # is Pred(z_t, a_t) nearer z_{t+1} than the alternative?
-        b, t = steps.nonzero()[:max_steps].unbind(1)
-        now = encode(b, t, positions[:, :-1])
-        guess = model.predict(now.to(device), actions[b, t].to(device)).cpu()
-        other = now if alternative is None else encode(b, t, alternative)
-        real = encode(b, t, reached)
-        return ((guess - real).norm(dim=1) < (guess - other).norm(dim=1)).float().mean().item()
+@torch.no_grad()
+def wall_test_by_door_distance(model, trajectories, edges=(0, 8, 12, 16, 24, 65),
+                               min_stop: float = 0.8) -> list[dict]:
+    """:func:`middle_wall_test`'s ``stopped``, split by where along the wall the dot was.
 
-    return {"stopped": nearer(stopped, intended), "moved": nearer(moved, None),
-            "n_stopped": min(int(stopped.sum()), max_steps),
-            "n_moved": min(int(moved.sum()), max_steps)}
+    Every wall-stopped step is put in a bin by ``|y_t - door_y|``, its
+    distance along the wall from the door's centre (the door is open within
+    4.5 px of it, the dot passes within 3.5 px; nearer than that, its sides
+    are what stops the dot). Returns one dict per bin ``[lo, hi)`` of
+    ``edges``: ``lo``, ``hi``, ``stopped`` (NaN for an empty bin) and ``n``.
+    """
+    flags, b, t = _nearer(model, trajectories, _wall_steps(trajectories, min_stop)[0], None,
+                          through_wall=True)
+    along = (trajectories.positions[b, t, 1] - trajectories.layouts[b, 1]).abs()
+    bins = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        inside = (along >= lo) & (along < hi)
+        bins.append({"lo": lo, "hi": hi, "n": int(inside.sum()),
+                     "stopped": flags[inside].float().mean().item()})
+    return bins

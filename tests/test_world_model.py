@@ -16,6 +16,7 @@ from ebjepa_tutorial.probe import (
     mean_baseline_px,
     middle_wall_test,
     probe_error_px,
+    wall_test_by_door_distance,
 )
 
 TINY = WorldConfig(widths=(4, 8), blocks=1, input_size=17, latent_dim=8,
@@ -228,6 +229,32 @@ def test_middle_wall_test_tells_walled_wall_blind_and_frozen_predictors_apart():
     assert (blind["stopped"], blind["moved"]) == (0.0, 1.0)
     assert (frozen["stopped"], frozen["moved"]) == (1.0, 0.0)  # why "moved" is there
     assert middle_wall_test(StateReader(True), trajectories, max_steps=5)["n_moved"] == 5
+
+
+class BlindNearTheDoor(StateReader):
+    """Knows the middle wall, except within ``reach`` px (along it) of the door's centre."""
+
+    def __init__(self, reach: float):
+        super().__init__(knows_walls=True)
+        self.reach = reach
+
+    def predict(self, z, actions):
+        walled, free = super().predict(z, actions), torch.cat([z[:, :2] + actions, z[:, 2:]], 1)
+        near = ((z[:, 1] - z[:, 3]).abs() < self.reach)[:, None]
+        return torch.where(near, free, walled)
+
+
+def test_wall_test_by_door_distance_finds_where_along_the_wall_the_predictor_is_blind():
+    trajectories = generate_trajectories(400, seed=3)
+    edges = (0, 8, 12, 16, 65)
+    bins = wall_test_by_door_distance(BlindNearTheDoor(reach=12), trajectories, edges)
+    assert [(b["lo"], b["hi"]) for b in bins] == list(zip(edges[:-1], edges[1:]))
+    assert all(b["n"] >= 10 for b in bins)
+    assert sum(b["n"] for b in bins) == middle_wall_test(StateReader(True), trajectories,
+                                                         max_steps=None)["n_stopped"]
+    assert [b["stopped"] for b in bins] == [0.0, 0.0, 1.0, 1.0]
+    walled = wall_test_by_door_distance(StateReader(True), trajectories, edges)
+    assert [b["stopped"] for b in walled] == [1.0] * 4
 
 
 def test_middle_wall_test_needs_a_stopped_step():
