@@ -32,7 +32,9 @@ def _yes_no(text: str) -> bool:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", default="checkpoints/world_model_class_long.pt",
-                        help="world model (chapter 05's 1,000-step run: world_model_class.pt)")
+                        help="world model (chapter 05's 1,000-step run: world_model_class.pt; "
+                             "twice the long run, the paper's amount of training: "
+                             "world_model_class_long20k.pt)")
     parser.add_argument("--episodes", type=int, default=100)
     parser.add_argument("--batch", type=int, default=10,
                         help="episodes planned at once (small batches stay in a CPU cache)")
