@@ -176,9 +176,9 @@ def middle_wall_test(model, trajectories, min_stop: float = 0.8, max_steps: int 
     (``n_stopped``, ``n_moved``). ``model``: encode ``(B, 2, 65, 65) -> (B, D)``,
     predict ``(B, D), (B, 2) -> (B, D)``.
     """
-    stopped, moved = _wall_steps(trajectories, min_stop)
-    stopped, moved = (_nearer(model, trajectories, steps, max_steps, through_wall)[0]
-                      for steps, through_wall in ((stopped, True), (moved, False)))
+    stopped_steps, moved_steps = _wall_steps(trajectories, min_stop)
+    stopped = _nearer(model, trajectories, stopped_steps, max_steps, through_wall=True)[0]
+    moved = _nearer(model, trajectories, moved_steps, max_steps, through_wall=False)[0]
     return {"stopped": stopped.float().mean().item(), "moved": moved.float().mean().item(),
             "n_stopped": len(stopped), "n_moved": len(moved)}
 

@@ -236,12 +236,11 @@ class BlindNearTheDoor(StateReader):
 
     def __init__(self, reach: float):
         super().__init__(knows_walls=True)
-        self.reach = reach
+        self.reach, self.blind = reach, StateReader(knows_walls=False)
 
     def predict(self, z, actions):
-        walled, free = super().predict(z, actions), torch.cat([z[:, :2] + actions, z[:, 2:]], 1)
-        near = ((z[:, 1] - z[:, 3]).abs() < self.reach)[:, None]
-        return torch.where(near, free, walled)
+        near = ((z[:, 1] - z[:, 3]).abs() < self.reach)[:, None]  # latent: (x, y, wall_x, door_y)
+        return torch.where(near, self.blind.predict(z, actions), super().predict(z, actions))
 
 
 def test_wall_test_by_door_distance_finds_where_along_the_wall_the_predictor_is_blind():
