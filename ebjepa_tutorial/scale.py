@@ -18,7 +18,7 @@ from .image_jepa import ImageJEPAConfig
 from .models.world import WORLD_CONFIGS
 from .planning import PlannerConfig
 from .video_jepa import VIDEO_CONFIGS, VideoJEPAConfig
-from .world_training import ABLATABLE_TERMS, WorldTrainConfig
+from .world_training import ABLATABLE_TERMS, RefitConfig, WorldTrainConfig
 
 SCALES = ("ci", "class", "full")
 DEFAULT_SCALE = "class"
@@ -149,6 +149,10 @@ class PlanningPreset:
     # loss terms whose ablation is also trained like `long_world` (class: shipped, ~100 min each)
     long_ablations: tuple[str, ...] = ()
     n_long_ablation: int = 20  # episodes (the first seeds of the list) per long-trained ablation
+    # the model whose predictor is refitted on its frozen latents (class: the paper's amount of
+    # training, shipped with its refit); None: the long model
+    refit_base: WorldTrainConfig | None = None
+    refit: RefitConfig = RefitConfig()  # class: ~12 min on 2 cores, so shipped
 
 
 # class: 10x the steps on the paper's 100,000 trajectories, constant rate (checkpoints/README.md);
@@ -186,12 +190,15 @@ PRESETS: dict[str, dict[str, object]] = {
     "06": {
         "ci": PlanningPreset(_WORLD_CI, _PLANNER_CI, n_episodes=4, n_compare=2, episode_steps=40,
                              n_wall_test=100, long_world=replace(_WORLD_CI, steps=60),
-                             long_ablations=ABLATABLE_TERMS, n_long_ablation=2),
+                             long_ablations=ABLATABLE_TERMS, n_long_ablation=2,
+                             refit=RefitConfig(hidden=32, n_trajectories=200, steps=100,
+                                               batch_size=128)),
         # the shipped checkpoints. 100 + 6 x 15 episodes took 22 min on a loaded 2-core machine,
         # so a class plays 40 x 2 models + 20 x 4 long ablations + 8 x 10: 547 s on 2 idle
         # cores (benchmarks/planning.py measures 100 per model for the README)
         "class": PlanningPreset(WorldTrainConfig(), PlannerConfig(), n_episodes=40, n_compare=10,
-                                long_world=_WORLD_CLASS_LONG, long_ablations=ABLATABLE_TERMS),
+                                long_world=_WORLD_CLASS_LONG, long_ablations=ABLATABLE_TERMS,
+                                refit_base=replace(_WORLD_CLASS_LONG, steps=20_000)),
         "full": PlanningPreset(_WORLD_FULL, PlannerConfig(horizon=90, iterations=20, execute=1,
                                                              noise_period=1),
                                n_compare=100),  # the reference code's planner

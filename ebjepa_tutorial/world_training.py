@@ -5,7 +5,9 @@ positions and actions (cheap) and rendered to frames batch by batch. Each
 training batch is ``batch_size`` random trajectories of ``17`` frames.
 
 Shipped checkpoint: ``python -m ebjepa_tutorial.world_training --out PATH``
-trains the class-scale model and writes it (see :func:`main`).
+trains the class-scale model and writes it (see :func:`main`). With
+``--refit TRAINED.pt`` it instead fits a new MLP predictor on that model's
+frozen latents (:func:`refit_predictor`).
 """
 
 from __future__ import annotations
@@ -20,7 +22,13 @@ import torch
 from .envs import generate_trajectories
 from .envs.trajectories import Trajectories
 from .models.world import WORLD_CONFIGS, WorldConfig, WorldModel
-from .probe import encode_trajectories, fit_position_probe, mean_baseline_px, probe_error_px
+from .probe import (
+    encode_trajectories,
+    fit_position_probe,
+    mean_baseline_px,
+    middle_wall_test,
+    probe_error_px,
+)
 from .train import (
     History,
     checkpoint_paths,
@@ -31,7 +39,7 @@ from .train import (
     save_checkpoint,
 )
 from .utils import get_device
-from .world_losses import WorldLossCoeffs, world_model_loss
+from .world_losses import WorldLossCoeffs, multistep_prediction_loss, world_model_loss
 
 
 @dataclass(frozen=True)
@@ -178,6 +186,118 @@ def probe_report(model: WorldModel, n_fit: int = 1000, n_test: int = 300, seed: 
             "baseline_px": mean_baseline_px(xy_fit, xy_test), "probe": probe}
 
 
+# -- a sharper predictor on frozen latents ----------------------------------------------------
+@dataclass(frozen=True)
+class RefitConfig:
+    """A new MLP predictor for a trained world model, fitted on its frozen latents.
+
+    Why: the GRU step learns the middle wall well far from the door but softly
+    within ~16 px of it, where a planner then pushes into the wall (README,
+    chapter 06). The encoder already knows where the door is; a predictor with
+    two hidden layers learns the sharp rule from the same latents.
+    """
+
+    hidden: int = 128  # width of the MLP's two hidden layers
+    n_trajectories: int = 40_000  # fresh data-policy trajectories, encoded once
+    steps: int = 16_000
+    batch_size: int = 1024  # rollout windows per step (latents only: cheap)
+    lr: float = 1e-3  # Adam
+    decay_fraction: float = 0.3  # the rate falls linearly to 0 over this share of the steps
+    rollout_steps: int = 8  # K, as in training
+    # Each imagined step is a zero action whose target is the unchanged latent with this
+    # probability: the data policy never stands still, but a planner at its goal must.
+    stay_probability: float = 0.15
+    seed: int = 4242  # of the trajectories, the new weights and the batches
+
+    def __post_init__(self):
+        if not 0 < self.decay_fraction <= 1 or not 0 <= self.stay_probability < 1:
+            raise ValueError("need 0 < decay_fraction <= 1 and 0 <= stay_probability < 1, got "
+                             f"{self.decay_fraction} and {self.stay_probability}")
+
+
+def windows_with_stays(latents: torch.Tensor, actions: torch.Tensor, index: torch.Tensor,
+                       start: torch.Tensor, stay: torch.Tensor):
+    """Rollout windows of recorded latents with still steps spliced in.
+
+    ``latents (N, T+1, D)``, ``actions (N, T, A)``; window ``b`` begins at frame
+    ``start[b]`` of trajectory ``index[b]`` and has ``K = stay.shape[1]`` steps.
+    Where ``stay[b, k]`` the action is zero and the target repeats the previous
+    frame; elsewhere the trajectory's next action and frame follow. Needs
+    ``start + K <= T``. Returns ``z0 (B, D)``, ``actions (B, K, A)``, ``targets (B, K, D)``.
+    """
+    moves = (~stay).long()
+    frame = start[:, None] + moves.cumsum(1)  # the frame reached after each step
+    taken = actions[index[:, None], (frame - 1).clamp_min(0)] * moves[..., None]
+    return latents[index, start], taken, latents[index[:, None], frame]
+
+
+def refit_predictor(model: WorldModel, config: RefitConfig = RefitConfig(),
+                    progress: bool = True) -> tuple[WorldModel, History]:
+    """``model`` with a new MLP predictor and action encoder fitted on its frozen latents.
+
+    The encoder (so the planning energy) and the inverse-dynamics head are
+    kept. The loss is the training loss's K-step rollout error
+    (:func:`~ebjepa_tutorial.world_losses.multistep_prediction_loss`) on
+    :func:`windows_with_stays`; the targets are fixed, so no regulariser is
+    needed. Returns ``(new model in eval mode, history)``.
+    """
+    data = generate_trajectories(config.n_trajectories, seed=config.seed)
+    latents = encode_trajectories(model, data, batch_size=200)[0].view(len(data), -1,
+                                                                       model.latent_dim)
+    torch.manual_seed(config.seed)
+    new = WorldModel(replace(model.config, predictor="mlp", predictor_hidden=config.hidden))
+    new.load_state_dict({name: value for name, value in model.state_dict().items()
+                         if not name.startswith(("predictor.", "action_encoder.", "_extra"))},
+                        strict=False)
+    new.requires_grad_(False)
+    trained = [*new.predictor.parameters(), *new.action_encoder.parameters()]
+    for parameter in trained:
+        parameter.requires_grad_(True)
+    optimizer = torch.optim.Adam(trained, lr=config.lr)
+    decay = config.decay_fraction * config.steps
+    scheduler = torch.optim.lr_scheduler.LambdaLR(
+        optimizer, lambda step: min(1.0, (config.steps - step) / decay))
+    k, last_start = config.rollout_steps, data.actions.shape[1] - config.rollout_steps
+
+    def batch(step: int):
+        generator = torch.Generator().manual_seed(config.seed * 1_000_003 + step)
+        index = torch.randint(0, len(data), (config.batch_size,), generator=generator)
+        start = torch.randint(0, last_start + 1, (config.batch_size,), generator=generator)
+        stay = torch.rand(config.batch_size, k, generator=generator) < config.stay_probability
+        return windows_with_stays(latents, data.actions, index, start, stay)
+
+    def loss(window):
+        z0, actions, targets = window
+        sequence = torch.cat([z0[:, None], targets], dim=1)
+        return multistep_prediction_loss(new.predict, sequence, actions, k), {}
+
+    history = fit(new, optimizer, loss, batch, config.steps, scheduler=scheduler, log_every=50,
+                  desc="predictor refit", progress=progress)
+    return new.eval(), history
+
+
+def refit_config_dict(config: RefitConfig, base: WorldTrainConfig) -> dict:
+    """What a refitted model's checkpoint stores: the refit and the base model's training."""
+    return {"refit": asdict(config), "base": config_dict(base)}
+
+
+def refit_or_load(model: WorldModel, base: WorldTrainConfig, config: RefitConfig,
+                  name: str) -> WorldModel:
+    """``model`` (trained with ``base``) with its predictor refitted by ``config``: loaded
+    from ``checkpoints/<name>.pt`` or the cache if one was saved for exactly these, else
+    refitted and saved to the cache. Returns the new model in eval mode."""
+    refitted = WorldModel(replace(model.config, predictor="mlp", predictor_hidden=config.hidden))
+    cache_path, shipped = checkpoint_paths(name)
+
+    def refit() -> History:
+        new, history = refit_predictor(model, config)
+        refitted.load_state_dict(new.state_dict())
+        return history
+
+    load_or_train(cache_path, refitted, refit, refit_config_dict(config, base), shipped)
+    return refitted.eval()
+
+
 ABLATABLE_TERMS = ("variance", "covariance", "temporal", "inverse_dynamics")
 ABLATION_SUFFIXES = {"variance": "no_variance", "covariance": "no_covariance",
                      "temporal": "no_temporal", "inverse_dynamics": "no_idm"}  # file names
@@ -211,22 +331,35 @@ def with_coeffs(config: WorldTrainConfig, pairs: list[str]) -> WorldTrainConfig:
 def config_dict(config: WorldTrainConfig) -> dict:
     """A plain dict of the config (stored in checkpoints to recognise a matching run).
 
-    ``decay_steps`` is left out when it is 0: the runs saved before it existed
-    (the shipped checkpoints among them) had a constant learning rate.
+    ``decay_steps`` is left out when it is 0, and the predictor's fields when
+    it is the GRU: the runs saved before they existed (the shipped checkpoints
+    among them) had a constant learning rate and a GRU.
     """
     stored = asdict(config)
     if stored["decay_steps"] == 0:
         del stored["decay_steps"]
+    if stored["model"]["predictor"] == "gru":
+        del stored["model"]["predictor"], stored["model"]["predictor_hidden"]
     return stored
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Train a world model at a scale and save it: the documented command for the checkpoint."""
+    """Train a world model at a scale and save it: the documented command for the checkpoint.
+
+    ``--refit TRAINED.pt`` instead refits that model's predictor
+    (:func:`refit_predictor`); ``--steps``, ``--trajectories`` and ``--seed`` then
+    set the refit's, and the training-only options are refused.
+    """
     parser = argparse.ArgumentParser(description="Train the Two Rooms world model.")
     parser.add_argument("--out", required=True, help="where to write the trained model")
-    parser.add_argument("--steps", type=int, default=WorldTrainConfig.steps)
-    parser.add_argument("--trajectories", type=int, default=WorldTrainConfig.n_trajectories,
-                        help="size of the offline data set (the paper: 100,000)")
+    parser.add_argument("--refit", metavar="TRAINED.pt",
+                        help="fit a new MLP predictor on this trained model's frozen latents")
+    parser.add_argument("--steps", type=int,
+                        help=f"default {WorldTrainConfig.steps} ({RefitConfig.steps} with --refit)")
+    parser.add_argument("--trajectories", type=int,
+                        help=f"size of the offline data set (the paper: 100,000); default "
+                             f"{WorldTrainConfig.n_trajectories} "
+                             f"({RefitConfig.n_trajectories} with --refit)")
     parser.add_argument("--decay-steps", type=int, default=0,
                         help="lower the learning rate linearly to 0 over the last N steps")
     parser.add_argument("--without", action="append", default=[], choices=ABLATABLE_TERMS,
@@ -235,13 +368,20 @@ def main(argv: list[str] | None = None) -> None:
                         help="the same as --without inverse_dynamics")
     parser.add_argument("--coeff", action="append", default=[], metavar="NAME=VALUE",
                         help="set one loss weight, e.g. covariance=1 (repeatable)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int,
+                        help=f"default {WorldTrainConfig.seed} ({RefitConfig.seed} with --refit)")
     args = parser.parse_args(argv)
+    given = {name: value for name, value in (("steps", args.steps), ("seed", args.seed),
+                                              ("n_trajectories", args.trajectories))
+             if value is not None}
+    if args.refit:
+        if args.without or args.no_inverse_dynamics or args.coeff or args.decay_steps:
+            parser.error("--refit keeps the trained model's encoder: --without, "
+                         "--no-inverse-dynamics, --coeff and --decay-steps do not apply")
+        return refit_main(args.refit, args.out, RefitConfig(**given))
     without = args.without + (["inverse_dynamics"] if args.no_inverse_dynamics else [])
     try:
-        config = with_coeffs(WorldTrainConfig(steps=args.steps, seed=args.seed,
-                                              n_trajectories=args.trajectories,
-                                              decay_steps=args.decay_steps), args.coeff)
+        config = with_coeffs(WorldTrainConfig(decay_steps=args.decay_steps, **given), args.coeff)
     except ValueError as error:
         parser.error(str(error))  # a usage message, not a traceback
     config = ablation_config(config, *without)
@@ -253,6 +393,23 @@ def main(argv: list[str] | None = None) -> None:
     partial.unlink()
     print(f"saved {args.out}: probe error {report['probe_px']:.2f} px "
           f"(mean-position baseline {report['baseline_px']:.2f} px)")
+
+
+def refit_main(trained: str, out: str, config: RefitConfig) -> None:
+    """Refit the predictor of the model saved at ``trained``; save it to ``out`` with the
+    trained model's stored config (``"base"``), and print the wall test before and after."""
+    model = load_world_model(trained)
+    new, history = refit_predictor(model, config)
+    walls = generate_trajectories(400, seed=778)  # notebook 06's wall test
+    with torch.no_grad():
+        before, after = middle_wall_test(model, walls), middle_wall_test(new, walls)
+    base = load_checkpoint(trained)
+    save_checkpoint(out, model=new.state_dict(), history=dict(history),
+                    config={"refit": asdict(config), "base": base["config"]},
+                    probe_px=base.get("probe_px"))
+    print(f"saved {out}: the wall test stops {after['stopped']:.0%} of the wall's steps and "
+          f"moves {after['moved']:.0%} of the free ones (before: {before['stopped']:.0%} and "
+          f"{before['moved']:.0%})")
 
 
 if __name__ == "__main__":

@@ -370,3 +370,90 @@ def test_a_decayed_run_trains_and_saves_its_schedule(tmp_path):
     assert history["step"] == [0, 2] and all(map(math.isfinite, history["loss"]))  # every 10th
     state = torch.load(partial, weights_only=False)
     assert state["step"] == 3 and state["scheduler"]["last_epoch"] == 3
+
+
+# -- the MLP predictor and its refit on frozen latents -------------------------------------
+def test_mlp_predictor_starts_as_the_identity_and_travels_in_checkpoints(data):
+    trajectories, frames = data
+    torch.manual_seed(0)
+    model = WorldModel(replace(TINY, predictor="mlp", predictor_hidden=12)).fit_input_stats(frames)
+    z = model.encode(frames[:, 0])
+    assert torch.equal(model.predict(z, trajectories.actions[:, 0]), z)
+    loaded = WorldModel.from_state_dict(model.state_dict())
+    assert loaded.config.predictor == "mlp" and loaded.predictor.body[0].out_features == 12
+    with pytest.raises(ValueError, match="predictor: the checkpoint has 'mlp', this model has"):
+        tiny_model().load_state_dict(model.state_dict())
+    with pytest.raises(ValueError, match="predictor must be one of"):
+        WorldConfig(predictor="lstm")
+
+
+def test_checkpoints_from_before_the_predictor_field_load_as_grus(data):
+    state = tiny_model(data[1]).state_dict()
+    for name in ("predictor", "predictor_hidden"):
+        del state["_extra_state"]["config"][name]  # what the shipped GRU checkpoints hold
+    assert WorldModel.from_state_dict(state).config == TINY
+    tiny_model().load_state_dict(state)
+
+
+def test_windows_with_stays_splice_still_steps_by_hand():
+    from ebjepa_tutorial.world_training import windows_with_stays
+
+    latents = torch.arange(2 * 6, dtype=torch.float32).view(2, 6, 1)  # frame t of n: 6n + t
+    actions = torch.arange(2 * 5, dtype=torch.float32).view(2, 5, 1).repeat(1, 1, 2) + 100
+    index, start = torch.tensor([0, 1]), torch.tensor([0, 2])
+    stay = torch.tensor([[False, True, False], [True, True, False]])
+    z0, taken, targets = windows_with_stays(latents, actions, index, start, stay)
+    assert z0.squeeze(1).tolist() == [0, 8]
+    # trajectory 0: move (a_0 -> frame 1), stay (0 -> frame 1), move (a_1 -> frame 2)
+    # trajectory 1 from frame 2: stay, stay, move (a_2 -> frame 3)
+    assert targets.squeeze(-1).tolist() == [[1, 1, 2], [8, 8, 9]]
+    assert taken[..., 0].tolist() == [[100, 0, 101], [0, 0, 107]]
+
+
+def test_refit_predictor_keeps_the_encoder_and_fits_a_new_step():
+    from ebjepa_tutorial.models.world import WORLD_CONFIGS
+    from ebjepa_tutorial.world_training import RefitConfig, refit_predictor
+
+    torch.manual_seed(0)
+    old = WorldModel(WORLD_CONFIGS["ci"]).fit_input_stats(
+        generate_trajectories(8, seed=1).frames())
+    config = RefitConfig(hidden=16, n_trajectories=24, steps=100, batch_size=32, lr=1e-2)
+    new, history = refit_predictor(old, config, progress=False)
+    assert new.config == replace(old.config, predictor="mlp", predictor_hidden=16)
+    for name, value in old.state_dict().items():
+        if name.startswith(("encoder.", "inverse_dynamics.", "input_")):
+            assert torch.equal(new.state_dict()[name], value), name
+    assert len(history["loss"]) == 3  # steps 0, 50 and the last
+    # 8-step rollouts on the refit's trajectories, no still steps: the old predictor is
+    # untrained (the identity), so the refit must beat "nothing moves"
+    trajectories = generate_trajectories(24, seed=config.seed)
+    latents = encode_trajectories(old, trajectories)[0].view(24, 17, -1)
+    z0, actions, targets = latents[:, 0], trajectories.actions[:, :8], latents[:, 1:9]
+    with torch.no_grad():
+        still, fitted = ((m.rollout(z0, actions) - targets).pow(2).mean() for m in (old, new))
+    assert fitted < 0.75 * still
+    with pytest.raises(ValueError, match="stay_probability"):
+        RefitConfig(stay_probability=1.0)
+
+
+def test_refit_command_saves_the_base_config_and_refuses_training_options(tmp_path, capsys):
+    from ebjepa_tutorial import world_training
+    from ebjepa_tutorial.models.world import WORLD_CONFIGS
+    from ebjepa_tutorial.train import save_checkpoint
+
+    torch.manual_seed(0)
+    old = WorldModel(WORLD_CONFIGS["ci"]).fit_input_stats(
+        generate_trajectories(8, seed=1).frames())
+    trained, out = tmp_path / "trained.pt", tmp_path / "refit.pt"
+    save_checkpoint(trained, model=old.state_dict(), config={"steps": 7}, probe_px=3.0)
+    world_training.main(["--refit", str(trained), "--out", str(out), "--steps", "2",
+                         "--trajectories", "16", "--seed", "5"])
+    state = torch.load(out, weights_only=False)
+    assert state["config"]["base"] == {"steps": 7} and state["probe_px"] == 3.0
+    assert state["config"]["refit"] == {**vars(world_training.RefitConfig(
+        steps=2, n_trajectories=16, seed=5))}
+    assert world_training.load_world_model(out).config.predictor == "mlp"
+    assert "the wall test stops" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        world_training.main(["--refit", str(trained), "--out", str(out), "--coeff", "temporal=1"])
+    assert "do not apply" in capsys.readouterr().err

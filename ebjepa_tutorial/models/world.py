@@ -19,6 +19,9 @@ makes to imagine ``B`` futures of ``H`` steps.
 - Predictor: a ``GRUCell`` whose hidden state is the latent; the step is
   residual, ``z' = z + W GRU(e(a), z)`` with ``W`` zero at initialisation, so
   an untrained predictor is the identity (one step moves the dot <= 1.8 px).
+  ``predictor="mlp"`` swaps it for ``z' = z + W MLP([z, e(a)])`` with two
+  hidden layers: sharper where the wall ends beside the door, refitted on a
+  trained model's frozen latents (:func:`~ebjepa_tutorial.world_training.refit_predictor`).
 - Inverse dynamics: an MLP on ``[z_t, z_{t+1}]`` -> the action ``(2,)``.
 
 The architecture lives in :class:`WorldConfig`, which is saved in every
@@ -34,6 +37,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+PREDICTORS = ("gru", "mlp")  # the kinds of WorldConfig.predictor
+
 
 @dataclass(frozen=True)
 class WorldConfig:
@@ -46,6 +51,8 @@ class WorldConfig:
     layer_norm: bool = True  # LayerNorm on the latent
     action_dim: int = 2
     action_embed_dim: int = 32  # width of the action MLP's output
+    predictor: str = "gru"  # "gru" (GRUPredictor) or "mlp" (MLPPredictor)
+    predictor_hidden: int = 128  # width of the MLP predictor's two hidden layers
     idm_hidden: int = 128  # hidden width of the inverse-dynamics MLP
     in_channels: int = 2
     image_size: int = 65
@@ -58,6 +65,9 @@ class WorldConfig:
             raise ValueError(f"input_size must be in 1..{self.image_size}, got {self.input_size}")
         if self.latent_dim < 2:
             raise ValueError(f"latent_dim must be >= 2, got {self.latent_dim}")
+        if self.predictor not in PREDICTORS or self.predictor_hidden < 1:
+            raise ValueError(f"predictor must be one of {PREDICTORS} with predictor_hidden >= 1, "
+                             f"got {self.predictor!r} and {self.predictor_hidden}")
 
 
 # ``full``: the paper's IMPALA widths 16-32-32, two blocks, full resolution. The
@@ -127,6 +137,33 @@ class GRUPredictor(nn.Module):
         return z + self.out(self.cell(action_embedding, z))
 
 
+class MLPPredictor(nn.Module):
+    """One step ``z' = z + W MLP([z, e])``: two GELU layers of ``hidden`` on latent and action.
+
+    Latents ``(N, D)``, action embeddings ``(N, E)`` -> ``(N, D)``. ``W`` starts
+    at zero, as :class:`GRUPredictor`'s, so an untrained step is the identity.
+    """
+
+    def __init__(self, latent_dim: int, action_embed_dim: int, hidden: int):
+        super().__init__()
+        self.body = nn.Sequential(nn.Linear(latent_dim + action_embed_dim, hidden), nn.GELU(),
+                                  nn.Linear(hidden, hidden), nn.GELU())
+        self.out = nn.Linear(hidden, latent_dim)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+
+    def forward(self, z: torch.Tensor, action_embedding: torch.Tensor) -> torch.Tensor:
+        return z + self.out(self.body(torch.cat([z, action_embedding], dim=-1)))
+
+
+
+def make_predictor(config: WorldConfig) -> nn.Module:
+    """The one-step predictor ``config.predictor`` names."""
+    if config.predictor == "mlp":
+        return MLPPredictor(config.latent_dim, config.action_embed_dim, config.predictor_hidden)
+    return GRUPredictor(config.latent_dim, config.action_embed_dim)
+
+
 def mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
     """Linear-ReLU-Linear: ``(N, in_dim) -> (N, out_dim)``."""
     return nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, out_dim))
@@ -144,7 +181,7 @@ class WorldModel(nn.Module):
         self.encoder = ImpalaEncoder(config)
         self.action_encoder = mlp(config.action_dim, config.action_embed_dim,
                                   config.action_embed_dim)
-        self.predictor = GRUPredictor(config.latent_dim, config.action_embed_dim)
+        self.predictor = make_predictor(config)
         self.inverse_dynamics = mlp(2 * config.latent_dim, config.idm_hidden, config.action_dim)
 
     @property
@@ -263,12 +300,15 @@ class WorldModel(nn.Module):
 
 
 def check_compatible(saved: dict, config: WorldConfig) -> None:
-    """Raise a clear error if a checkpoint's config ``saved`` differs from ``config``."""
+    """Raise a clear error if a checkpoint's config ``saved`` differs from ``config``.
+
+    A field the checkpoint does not name (it predates the field) counts as its default.
+    """
     differences = [
-        f"{f.name}: the checkpoint has {saved.get(f.name)!r}, this model has "
+        f"{f.name}: the checkpoint has {saved.get(f.name, f.default)!r}, this model has "
         f"{getattr(config, f.name)!r}"
         for f in fields(config)
-        if tuple_if_list(saved.get(f.name)) != getattr(config, f.name)
+        if tuple_if_list(saved.get(f.name, f.default)) != getattr(config, f.name)
     ]
     if differences:
         raise ValueError(
