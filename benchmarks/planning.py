@@ -1,6 +1,6 @@
 """Planning benchmark: success rate of a planner with a world-model checkpoint in Two Rooms.
 
-Run: ``python benchmarks/planning.py [--checkpoint checkpoints/world_model_class_long.pt]
+Run: ``python benchmarks/planning.py [--checkpoint checkpoints/world_model_class_long20k_mlp.pt]
 [--method mppi|cem] [--cost sum|last] [--episodes 100] [--batch 10] [--threads 2]``.
 
 Protocol: one episode per seed ``first_seed .. first_seed + episodes - 1``
@@ -31,10 +31,11 @@ def _yes_no(text: str) -> bool:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--checkpoint", default="checkpoints/world_model_class_long.pt",
-                        help="world model (chapter 05's 1,000-step run: world_model_class.pt; "
-                             "twice the long run, the paper's amount of training: "
-                             "world_model_class_long20k.pt)")
+    parser.add_argument("--checkpoint", default="checkpoints/world_model_class_long20k_mlp.pt",
+                        help="world model (default: the paper's amount of training with its "
+                             "predictor refitted as an MLP; its GRU original: "
+                             "world_model_class_long20k.pt; half as long: "
+                             "world_model_class_long.pt; chapter 05's: world_model_class.pt)")
     parser.add_argument("--episodes", type=int, default=100)
     parser.add_argument("--batch", type=int, default=10,
                         help="episodes planned at once (small batches stay in a CPU cache)")

@@ -194,7 +194,7 @@ PRESETS: dict[str, dict[str, object]] = {
                              refit=RefitConfig(hidden=32, n_trajectories=200, steps=100,
                                                batch_size=128)),
         # the shipped checkpoints. 100 + 6 x 15 episodes took 22 min on a loaded 2-core machine,
-        # so a class plays 40 x 2 models + 20 x 4 long ablations + 8 x 10: 547 s on 2 idle
+        # so a class plays 40 x 2 models + 20 x 4 long ablations + 8 x 10: 491 s on 2 idle
         # cores (benchmarks/planning.py measures 100 per model for the README)
         "class": PlanningPreset(WorldTrainConfig(), PlannerConfig(), n_episodes=40, n_compare=10,
                                 long_world=_WORLD_CLASS_LONG, long_ablations=ABLATABLE_TERMS,

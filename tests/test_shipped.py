@@ -49,6 +49,16 @@ def test_paper_length_world_model_is_the_long_run_continued():
     assert stored_config("world_model_class_long20k") == world_training.config_dict(doubled)
 
 
+def test_refitted_model_matches_notebook_06():
+    # the paper-length model with its predictor refitted (world_training --refit), which
+    # notebook 06 loads through refit_or_load and benchmarks/planning.py plays by default
+    cfg = preset("06", "class")
+    assert cfg.refit_base == replace(cfg.long_world, steps=2 * cfg.long_world.steps)
+    assert cfg.refit == world_training.RefitConfig()  # the command's defaults
+    assert stored_config("world_model_class_long20k_mlp") == world_training.refit_config_dict(
+        cfg.refit, cfg.refit_base)
+
+
 @pytest.mark.parametrize("term", preset("06", "class").long_ablations)
 def test_long_ablations_match_notebook_06(term):
     config = world_training.ablation_config(preset("06", "class").long_world, term)
