@@ -1,7 +1,7 @@
 """World model (notebooks 04-05): shapes, loss terms by hand, the position probe, bad input."""
 
 import math
-from dataclasses import replace
+from dataclasses import asdict, replace
 
 import pytest
 import torch
@@ -450,8 +450,8 @@ def test_refit_command_saves_the_base_config_and_refuses_training_options(tmp_pa
                          "--trajectories", "16", "--seed", "5"])
     state = torch.load(out, weights_only=False)
     assert state["config"]["base"] == {"steps": 7} and state["probe_px"] == 3.0
-    assert state["config"]["refit"] == {**vars(world_training.RefitConfig(
-        steps=2, n_trajectories=16, seed=5))}
+    assert state["config"]["refit"] == asdict(world_training.RefitConfig(
+        steps=2, n_trajectories=16, seed=5))
     assert world_training.load_world_model(out).config.predictor == "mlp"
     assert "the wall test stops" in capsys.readouterr().out
     with pytest.raises(SystemExit):
