@@ -231,6 +231,11 @@ def windows_with_stays(latents: torch.Tensor, actions: torch.Tensor, index: torc
     return latents[index, start], taken, latents[index[:, None], frame]
 
 
+def refitted_model(model: WorldModel, config: RefitConfig) -> WorldModel:
+    """A fresh model shaped like ``model`` but with ``config``'s MLP predictor."""
+    return WorldModel(replace(model.config, predictor="mlp", predictor_hidden=config.hidden))
+
+
 def refit_predictor(model: WorldModel, config: RefitConfig = RefitConfig(),
                     progress: bool = True) -> tuple[WorldModel, History]:
     """``model`` with a new MLP predictor and action encoder fitted on its frozen latents.
@@ -245,15 +250,13 @@ def refit_predictor(model: WorldModel, config: RefitConfig = RefitConfig(),
     latents = encode_trajectories(model, data, batch_size=200)[0].view(len(data), -1,
                                                                        model.latent_dim)
     torch.manual_seed(config.seed)
-    new = WorldModel(replace(model.config, predictor="mlp", predictor_hidden=config.hidden))
+    new = refitted_model(model, config)
     new.load_state_dict({name: value for name, value in model.state_dict().items()
                          if not name.startswith(("predictor.", "action_encoder.", "_extra"))},
                         strict=False)
-    new.requires_grad_(False)
-    trained = [*new.predictor.parameters(), *new.action_encoder.parameters()]
-    for parameter in trained:
-        parameter.requires_grad_(True)
-    optimizer = torch.optim.Adam(trained, lr=config.lr)
+    # the loss reaches only these: the latents are precomputed
+    optimizer = torch.optim.Adam([*new.predictor.parameters(), *new.action_encoder.parameters()],
+                                 lr=config.lr)
     decay = config.decay_fraction * config.steps
     scheduler = torch.optim.lr_scheduler.LambdaLR(
         optimizer, lambda step: min(1.0, (config.steps - step) / decay))
@@ -286,7 +289,7 @@ def refit_or_load(model: WorldModel, base: WorldTrainConfig, config: RefitConfig
     """``model`` (trained with ``base``) with its predictor refitted by ``config``: loaded
     from ``checkpoints/<name>.pt`` or the cache if one was saved for exactly these, else
     refitted and saved to the cache. Returns the new model in eval mode."""
-    refitted = WorldModel(replace(model.config, predictor="mlp", predictor_hidden=config.hidden))
+    refitted = refitted_model(model, config)
     cache_path, shipped = checkpoint_paths(name)
 
     def refit() -> History:

@@ -156,7 +156,6 @@ class MLPPredictor(nn.Module):
         return z + self.out(self.body(torch.cat([z, action_embedding], dim=-1)))
 
 
-
 def make_predictor(config: WorldConfig) -> nn.Module:
     """The one-step predictor ``config.predictor`` names."""
     if config.predictor == "mlp":
