@@ -10,8 +10,10 @@ looks inside the data directory (see ``paths.data_dir``), in this order, for:
    ``cifar10-jpeg/``, or ``<split>/<class>/`` directly in the data directory);
 4. such a tree packed as ``cifar10*.tar.gz`` (for example ``cifar10-jpeg.tar.gz``);
 
-and downloads the official archive only when none is found. The decoded
-arrays are cached, so only the first load of each split is slow.
+and downloads the official archive only when none is found. An official
+archive with the wrong MD5 is replaced by a fresh download when allowed, else
+skipped, with a warning, for the next copy found. The decoded arrays are
+cached, so only the first load of each split is slow.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import io
 import os
 import pickle
 import tarfile
+import warnings
 import zlib
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
@@ -38,9 +41,9 @@ from .paths import (
     check_split,
     data_dir,
     download,
-    md5sum,
     read_cache,
     source_key,
+    verify_md5,
     write_cache,
 )
 
@@ -69,19 +72,24 @@ def _batch_names(split: str) -> list[str]:
     return [f"data_batch_{i}" for i in range(1, 6)] if split == "train" else ["test_batch"]
 
 
-def find_cifar10(directory: Path, split: str) -> Source | None:
-    """The first CIFAR-10 source for ``split`` in ``directory`` (search order above), or None."""
-    for folder in (directory / BATCHES_DIR, directory):
-        if all((folder / name).is_file() for name in _batch_names(split)):
-            return Source("batches", folder)
+def cifar10_sources(directory: Path, split: str) -> list[Source]:
+    """Every CIFAR-10 source for ``split`` in ``directory``, best first (search order above)."""
+    sources = [Source("batches", folder) for folder in (directory / BATCHES_DIR, directory)
+               if all((folder / name).is_file() for name in _batch_names(split))]  # fmt: skip
     if (directory / TARBALL).is_file():
-        return Source("official", directory / TARBALL)
+        sources.append(Source("official", directory / TARBALL))
     for name in TREE_DIRS:
         split_dir = directory / name / split
         if any((split_dir / c).is_dir() for c in CIFAR10_CLASSES):
-            return Source("tree", split_dir)
+            sources.append(Source("tree", split_dir))
     packed = sorted([*directory.glob("cifar10*.tar.gz"), *directory.glob("cifar10*.tgz")])
-    return Source("packed", packed[0]) if packed else None
+    return sources + [Source("packed", path) for path in packed]
+
+
+def find_cifar10(directory: Path, split: str) -> Source | None:
+    """The first CIFAR-10 source for ``split`` in ``directory`` (search order above), or None."""
+    sources = cifar10_sources(directory, split)
+    return sources[0] if sources else None
 
 
 def _missing_message(directory: Path, split: str) -> str:
@@ -94,8 +102,16 @@ def _missing_message(directory: Path, split: str) -> str:
         "To get it: call load_cifar10(download=True) on a machine with internet, or download\n"
         f"  {CIFAR10_URL} (MD5 {CIFAR10_MD5})\n"
         f"and put it at {directory / TARBALL}; or set EBJEPA_DATA (or pass root=...) "
-        "to a folder that holds one of the above."
+        "to a folder that holds one of the above." + _set_aside_note(directory / TARBALL)
     )
+
+
+def _set_aside_note(path: Path) -> str:
+    """A line about ``<path>.bad``, a damaged copy that an earlier run renamed, if it is there."""
+    bad = path.with_name(path.name + ".bad")
+    if not bad.is_file():
+        return ""
+    return f"\n({bad} is a damaged copy set aside by an earlier run: delete it.)"
 
 
 def _download_official(directory: Path, split: str) -> Path:
@@ -104,19 +120,6 @@ def _download_official(directory: Path, split: str) -> Path:
     except DownloadError as err:
         message = _missing_message(directory, split)
         raise DataNotFoundError(f"{message}\n\nThe download failed: {err}") from err
-
-
-def _checked_tarball(path: Path, split: str, download: bool) -> Path:
-    """``path`` if its MD5 is the official one; else a fresh download, or CorruptDataError."""
-    if md5sum(path) == CIFAR10_MD5:
-        return path
-    if download:
-        print(f"{path} is damaged or incomplete (wrong MD5): downloading a fresh copy.")
-        return _download_official(path.parent, split)
-    raise CorruptDataError(
-        f"{path} has the wrong MD5 (expected {CIFAR10_MD5}): it is damaged or incomplete. "
-        f"Delete it and download {CIFAR10_URL} again (or call with download=True)."
-    )
 
 
 _SAFE_GLOBALS = {  # all a CIFAR-10 batch pickle refers to; anything else could run code
@@ -261,6 +264,25 @@ def _key_paths(source: Source, split: str) -> list[Path]:
     return [source.path]
 
 
+def _cache_name(source: Source, split: str) -> str:
+    return f"cifar10-{split}-{source.kind}-{source_key(*_key_paths(source, split))}"
+
+
+def _load_source(source: Source, split: str, download: bool) -> tuple[np.ndarray, ...] | str:
+    """The decoded arrays of ``source``, cached; or, for an official archive with the
+    wrong MD5 that could not be replaced, the message saying so."""
+    arrays = read_cache(_cache_name(source, split))
+    if arrays is not None:
+        return arrays
+    if source.kind == "official":
+        problem = verify_md5(source.path, CIFAR10_MD5, [CIFAR10_URL], download)
+        if problem is not None:
+            return problem
+    arrays = _read_source(source, split)
+    write_cache(_cache_name(source, split), *arrays)  # after a re-download the key is new
+    return arrays
+
+
 def load_cifar10(
     split: str = "train", root: str | os.PathLike | None = None, download: bool = True
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -273,17 +295,22 @@ def load_cifar10(
     """
     check_split(split, SPLITS)
     directory = data_dir(root)
-    source = find_cifar10(directory, split)
-    if source is None:
+    sources = cifar10_sources(directory, split)
+    if not sources:
         if not download:
             raise DataNotFoundError(_missing_message(directory, split))
-        source = Source("official", _download_official(directory, split))
-    arrays = read_cache(f"cifar10-{split}-{source.kind}-{source_key(*_key_paths(source, split))}")
-    if arrays is None:
-        if source.kind == "official":
-            source = Source("official", _checked_tarball(source.path, split, download))
-        arrays = _read_source(source, split)
-        key = source_key(*_key_paths(source, split))  # after a re-download the file is new
-        write_cache(f"cifar10-{split}-{source.kind}-{key}", *arrays)
-    images, labels = arrays
-    return torch.from_numpy(images), torch.from_numpy(labels)
+        sources = [Source("official", _download_official(directory, split))]
+    problems = []
+    for source in sources:
+        arrays = _load_source(source, split, download)
+        if isinstance(arrays, str):
+            problems.append(arrays)
+            continue
+        if problems:
+            warnings.warn(f"{' '.join(problems)} Reading {source.path} instead.", stacklevel=2)
+        images, labels = arrays
+        return torch.from_numpy(images), torch.from_numpy(labels)
+    raise CorruptDataError(
+        "\n".join(problems) + f"\nNo other copy of CIFAR-10 ({split} split) is in {directory}; "
+        "put a good one there (see data/README.md)."
+    )

@@ -8,14 +8,18 @@ dimension, then the values row by row.
 
 :func:`load_mnist` looks for the two files of a split, ``.gz`` or uncompressed,
 in ``<data>/mnist/``, ``<data>/MNIST/raw/`` (torchvision's layout), then
-``<data>/`` itself, and downloads them into ``<data>/mnist/`` when absent.
+``<data>/`` itself, and downloads them into ``<data>/mnist/`` when absent. An
+official ``.gz`` with the wrong MD5 is replaced by a fresh download when
+allowed, else skipped, with a warning, for the next copy found.
 """
 
 from __future__ import annotations
 
 import gzip
+import itertools
 import os
 import struct
+import warnings
 import zlib
 from pathlib import Path
 
@@ -29,9 +33,9 @@ from .paths import (
     check_split,
     data_dir,
     download,
-    md5sum,
     read_cache,
     source_key,
+    verify_md5,
     write_cache,
 )
 
@@ -56,16 +60,24 @@ def _folders(directory: Path) -> list[Path]:
     return [directory / "mnist", directory / "MNIST" / "raw", directory]
 
 
+def mnist_sources(directory: Path, split: str) -> list[tuple[Path, Path]]:
+    """Every (images, labels) pair of IDX files of ``split`` under ``directory``, best first.
+
+    Both files of a pair come from the same folder (Fashion-MNIST uses the same
+    names, so mixing folders could mix datasets); ``.gz`` comes before uncompressed.
+    """
+    pairs = []
+    for folder in _folders(directory):
+        forms = [[p for p in (folder / f"{stem}.gz", folder / stem) if p.is_file()]
+                 for stem in MNIST_FILES[split]]  # fmt: skip
+        pairs += itertools.product(*forms)
+    return pairs
+
+
 def find_mnist(directory: Path, split: str) -> tuple[Path, Path] | None:
     """Paths of the (images, labels) IDX files of ``split`` under ``directory``, or None."""
-    for folder in _folders(directory):
-        found = []
-        for stem in MNIST_FILES[split]:
-            candidates = [folder / f"{stem}.gz", folder / stem]
-            found += [p for p in candidates if p.is_file()][:1]
-        if len(found) == 2:
-            return found[0], found[1]
-    return None
+    pairs = mnist_sources(directory, split)
+    return pairs[0] if pairs else None
 
 
 def read_idx(path: Path) -> np.ndarray:
@@ -101,39 +113,43 @@ def _missing_message(directory: Path, split: str) -> str:
         f"{urls}\ninto {directory / 'mnist'}/, or set EBJEPA_DATA (or pass root=...) "
         "to a folder that holds them."
     )
+    bad = [p for folder in _folders(directory) for p in sorted(folder.glob("*-ubyte*.bad"))]
+    if bad:
+        names = ", ".join(map(str, bad))
+        message += f"\n(Damaged copies set aside by an earlier run, to delete: {names}.)"
     other = "test" if split == "train" else "train"
     if (found := find_mnist(directory, other)) is not None:
         message += f"\n(Only the {other} split is there: {found[0].parent}.)"
     return message
 
 
-def _download(directory: Path, split: str, folder: Path | None = None) -> tuple[Path, Path]:
-    """Fetch both files of ``split`` into ``folder`` (default ``<data>/mnist``), MD5-checked."""
-    folder = folder if folder is not None else directory / "mnist"
+def _urls(name: str) -> list[str]:
+    return [mirror + name for mirror in MNIST_MIRRORS]
+
+
+def _download(directory: Path, split: str) -> tuple[Path, Path]:
+    """Fetch both files of ``split`` into ``<data>/mnist``, MD5-checked."""
     paths = []
     for stem in MNIST_FILES[split]:
         name = f"{stem}.gz"
         try:
-            urls = [mirror + name for mirror in MNIST_MIRRORS]
-            paths.append(download(urls, folder / name, MNIST_MD5[name]))
+            paths.append(download(_urls(name), directory / "mnist" / name, MNIST_MD5[name]))
         except DownloadError as err:
             message = _missing_message(directory, split)
             raise DataNotFoundError(f"{message}\n\nThe download failed: {err}") from err
     return paths[0], paths[1]
 
 
-def _checked(files: tuple[Path, Path], directory: Path, split: str, download: bool):
-    """``files`` if every official ``.gz`` among them has its MD5; else re-download or raise."""
-    bad = [p for p in files if p.name in MNIST_MD5 and md5sum(p) != MNIST_MD5[p.name]]
-    if not bad:
-        return files
-    if download:
-        print(f"{', '.join(map(str, bad))}: wrong MD5, downloading fresh copies.")
-        return _download(directory, split, folder=files[0].parent)
-    raise CorruptDataError(
-        f"{bad[0]} has the wrong MD5 (expected {MNIST_MD5[bad[0].name]}): it is damaged or "
-        "incomplete. Delete it and download it again (or call with download=True)."
-    )
+def _damaged(files: tuple[Path, Path], download: bool) -> dict[Path, str]:
+    """The official ``.gz`` files among ``files`` with the wrong MD5 that could not be
+    replaced (see ``paths.verify_md5``), each with the message saying so."""
+    problems = {}
+    for path in files:
+        if path.name in MNIST_MD5:
+            problem = verify_md5(path, MNIST_MD5[path.name], _urls(path.name), download)
+            if problem is not None:
+                problems[path] = problem
+    return problems
 
 
 def _read_split(images_path: Path, labels_path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -157,15 +173,28 @@ def load_mnist(
     """
     check_split(split, SPLITS)
     directory = data_dir(root)
-    files = find_mnist(directory, split)
-    if files is None:
+    pairs = mnist_sources(directory, split)
+    if not pairs:
         if not download:
             raise DataNotFoundError(_missing_message(directory, split))
-        files = _download(directory, split)
-    arrays = read_cache(f"mnist-{split}-{source_key(*files)}")
-    if arrays is None:
-        files = _checked(files, directory, split, download)
-        arrays = _read_split(*files)
-        write_cache(f"mnist-{split}-{source_key(*files)}", *arrays)
-    images, labels = arrays
-    return torch.from_numpy(images), torch.from_numpy(labels)
+        pairs = [_download(directory, split)]
+    problems: dict[Path, str] = {}
+    for files in pairs:
+        if problems.keys() & set(files):  # a damaged file (perhaps renamed since) in this pair
+            continue
+        arrays = read_cache(f"mnist-{split}-{source_key(*files)}")
+        if arrays is None:
+            if damaged := _damaged(files, download):
+                problems |= damaged
+                continue
+            arrays = _read_split(*files)
+            write_cache(f"mnist-{split}-{source_key(*files)}", *arrays)  # after any re-download
+        if problems:
+            others = ", ".join(map(str, files))
+            warnings.warn(f"{' '.join(problems.values())} Reading {others} instead.", stacklevel=2)
+        images, labels = arrays
+        return torch.from_numpy(images), torch.from_numpy(labels)
+    raise CorruptDataError(
+        "\n".join(problems.values()) + f"\nNo other copy of the MNIST {split} files is under "
+        f"{directory}; put good ones in {directory / 'mnist'} (see data/README.md)."
+    )

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ebjepa_tutorial.data.paths import DataNotFoundError, cache_dir, data_dir
+from ebjepa_tutorial.data.paths import CorruptDataError, DataNotFoundError, cache_dir, data_dir
 from ebjepa_tutorial.utils import make_generator
 
 FRAME_SIZE = 64
@@ -275,7 +275,13 @@ def load_moving_mnist_file(path: str | Path | None = None, n_clips: int | None =
             f"{MOVING_MNIST_URL} and save it there (or pass its path), or make clips "
             "with generate_moving_mnist, which also gives digit positions."
         )
-    seq = np.load(found[0], mmap_mode="r")
+    try:
+        seq = np.load(found[0], mmap_mode="r")
+    except (OSError, ValueError, EOFError) as err:  # zero bytes, or cut short by a download
+        raise CorruptDataError(
+            f"cannot read {found[0]}: {type(err).__name__}: {err}. The file is damaged or "
+            f"incomplete; delete it and download {MOVING_MNIST_URL} again."
+        ) from err
     if seq.ndim != 4 or seq.dtype != np.uint8:
         raise ValueError(
             f"{found[0]} should hold uint8 (T, N, H, W) frames, got {seq.dtype} {seq.shape}"

@@ -11,7 +11,8 @@ Three places matter:
 
 Downloads and cache files are written to a temporary file in the same folder
 and renamed into place only once complete, so an interrupted run never leaves
-a half-written file that a later run would trust.
+a half-written file that a later run would trust. Temporaries left by a
+killed run are removed by a later one (:func:`remove_stale_temporaries`).
 """
 
 from __future__ import annotations
@@ -19,7 +20,9 @@ from __future__ import annotations
 import hashlib
 import http.client
 import os
+import stat
 import tempfile
+import time
 import urllib.request
 import warnings
 from collections.abc import Sequence
@@ -83,6 +86,43 @@ def md5sum(path: Path, chunk: int = 1 << 20) -> str:
     return digest.hexdigest()
 
 
+def remove_stale_temporaries(
+    folder: Path, patterns: Sequence[str], older_than_s: float = 3600.0
+) -> list[Path]:
+    """Delete the files in ``folder`` that match a glob of ``patterns`` and are old; return them.
+
+    Meant for the temp files of atomic writes cut short by a kill. Only files
+    unmodified for ``older_than_s`` seconds go, so a temp file that another
+    process is still writing is spared. Never raises: a folder that cannot be
+    read, or a file that cannot be removed, is skipped.
+    """
+    cutoff, removed = time.time() - older_than_s, []
+    for pattern in patterns:
+        try:
+            matches = sorted(Path(folder).glob(pattern))
+        except OSError:
+            continue
+        for path in matches:
+            try:
+                info = path.lstat()  # a link is not ours: never follow it
+                if stat.S_ISREG(info.st_mode) and info.st_mtime < cutoff:
+                    path.unlink()
+                    removed.append(path)
+            except OSError:
+                continue
+    return removed
+
+
+def set_aside(path: Path) -> Path | None:
+    """Rename ``path`` to ``<name>.bad`` so that later runs skip it; None if that fails."""
+    target = path.with_name(path.name + ".bad")
+    try:
+        os.replace(path, target)
+    except OSError:
+        return None
+    return target
+
+
 def _open_url(url: str, timeout: float = 60.0):
     """Open ``url`` for reading (a seam the tests replace to simulate servers)."""
     return urllib.request.urlopen(url, timeout=timeout)
@@ -111,6 +151,8 @@ def _stream_to(response, dest: Path, md5: str, url: str, total: int | None) -> N
                     digest.update(block)
                     size += len(block)
                     bar.update(len(block))
+            out.flush()
+            os.fsync(out.fileno())  # on disk before the rename: a power loss leaves no empty file
         if digest.hexdigest() != md5:
             expected = f" of {total:,}" if total else ""
             raise CorruptDataError(
@@ -131,6 +173,7 @@ def download(urls: Sequence[str], dest: Path, md5: str, attempts: int = 2) -> Pa
     if a server sent wrong bytes every time, DownloadError if none could be reached.
     """
     dest = Path(dest)
+    remove_stale_temporaries(dest.parent, [f".{dest.name}.*.part"])  # left by a killed download
     failures: list[Exception] = []
     for url in urls:
         for _ in range(attempts):
@@ -151,6 +194,34 @@ def download(urls: Sequence[str], dest: Path, md5: str, attempts: int = 2) -> Pa
     raise DownloadError(f"could not download {dest.name}:\n  {reasons}")
 
 
+def verify_md5(path: Path, md5: str, urls: Sequence[str], fetch: bool) -> str | None:
+    """None if ``path`` has MD5 ``md5``, else why it cannot be used and what to do about it.
+
+    With ``fetch``, a damaged file is first replaced by a fresh download from
+    ``urls``; if that fails, it is renamed to ``<name>.bad`` so that later runs
+    skip it (and download it again once they can). Without ``fetch`` the file
+    is left alone.
+    """
+    actual = md5sum(path)
+    if actual == md5:
+        return None
+    problem = f"{path} has the wrong MD5 ({actual}, expected {md5}): it is damaged or incomplete."
+    if not fetch:
+        return f"{problem} Delete it, or call with download=True to replace it."
+    try:
+        download(urls, path, md5)
+        return None
+    except (DownloadError, CorruptDataError) as err:
+        problem += f" No fresh copy could be downloaded ({err})."
+    moved = set_aside(path)
+    if moved is None:
+        return f"{problem} Delete it, or replace it with a good copy."
+    return (
+        f"{problem} It was renamed to {moved}, so the next run downloads a fresh copy "
+        "(or reads another one); delete that file."
+    )
+
+
 def source_key(*paths: Path) -> str:
     """A short hash naming these source files or folders (path, size, modification time).
 
@@ -165,28 +236,39 @@ def source_key(*paths: Path) -> str:
     return digest.hexdigest()[:12]
 
 
+CACHE_TEMPORARIES = (".*.npy.*.part",)  # what _save_npy_atomic leaves when killed
+
+
 def _cache_paths(name: str) -> tuple[Path, Path]:
     folder = cache_dir()
     return folder / f"{name}-images.npy", folder / f"{name}-labels.npy"
 
 
 def read_cache(name: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """The ``(images, labels)`` arrays cached under ``name``; None if absent or unreadable."""
+    """The ``(images, labels)`` arrays cached under ``name``; None if absent or unreadable.
+
+    A damaged cache file reads as absent: the data is decoded again and the
+    file rewritten. Stale temporaries of killed cache writes are removed here.
+    """
     images_path, labels_path = _cache_paths(name)
+    remove_stale_temporaries(images_path.parent, CACHE_TEMPORARIES)
     if not (images_path.is_file() and labels_path.is_file()):
         return None
     try:
         images, labels = np.load(images_path), np.load(labels_path)
-    except (OSError, ValueError):  # a damaged cache file: decode again
+    except (OSError, ValueError, EOFError):  # EOFError: a zero-byte file
         return None
     return (images, labels) if len(images) == len(labels) else None
 
 
 def _save_npy_atomic(path: Path, array: np.ndarray) -> None:
+    """Write ``array`` to a temp file beside ``path``, flush it to disk, rename it to ``path``."""
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
     try:
         with os.fdopen(fd, "wb") as f:
             np.save(f, array)
+            f.flush()
+            os.fsync(f.fileno())  # on disk before the rename: a power loss leaves no empty file
         os.chmod(tmp, 0o644)
         os.replace(tmp, path)
     finally:
