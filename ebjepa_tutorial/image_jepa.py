@@ -25,9 +25,10 @@ import torch.nn.functional as F
 from torch import nn
 
 from . import augment, evaluate, losses, optim, sigreg
-from .models.encoders import build_encoder
+from .models.encoders import ENCODERS, build_encoder
 from .models.heads import build_projector
 from .train import History, checkpoint_paths, fit, load_or_train, resume, save_checkpoint
+from .utils import check_fields, is_int_at_least, is_non_negative, is_positive
 
 LOSSES = ("vicreg", "sigreg", "invariance")
 EVAL_FIELDS = ("eval_image_size",)  # how a run is scored, not how it is trained
@@ -68,14 +69,25 @@ class ImageJEPAConfig:
             raise ValueError(f"unknown loss {self.loss!r}; choose one of {', '.join(LOSSES)}")
         if self.optimizer not in ("adamw", "lars"):
             raise ValueError(f"unknown optimizer {self.optimizer!r}; choose 'adamw' or 'lars'")
-        pixels = (1, "a positive int (pixels per side)")
-        rules = {"steps": (1, "an int >= 1"),
-                 "batch_size": (2, "an int >= 2 (a batch of one has no variance)"),
-                 "image_size": pixels, "eval_image_size": pixels}
-        for name, (least, rule) in rules.items():
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < least:
-                raise ValueError(f"{name} must be {rule}, got {value!r}")
+        if self.encoder not in ENCODERS:
+            raise ValueError(f"unknown encoder {self.encoder!r}; choose one of "
+                             f"{', '.join(sorted(ENCODERS))}")
+        pixels = (is_int_at_least(1), "a positive int (pixels per side)")
+        positive, non_negative = (is_positive, "a number > 0"), (is_non_negative, "a number >= 0")
+        check_fields(self, {
+            "steps": (is_int_at_least(1), "an int >= 1"),
+            "warmup_steps": (lambda w: is_int_at_least(0)(w) and w < self.steps,
+                             f"an int in 0..steps-1 = {self.steps - 1}"),
+            "batch_size": (is_int_at_least(2), "an int >= 2 (a batch of one has no variance)"),
+            "image_size": pixels, "eval_image_size": pixels,
+            "widths": (lambda w: len(w) == 4 and all(map(is_int_at_least(1), w)),
+                       "four positive ints (the ResNet-18 stage widths)"),
+            "projector": (lambda p: p is None or (len(p) == 2 and all(map(is_int_at_least(1), p))),
+                          "None or two positive ints (hidden, output)"),
+            "lr": positive, "weight_decay": non_negative, "inv_coeff": non_negative,
+            "std_coeff": non_negative, "cov_coeff": non_negative, "sigreg_lambda": non_negative,
+            "sigreg_slices": (is_int_at_least(1), "an int >= 1 (random directions)"),
+        })
         if self.encoder == "vit_s" and self.eval_image_size != self.image_size:
             raise ValueError(
                 f"a ViT is built for one image size: eval_image_size ({self.eval_image_size}) "
@@ -246,13 +258,16 @@ def encoder_dict(config: ImageJEPAConfig) -> dict:
     return {"weights": "encoder only", **training_dict(config)}
 
 
+def _partial(name: str) -> Path:
+    """Where the run ``name`` saves its resumable state while it trains (in the cache)."""
+    return checkpoint_paths(name)[0].with_suffix(".partial")
+
+
 def _train_into(module: nn.Module, config, images, name: str, device, keep) -> History:
     """Train ``config`` (resumable from ``<name>.partial``); copy ``keep(model)`` to ``module``."""
-    partial = checkpoint_paths(name)[0].with_suffix(".partial")
-    trained, history = train_image_jepa(config, images, checkpoint=partial, device=device)
+    trained, history = train_image_jepa(config, images, checkpoint=_partial(name), device=device)
     module.load_state_dict(keep(trained).state_dict())
-    partial.unlink()  # finished: the saved model replaces it
-    return history
+    return history  # load_or_train deletes the partial file once the model is saved
 
 
 def train_or_load(config: ImageJEPAConfig, name: str, images: torch.Tensor, device="cpu"):
@@ -269,7 +284,8 @@ def train_or_load(config: ImageJEPAConfig, name: str, images: torch.Tensor, devi
     model = ImageJEPA(config).to(device)
     cache_path, shipped = checkpoint_paths(name)
     history = load_or_train(cache_path, model, lambda: _train_into(
-        model, config, images, name, device, keep=lambda m: m), training_dict(config), shipped)
+        model, config, images, name, device, keep=lambda m: m), training_dict(config), shipped,
+        partial=_partial(name))
     return model.eval(), history
 
 
@@ -285,36 +301,40 @@ def train_or_load_encoder(config: ImageJEPAConfig, name: str, images: torch.Tens
     cache_path, shipped = checkpoint_paths(name)
     history = load_or_train(cache_path, encoder, lambda: _train_into(
         encoder, config, images, name, device, keep=lambda m: m.encoder), encoder_dict(config),
-        shipped)
+        shipped, partial=_partial(name))
     return encoder.eval(), history
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Train a class-scale run longer and save its encoder: the documented command for the
-    shipped ``checkpoints/<loss>_class_long.pt``. Resumable: rerun the same command after a stop.
+    """Train notebook 01's or 02's run longer and save its encoder: the documented command for
+    the shipped ``checkpoints/<loss>_class_long.pt``. Resumable: rerun the same command after a
+    stop; the stored minutes add up the training time of every part.
     """
     from .data import load_cifar10, random_subset
-    from .scale import preset
+    from .scale import SCALES, preset
 
     parser = argparse.ArgumentParser(description="Train notebook 01's or 02's run for longer.")
     parser.add_argument("--loss", choices=("vicreg", "sigreg"), default="vicreg")
-    parser.add_argument("--steps", type=int, required=True)
+    parser.add_argument("--scale", default="class", choices=SCALES)
+    parser.add_argument("--steps", type=int, help="default: the scale's long run")
     parser.add_argument("--out", required=True, help="where to write the encoder (a .pt file)")
     args = parser.parse_args(argv)
-    sizes = preset("01" if args.loss == "vicreg" else "02", "class")
-    config = replace(sizes.config, steps=args.steps)
+    sizes = preset("01" if args.loss == "vicreg" else "02", args.scale)
+    try:
+        config = replace(sizes.config, steps=args.steps or sizes.long_steps)
+    except ValueError as error:
+        parser.error(str(error))  # checked before the data is loaded
     train = random_subset(*load_cifar10("train"), sizes.train_images)  # as the notebooks do
     test = random_subset(*load_cifar10("test"), sizes.test_images)
-    start = time.perf_counter()
     partial = Path(args.out).with_suffix(".partial")
     model, history = train_image_jepa(config, train[0], checkpoint=partial)
-    minutes = (time.perf_counter() - start) / 60  # this invocation's (a resumed run: its part)
+    minutes = history.seconds / 60
     scores = probe_encoder(model.encoder, config, train, test)
     half = {k: v.half() if v.is_floating_point() else v  # float16 halves the file; features
             for k, v in model.encoder.state_dict().items()}  # stay within 0.2% (measured)
     save_checkpoint(args.out, model=half, history=dict(history), config=encoder_dict(config),
                     minutes=round(minutes, 1), threads=torch.get_num_threads(), **scores)
-    partial.unlink()
+    partial.unlink(missing_ok=True)  # gone if its folder could not be written
     print(f"saved {args.out}: {config.steps} steps in {minutes:.1f} min, linear probe "
           f"{scores['probe_acc']:.1%}, kNN {scores['knn_acc']:.1%} ({protocol(config)})")
 

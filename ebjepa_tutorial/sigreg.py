@@ -93,6 +93,8 @@ def random_directions(
     Drawn on the generator's device (CPU by default) and moved to ``device``,
     so one CPU generator gives the same directions on every machine.
     """
+    if isinstance(num_slices, bool) or not isinstance(num_slices, int) or num_slices < 1:
+        raise ValueError(f"num_slices must be an int >= 1 (random directions), got {num_slices!r}")
     gen_device = generator.device if generator is not None else "cpu"
     directions = torch.randn(dim, num_slices, generator=generator, device=gen_device)
     directions = directions / directions.norm(dim=0, keepdim=True)

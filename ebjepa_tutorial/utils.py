@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import random
 
 import numpy as np
@@ -38,3 +39,33 @@ def make_generator(seed: int, device: str | torch.device = "cpu") -> torch.Gener
     generator = torch.Generator(device=device)
     generator.manual_seed(seed)
     return generator
+
+
+# --- checking configurations: a field that cannot work is named when the config is built ---
+
+
+def is_int_at_least(least: int):
+    """A predicate: an ``int`` (not a bool) ``>= least``."""
+    return lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= least
+
+
+def is_positive(v) -> bool:
+    """A finite number > 0."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+
+
+def is_non_negative(v) -> bool:
+    """A finite number >= 0."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0
+
+
+def check_fields(config, rules: dict) -> None:
+    """Raise ValueError naming the first field of ``config`` that breaks its rule.
+
+    ``rules`` maps a field name to ``(predicate, "what it must be")``, e.g.
+    ``{"lr": (is_positive, "a number > 0")}``.
+    """
+    for name, (ok, rule) in rules.items():
+        value = getattr(config, name)
+        if not ok(value):
+            raise ValueError(f"{type(config).__name__}.{name} must be {rule}, got {value!r}")

@@ -50,7 +50,7 @@ from .models.video import (
     VideoModelConfig,
 )
 from .train import History, checkpoint_paths, fit, load_or_train, resume
-from .utils import get_device
+from .utils import check_fields, get_device, is_int_at_least, is_non_negative, is_positive
 
 Predictor = Callable[[torch.Tensor], torch.Tensor]  # (N, context, C, H, W) -> (N, C, H, W)
 
@@ -81,6 +81,8 @@ def rollout(predictor: Predictor, window: torch.Tensor, steps: int, tbptt: int |
     window: the oldest latent drops out, the prediction comes in. With
     ``tbptt=m`` the window is detached every ``m`` steps (see :func:`rollout_loss`).
     """
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"steps must be an int >= 1 (predictions to unroll), got {steps!r}")
     predictions = []
     for k in range(steps):
         if tbptt is not None and k > 0 and k % tbptt == 0:
@@ -136,6 +138,21 @@ class VideoJEPAConfig:
     rollout_steps: int = 4  # K
     tbptt: int | None = None  # truncated back-propagation through time (None: full)
     seed: int = 0
+
+    def __post_init__(self):
+        at_least = {name: (is_int_at_least(1), "an int >= 1")
+                    for name in ("n_clips", "batch_size", "steps", "rollout_steps")}
+        frames = self.model.context + self.rollout_steps if is_int_at_least(1)(
+            self.rollout_steps) else self.model.context + 1
+        check_fields(self, {
+            **at_least,
+            "n_frames": (is_int_at_least(frames),
+                         f"an int >= context + rollout_steps = {frames}"),
+            "lr": (is_positive, "a number > 0"),
+            "std_coeff": (is_non_negative, "a number >= 0"),
+            "cov_coeff": (is_non_negative, "a number >= 0"),
+            "tbptt": (lambda m: m is None or is_int_at_least(1)(m), "None or an int >= 1"),
+        })
 
 
 VIDEO_CONFIGS = {
@@ -246,11 +263,10 @@ def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor
         trained, history = train_video_jepa(config, clips, checkpoint=partial, progress=progress,
                                             device=device)
         model.load_state_dict(trained.state_dict())
-        partial.unlink()  # finished: the saved model replaces it
         return history
 
     stored = {**config_dict(config), "train_digits": digits_fingerprint(train_digits)}
-    history = load_or_train(cache_path, model, train, stored, shipped)
+    history = load_or_train(cache_path, model, train, stored, shipped, partial=partial)
     return model.eval(), history
 
 

@@ -38,8 +38,12 @@ from .train import (
     resume,
     save_checkpoint,
 )
-from .utils import get_device
+from .utils import check_fields, get_device, is_int_at_least, is_non_negative, is_positive
 from .world_losses import WorldLossCoeffs, multistep_prediction_loss, world_model_loss
+
+TRAJECTORY_ACTIONS = 16  # per training trajectory (17 frames, the paper's clips)
+_ROLLOUT_RULE = (lambda k: is_int_at_least(1)(k) and k <= TRAJECTORY_ACTIONS,
+                 f"an int in 1..{TRAJECTORY_ACTIONS} (the actions per trajectory)")
 
 
 @dataclass(frozen=True)
@@ -61,6 +65,14 @@ class WorldTrainConfig:
     seed: int = 0
 
     def __post_init__(self):
+        check_fields(self, {
+            "n_trajectories": (is_int_at_least(1), "an int >= 1"),
+            "batch_size": (is_int_at_least(2), "an int >= 2 (a batch of one has no variance)"),
+            "steps": (is_int_at_least(1), "an int >= 1"),
+            "lr": (is_positive, "a number > 0"),
+            "weight_decay": (is_non_negative, "a number >= 0"),
+            "rollout_steps": _ROLLOUT_RULE,
+        })
         if not 0 <= self.decay_steps <= self.steps:
             raise ValueError(f"decay_steps must be in 0..steps={self.steps}, "
                              f"got {self.decay_steps}")
@@ -68,7 +80,7 @@ class WorldTrainConfig:
 
 def make_data(config: WorldTrainConfig) -> Trajectories:
     """The offline training trajectories of ``config`` (seeded by ``config.seed``)."""
-    return generate_trajectories(config.n_trajectories, seed=config.seed)
+    return generate_trajectories(config.n_trajectories, TRAJECTORY_ACTIONS, seed=config.seed)
 
 
 def new_model(config: WorldTrainConfig, data: Trajectories) -> WorldModel:
@@ -144,10 +156,10 @@ def train_or_load(config: WorldTrainConfig, name: str) -> tuple[WorldModel, Hist
     def train() -> History:
         trained, history = train_world_model(config, data, checkpoint=partial)
         model.load_state_dict(trained.state_dict())
-        partial.unlink()  # finished: the saved model replaces it
         return history
 
-    history = load_or_train(cache_path, model, train, config_dict(config), shipped)
+    history = load_or_train(cache_path, model, train, config_dict(config), shipped,
+                            partial=partial)
     return model.eval(), history
 
 
@@ -210,6 +222,12 @@ class RefitConfig:
     seed: int = 4242  # of the trajectories, the new weights and the batches
 
     def __post_init__(self):
+        check_fields(self, {
+            **{name: (is_int_at_least(1), "an int >= 1")
+               for name in ("hidden", "n_trajectories", "steps", "batch_size")},
+            "lr": (is_positive, "a number > 0"),
+            "rollout_steps": _ROLLOUT_RULE,
+        })
         if not 0 < self.decay_fraction <= 1 or not 0 <= self.stay_probability < 1:
             raise ValueError("need 0 < decay_fraction <= 1 and 0 <= stay_probability < 1, got "
                              f"{self.decay_fraction} and {self.stay_probability}")
@@ -353,12 +371,17 @@ def main(argv: list[str] | None = None) -> None:
     (:func:`refit_predictor`); ``--steps``, ``--trajectories`` and ``--seed`` then
     set the refit's, and the training-only options are refused.
     """
+    from .scale import SCALES, preset
+
     parser = argparse.ArgumentParser(description="Train the Two Rooms world model.")
     parser.add_argument("--out", required=True, help="where to write the trained model")
+    parser.add_argument("--scale", choices=SCALES,
+                        help="train notebook 05's run of this scale (default: class)")
     parser.add_argument("--refit", metavar="TRAINED.pt",
                         help="fit a new MLP predictor on this trained model's frozen latents")
     parser.add_argument("--steps", type=int,
-                        help=f"default {WorldTrainConfig.steps} ({RefitConfig.steps} with --refit)")
+                        help=f"default: the scale's ({WorldTrainConfig.steps} at class; "
+                             f"{RefitConfig.steps} with --refit)")
     parser.add_argument("--trajectories", type=int,
                         help=f"size of the offline data set (the paper: 100,000); default "
                              f"{WorldTrainConfig.n_trajectories} "
@@ -378,13 +401,15 @@ def main(argv: list[str] | None = None) -> None:
                                               ("n_trajectories", args.trajectories))
              if value is not None}
     if args.refit:
-        if args.without or args.no_inverse_dynamics or args.coeff or args.decay_steps:
-            parser.error("--refit keeps the trained model's encoder: --without, "
+        if (args.without or args.no_inverse_dynamics or args.coeff or args.decay_steps
+                or args.scale):
+            parser.error("--refit keeps the trained model's encoder: --scale, --without, "
                          "--no-inverse-dynamics, --coeff and --decay-steps do not apply")
         return refit_main(args.refit, args.out, RefitConfig(**given))
     without = args.without + (["inverse_dynamics"] if args.no_inverse_dynamics else [])
     try:
-        config = with_coeffs(WorldTrainConfig(decay_steps=args.decay_steps, **given), args.coeff)
+        base = preset("05", args.scale or "class").train
+        config = with_coeffs(replace(base, decay_steps=args.decay_steps, **given), args.coeff)
     except ValueError as error:
         parser.error(str(error))  # a usage message, not a traceback
     config = ablation_config(config, *without)
@@ -393,7 +418,7 @@ def main(argv: list[str] | None = None) -> None:
     report = probe_report(model)
     save_checkpoint(args.out, model=model.state_dict(), history=dict(history),
                     config=config_dict(config), probe_px=report["probe_px"])
-    partial.unlink()
+    partial.unlink(missing_ok=True)  # gone if its folder could not be written
     print(f"saved {args.out}: probe error {report['probe_px']:.2f} px "
           f"(mean-position baseline {report['baseline_px']:.2f} px)")
 

@@ -47,7 +47,7 @@ def test_unknown_names_are_rejected():
 @pytest.mark.parametrize("field", ["image_size", "eval_image_size"])
 @pytest.mark.parametrize("value", [0, -16, 16.0, "32", True, None])
 def test_image_sizes_must_be_positive_ints(field, value):
-    with pytest.raises(ValueError, match=f"^{field} must be a positive int"):
+    with pytest.raises(ValueError, match=f"^ImageJEPAConfig.{field} must be a positive int"):
         ImageJEPAConfig(**{field: value})
 
 
@@ -259,3 +259,34 @@ def test_full_scale_is_the_papers_recipe_and_takes_a_step(notebook, projector):
         dataclasses.replace(config, batch_size=4, steps=2, warmup_steps=1), _images(8),
         progress=False)
     assert model.encoder.out_dim == 512 and all(map(math.isfinite, history["loss"]))
+
+
+def test_long_run_command_refuses_bad_steps_before_loading_data(monkeypatch, capsys):
+    def no_data(split):
+        raise AssertionError("the data was loaded before the arguments were checked")
+
+    monkeypatch.setattr("ebjepa_tutorial.data.load_cifar10", no_data)
+    with pytest.raises(SystemExit):
+        image_jepa.main(["--steps", "100", "--out", "x.pt"])  # class warm-up is 200 steps
+    assert "warmup_steps must be an int in 0..steps-1" in capsys.readouterr().err
+
+
+def test_long_run_command_takes_a_scale_and_counts_resumed_minutes(tmp_path, monkeypatch):
+    train = _images(40), torch.arange(40) % 4
+    monkeypatch.setattr("ebjepa_tutorial.data.load_cifar10", lambda split: train)
+    asked = []
+
+    def sizes(notebook, scale):
+        asked.append(scale)
+        return dataclasses.replace(preset("01", "ci"), config=TINY, train_images=40,
+                                   test_images=40)
+
+    monkeypatch.setattr("ebjepa_tutorial.scale.preset", sizes)
+    clock = iter(range(0, 10_000, 30))  # every reading of the clock: 30 s later
+    monkeypatch.setattr("ebjepa_tutorial.train.time.perf_counter", lambda: next(clock))
+    out = tmp_path / "long.pt"
+    partial = out.with_suffix(".partial")
+    image_jepa.train_image_jepa(dataclasses.replace(TINY, steps=6), train[0], checkpoint=partial)
+    image_jepa.main(["--scale", "ci", "--steps", "6", "--out", str(out)])  # resumes: all done
+    assert asked == ["ci"]
+    assert torch.load(out, weights_only=True)["minutes"] == 3.0  # 6 steps of 30 s, not 0

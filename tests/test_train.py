@@ -1,5 +1,6 @@
 """The training loop: history, NaN guard, atomic checkpoints, exact resume, load-or-train."""
 
+import os
 from pathlib import Path
 
 import pytest
@@ -140,3 +141,148 @@ def test_checkpoint_paths_separate_cache_and_shipped(monkeypatch, tmp_path):
     cache, shipped = train.checkpoint_paths("vicreg_class")
     assert cache == tmp_path / "checkpoints" / "vicreg_class.pt"
     assert shipped.parent.name == "checkpoints" and shipped.name == "vicreg_class.pt"
+
+
+# --- safety and durability (damaged, unsafe, unwritable, overwritten files) ---
+
+
+class _RunsCode:
+    """A pickle payload: unpickling it would create ``marker`` (a stand-in for any command)."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.touch, (self.marker,))
+
+
+def test_a_checkpoint_that_would_run_code_is_refused_and_named(tmp_path):
+    marker, path = tmp_path / "ran", tmp_path / "cache" / "model.pt"
+    path.parent.mkdir()
+    torch.save({"model": {}, "config": {"steps": 20}, "payload": _RunsCode(marker)}, path)
+    with pytest.raises(train.UnsafeCheckpointError, match=f"{path}.*not loaded"):
+        train.load_checkpoint(path)
+    model, optimizer, loss_fn, batch = _problem()
+    with pytest.raises(train.UnsafeCheckpointError, match="model.pt"):  # as a notebook loads
+        train.load_or_train(path, model, lambda: 1 / 0, {"steps": 20})
+    assert not marker.exists()
+
+
+def test_a_failed_final_save_keeps_the_resumable_run(tmp_path, monkeypatch):
+    path, partial = tmp_path / "model.pt", tmp_path / "model.partial"
+    model, optimizer, loss_fn, batch = _problem()
+
+    def run():
+        history = train.fit(model, optimizer, loss_fn, batch, steps=6, checkpoint=partial,
+                            checkpoint_every=3, progress=False)
+
+        def disk_full(*args, **kwargs):
+            raise OSError(28, "No space left on device")
+
+        monkeypatch.setattr(train, "save_checkpoint", disk_full)
+        return history
+
+    with pytest.warns(UserWarning, match="could not save a checkpoint to .*model.pt"):
+        train.load_or_train(path, model, run, {"steps": 6}, partial=partial)
+    assert not path.exists()
+    assert train.load_checkpoint(partial)["step"] == 6  # the run is still there to resume
+
+
+def test_the_partial_file_goes_only_after_the_final_save(tmp_path):
+    path, partial = tmp_path / "model.pt", tmp_path / "model.partial"
+    model, optimizer, loss_fn, batch = _problem()
+    train.load_or_train(path, model, lambda: train.fit(
+        model, optimizer, loss_fn, batch, steps=4, checkpoint=partial, progress=False),
+        {"steps": 4}, partial=partial)
+    assert path.is_file() and not partial.exists()
+
+
+def test_an_unwritable_checkpoint_folder_warns_once_and_training_goes_on(tmp_path, monkeypatch):
+    def read_only(*args, **kwargs):
+        raise OSError(30, "Read-only file system")
+
+    monkeypatch.setattr(train.tempfile, "mkstemp", read_only)
+    model, optimizer, loss_fn, batch = _problem()
+    with pytest.warns(UserWarning, match="Read-only") as warned:
+        history = train.fit(model, optimizer, loss_fn, batch, steps=20, checkpoint=tmp_path /
+                            "run.pt", checkpoint_every=5, progress=False)
+    assert len([w for w in warned if "could not save" in str(w.message)]) == 1
+    assert len(history["loss"]) == 20 and history.last("loss") < 1e-3
+
+
+@pytest.mark.parametrize("damage", ["empty", "truncated", "not a checkpoint"])
+def test_a_damaged_checkpoint_is_named_moved_aside_and_retrained(tmp_path, damage, capsys):
+    path = tmp_path / "model.pt"
+    model, optimizer, loss_fn, batch = _problem()
+    train.save_checkpoint(path, model=model.state_dict(), history={}, config={"steps": 3})
+    data = path.read_bytes()
+    path.write_bytes({"empty": b"", "truncated": data[: len(data) // 2],
+                      "not a checkpoint": b"hello"}[damage])
+    with pytest.raises(train.CheckpointError, match=f"{path} is damaged"):
+        train.load_checkpoint(path)
+    run = lambda: train.fit(model, optimizer, loss_fn, batch, steps=3, progress=False)  # noqa: E731
+    train.load_or_train(path, model, run, {"steps": 3})
+    out = capsys.readouterr().out
+    assert "is damaged; moved it to" in out and "Trained and saved" in out
+    assert (tmp_path / "model.pt.damaged").is_file()
+    assert train.load_checkpoint(path)["config"] == {"steps": 3}  # the next run loads it
+
+
+def test_a_damaged_shipped_checkpoint_is_reported_and_left_in_place(tmp_path):
+    shipped = tmp_path / "shipped.pt"
+    shipped.write_bytes(b"version https://git-lfs.github.com/spec/v1\n")  # an LFS pointer
+    model, optimizer, loss_fn, batch = _problem()
+    run = lambda: train.fit(model, optimizer, loss_fn, batch, steps=3, progress=False)  # noqa: E731
+    with pytest.warns(UserWarning, match="shipped.pt is damaged"):
+        train.load_or_train(tmp_path / "cache.pt", model, run, {"steps": 3}, shipped=shipped)
+    assert shipped.is_file() and (tmp_path / "cache.pt").is_file()
+
+
+def test_another_runs_checkpoint_is_kept_and_found_again(tmp_path, capsys):
+    path = tmp_path / "model.pt"
+    calls = []
+
+    def run(steps):
+        def train_it():
+            calls.append(steps)
+            return train.fit(model, optimizer, loss_fn, batch, steps=steps, progress=False)
+
+        model, optimizer, loss_fn, batch = _problem()
+        return train_it
+
+    model = _problem()[0]
+    train.load_or_train(path, model, run(3), {"steps": 3})
+    train.load_or_train(path, model, run(5), {"steps": 5})
+    kept = train.kept_path(path, {"steps": 3})
+    assert f"moved it to {kept}" in capsys.readouterr().out
+    assert train.load_checkpoint(kept)["config"] == {"steps": 3}
+    assert train.load_checkpoint(path)["config"] == {"steps": 5}
+    train.load_or_train(path, model, run(3), {"steps": 3})  # back to the first config
+    assert calls == [3, 5]  # found again, not retrained
+    assert train.load_checkpoint(path)["config"] == {"steps": 3}
+    assert train.load_checkpoint(train.kept_path(path, {"steps": 5}))["config"] == {"steps": 5}
+
+
+def test_stale_temporaries_of_killed_writers_are_removed(tmp_path):
+    path = tmp_path / "run.partial"
+    stale, fresh = tmp_path / "run.partialab12.tmp", tmp_path / "run.partialcd34.tmp"
+    other = tmp_path / "notes.tmp"
+    for file in (stale, fresh, other):
+        file.write_bytes(b"x" * 10)
+    old = stale.stat().st_mtime - 2 * train.STALE_AFTER_S
+    os.utime(stale, (old, old))
+    os.utime(other, (old, old))
+    train.save_checkpoint(path, value=1)
+    assert not stale.exists() and fresh.exists() and other.exists()
+
+
+def test_training_time_adds_up_over_resumed_parts(tmp_path):
+    ckpt = tmp_path / "run.pt"
+    model, optimizer, loss_fn, batch = _problem()
+    first = train.fit(model, optimizer, loss_fn, batch, steps=5, checkpoint=ckpt, progress=False)
+    step, history = train.resume(ckpt, model, optimizer)
+    assert history.seconds == pytest.approx(first.seconds) and first.seconds > 0
+    history = train.fit(model, optimizer, loss_fn, batch, steps=10, start_step=step,
+                        history=history, checkpoint=ckpt, progress=False)
+    assert history.seconds > first.seconds
+    assert train.load_checkpoint(ckpt)["seconds"] == pytest.approx(history.seconds)

@@ -457,3 +457,24 @@ def test_refit_command_saves_the_base_config_and_refuses_training_options(tmp_pa
     with pytest.raises(SystemExit):
         world_training.main(["--refit", str(trained), "--out", str(out), "--coeff", "temporal=1"])
     assert "do not apply" in capsys.readouterr().err
+
+
+def test_command_line_trains_the_run_of_a_scale(tmp_path, monkeypatch):
+    from ebjepa_tutorial import world_training
+    from ebjepa_tutorial.scale import preset
+
+    seen = {}
+
+    def fake_train(config, checkpoint=None):
+        seen["config"] = config
+        return tiny_model(), {"loss": [1.0]}
+
+    monkeypatch.setattr(world_training, "train_world_model", fake_train)
+    monkeypatch.setattr(world_training, "probe_report",
+                        lambda model: {"probe_px": 1.5, "baseline_px": 20.0})
+    world_training.main(["--scale", "ci", "--out", str(tmp_path / "ci.pt")])
+    assert seen["config"] == preset("05", "ci").train
+    with pytest.raises(SystemExit):
+        world_training.main(["--refit", "x.pt", "--scale", "ci", "--out", "y.pt"])
+    with pytest.raises(SystemExit):  # a usage message, not a traceback
+        world_training.main(["--out", "y.pt", "--steps", "0"])

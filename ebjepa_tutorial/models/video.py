@@ -185,6 +185,10 @@ class VideoJEPA(nn.Module):
         if frames.ndim != 5 or frames.shape[2:] != (1, FRAME_SIZE, FRAME_SIZE):
             raise ValueError(f"frames must be (B, T, 1, 64, 64) clips, got {tuple(frames.shape)}")
         x = frames.float() / 255 if frames.dtype == torch.uint8 else frames
+        if frames.dtype != torch.uint8 and frames.numel() and frames.detach().amax() > 1:
+            raise ValueError(f"float frames must be in 0..1, got values up to "
+                             f"{frames.detach().amax().item():g}: pass uint8 clips as "
+                             "generated, or divide by 255")
         z = self.encoder(x.flatten(0, 1))  # every frame on its own
         return z.unflatten(0, frames.shape[:2])
 
