@@ -23,10 +23,19 @@ sampled step is clipped on its length, as the world and the data clip it.
 
 Everything is batched over episodes: ``B`` episodes x ``N`` samples are one
 call to :meth:`~ebjepa_tutorial.models.world.WorldModel.rollout`. Each
-episode has its own seed, which fixes its task and its planner's noise, so
-any episode can be replayed on its own, with the same number of torch
-threads (measured: another thread count changes the floating-point sums, and
-after a few re-plans that can change an episode's outcome).
+episode has its own seed, which fixes its task and its planner's noise, and
+nothing couples the episodes of a batch: each draws its noise from its own
+generator, and its elites, weights, mean and spread come from its own
+samples alone. What the batch does change is floating-point rounding: a
+network's batched kernels (convolutions, matrix products) may sum in an
+order that depends on the batch size, as on the number of torch threads, so
+an episode's latents can differ in their last bits when it is encoded alone.
+After a few re-plans such a difference can change which samples are the
+elites and move the episode's path by pixels. So an episode is reproduced
+exactly by rerunning its whole batch with the same thread count; played
+alone or in another batch it is the same computation and agrees up to that
+rounding. With dynamics evaluated exactly per row (:class:`TrueDynamics`)
+an episode gives the same path alone and in any batch.
 """
 
 from __future__ import annotations
@@ -83,18 +92,77 @@ class PlannerConfig:
             raise ValueError(f"method must be one of {METHODS} and cost one of {COSTS}, "
                              f"got method={self.method!r}, cost={self.cost!r}")
         for name in ("horizon", "samples", "elites", "iterations", "execute", "noise_period"):
-            if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
-                raise ValueError(f"{name} must be an int >= 1, got {getattr(self, name)!r}")
+            _require_count(name, getattr(self, name))
         if self.elites > self.samples:
             raise ValueError(f"elites (Q={self.elites}) cannot exceed samples (N={self.samples})")
         if self.execute > self.horizon:
             raise ValueError(f"execute (m={self.execute}) cannot exceed horizon "
                              f"(H={self.horizon})")
-        if not self.temperature > 0 or not 0 < self.min_std <= self.max_std:
-            raise ValueError("temperature must be > 0 and 0 < min_std <= max_std")
+        for name, meaning in _POSITIVE_FIELDS.items():
+            _require_positive(name, getattr(self, name), meaning)
+        if self.min_std > self.max_std:
+            raise ValueError(f"min_std ({self.min_std}) cannot exceed max_std ({self.max_std}): "
+                             "they are the range the updated spread is clamped to")
+        if not isinstance(self.update_std, bool):
+            raise ValueError(f"update_std must be True or False, got {self.update_std!r}")
+
+
+def _require_count(name: str, value) -> None:
+    """Raise unless ``value`` is a whole number >= 1 (not a bool)."""
+    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+        raise ValueError(f"{name} must be an int >= 1, got {value!r}")
+
+
+# Each must be > 0: a zero spread samples N copies of the mean (and with
+# update_std=False never explores), a zero bound clips every step to nothing
+# (the agent never moves), a zero temperature divides by zero.
+_POSITIVE_FIELDS = {
+    "temperature": "MPPI's softness in latent-distance units",
+    "init_std": "the spread of the first samples of a re-plan, px",
+    "min_std": "the smallest spread after an update, px",
+    "max_std": "the largest spread after an update, px",
+    "action_bound": f"the longest sampled step, px (the world allows {MAX_STEP})",
+}
+
+
+def _require_positive(name: str, value, meaning: str) -> None:
+    """Raise unless ``value`` is a finite real number > 0 (not a bool)."""
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not (number and math.isfinite(value) and value > 0):
+        raise ValueError(f"{name} ({meaning}) must be a finite number > 0, got {value!r}")
 
 
 # -- the energy ------------------------------------------------------------------------------
+def check_start_and_goal(z0, z_goal) -> None:
+    """Raise a clear error unless ``z0`` is ``(B, D)`` and ``z_goal`` is ``(B, D')``.
+
+    One goal row per episode; ``D'`` may differ from ``D`` (:class:`TrueDynamics`
+    starts from positions and compares latents). A goal batch of 1 for ``B > 1``
+    starts would broadcast silently, every episode planning towards the first
+    goal, so it is refused too.
+    """
+    for name, z in (("z0", z0), ("z_goal", z_goal)):
+        if not isinstance(z, torch.Tensor):
+            raise TypeError(f"{name} must be a tensor of latents (B, D), got {type(z).__name__}")
+    if z0.ndim != 2:
+        raise ValueError(f"z0 must be start latents of shape (B, D), got {tuple(z0.shape)}")
+    if z_goal.ndim != 2 or len(z_goal) != len(z0):
+        raise ValueError(f"z_goal must be goal latents of shape ({len(z0)}, D), one per start "
+                         f"in z0 {tuple(z0.shape)}; got {tuple(z_goal.shape)}"
+                         f"{_goal_hint(len(z0), z_goal)}")
+
+
+def _goal_hint(batch: int, z_goal: torch.Tensor) -> str:
+    """What a wrongly shaped goal most likely is, and what to pass instead."""
+    if z_goal.ndim in (4, 5):
+        return "; that looks like images: encode them first with model.encode"
+    if z_goal.ndim == 1:
+        return "; a single latent needs its batch dimension: z_goal[None]"
+    if z_goal.ndim == 2 and len(z_goal) == 1:
+        return f"; for one goal shared by all episodes pass z_goal.expand({batch}, -1)"
+    return ""
+
+
 def planning_cost(model, z0: torch.Tensor, z_goal: torch.Tensor, actions: torch.Tensor,
                   cost: str = "sum") -> torch.Tensor:
     """Energy of each imagined plan: ``z0 (B, D), z_goal (B, D), actions (B, N, H, A) -> (B, N)``.
@@ -105,8 +173,16 @@ def planning_cost(model, z0: torch.Tensor, z_goal: torch.Tensor, actions: torch.
     """
     if cost not in COSTS:
         raise ValueError(f"cost must be one of {COSTS}, got {cost!r}")
+    check_start_and_goal(z0, z_goal)
+    if actions.ndim != 4 or len(actions) != len(z0):
+        raise ValueError(f"actions must be plans of shape ({len(z0)}, N, H, A), one batch of N "
+                         f"per start in z0 {tuple(z0.shape)}; got {tuple(actions.shape)}")
     b, n, h, _ = actions.shape
     z = model.rollout(z0.repeat_interleave(n, dim=0), actions.flatten(0, 1)).view(b, n, h, -1)
+    if z_goal.shape[1] != z.shape[-1]:
+        raise ValueError(f"z_goal has latents of size {z_goal.shape[1]} but the model imagines "
+                         f"latents of size {z.shape[-1]}: z_goal {tuple(z_goal.shape)}, z0 "
+                         f"{tuple(z0.shape)}; encode the goal with the planning model")
     distance = (z - z_goal[:, None, None]).norm(dim=-1)  # (B, N, H)
     return distance.sum(dim=-1) if cost == "sum" else distance[..., -1]
 
@@ -186,8 +262,8 @@ def sample_plans(mean: torch.Tensor, std: torch.Tensor, samples: int,
     (:func:`~ebjepa_tutorial.envs.clip_actions`): the data held steps of up to
     ``bound`` px in any direction, so a box would show the model diagonal steps
     of up to 1.41 x ``bound`` that it never saw and that the world shortens.
-    Episode ``b`` draws its noise from ``generators[b]`` alone, so its plans do
-    not depend on which other episodes share the batch. Sample 0 is the mean
+    Episode ``b`` draws its noise from ``generators[b]`` alone, so its noise
+    does not depend on which other episodes share the batch. Sample 0 is the mean
     itself, so a good plan is never lost to unlucky noise.
     """
     _, h, a = mean.shape
@@ -219,6 +295,7 @@ def plan(model, z0: torch.Tensor, z_goal: torch.Tensor, config: PlannerConfig,
 
     ``mean``: a warm start ``(B, H, A)`` (default zeros: stand still).
     """
+    check_start_and_goal(z0, z_goal)
     b, h = z0.shape[0], config.horizon
     if mean is None:
         mean = z0.new_zeros(b, h, model.config.action_dim)
@@ -320,9 +397,11 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig = PlannerCon
 
     Episode ``seed`` draws its layout, start and goal (opposite rooms) and then
     its planner's noise from ``torch.Generator().manual_seed(seed)``. ``batch``
-    episodes run at once (default: all of them). ``world`` says what the
-    planner imagines with: ``"learned"``, the world model (the real task);
-    ``"true"`` and ``"true_xy"``, the diagnoses of :class:`TrueDynamics`.
+    episodes run at once (default: all of them); the same batches and thread
+    count reproduce the paths exactly (other batches: see the module docstring
+    on rounding). ``world`` says what the planner imagines with:
+    ``"learned"``, the world model (the real task); ``"true"`` and
+    ``"true_xy"``, the diagnoses of :class:`TrueDynamics`.
     """
     if world not in WORLDS:
         raise ValueError(f"world must be one of {WORLDS}, got {world!r}")

@@ -126,7 +126,7 @@ class TwoRoomsEnv:
 
     def step(self, actions: torch.Tensor) -> torch.Tensor:
         """Move every world by its action (B, 2); returns the new observations."""
-        check_actions(actions, len(self.layouts))
+        check_actions(actions, len(self.layouts), self.positions.dtype)
         actions = actions.to(device=self.device, dtype=self.positions.dtype)
         self.positions = transition(self.positions, actions, self.layouts)
         self.steps_taken += 1

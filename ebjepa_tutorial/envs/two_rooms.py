@@ -104,10 +104,25 @@ def clip_actions(actions: torch.Tensor, bound: float = MAX_STEP) -> torch.Tensor
     actions (..., 2) -> (..., 2). Clipping is on the Euclidean norm (a disc),
     because the data policy's steps fill exactly that disc; a planner that
     samples in a box should clip with this too, to stay where the data was.
+    A finite action whose length overflows the dtype (its squares are infinite)
+    still becomes a step of length ``bound`` in its direction.
     """
     norm = actions.norm(dim=-1, keepdim=True)
     scale = (bound / norm.clamp_min(1e-12)).clamp(max=1.0)
-    return actions * scale
+    # Only rows whose length overflowed take the slower rescaled path, so every
+    # other action is clipped exactly as before.
+    return torch.where(norm.isinf(), _step_of_length(actions, bound), actions * scale)
+
+
+def _step_of_length(actions: torch.Tensor, length: float) -> torch.Tensor:
+    """Each action (..., 2) rescaled to ``length``, safe for huge finite components.
+
+    Dividing by the largest component first keeps the norm in [1, sqrt(2)], so
+    squaring cannot overflow; the clamp keeps a zero action from giving 0 / 0.
+    """
+    largest = actions.abs().amax(dim=-1, keepdim=True)
+    unit = actions / largest.clamp_min(torch.finfo(actions.dtype).tiny)
+    return unit * (length / unit.norm(dim=-1, keepdim=True).clamp_min(1e-12))
 
 
 def transition(positions: torch.Tensor, actions: torch.Tensor, layouts: torch.Tensor):
@@ -123,7 +138,7 @@ def step(positions: torch.Tensor, actions: torch.Tensor, layouts: torch.Tensor):
     """:func:`transition` with checked inputs: clear errors for wrong shapes or NaN."""
     check_layouts(layouts)
     check_positions(positions, layouts)
-    check_actions(actions, len(positions))
+    check_actions(actions, len(positions), positions.dtype)
     return transition(positions, actions.to(positions.dtype), layouts)
 
 
@@ -246,8 +261,13 @@ def check_positions(positions, layouts: torch.Tensor) -> None:
             raise ValueError(f"position {i} = {positions[i].tolist()} is {where}")
 
 
-def check_actions(actions, batch: int) -> None:
-    """Raise a clear error unless ``actions`` is a finite (batch, 2) tensor."""
+def check_actions(actions, batch: int, dtype: torch.dtype | None = None) -> None:
+    """Raise a clear error unless ``actions`` is a finite (batch, 2) tensor.
+
+    ``dtype``: the type the world will move in (the positions'). Finiteness is
+    checked after the cast to it, because a float64 action can be finite and
+    still overflow to infinity in float32.
+    """
     if not isinstance(actions, torch.Tensor):
         kind = type(actions).__name__
         raise TypeError(f"actions must be a torch tensor ({batch}, 2), got {kind}")
@@ -258,3 +278,11 @@ def check_actions(actions, batch: int) -> None:
         )
     if not torch.isfinite(actions).all():
         raise ValueError("actions contain NaN or infinite values; check the planner's output")
+    overflow = ~torch.isfinite(actions.to(dtype)).all(-1) if dtype is not None else None
+    if overflow is not None and overflow.any():
+        i = int(overflow.nonzero()[0])
+        raise ValueError(
+            f"action {i} = {actions[i].tolist()} is too large for {dtype} (largest "
+            f"{torch.finfo(dtype).max:.3g}) and would become infinite; any step longer than "
+            f"{MAX_STEP} px is clipped to it, so send a smaller action in the same direction"
+        )
