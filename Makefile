@@ -41,10 +41,10 @@ test-fast: setup
 	$(BIN)/python -m pytest tests -m "not slow and not browser"
 
 book: setup
-	$(BIN)/python -m ebjepa_tutorial.book build
+	$(BIN)/python -m ebjepa_tutorial.course.book build
 
 student: setup
-	$(BIN)/python -m ebjepa_tutorial.student notebooks student
+	$(BIN)/python -m ebjepa_tutorial.course.student notebooks student
 
 bench: setup
 	for script in benchmarks/*.py; do $(BIN)/python $$script || exit 1; done

@@ -20,9 +20,10 @@ from dataclasses import replace
 
 import torch
 
+from ebjepa_tutorial.course.presets import SCALES, image_preset
 from ebjepa_tutorial.data import load_cifar10, random_subset
-from ebjepa_tutorial.image_jepa import ImageJEPA, probe_encoder, protocol, train_image_jepa
-from ebjepa_tutorial.scale import SCALES, image_preset
+from ebjepa_tutorial.evaluation.classify import probe_encoder, protocol
+from ebjepa_tutorial.training.image import ImageJEPA, train_image_jepa
 
 
 def main() -> None:

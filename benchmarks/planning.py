@@ -20,7 +20,7 @@ import dataclasses
 import torch
 
 from ebjepa_tutorial.planning import PlannerConfig, run_episodes
-from ebjepa_tutorial.world_training import load_world_model
+from ebjepa_tutorial.training.world import load_world_model
 
 
 def _yes_no(text: str) -> bool:

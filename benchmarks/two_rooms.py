@@ -19,7 +19,8 @@ import time
 import torch
 
 from ebjepa_tutorial.envs import generate_trajectories
-from ebjepa_tutorial.world_training import WorldTrainConfig, probe_report, train_world_model
+from ebjepa_tutorial.evaluation.position import probe_report
+from ebjepa_tutorial.training.world import WorldTrainConfig, train_world_model
 
 
 def _median_seconds(fn, repeats: int) -> float:

@@ -26,13 +26,9 @@ import torch
 from ebjepa_tutorial.data.mnist import load_mnist
 from ebjepa_tutorial.data.moving_mnist import generate_moving_mnist, split_digits
 from ebjepa_tutorial.data.paths import DataNotFoundError
+from ebjepa_tutorial.evaluation.detection import detection_report
 from ebjepa_tutorial.models.video import VideoJEPA
-from ebjepa_tutorial.video_jepa import (
-    VIDEO_CONFIGS,
-    detection_report,
-    train_video_jepa,
-    video_jepa_loss,
-)
+from ebjepa_tutorial.training.video import VIDEO_CONFIGS, train_video_jepa, video_jepa_loss
 
 
 def load_digits() -> torch.Tensor:

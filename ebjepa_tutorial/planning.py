@@ -58,7 +58,7 @@ from .envs import (
     make_episodes,
 )
 from .envs.two_rooms import HIGH, LOW, render, transition, wall_bounds
-from .metrics import wilson_interval
+from .evaluation.metrics import wilson_interval
 
 METHODS = ("mppi", "cem")
 COSTS = ("sum", "last")

@@ -17,7 +17,8 @@ def _axes(ax):
 
 
 def plot_history(history: dict, names: list[str] | None = None, ax=None, log: bool = True):
-    """Curves of the logged terms of a :class:`~ebjepa_tutorial.train.History` against step."""
+    """Curves of the logged terms of a :class:`~ebjepa_tutorial.training.loop.History`
+    against step."""
     ax = _axes(ax)
     names = [n for n in history if n != "step"] if names is None else names
     for name in names:
@@ -255,7 +256,7 @@ def plot_characteristic_functions(samples: dict[str, torch.Tensor], t_max: float
     area over [-t_max, t_max] is the Epps-Pulley statistic (printed in the legend).
     Returns the three axes.
     """
-    from .sigreg import epps_pulley
+    from .losses.sigreg import epps_pulley
 
     if axes is None:
         axes = plt.subplots(1, 3, figsize=(13, 3.4))[1]
@@ -290,7 +291,7 @@ def plot_sweep(rows: list[dict], ax=None, baseline: float | None = None,
                labels: dict[str, str] | None = None):
     """Probe accuracy against each coefficient's multiple of its default (log x), per sweep.
 
-    ``rows``: result rows of :func:`ebjepa_tutorial.sweeps.run_sweep` with a
+    ``rows``: result rows of :func:`ebjepa_tutorial.evaluation.sweeps.run_sweep` with a
     ``factor``. ``baseline``: the random-init encoder's accuracy, drawn dashed.
     """
     ax = _axes(ax)

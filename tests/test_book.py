@@ -16,7 +16,7 @@ from urllib.parse import urljoin, urlparse
 import pytest
 from PIL import Image, ImageStat
 
-from ebjepa_tutorial import book as bk
+from ebjepa_tutorial.course import book as bk
 
 BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 BROWSER_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",

@@ -5,12 +5,13 @@ import dataclasses
 import pytest
 import torch
 
-from ebjepa_tutorial.image_jepa import ImageJEPAConfig
+from ebjepa_tutorial.course.presets import PRESETS
+from ebjepa_tutorial.losses.rollout import rollout
+from ebjepa_tutorial.losses.sigreg import sigreg_loss
 from ebjepa_tutorial.models.video import VideoJEPA
-from ebjepa_tutorial.scale import PRESETS
-from ebjepa_tutorial.sigreg import sigreg_loss
-from ebjepa_tutorial.video_jepa import VIDEO_CONFIGS, VideoJEPAConfig, rollout
-from ebjepa_tutorial.world_training import RefitConfig, WorldTrainConfig
+from ebjepa_tutorial.training.image import ImageJEPAConfig
+from ebjepa_tutorial.training.video import VIDEO_CONFIGS, VideoJEPAConfig
+from ebjepa_tutorial.training.world import RefitConfig, WorldTrainConfig
 
 
 @pytest.mark.parametrize("config, change, message", [

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from ebjepa_tutorial.evaluate import (
+from ebjepa_tutorial.evaluation.classify import (
     extract_features,
     holdout_split,
     knn_accuracy,

@@ -7,8 +7,8 @@ import nbformat
 import pytest
 import torch
 
-from ebjepa_tutorial import exercises, student, video_jepa
-from ebjepa_tutorial.envs import check_wall_collision
+from ebjepa_tutorial.course import exercises, student
+from ebjepa_tutorial.course.exercises import check_wall_collision
 
 NOTEBOOKS = sorted(Path(__file__).resolve().parents[1].glob("notebooks/*.ipynb"))
 CHECKERS = {
@@ -20,7 +20,7 @@ CHECKERS = {
     "vicreg": exercises.check_vicreg,
     "vicreg_paper_to_ebjepa": exercises.check_vicreg_paper_to_ebjepa,
     "epps_pulley_1d": exercises.check_epps_pulley,
-    "rollout_loss": video_jepa.check_rollout_loss,
+    "rollout_loss": exercises.check_rollout_loss,
     "mppi_update": exercises.check_mppi_update,
 }
 
@@ -89,7 +89,7 @@ def _vicreg_regularising_one_view(z_a, z_b, inv_coeff, std_coeff, cov_coeff):
 
 
 def _epps_pulley_without_n(x, knots=17, t_max=3.0, scale_by_n=True):
-    from ebjepa_tutorial import sigreg
+    from ebjepa_tutorial.losses import sigreg
 
     return sigreg.epps_pulley(x, knots=knots, t_max=t_max, scale_by_n=False)
 

@@ -8,9 +8,12 @@ import pytest
 import torch
 from torch import nn
 
-from ebjepa_tutorial import augment, image_jepa
-from ebjepa_tutorial.image_jepa import ImageJEPAConfig
-from ebjepa_tutorial.scale import preset
+from ebjepa_tutorial import augment
+from ebjepa_tutorial.commands import train_image
+from ebjepa_tutorial.course.presets import preset
+from ebjepa_tutorial.evaluation import classify
+from ebjepa_tutorial.training import image
+from ebjepa_tutorial.training.image import ImageJEPAConfig
 
 TINY = ImageJEPAConfig(widths=(4, 4, 8, 8), projector=(16, 16), batch_size=8, steps=4,
                        warmup_steps=1, image_size=16)
@@ -74,25 +77,25 @@ def test_evaluation_is_at_the_native_32_px_whatever_the_training_size():
 def test_each_loss_logs_its_terms(loss, terms):
     config = ImageJEPAConfig(loss=loss, sigreg_slices=8)
     z_a, z_b = torch.randn(16, 8), torch.randn(16, 8)
-    total, logged = image_jepa.jepa_loss(config, z_a, z_b, torch.Generator().manual_seed(0))
+    total, logged = image.jepa_loss(config, z_a, z_b, torch.Generator().manual_seed(0))
     assert set(logged) == terms and torch.isfinite(total)
 
 
 def test_model_shapes_with_and_without_projector():
-    model = image_jepa.ImageJEPA(TINY)
+    model = image.ImageJEPA(TINY)
     assert model(torch.randn(2, 3, 16, 16)).shape == (2, 16)
-    bare = image_jepa.ImageJEPA(ImageJEPAConfig(widths=(4, 4, 8, 8), projector=None))
+    bare = image.ImageJEPA(ImageJEPAConfig(widths=(4, 4, 8, 8), projector=None))
     assert bare(torch.randn(2, 3, 16, 16)).shape == (2, 8)
 
 
 def test_training_is_reproducible_and_resumable(tmp_path, monkeypatch):
     images = _images()
-    straight, history = image_jepa.train_image_jepa(TINY, images, progress=False)
-    again, _ = image_jepa.train_image_jepa(TINY, images, progress=False)
+    straight, history = image.train_image_jepa(TINY, images, progress=False)
+    again, _ = image.train_image_jepa(TINY, images, progress=False)
     assert all(torch.equal(p, q) for p, q in zip(straight.parameters(), again.parameters()))
 
     # A kernel that dies while making the views of step 2 ...
-    calls, real_two_views = [], image_jepa.augment.two_views
+    calls, real_two_views = [], image.augment.two_views
 
     def dying_two_views(*args, **kwargs):
         calls.append(1)
@@ -101,13 +104,13 @@ def test_training_is_reproducible_and_resumable(tmp_path, monkeypatch):
         return real_two_views(*args, **kwargs)
 
     ckpt = tmp_path / "run.pt"
-    monkeypatch.setattr(image_jepa.augment, "two_views", dying_two_views)
+    monkeypatch.setattr(image.augment, "two_views", dying_two_views)
     with pytest.raises(KeyboardInterrupt):
-        image_jepa.train_image_jepa(TINY, images, checkpoint=ckpt, checkpoint_every=1,
+        image.train_image_jepa(TINY, images, checkpoint=ckpt, checkpoint_every=1,
                                     progress=False)
     monkeypatch.undo()
     # ... then a new run picks up at step 2 and ends where the uninterrupted run ended.
-    resumed, history2 = image_jepa.train_image_jepa(TINY, images, checkpoint=ckpt,
+    resumed, history2 = image.train_image_jepa(TINY, images, checkpoint=ckpt,
                                                     progress=False)
     assert history2["step"] == history["step"]
     assert history2["loss"] == pytest.approx(history["loss"], rel=1e-5)
@@ -117,8 +120,8 @@ def test_training_is_reproducible_and_resumable(tmp_path, monkeypatch):
 
 def test_probe_encoder_reports_both_accuracies():
     images, labels = _images(40), torch.arange(40) % 4
-    model = image_jepa.ImageJEPA(TINY)
-    result = image_jepa.probe_encoder(model.encoder, TINY, (images, labels), (images, labels))
+    model = image.ImageJEPA(TINY)
+    result = classify.probe_encoder(model.encoder, TINY, (images, labels), (images, labels))
     assert set(result) == {"probe_acc", "knn_acc"}
     assert 0.0 <= result["probe_acc"] <= 1.0
 
@@ -128,7 +131,7 @@ def test_probe_and_knn_see_images_of_eval_image_size(eval_size):
     config = dataclasses.replace(TINY, eval_image_size=eval_size)  # trained on 16-px views
     encoder = ShapeRecorder()
     train, test = _images(40), _images(20, seed=1)
-    image_jepa.probe_encoder(encoder, config, (train, torch.arange(40) % 4),
+    classify.probe_encoder(encoder, config, (train, torch.arange(40) % 4),
                              (test, torch.arange(20) % 4))
     assert {tuple(x.shape[1:]) for x in encoder.inputs} == {(3, eval_size, eval_size)}
     assert sum(len(x) for x in encoder.inputs) == 40 + 20  # every image once, none augmented
@@ -139,26 +142,26 @@ def test_probe_and_knn_see_images_of_eval_image_size(eval_size):
 
 def test_a_resnet_takes_any_image_size():
     # the global average pool is what lets a network trained on 16 px be probed at 32 px
-    encoder = image_jepa.ImageJEPA(TINY).encoder.eval()
+    encoder = image.ImageJEPA(TINY).encoder.eval()
     for size in (16, 32):
-        assert image_jepa.embed(encoder, _images(4), size).shape == (4, encoder.out_dim)
+        assert classify.embed(encoder, _images(4), size).shape == (4, encoder.out_dim)
 
 
 def test_protocol_names_both_sizes():
-    words = image_jepa.protocol(TINY)
+    words = classify.protocol(TINY)
     assert "32-px images (their native size, no resizing)" in words
     assert "trained on 16-px views" in words
-    assert "resized from 32 px" in image_jepa.protocol(
+    assert "resized from 32 px" in classify.protocol(
         dataclasses.replace(TINY, eval_image_size=16))
 
 
 def test_train_or_load_trains_once_then_loads(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
     images = _images()
-    first, history = image_jepa.train_or_load(TINY, "tiny_run", images)
+    first, history = image.train_or_load(TINY, "tiny_run", images)
     assert "Trained and saved" in capsys.readouterr().out
     assert not (tmp_path / "checkpoints" / "tiny_run.partial").exists()
-    again, history2 = image_jepa.train_or_load(TINY, "tiny_run", images)
+    again, history2 = image.train_or_load(TINY, "tiny_run", images)
     assert "Loaded" in capsys.readouterr().out
     assert history2 == history and not again.training
     assert all(torch.equal(p, q) for p, q in zip(first.parameters(), again.parameters()))
@@ -167,40 +170,41 @@ def test_train_or_load_trains_once_then_loads(tmp_path, monkeypatch, capsys):
 def test_checkpoints_do_not_depend_on_the_evaluation_size(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
     images = _images()
-    assert "eval_image_size" in image_jepa.config_dict(TINY)
-    assert "eval_image_size" not in image_jepa.training_dict(TINY)
-    image_jepa.train_or_load(TINY, "tiny_run", images)
+    assert "eval_image_size" in image.config_dict(TINY)
+    assert "eval_image_size" not in image.training_dict(TINY)
+    image.train_or_load(TINY, "tiny_run", images)
     capsys.readouterr()
-    image_jepa.train_or_load(dataclasses.replace(TINY, eval_image_size=24), "tiny_run", images)
+    image.train_or_load(dataclasses.replace(TINY, eval_image_size=24), "tiny_run", images)
     assert "Loaded" in capsys.readouterr().out  # probing at another size is the same run
-    image_jepa.train_or_load(dataclasses.replace(TINY, image_size=8), "tiny_run", images)
+    image.train_or_load(dataclasses.replace(TINY, image_size=8), "tiny_run", images)
     assert "Trained and saved" in capsys.readouterr().out  # training at another size is not
 
 
 def test_train_or_load_encoder_keeps_only_the_encoder(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
     images = _images()
-    model, _ = image_jepa.train_or_load(TINY, "tiny_run", images)
-    encoder, history = image_jepa.train_or_load_encoder(TINY, "tiny_encoder", images)
+    model, _ = image.train_or_load(TINY, "tiny_run", images)
+    encoder, history = image.train_or_load_encoder(TINY, "tiny_encoder", images)
     assert "Trained and saved" in capsys.readouterr().out
     assert all(torch.equal(p, q) for p, q in zip(model.encoder.parameters(), encoder.parameters()))
     stored = torch.load(tmp_path / "checkpoints" / "tiny_encoder.pt", weights_only=False)
     assert set(stored["model"]) == set(encoder.state_dict())  # no projector weights
-    again, history2 = image_jepa.train_or_load_encoder(TINY, "tiny_encoder", images)
+    again, history2 = image.train_or_load_encoder(TINY, "tiny_encoder", images)
     assert "Loaded" in capsys.readouterr().out and history2 == history and not again.training
-    image_jepa.train_or_load(TINY, "tiny_encoder", images)  # a whole-model run of that name
+    image.train_or_load(TINY, "tiny_encoder", images)  # a whole-model run of that name
     assert "another configuration" in capsys.readouterr().out  # never reads encoder weights
 
 
 def test_long_run_command_writes_a_float16_encoder(tmp_path, monkeypatch, capsys):
     train = _images(40), torch.arange(40) % 4
-    monkeypatch.setattr("ebjepa_tutorial.data.load_cifar10", lambda split: train)
-    monkeypatch.setattr("ebjepa_tutorial.scale.preset", lambda notebook, scale: dataclasses.replace(
+    monkeypatch.setattr("ebjepa_tutorial.commands.train_image.load_cifar10", lambda split: train)
+    monkeypatch.setattr(
+        "ebjepa_tutorial.commands.train_image.preset", lambda notebook, scale: dataclasses.replace(
         preset("01", "ci"), config=TINY, train_images=40, test_images=40))
     out = tmp_path / "long.pt"
-    image_jepa.main(["--loss", "vicreg", "--steps", "6", "--out", str(out)])
+    train_image.main(["--loss", "vicreg", "--steps", "6", "--out", str(out)])
     stored = torch.load(out, weights_only=False)
-    assert stored["config"] == image_jepa.encoder_dict(dataclasses.replace(TINY, steps=6))
+    assert stored["config"] == image.encoder_dict(dataclasses.replace(TINY, steps=6))
     assert all(v.dtype == torch.float16 for v in stored["model"].values() if v.is_floating_point())
     assert 0 <= stored["probe_acc"] <= 1 and not out.with_suffix(".partial").exists()
     assert "linear probe" in capsys.readouterr().out
@@ -231,10 +235,10 @@ def test_seconds_per_step_cancels_the_set_up_and_first_step(monkeypatch):
         clock[0] += 7.0 + 3.0 + 0.5 * (config.steps - 1)
         return None, None
 
-    monkeypatch.setattr(image_jepa, "train_image_jepa", fake_train)
-    monkeypatch.setattr(image_jepa.time, "perf_counter", lambda: clock[0])
+    monkeypatch.setattr(image, "train_image_jepa", fake_train)
+    monkeypatch.setattr(image.time, "perf_counter", lambda: clock[0])
     config = preset("01", "ci").config
-    assert image_jepa.seconds_per_step(config, torch.empty(0), steps=4) == pytest.approx(0.5)
+    assert image.seconds_per_step(config, torch.empty(0), steps=4) == pytest.approx(0.5)
     assert runs == [(1, 0), (1, 0), (5, 0)]  # a warm-up run, then the two timed ones;
     # no learning-rate warm-up: a 1-step run has none to do
 
@@ -255,7 +259,7 @@ def test_full_scale_is_the_papers_recipe_and_takes_a_step(notebook, projector):
     else:  # lambda 10 on the statistic without the factor N, as the paper's code
         assert (config.sigreg_lambda, config.sigreg_scale_by_n) == (10.0, False)
     # one LARS step of the full-width network on a small batch: the recipe runs unchanged
-    model, history = image_jepa.train_image_jepa(
+    model, history = image.train_image_jepa(
         dataclasses.replace(config, batch_size=4, steps=2, warmup_steps=1), _images(8),
         progress=False)
     assert model.encoder.out_dim == 512 and all(map(math.isfinite, history["loss"]))
@@ -265,15 +269,15 @@ def test_long_run_command_refuses_bad_steps_before_loading_data(monkeypatch, cap
     def no_data(split):
         raise AssertionError("the data was loaded before the arguments were checked")
 
-    monkeypatch.setattr("ebjepa_tutorial.data.load_cifar10", no_data)
+    monkeypatch.setattr("ebjepa_tutorial.commands.train_image.load_cifar10", no_data)
     with pytest.raises(SystemExit):
-        image_jepa.main(["--steps", "100", "--out", "x.pt"])  # class warm-up is 200 steps
+        train_image.main(["--steps", "100", "--out", "x.pt"])  # class warm-up is 200 steps
     assert "warmup_steps must be an int in 0..steps-1" in capsys.readouterr().err
 
 
 def test_long_run_command_takes_a_scale_and_counts_resumed_minutes(tmp_path, monkeypatch):
     train = _images(40), torch.arange(40) % 4
-    monkeypatch.setattr("ebjepa_tutorial.data.load_cifar10", lambda split: train)
+    monkeypatch.setattr("ebjepa_tutorial.commands.train_image.load_cifar10", lambda split: train)
     asked = []
 
     def sizes(notebook, scale):
@@ -281,12 +285,12 @@ def test_long_run_command_takes_a_scale_and_counts_resumed_minutes(tmp_path, mon
         return dataclasses.replace(preset("01", "ci"), config=TINY, train_images=40,
                                    test_images=40)
 
-    monkeypatch.setattr("ebjepa_tutorial.scale.preset", sizes)
+    monkeypatch.setattr("ebjepa_tutorial.commands.train_image.preset", sizes)
     clock = iter(range(0, 10_000, 30))  # every reading of the clock: 30 s later
-    monkeypatch.setattr("ebjepa_tutorial.train.time.perf_counter", lambda: next(clock))
+    monkeypatch.setattr("ebjepa_tutorial.training.loop.time.perf_counter", lambda: next(clock))
     out = tmp_path / "long.pt"
     partial = out.with_suffix(".partial")
-    image_jepa.train_image_jepa(dataclasses.replace(TINY, steps=6), train[0], checkpoint=partial)
-    image_jepa.main(["--scale", "ci", "--steps", "6", "--out", str(out)])  # resumes: all done
+    image.train_image_jepa(dataclasses.replace(TINY, steps=6), train[0], checkpoint=partial)
+    train_image.main(["--scale", "ci", "--steps", "6", "--out", str(out)])  # resumes: all done
     assert asked == ["ci"]
     assert torch.load(out, weights_only=True)["minutes"] == 3.0  # 6 steps of 30 s, not 0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from ebjepa_tutorial.metrics import (
+from ebjepa_tutorial.evaluation.metrics import (
     average_precision,
     average_precision_per_horizon,
     mean_average_precision,

@@ -5,7 +5,12 @@ import math
 import pytest
 import torch
 
-from ebjepa_tutorial.optim import LARS, split_decay_params, warmup_cosine, warmup_cosine_scheduler
+from ebjepa_tutorial.training.optim import (
+    LARS,
+    split_decay_params,
+    warmup_cosine,
+    warmup_cosine_scheduler,
+)
 
 
 def test_lars_two_steps_by_hand():

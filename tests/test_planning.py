@@ -10,7 +10,7 @@ from torch import nn
 from ebjepa_tutorial import planning
 from ebjepa_tutorial.envs import SUCCESS_RADIUS, render
 from ebjepa_tutorial.envs.two_rooms import transition
-from ebjepa_tutorial.metrics import wilson_interval
+from ebjepa_tutorial.evaluation.metrics import wilson_interval
 from ebjepa_tutorial.planning import PlannerConfig
 
 
@@ -229,8 +229,8 @@ def test_batches_run_one_after_the_other_give_the_same_episodes():
 
 def test_loading_a_checkpoint_names_what_is_wrong(tmp_path):
     from ebjepa_tutorial.models.world import WORLD_CONFIGS, WorldModel
-    from ebjepa_tutorial.train import save_checkpoint
-    from ebjepa_tutorial.world_training import load_world_model
+    from ebjepa_tutorial.training.loop import save_checkpoint
+    from ebjepa_tutorial.training.world import load_world_model
     path = save_checkpoint(tmp_path / "ci.pt", model=WorldModel(WORLD_CONFIGS["ci"]).state_dict())
     assert load_world_model(path).latent_dim == WORLD_CONFIGS["ci"].latent_dim
     with pytest.raises(ValueError, match="latent_dim: the checkpoint has 32"):
@@ -255,7 +255,7 @@ def test_the_benchmark_prints_its_figures(tmp_path):
     from pathlib import Path
 
     from ebjepa_tutorial.models.world import WORLD_CONFIGS, WorldModel
-    from ebjepa_tutorial.train import save_checkpoint
+    from ebjepa_tutorial.training.loop import save_checkpoint
     model = WorldModel(WORLD_CONFIGS["ci"]).fit_input_stats(
         render(torch.tensor([[10.0, 10.0], [50.0, 40.0]]), torch.tensor([[30, 30], [30, 30]])))
     path = save_checkpoint(tmp_path / "ci.pt", model=model.state_dict())

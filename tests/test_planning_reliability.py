@@ -91,11 +91,11 @@ def test_planner_settings_that_cannot_work_name_the_field_and_range(kwargs, word
 
 
 def test_every_shipped_preset_still_builds_its_planner():
-    from ebjepa_tutorial import scale
+    from ebjepa_tutorial.course import presets
 
-    for notebook in scale.PRESETS:
-        for size in scale.SCALES:
-            chosen = scale.preset(notebook, size)
+    for notebook in presets.PRESETS:
+        for size in presets.SCALES:
+            chosen = presets.preset(notebook, size)
             planner = getattr(chosen, "planner", None)
             if planner is not None:  # notebook 06 also plans with CEM and the last-step cost
                 for change in ({}, {"method": "cem"}, {"cost": "last"}):

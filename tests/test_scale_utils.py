@@ -1,38 +1,38 @@
-"""The scale switch, seeding and device choice."""
+"""The presets switch, seeding and device choice."""
 
 import pytest
 import torch
 
-from ebjepa_tutorial import scale
+from ebjepa_tutorial.course import presets
 from ebjepa_tutorial.utils import get_device, make_generator, seed_everything
 
 
 def test_default_scale_is_class():
-    assert scale.current_scale({}) == "class"
-    assert scale.current_scale({"EBJEPA_SCALE": ""}) == "class"
+    assert presets.current_scale({}) == "class"
+    assert presets.current_scale({"EBJEPA_SCALE": ""}) == "class"
 
 
 @pytest.mark.parametrize("name", ["ci", "class", "full", " CI "])
 def test_known_scales(name):
-    assert scale.current_scale({"EBJEPA_SCALE": name}) == name.strip().lower()
+    assert presets.current_scale({"EBJEPA_SCALE": name}) == name.strip().lower()
 
 
 def test_unknown_scale_names_the_choices():
     with pytest.raises(ValueError, match="ci, class, full"):
-        scale.current_scale({"EBJEPA_SCALE": "huge"})
+        presets.current_scale({"EBJEPA_SCALE": "huge"})
 
 
 def test_preset_follows_the_environment(monkeypatch):
     monkeypatch.setenv("EBJEPA_SCALE", "ci")
-    assert scale.preset("00") == scale.PRESETS["00"]["ci"]
-    assert scale.preset("00", "full").steps > scale.preset("00", "class").steps
+    assert presets.preset("00") == presets.PRESETS["00"]["ci"]
+    assert presets.preset("00", "full").steps > presets.preset("00", "class").steps
     with pytest.raises(KeyError, match="no presets"):
-        scale.preset("99")
+        presets.preset("99")
 
 
 def test_every_preset_has_every_scale():
-    for notebook, presets in scale.PRESETS.items():
-        assert set(presets) == set(scale.SCALES), notebook
+    for notebook, by_scale in presets.PRESETS.items():
+        assert set(by_scale) == set(presets.SCALES), notebook
 
 
 def test_same_seed_same_numbers():
@@ -57,24 +57,24 @@ def test_device_choice():
 
 
 def test_video_preset_fits_its_clips_and_budget():
-    for name in scale.SCALES:
-        cfg = scale.preset("03", name)
+    for name in presets.SCALES:
+        cfg = presets.preset("03", name)
         context = cfg.train.model.context
         assert cfg.train.rollout_steps in cfg.rollout_steps and cfg.train.seed in cfg.seeds
         assert cfg.train.n_frames >= context + max(cfg.rollout_steps), name  # the longest K fits
         assert cfg.train.n_frames >= context + cfg.horizons, name  # AP 1..horizons fits
         assert cfg.n_train_digits < 10_000  # some MNIST test digits are held out
-    ci, class_ = scale.preset("03", "ci"), scale.preset("03", "class")
+    ci, class_ = presets.preset("03", "ci"), presets.preset("03", "class")
     assert set(class_.rollout_steps) >= {1, 2, 4} and len(class_.seeds) == 3
     # ~10 minutes per class run on 2 CPU cores: about 1 s per step of 16 clips
     assert (class_.train.batch_size, class_.train.steps, class_.train.n_clips) == (16, 600, 4000)
     assert ci.train.steps * ci.train.batch_size * len(ci.seeds) < 1000  # ci: seconds
 
 
-@pytest.mark.parametrize("name", scale.SCALES)
+@pytest.mark.parametrize("name", presets.SCALES)
 def test_planning_uses_the_world_model_of_notebook_05(name):
     # Notebook 06 loads chapter 05's checkpoint by name: the configs must be the same run.
-    planning_preset, world_preset = scale.preset("06", name), scale.preset("05", name)
+    planning_preset, world_preset = presets.preset("06", name), presets.preset("05", name)
     assert planning_preset.world == world_preset.train
     assert planning_preset.n_compare <= planning_preset.n_episodes
     assert planning_preset.n_long_ablation <= planning_preset.n_episodes

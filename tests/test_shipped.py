@@ -12,11 +12,13 @@ from pathlib import Path
 
 import pytest
 
-from ebjepa_tutorial import image_jepa, sweeps, video_jepa, world_training
+from ebjepa_tutorial.course import presets
+from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.data import DataNotFoundError, load_mnist
 from ebjepa_tutorial.data.moving_mnist import split_digits
-from ebjepa_tutorial.scale import preset
-from ebjepa_tutorial.train import load_checkpoint
+from ebjepa_tutorial.evaluation import sweeps
+from ebjepa_tutorial.training import image, video, world
+from ebjepa_tutorial.training.loop import load_checkpoint
 
 SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints"
 
@@ -27,18 +29,18 @@ def stored_config(name: str) -> dict:
     return load_checkpoint(path)["config"]
 
 
-@pytest.mark.parametrize("term", [None, *world_training.ABLATABLE_TERMS])
+@pytest.mark.parametrize("term", [None, *world.ABLATABLE_TERMS])
 def test_world_models_match_notebooks_05_and_06(term):
     base = preset("06", "class").world
-    config = base if term is None else world_training.ablation_config(base, term)
-    suffix = "" if term is None else "_" + world_training.ABLATION_SUFFIXES[term]
-    assert stored_config(f"world_model_class{suffix}") == world_training.config_dict(config)
+    config = base if term is None else world.ablation_config(base, term)
+    suffix = "" if term is None else "_" + world.ABLATION_SUFFIXES[term]
+    assert stored_config(f"world_model_class{suffix}") == world.config_dict(config)
 
 
 def test_long_world_model_matches_notebook_06():
     config = preset("06", "class").long_world
     assert config.n_trajectories == 100_000 and config.steps > preset("06", "class").world.steps
-    assert stored_config("world_model_class_long") == world_training.config_dict(config)
+    assert stored_config("world_model_class_long") == world.config_dict(config)
 
 
 def test_paper_length_world_model_is_the_long_run_continued():
@@ -46,24 +48,24 @@ def test_paper_length_world_model_is_the_long_run_continued():
     # notebook trains it, so it is checked against the long model's config with 2x the steps
     config = preset("06", "class").long_world
     doubled = replace(config, steps=2 * config.steps)
-    assert stored_config("world_model_class_long20k") == world_training.config_dict(doubled)
+    assert stored_config("world_model_class_long20k") == world.config_dict(doubled)
 
 
 def test_refitted_model_matches_notebook_06():
-    # the paper-length model with its predictor refitted (world_training --refit), which
+    # the paper-length model with its predictor refitted (world --refit), which
     # notebook 06 loads through refit_or_load and benchmarks/planning.py plays by default
     cfg = preset("06", "class")
     assert cfg.refit_base == replace(cfg.long_world, steps=2 * cfg.long_world.steps)
-    assert cfg.refit == world_training.RefitConfig()  # the command's defaults
-    assert stored_config("world_model_class_long20k_mlp") == world_training.refit_config_dict(
+    assert cfg.refit == world.RefitConfig()  # the command's defaults
+    assert stored_config("world_model_class_long20k_mlp") == world.refit_config_dict(
         cfg.refit, cfg.refit_base)
 
 
 @pytest.mark.parametrize("term", preset("06", "class").long_ablations)
 def test_long_ablations_match_notebook_06(term):
-    config = world_training.ablation_config(preset("06", "class").long_world, term)
-    name = f"world_model_class_long_{world_training.ABLATION_SUFFIXES[term]}"
-    assert stored_config(name) == world_training.config_dict(config)
+    config = world.ablation_config(preset("06", "class").long_world, term)
+    name = f"world_model_class_long_{world.ABLATION_SUFFIXES[term]}"
+    assert stored_config(name) == world.config_dict(config)
 
 
 def test_video_jepas_match_notebook_03():
@@ -73,23 +75,23 @@ def test_video_jepas_match_notebook_03():
     except DataNotFoundError:
         pytest.skip("MNIST is not on this machine (set EBJEPA_DATA)")
     train_digits, _ = split_digits(digits, n_train=cfg.n_train_digits)
-    fingerprint = video_jepa.digits_fingerprint(train_digits)
-    for config in video_jepa.ablation_configs(cfg.train, cfg.rollout_steps, cfg.seeds):
-        expected = {**video_jepa.config_dict(config), "train_digits": fingerprint}
-        assert stored_config(video_jepa.run_name("class", config)) == expected
+    fingerprint = video.digits_fingerprint(train_digits)
+    for config in video.ablation_configs(cfg.train, cfg.rollout_steps, cfg.seeds):
+        expected = {**video.config_dict(config), "train_digits": fingerprint}
+        assert stored_config(video.run_name("class", config)) == expected
 
 
 @pytest.mark.parametrize("notebook, loss", [("01", "vicreg"), ("02", "sigreg")])
 def test_long_image_encoders_match_notebooks_01_and_02(notebook, loss):
     cfg = preset(notebook, "class")
-    expected = image_jepa.encoder_dict(replace(cfg.config, steps=cfg.long_steps))
+    expected = image.encoder_dict(replace(cfg.config, steps=cfg.long_steps))
     assert stored_config(f"{loss}_class_long") == expected
 
 
 
 def test_the_sweep_file_holds_every_run_of_notebook_02():
     cfg = preset("02", "class")
-    runs = [run for group in sweeps.plan("class").values() for run in group]
+    runs = [run for group in presets.sweep_plan("class").values() for run in group]
     path = SHIPPED / "sweeps_class.json"
     assert path.is_file(), f"{path} is documented in checkpoints/README.md but missing"
     missing = sweeps.missing_runs(runs, cfg.train_images, cfg.test_images,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from ebjepa_tutorial.sigreg import epps_pulley, random_directions, sigreg, sigreg_loss
+from ebjepa_tutorial.losses.sigreg import epps_pulley, random_directions, sigreg, sigreg_loss
 from ebjepa_tutorial.utils import make_generator
 
 

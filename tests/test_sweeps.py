@@ -7,9 +7,11 @@ import pytest
 import torch
 from torch import nn
 
-from ebjepa_tutorial import sweeps
-from ebjepa_tutorial.image_jepa import ImageJEPAConfig
-from ebjepa_tutorial.scale import preset
+from ebjepa_tutorial.commands import sweep
+from ebjepa_tutorial.course import presets
+from ebjepa_tutorial.course.presets import preset
+from ebjepa_tutorial.evaluation import sweeps
+from ebjepa_tutorial.training.image import ImageJEPAConfig
 
 TINY = ImageJEPAConfig(loss="sigreg", widths=(4, 4, 4, 4), projector=(8, 8), batch_size=8,
                        steps=2, warmup_steps=0, sigreg_slices=8)
@@ -22,11 +24,11 @@ def _data(n, seed):
 
 
 def _unique(runs):
-    return {sweeps._key(run.config, 0, 0) for run in runs}
+    return {sweeps.key(run.config, 0, 0) for run in runs}
 
 
 def test_class_plan_sweeps_each_coefficient_alone():
-    plan = sweeps.plan("class")
+    plan = presets.sweep_plan("class")
     sensitivity, projector = plan["sensitivity"], plan["projector"]
     assert len(sensitivity) == 3 * len(sweeps.FACTORS["class"]) and len(projector) == 8
     steps = preset("02", "class").sweep_steps
@@ -49,7 +51,7 @@ def test_class_plan_sweeps_each_coefficient_alone():
 
 
 def test_ci_plan_is_small():
-    plan = sweeps.plan("ci")
+    plan = presets.sweep_plan("ci")
     assert len(_unique(plan["sensitivity"] + plan["projector"])) <= 10
     assert [r.value for r in plan["projector"]] == [None, 64, None, 64]
 
@@ -134,17 +136,15 @@ def test_sweep_runs_are_probed_at_eval_image_size(monkeypatch):
 
 
 def test_command_runs_the_selected_sweep_once_per_config(tmp_path, monkeypatch):
-    from ebjepa_tutorial import data
-
-    monkeypatch.setattr(data, "load_cifar10", lambda split: _data(30, 0))
+    monkeypatch.setattr(sweep, "load_cifar10", lambda split: _data(30, 0))
     seen = {}
 
     def capture(runs, train, test, path=None, device="cpu", meta=None, **kwargs):
         seen.update(runs=runs, path=path, meta=meta, sizes=(len(train[0]), len(test[0])))
 
-    monkeypatch.setattr(sweeps, "run_sweep", capture)
+    monkeypatch.setattr(sweep, "run_sweep", capture)
     out = tmp_path / "sweeps_ci.json"
-    sweeps.main(["--scale", "ci", "--out", str(out), "--only", "sensitivity"])
+    sweep.main(["--scale", "ci", "--out", str(out), "--only", "sensitivity"])
     assert len(seen["runs"]) == 8  # 3 x 3 runs, the VICReg default shared
     assert seen["path"] == str(out) and "--only sensitivity" in seen["meta"]["command"]
     size = preset("02", "ci").config.eval_image_size
@@ -155,4 +155,4 @@ def test_command_runs_the_selected_sweep_once_per_config(tmp_path, monkeypatch):
 
 def test_bad_scale_is_refused():
     with pytest.raises(SystemExit):
-        sweeps.main(["--scale", "huge", "--out", "x.json"])
+        sweep.main(["--scale", "huge", "--out", "x.json"])

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from ebjepa_tutorial import toy
+from ebjepa_tutorial.training import toy
 
 
 @pytest.fixture(scope="module")

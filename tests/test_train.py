@@ -6,11 +6,11 @@ from pathlib import Path
 import pytest
 import torch
 
-from ebjepa_tutorial import train
+from ebjepa_tutorial.training import loop
 
 
 def _problem(seed=0):
-    # A linear regression small enough to train in milliseconds.
+    # A linear regression small enough to loop in milliseconds.
     torch.manual_seed(seed)
     model = torch.nn.Linear(3, 1)
     optimizer = torch.optim.SGD(model.parameters(), lr=0.1, momentum=0.5)
@@ -29,7 +29,7 @@ def _problem(seed=0):
 
 def test_fit_logs_history_and_learns():
     model, optimizer, loss_fn, batch = _problem()
-    history = train.fit(model, optimizer, loss_fn, batch, steps=60, progress=False)
+    history = loop.fit(model, optimizer, loss_fn, batch, steps=60, progress=False)
     assert history["step"] == list(range(60))
     assert history["loss"] == history["mse"]
     assert history.last("loss") < 1e-3 < history["loss"][0]
@@ -42,21 +42,21 @@ def test_nan_loss_stops_with_a_clear_error():
         return model(xy[0]).sum() * float("nan"), {"term": 1.0}
 
     with pytest.raises(FloatingPointError, match="step 0 .*term=1"):
-        train.fit(model, optimizer, nan_loss, batch, steps=3, progress=False)
+        loop.fit(model, optimizer, nan_loss, batch, steps=3, progress=False)
 
 
 def test_resumed_run_equals_uninterrupted_run(tmp_path):
     model, optimizer, loss_fn, batch = _problem()
-    straight = train.fit(model, optimizer, loss_fn, batch, steps=10, progress=False)
+    straight = loop.fit(model, optimizer, loss_fn, batch, steps=10, progress=False)
 
     ckpt = tmp_path / "run.pt"
     model2, optimizer2, loss_fn2, batch2 = _problem()
-    train.fit(model2, optimizer2, loss_fn2, batch2, steps=5, checkpoint=ckpt, progress=False)
+    loop.fit(model2, optimizer2, loss_fn2, batch2, steps=5, checkpoint=ckpt, progress=False)
     # A new kernel: fresh objects, state restored from the file.
     model3, optimizer3, loss_fn3, batch3 = _problem(seed=123)
-    step, history = train.resume(ckpt, model3, optimizer3)
+    step, history = loop.resume(ckpt, model3, optimizer3)
     assert step == 5
-    history = train.fit(model3, optimizer3, loss_fn3, batch3, steps=10, start_step=step,
+    history = loop.fit(model3, optimizer3, loss_fn3, batch3, steps=10, start_step=step,
                         history=history, checkpoint=ckpt, progress=False)
     assert history["loss"] == pytest.approx(straight["loss"], rel=1e-6)
     assert torch.allclose(model3.weight, model.weight)
@@ -65,21 +65,21 @@ def test_resumed_run_equals_uninterrupted_run(tmp_path):
 def test_resume_ignores_a_run_with_another_config(tmp_path, capsys):
     model, optimizer, loss_fn, batch = _problem()
     ckpt = tmp_path / "run.pt"
-    train.fit(model, optimizer, loss_fn, batch, steps=3, checkpoint=ckpt, progress=False,
+    loop.fit(model, optimizer, loss_fn, batch, steps=3, checkpoint=ckpt, progress=False,
               config={"lr": 0.1})
-    assert train.resume(ckpt, model, optimizer, config={"lr": 0.1})[0] == 3
-    assert train.resume(ckpt, model, optimizer, config={"lr": 0.2}) == (0, {})
+    assert loop.resume(ckpt, model, optimizer, config={"lr": 0.1})[0] == 3
+    assert loop.resume(ckpt, model, optimizer, config={"lr": 0.2}) == (0, {})
     assert "another configuration" in capsys.readouterr().out
 
 
 def test_resume_without_checkpoint_starts_at_zero(tmp_path):
     model, optimizer, _, _ = _problem()
-    assert train.resume(tmp_path / "none.pt", model, optimizer) == (0, {})
+    assert loop.resume(tmp_path / "none.pt", model, optimizer) == (0, {})
 
 
 def test_checkpoint_write_is_atomic(tmp_path, monkeypatch):
     path = tmp_path / "ckpt.pt"
-    train.save_checkpoint(path, value=1)
+    loop.save_checkpoint(path, value=1)
 
     def broken_save(obj, f):
         f.write(b"half a checkpoint")
@@ -87,14 +87,14 @@ def test_checkpoint_write_is_atomic(tmp_path, monkeypatch):
 
     monkeypatch.setattr(torch, "save", broken_save)
     with pytest.raises(OSError, match="disk full"):
-        train.save_checkpoint(path, value=2)
-    assert train.load_checkpoint(path)["value"] == 1  # the old file survives
+        loop.save_checkpoint(path, value=2)
+    assert loop.load_checkpoint(path)["value"] == 1  # the old file survives
     assert [p.name for p in tmp_path.iterdir()] == ["ckpt.pt"]  # no temp file left
 
 
 def test_load_checkpoint_missing_file(tmp_path):
     with pytest.raises(FileNotFoundError, match="no checkpoint"):
-        train.load_checkpoint(tmp_path / "missing.pt")
+        loop.load_checkpoint(tmp_path / "missing.pt")
 
 
 def test_load_or_train_trains_once_then_loads(tmp_path, capsys):
@@ -103,21 +103,21 @@ def test_load_or_train_trains_once_then_loads(tmp_path, capsys):
 
     def run(model, optimizer, loss_fn, batch):
         calls.append(1)
-        return train.fit(model, optimizer, loss_fn, batch, steps=20, progress=False)
+        return loop.fit(model, optimizer, loss_fn, batch, steps=20, progress=False)
 
     model, optimizer, loss_fn, batch = _problem()
     config = {"steps": 20, "lr": 0.1}
-    first = train.load_or_train(path, model, lambda: run(model, optimizer, loss_fn, batch), config)
+    first = loop.load_or_train(path, model, lambda: run(model, optimizer, loss_fn, batch), config)
     assert "Trained and saved" in capsys.readouterr().out
 
     fresh, optimizer2, loss_fn2, batch2 = _problem(seed=9)
-    again = train.load_or_train(path, fresh, lambda: run(fresh, optimizer2, loss_fn2, batch2),
+    again = loop.load_or_train(path, fresh, lambda: run(fresh, optimizer2, loss_fn2, batch2),
                                 config)
     assert "Loaded" in capsys.readouterr().out
     assert len(calls) == 1 and again == first
     assert torch.equal(fresh.weight, model.weight)
 
-    train.load_or_train(path, fresh, lambda: run(fresh, optimizer2, loss_fn2, batch2),
+    loop.load_or_train(path, fresh, lambda: run(fresh, optimizer2, loss_fn2, batch2),
                         {"steps": 20, "lr": 0.2})
     assert "another configuration" in capsys.readouterr().out
     assert len(calls) == 2
@@ -125,11 +125,11 @@ def test_load_or_train_trains_once_then_loads(tmp_path, capsys):
 
 def test_load_or_train_prefers_a_matching_shipped_checkpoint(tmp_path, capsys):
     model, optimizer, loss_fn, batch = _problem()
-    history = train.fit(model, optimizer, loss_fn, batch, steps=5, progress=False)
-    shipped = train.save_checkpoint(tmp_path / "shipped.pt", model=model.state_dict(),
+    history = loop.fit(model, optimizer, loss_fn, batch, steps=5, progress=False)
+    shipped = loop.save_checkpoint(tmp_path / "shipped.pt", model=model.state_dict(),
                                     history=dict(history), config={"steps": 5})
     fresh = _problem(seed=3)[0]
-    train.load_or_train(tmp_path / "cache.pt", fresh, lambda: 1 / 0, {"steps": 5},
+    loop.load_or_train(tmp_path / "cache.pt", fresh, lambda: 1 / 0, {"steps": 5},
                         shipped=shipped)
     assert "Loaded" in capsys.readouterr().out
     assert torch.equal(fresh.weight, model.weight)
@@ -138,7 +138,7 @@ def test_load_or_train_prefers_a_matching_shipped_checkpoint(tmp_path, capsys):
 
 def test_checkpoint_paths_separate_cache_and_shipped(monkeypatch, tmp_path):
     monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
-    cache, shipped = train.checkpoint_paths("vicreg_class")
+    cache, shipped = loop.checkpoint_paths("vicreg_class")
     assert cache == tmp_path / "checkpoints" / "vicreg_class.pt"
     assert shipped.parent.name == "checkpoints" and shipped.name == "vicreg_class.pt"
 
@@ -160,11 +160,11 @@ def test_a_checkpoint_that_would_run_code_is_refused_and_named(tmp_path):
     marker, path = tmp_path / "ran", tmp_path / "cache" / "model.pt"
     path.parent.mkdir()
     torch.save({"model": {}, "config": {"steps": 20}, "payload": _RunsCode(marker)}, path)
-    with pytest.raises(train.UnsafeCheckpointError, match=f"{path}.*not loaded"):
-        train.load_checkpoint(path)
+    with pytest.raises(loop.UnsafeCheckpointError, match=f"{path}.*not loaded"):
+        loop.load_checkpoint(path)
     model, optimizer, loss_fn, batch = _problem()
-    with pytest.raises(train.UnsafeCheckpointError, match="model.pt"):  # as a notebook loads
-        train.load_or_train(path, model, lambda: 1 / 0, {"steps": 20})
+    with pytest.raises(loop.UnsafeCheckpointError, match="model.pt"):  # as a notebook loads
+        loop.load_or_train(path, model, lambda: 1 / 0, {"steps": 20})
     assert not marker.exists()
 
 
@@ -173,25 +173,25 @@ def test_a_failed_final_save_keeps_the_resumable_run(tmp_path, monkeypatch):
     model, optimizer, loss_fn, batch = _problem()
 
     def run():
-        history = train.fit(model, optimizer, loss_fn, batch, steps=6, checkpoint=partial,
+        history = loop.fit(model, optimizer, loss_fn, batch, steps=6, checkpoint=partial,
                             checkpoint_every=3, progress=False)
 
         def disk_full(*args, **kwargs):
             raise OSError(28, "No space left on device")
 
-        monkeypatch.setattr(train, "save_checkpoint", disk_full)
+        monkeypatch.setattr(loop, "save_checkpoint", disk_full)
         return history
 
     with pytest.warns(UserWarning, match="could not save a checkpoint to .*model.pt"):
-        train.load_or_train(path, model, run, {"steps": 6}, partial=partial)
+        loop.load_or_train(path, model, run, {"steps": 6}, partial=partial)
     assert not path.exists()
-    assert train.load_checkpoint(partial)["step"] == 6  # the run is still there to resume
+    assert loop.load_checkpoint(partial)["step"] == 6  # the run is still there to resume
 
 
 def test_the_partial_file_goes_only_after_the_final_save(tmp_path):
     path, partial = tmp_path / "model.pt", tmp_path / "model.partial"
     model, optimizer, loss_fn, batch = _problem()
-    train.load_or_train(path, model, lambda: train.fit(
+    loop.load_or_train(path, model, lambda: loop.fit(
         model, optimizer, loss_fn, batch, steps=4, checkpoint=partial, progress=False),
         {"steps": 4}, partial=partial)
     assert path.is_file() and not partial.exists()
@@ -201,10 +201,10 @@ def test_an_unwritable_checkpoint_folder_warns_once_and_training_goes_on(tmp_pat
     def read_only(*args, **kwargs):
         raise OSError(30, "Read-only file system")
 
-    monkeypatch.setattr(train.tempfile, "mkstemp", read_only)
+    monkeypatch.setattr(loop.tempfile, "mkstemp", read_only)
     model, optimizer, loss_fn, batch = _problem()
     with pytest.warns(UserWarning, match="Read-only") as warned:
-        history = train.fit(model, optimizer, loss_fn, batch, steps=20, checkpoint=tmp_path /
+        history = loop.fit(model, optimizer, loss_fn, batch, steps=20, checkpoint=tmp_path /
                             "run.pt", checkpoint_every=5, progress=False)
     assert len([w for w in warned if "could not save" in str(w.message)]) == 1
     assert len(history["loss"]) == 20 and history.last("loss") < 1e-3
@@ -214,27 +214,27 @@ def test_an_unwritable_checkpoint_folder_warns_once_and_training_goes_on(tmp_pat
 def test_a_damaged_checkpoint_is_named_moved_aside_and_retrained(tmp_path, damage, capsys):
     path = tmp_path / "model.pt"
     model, optimizer, loss_fn, batch = _problem()
-    train.save_checkpoint(path, model=model.state_dict(), history={}, config={"steps": 3})
+    loop.save_checkpoint(path, model=model.state_dict(), history={}, config={"steps": 3})
     data = path.read_bytes()
     path.write_bytes({"empty": b"", "truncated": data[: len(data) // 2],
                       "not a checkpoint": b"hello"}[damage])
-    with pytest.raises(train.CheckpointError, match=f"{path} is damaged"):
-        train.load_checkpoint(path)
-    run = lambda: train.fit(model, optimizer, loss_fn, batch, steps=3, progress=False)  # noqa: E731
-    train.load_or_train(path, model, run, {"steps": 3})
+    with pytest.raises(loop.CheckpointError, match=f"{path} is damaged"):
+        loop.load_checkpoint(path)
+    run = lambda: loop.fit(model, optimizer, loss_fn, batch, steps=3, progress=False)  # noqa: E731
+    loop.load_or_train(path, model, run, {"steps": 3})
     out = capsys.readouterr().out
     assert "is damaged; moved it to" in out and "Trained and saved" in out
     assert (tmp_path / "model.pt.damaged").is_file()
-    assert train.load_checkpoint(path)["config"] == {"steps": 3}  # the next run loads it
+    assert loop.load_checkpoint(path)["config"] == {"steps": 3}  # the next run loads it
 
 
 def test_a_damaged_shipped_checkpoint_is_reported_and_left_in_place(tmp_path):
     shipped = tmp_path / "shipped.pt"
     shipped.write_bytes(b"version https://git-lfs.github.com/spec/v1\n")  # an LFS pointer
     model, optimizer, loss_fn, batch = _problem()
-    run = lambda: train.fit(model, optimizer, loss_fn, batch, steps=3, progress=False)  # noqa: E731
+    run = lambda: loop.fit(model, optimizer, loss_fn, batch, steps=3, progress=False)  # noqa: E731
     with pytest.warns(UserWarning, match="shipped.pt is damaged"):
-        train.load_or_train(tmp_path / "cache.pt", model, run, {"steps": 3}, shipped=shipped)
+        loop.load_or_train(tmp_path / "cache.pt", model, run, {"steps": 3}, shipped=shipped)
     assert shipped.is_file() and (tmp_path / "cache.pt").is_file()
 
 
@@ -245,22 +245,22 @@ def test_another_runs_checkpoint_is_kept_and_found_again(tmp_path, capsys):
     def run(steps):
         def train_it():
             calls.append(steps)
-            return train.fit(model, optimizer, loss_fn, batch, steps=steps, progress=False)
+            return loop.fit(model, optimizer, loss_fn, batch, steps=steps, progress=False)
 
         model, optimizer, loss_fn, batch = _problem()
         return train_it
 
     model = _problem()[0]
-    train.load_or_train(path, model, run(3), {"steps": 3})
-    train.load_or_train(path, model, run(5), {"steps": 5})
-    kept = train.kept_path(path, {"steps": 3})
+    loop.load_or_train(path, model, run(3), {"steps": 3})
+    loop.load_or_train(path, model, run(5), {"steps": 5})
+    kept = loop.kept_path(path, {"steps": 3})
     assert f"moved it to {kept}" in capsys.readouterr().out
-    assert train.load_checkpoint(kept)["config"] == {"steps": 3}
-    assert train.load_checkpoint(path)["config"] == {"steps": 5}
-    train.load_or_train(path, model, run(3), {"steps": 3})  # back to the first config
+    assert loop.load_checkpoint(kept)["config"] == {"steps": 3}
+    assert loop.load_checkpoint(path)["config"] == {"steps": 5}
+    loop.load_or_train(path, model, run(3), {"steps": 3})  # back to the first config
     assert calls == [3, 5]  # found again, not retrained
-    assert train.load_checkpoint(path)["config"] == {"steps": 3}
-    assert train.load_checkpoint(train.kept_path(path, {"steps": 5}))["config"] == {"steps": 5}
+    assert loop.load_checkpoint(path)["config"] == {"steps": 3}
+    assert loop.load_checkpoint(loop.kept_path(path, {"steps": 5}))["config"] == {"steps": 5}
 
 
 def test_stale_temporaries_of_killed_writers_are_removed(tmp_path):
@@ -269,20 +269,24 @@ def test_stale_temporaries_of_killed_writers_are_removed(tmp_path):
     other = tmp_path / "notes.tmp"
     for file in (stale, fresh, other):
         file.write_bytes(b"x" * 10)
-    old = stale.stat().st_mtime - 2 * train.STALE_AFTER_S
+    old = stale.stat().st_mtime - 2 * loop.STALE_AFTER_S
     os.utime(stale, (old, old))
     os.utime(other, (old, old))
-    train.save_checkpoint(path, value=1)
+    loop.save_checkpoint(path, value=1)
     assert not stale.exists() and fresh.exists() and other.exists()
 
 
 def test_training_time_adds_up_over_resumed_parts(tmp_path):
     ckpt = tmp_path / "run.pt"
     model, optimizer, loss_fn, batch = _problem()
-    first = train.fit(model, optimizer, loss_fn, batch, steps=5, checkpoint=ckpt, progress=False)
-    step, history = train.resume(ckpt, model, optimizer)
+    first = loop.fit(model, optimizer, loss_fn, batch, steps=5, checkpoint=ckpt, progress=False)
+    step, history = loop.resume(ckpt, model, optimizer)
     assert history.seconds == pytest.approx(first.seconds) and first.seconds > 0
-    history = train.fit(model, optimizer, loss_fn, batch, steps=10, start_step=step,
+    history = loop.fit(model, optimizer, loss_fn, batch, steps=10, start_step=step,
                         history=history, checkpoint=ckpt, progress=False)
     assert history.seconds > first.seconds
-    assert train.load_checkpoint(ckpt)["seconds"] == pytest.approx(history.seconds)
+    assert loop.load_checkpoint(ckpt)["seconds"] == pytest.approx(history.seconds)
+
+
+def test_the_shipped_checkpoints_are_found_beside_the_package():
+    assert loop.checkpoint_paths("world_model_class")[1].is_file()

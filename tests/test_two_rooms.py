@@ -5,9 +5,9 @@ import math
 import pytest
 import torch
 
+from ebjepa_tutorial.course.exercises import ExerciseError, check_wall_collision
 from ebjepa_tutorial.envs import (
     TwoRoomsEnv,
-    check_wall_collision,
     clip_actions,
     generate_trajectories,
     make_episodes,
@@ -22,7 +22,6 @@ from ebjepa_tutorial.envs import (
 )
 from ebjepa_tutorial.envs.trajectories import sample_truncated_normal
 from ebjepa_tutorial.envs.two_rooms import HIGH, LOW, check_positions, wall_bounds, wall_images
-from ebjepa_tutorial.exercises import ExerciseError
 
 # ----------------------------------------------------------------- geometry
 

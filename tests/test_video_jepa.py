@@ -6,10 +6,18 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from ebjepa_tutorial import video_jepa, viz
+from ebjepa_tutorial import viz
+from ebjepa_tutorial.commands import train_video
+from ebjepa_tutorial.course.exercises import ExerciseError
+from ebjepa_tutorial.course.exercises.video import check_rollout_loss
 from ebjepa_tutorial.data.moving_mnist import centres_to_grid, generate_moving_mnist
-from ebjepa_tutorial.exercises import ExerciseError
-from ebjepa_tutorial.metrics import average_precision
+from ebjepa_tutorial.evaluation.detection import (
+    detection_report,
+    evaluation_clips,
+    fit_detection_probe,
+)
+from ebjepa_tutorial.evaluation.metrics import average_precision
+from ebjepa_tutorial.losses.rollout import rollout, rollout_loss
 from ebjepa_tutorial.models.video import (
     VIDEO_MODEL_CONFIGS,
     DetectionHead,
@@ -17,16 +25,10 @@ from ebjepa_tutorial.models.video import (
     VideoJEPA,
     VideoModelConfig,
 )
-from ebjepa_tutorial.video_jepa import (
+from ebjepa_tutorial.training.video import (
     VIDEO_CONFIGS,
     ablation_configs,
-    check_rollout_loss,
-    detection_report,
-    evaluation_clips,
     fit_decoder,
-    fit_detection_probe,
-    rollout,
-    rollout_loss,
     run_name,
     train_or_load,
     train_video_jepa,
@@ -252,11 +254,11 @@ def test_moving_mnist_figures(digits):
 def test_command_line_trains_and_reports(digits, tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
     stand_in = digits.repeat(20, 1, 1, 1)  # 160 "digits": the ci preset holds out all but 8000
-    monkeypatch.setattr("ebjepa_tutorial.data.mnist.load_mnist",
+    monkeypatch.setattr("ebjepa_tutorial.commands.train_video.load_mnist",
                         lambda split: (stand_in, torch.zeros(len(stand_in), dtype=torch.long)))
-    monkeypatch.setattr("ebjepa_tutorial.scale.PRESETS", {"03": {"ci": replace(
+    monkeypatch.setattr("ebjepa_tutorial.course.presets.PRESETS", {"03": {"ci": replace(
         video_jepa_preset(), n_train_digits=120, n_probe=8, n_eval=8, probe_steps=5)}})
-    video_jepa.main(["--scale", "ci", "--K", "1"])
+    train_video.main(["--scale", "ci", "--K", "1"])
     out = capsys.readouterr().out
     assert "video_jepa_ci_K1_seed0" in out and (tmp_path / "checkpoints").is_dir()
     assert "random init: mAP" in out and "K=1 seed=0: mAP" in out
@@ -264,7 +266,7 @@ def test_command_line_trains_and_reports(digits, tmp_path, monkeypatch, capsys):
 
 def video_jepa_preset():
     """The ci preset of notebook 03, with a shorter run for the command-line test."""
-    from ebjepa_tutorial.scale import PRESETS
+    from ebjepa_tutorial.course.presets import PRESETS
 
     ci = PRESETS["03"]["ci"]
     return replace(ci, train=replace(ci.train, n_clips=16, steps=2, batch_size=2))

@@ -6,18 +6,17 @@ from dataclasses import asdict, replace
 import pytest
 import torch
 
-from ebjepa_tutorial import world_losses as wl
 from ebjepa_tutorial.envs import generate_trajectories, transition
 from ebjepa_tutorial.envs.trajectories import Trajectories
-from ebjepa_tutorial.models.world import WORLD_CONFIGS, WorldConfig, WorldModel
-from ebjepa_tutorial.probe import (
-    encode_trajectories,
+from ebjepa_tutorial.evaluation.position import (
     fit_position_probe,
     mean_baseline_px,
     middle_wall_test,
     probe_error_px,
     wall_test_by_door_distance,
 )
+from ebjepa_tutorial.losses import world as wl
+from ebjepa_tutorial.models.world import WORLD_CONFIGS, WorldConfig, WorldModel, encode_trajectories
 
 TINY = WorldConfig(widths=(4, 8), blocks=1, input_size=17, latent_dim=8,
                    action_embed_dim=8, idm_hidden=16)
@@ -298,7 +297,7 @@ def test_bad_inputs_give_clear_errors(data):
 
 
 def test_coeff_flag_sets_loss_weights_and_rejects_typos():
-    from ebjepa_tutorial.world_training import WorldTrainConfig, ablation_config, with_coeffs
+    from ebjepa_tutorial.training.world import WorldTrainConfig, ablation_config, with_coeffs
 
     config = with_coeffs(WorldTrainConfig(), ["covariance=1", "temporal=0.5"])
     assert (config.coeffs.covariance, config.coeffs.temporal) == (1.0, 0.5)
@@ -313,7 +312,7 @@ def test_coeff_flag_sets_loss_weights_and_rejects_typos():
 
 
 def test_command_line_sets_steps_data_size_and_decay(tmp_path, monkeypatch, capsys):
-    from ebjepa_tutorial import world_training
+    from ebjepa_tutorial.commands import train_world
 
     seen = {}
 
@@ -321,13 +320,13 @@ def test_command_line_sets_steps_data_size_and_decay(tmp_path, monkeypatch, caps
         seen["config"], seen["partial"] = config, checkpoint
         return tiny_model(), {"loss": [1.0]}
 
-    monkeypatch.setattr(world_training, "train_world_model", fake_train)
-    monkeypatch.setattr(world_training, "probe_report",
+    monkeypatch.setattr(train_world, "train_world_model", fake_train)
+    monkeypatch.setattr(train_world, "probe_report",
                         lambda model: {"probe_px": 1.5, "baseline_px": 20.0})
     out = tmp_path / "long.pt"
     out.with_suffix(".partial").write_bytes(b"")  # what a real run leaves until it ends
-    world_training.main(["--out", str(out), "--steps", "3000", "--trajectories", "100000",
-                         "--decay-steps", "500", "--without", "covariance"])
+    train_world.main(["--out", str(out), "--steps", "3000", "--trajectories", "100000",
+                      "--decay-steps", "500", "--without", "covariance"])
     config = seen["config"]
     assert (config.steps, config.n_trajectories, config.decay_steps) == (3000, 100_000, 500)
     assert config.coeffs.covariance == 0
@@ -338,7 +337,7 @@ def test_command_line_sets_steps_data_size_and_decay(tmp_path, monkeypatch, caps
 
 
 def test_learning_rate_decays_linearly_over_the_last_steps():
-    from ebjepa_tutorial.world_training import WorldTrainConfig, config_dict, learning_rate_decay
+    from ebjepa_tutorial.training.world import WorldTrainConfig, config_dict, learning_rate_decay
 
     config = WorldTrainConfig(steps=6, decay_steps=4, lr=0.5)
     optimizer = torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], lr=config.lr)
@@ -360,7 +359,7 @@ def test_learning_rate_decays_linearly_over_the_last_steps():
 
 def test_a_decayed_run_trains_and_saves_its_schedule(tmp_path):
     from ebjepa_tutorial.models.world import WORLD_CONFIGS
-    from ebjepa_tutorial.world_training import WorldTrainConfig, train_world_model
+    from ebjepa_tutorial.training.world import WorldTrainConfig, train_world_model
 
     config = WorldTrainConfig(model=WORLD_CONFIGS["ci"], n_trajectories=32, batch_size=4,
                               steps=3, decay_steps=2, rollout_steps=2)
@@ -396,7 +395,7 @@ def test_checkpoints_from_before_the_predictor_field_load_as_grus(data):
 
 
 def test_windows_with_stays_splice_still_steps_by_hand():
-    from ebjepa_tutorial.world_training import windows_with_stays
+    from ebjepa_tutorial.training.world import windows_with_stays
 
     latents = torch.arange(2 * 6, dtype=torch.float32).view(2, 6, 1)  # frame t of n: 6n + t
     actions = torch.arange(2 * 5, dtype=torch.float32).view(2, 5, 1).repeat(1, 1, 2) + 100
@@ -412,7 +411,7 @@ def test_windows_with_stays_splice_still_steps_by_hand():
 
 def test_refit_predictor_keeps_the_encoder_and_fits_a_new_step():
     from ebjepa_tutorial.models.world import WORLD_CONFIGS
-    from ebjepa_tutorial.world_training import RefitConfig, refit_predictor
+    from ebjepa_tutorial.training.world import RefitConfig, refit_predictor
 
     torch.manual_seed(0)
     old = WorldModel(WORLD_CONFIGS["ci"]).fit_input_stats(
@@ -437,31 +436,31 @@ def test_refit_predictor_keeps_the_encoder_and_fits_a_new_step():
 
 
 def test_refit_command_saves_the_base_config_and_refuses_training_options(tmp_path, capsys):
-    from ebjepa_tutorial import world_training
+    from ebjepa_tutorial.commands import train_world
     from ebjepa_tutorial.models.world import WORLD_CONFIGS
-    from ebjepa_tutorial.train import save_checkpoint
+    from ebjepa_tutorial.training.loop import save_checkpoint
 
     torch.manual_seed(0)
     old = WorldModel(WORLD_CONFIGS["ci"]).fit_input_stats(
         generate_trajectories(8, seed=1).frames())
     trained, out = tmp_path / "trained.pt", tmp_path / "refit.pt"
     save_checkpoint(trained, model=old.state_dict(), config={"steps": 7}, probe_px=3.0)
-    world_training.main(["--refit", str(trained), "--out", str(out), "--steps", "2",
-                         "--trajectories", "16", "--seed", "5"])
+    train_world.main(["--refit", str(trained), "--out", str(out), "--steps", "2",
+                      "--trajectories", "16", "--seed", "5"])
     state = torch.load(out, weights_only=False)
     assert state["config"]["base"] == {"steps": 7} and state["probe_px"] == 3.0
-    assert state["config"]["refit"] == asdict(world_training.RefitConfig(
+    assert state["config"]["refit"] == asdict(train_world.RefitConfig(
         steps=2, n_trajectories=16, seed=5))
-    assert world_training.load_world_model(out).config.predictor == "mlp"
+    assert train_world.load_world_model(out).config.predictor == "mlp"
     assert "the wall test stops" in capsys.readouterr().out
     with pytest.raises(SystemExit):
-        world_training.main(["--refit", str(trained), "--out", str(out), "--coeff", "temporal=1"])
+        train_world.main(["--refit", str(trained), "--out", str(out), "--coeff", "temporal=1"])
     assert "do not apply" in capsys.readouterr().err
 
 
 def test_command_line_trains_the_run_of_a_scale(tmp_path, monkeypatch):
-    from ebjepa_tutorial import world_training
-    from ebjepa_tutorial.scale import preset
+    from ebjepa_tutorial.commands import train_world
+    from ebjepa_tutorial.course.presets import preset
 
     seen = {}
 
@@ -469,12 +468,12 @@ def test_command_line_trains_the_run_of_a_scale(tmp_path, monkeypatch):
         seen["config"] = config
         return tiny_model(), {"loss": [1.0]}
 
-    monkeypatch.setattr(world_training, "train_world_model", fake_train)
-    monkeypatch.setattr(world_training, "probe_report",
+    monkeypatch.setattr(train_world, "train_world_model", fake_train)
+    monkeypatch.setattr(train_world, "probe_report",
                         lambda model: {"probe_px": 1.5, "baseline_px": 20.0})
-    world_training.main(["--scale", "ci", "--out", str(tmp_path / "ci.pt")])
+    train_world.main(["--scale", "ci", "--out", str(tmp_path / "ci.pt")])
     assert seen["config"] == preset("05", "ci").train
     with pytest.raises(SystemExit):
-        world_training.main(["--refit", "x.pt", "--scale", "ci", "--out", "y.pt"])
+        train_world.main(["--refit", "x.pt", "--scale", "ci", "--out", "y.pt"])
     with pytest.raises(SystemExit):  # a usage message, not a traceback
-        world_training.main(["--out", "y.pt", "--steps", "0"])
+        train_world.main(["--out", "y.pt", "--steps", "0"])

@@ -3,10 +3,8 @@
 - ``two_rooms``: geometry, :func:`transition` (the one rule of motion), rendering
 - ``trajectories``: the paper's random-walk data policy, generated in batches
 - ``episodes``: evaluation tasks and :class:`TwoRoomsEnv`, the batch a planner acts in
-- ``checks``: :func:`check_wall_collision`, the checker for notebook 04's exercise
 """
 
-from .checks import check_wall_collision
 from .episodes import EPISODE_STEPS, SUCCESS_RADIUS, Episodes, TwoRoomsEnv, make_episodes
 from .trajectories import Trajectories, generate_trajectories, sample_von_mises
 from .two_rooms import (
@@ -30,7 +28,6 @@ __all__ = [
     "Episodes",
     "Trajectories",
     "TwoRoomsEnv",
-    "check_wall_collision",
     "clip_actions",
     "generate_trajectories",
     "make_episodes",

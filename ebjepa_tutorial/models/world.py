@@ -21,7 +21,7 @@ makes to imagine ``B`` futures of ``H`` steps.
   an untrained predictor is the identity (one step moves the dot <= 1.8 px).
   ``predictor="mlp"`` swaps it for ``z' = z + W MLP([z, e(a)])`` with two
   hidden layers: sharper where the wall ends beside the door, refitted on a
-  trained model's frozen latents (:func:`~ebjepa_tutorial.world_training.refit_predictor`).
+  trained model's frozen latents (:func:`~ebjepa_tutorial.training.world.refit_predictor`).
 - Inverse dynamics: an MLP on ``[z_t, z_{t+1}]`` -> the action ``(2,)``.
 
 The architecture lives in :class:`WorldConfig`, which is saved in every
@@ -72,7 +72,7 @@ class WorldConfig:
 
 # ``full``: the paper's IMPALA widths 16-32-32, two blocks, full resolution. The
 # paper trains it with batch 384, 12 epochs of 100,000 trajectories, AdamW lr
-# 1e-3, weight decay 1e-5 (loss weights: ebjepa_tutorial.world_losses). Its
+# 1e-3, weight decay 1e-5 (loss weights: ebjepa_tutorial.losses.world). Its
 # latent is a 32-channel feature map; ours is a vector (latent_dim is our choice).
 # ``class`` on one busy CPU thread: encoding 64 x 17 frames ~0.5 s, a training
 # step at that batch ~1 s, a rollout of 6,400 latents x 50 steps ~0.55 s.
@@ -319,3 +319,17 @@ def check_compatible(saved: dict, config: WorldConfig) -> None:
 
 def tuple_if_list(value):
     return tuple(value) if isinstance(value, list) else value
+
+
+@torch.no_grad()
+def encode_trajectories(model, trajectories, batch_size: int = 64):
+    """Latents ``(N*(T+1), D)`` and positions ``(N*(T+1), 2)`` of every frame.
+
+    ``trajectories``: :class:`~ebjepa_tutorial.envs.Trajectories`; frames are
+    rendered ``batch_size`` trajectories at a time and encoded without gradients.
+    """
+    chunks, device = [], next(model.parameters()).device
+    for start in range(0, len(trajectories), batch_size):
+        frames = trajectories.frames(slice(start, start + batch_size)).to(device)
+        chunks.append(model.encode(frames).flatten(0, 1).cpu())
+    return torch.cat(chunks), trajectories.positions.reshape(-1, 2)

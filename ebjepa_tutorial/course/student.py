@@ -6,7 +6,7 @@ lines inside it that start with ``# HINT:`` are kept. The student version
 replaces each region by its hints and a ``raise NotImplementedError`` at the
 same indentation, and drops all outputs::
 
-    python -m ebjepa_tutorial.student notebooks student   # what `make student` runs
+    python -m ebjepa_tutorial.course.student notebooks student   # what `make student` runs
 """
 
 from __future__ import annotations

@@ -27,7 +27,7 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
-from .data.paths import cache_dir, remove_stale_temporaries
+from ..data.paths import cache_dir, remove_stale_temporaries
 
 LossFn = Callable[[Any], tuple[torch.Tensor, dict[str, float]]]
 
@@ -296,7 +296,7 @@ def _claim(path: Path, config: Any, device) -> dict | None:
     return state
 
 
-SHIPPED_DIR = Path(__file__).resolve().parents[1] / "checkpoints"
+SHIPPED_DIR = Path(__file__).resolve().parents[2] / "checkpoints"  # beside the package
 
 
 def checkpoint_paths(name: str) -> tuple[Path, Path]:

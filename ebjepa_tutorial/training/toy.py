@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from .losses import covariance_matrix, vicreg_loss
-from .train import History, fit
+from ..losses import covariance_matrix, vicreg_loss
+from .loop import History, fit
 
 
 def make_blobs(

@@ -7,7 +7,7 @@ collapsing: VICReg's variance and covariance terms, or SIGReg.
 
 The encoder is what we keep; the projector exists only for training. Quality
 is measured with a linear probe and a kNN classifier on frozen encoder
-features of un-augmented images (see :mod:`ebjepa_tutorial.evaluate`), at
+features of un-augmented images (see :mod:`ebjepa_tutorial.evaluation.classify`), at
 their own size: ``eval_image_size``, 32 px (CIFAR-10's native size) by
 default, whatever size the training views had. The ResNet ends in a global
 average pool, so one network takes images of any size.
@@ -15,7 +15,6 @@ average pool, so one network takes images of any size.
 
 from __future__ import annotations
 
-import argparse
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -24,11 +23,13 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from . import augment, evaluate, losses, optim, sigreg
-from .models.encoders import ENCODERS, build_encoder
-from .models.heads import build_projector
-from .train import History, checkpoint_paths, fit, load_or_train, resume, save_checkpoint
-from .utils import check_fields, is_int_at_least, is_non_negative, is_positive
+from .. import augment, losses
+from ..losses import sigreg
+from ..models.encoders import ENCODERS, build_encoder
+from ..models.heads import build_projector
+from ..utils import check_fields, is_int_at_least, is_non_negative, is_positive
+from . import optim
+from .loop import History, checkpoint_paths, fit, load_or_train, resume
 
 LOSSES = ("vicreg", "sigreg", "invariance")
 EVAL_FIELDS = ("eval_image_size",)  # how a run is scored, not how it is trained
@@ -198,44 +199,6 @@ def seconds_per_step(config: ImageJEPAConfig, images: torch.Tensor, steps: int =
     return max(run(1 + steps) - first, 0.0) / steps
 
 
-@torch.no_grad()
-def embed(encoder: nn.Module, images: torch.Tensor, size: int, batch_size: int = 256):
-    """Frozen features of un-augmented uint8 images ``(N, 3, 32, 32)`` at ``size``: ``(N, D)``.
-
-    The images are normalised and resized to ``size`` px (32: no resizing); the
-    protocol's size is ``config.eval_image_size``. (Batches of 256 ran about twice
-    as fast as batches of 1,000 at 32 px on a CPU: they stay in the cache.)
-    """
-    device = next(encoder.parameters()).device
-    was_training = encoder.training
-    encoder.eval()
-    chunks = [encoder(resize(images[i:i + batch_size].to(device), size)).float().cpu()
-              for i in range(0, len(images), batch_size)]
-    encoder.train(was_training)
-    return torch.cat(chunks)
-
-
-def probe_encoder(encoder, config: ImageJEPAConfig, train, test, knn_k: int = 20) -> dict:
-    """Probe and kNN test accuracy of frozen features; ``train``, ``test``: (images, labels).
-
-    Both see the images at ``config.eval_image_size`` px, not at the training size.
-    """
-    train_features = embed(encoder, train[0], config.eval_image_size)
-    test_features = embed(encoder, test[0], config.eval_image_size)
-    probe = evaluate.linear_probe(train_features, train[1], test_features, test[1])
-    knn = evaluate.knn_accuracy(train_features, train[1], test_features, test[1], k=knn_k)
-    return {"probe_acc": probe.test_accuracy, "knn_acc": knn}
-
-
-def protocol(config: ImageJEPAConfig, knn_k: int = 20) -> str:
-    """The evaluation protocol of :func:`probe_encoder`, in words, to print beside its numbers."""
-    size = config.eval_image_size
-    native = "their native size, no resizing" if size == 32 else "resized from 32 px"
-    return (f"linear probe (fit on the train split, scored on the test split) and kNN "
-            f"(k = {knn_k}) on frozen encoder features of un-augmented {size}-px images "
-            f"({native}); the encoder was trained on {config.image_size}-px views")
-
-
 def config_dict(config: ImageJEPAConfig) -> dict:
     """The whole config as a plain dict, evaluation fields included (sweep results store it)."""
     return asdict(config)
@@ -294,7 +257,7 @@ def train_or_load_encoder(config: ImageJEPAConfig, name: str, images: torch.Tens
 
     The longer runs that ship with the course are stored this way (the projector
     is three quarters of the weights at class scale, and only training needs it);
-    ``python -m ebjepa_tutorial.image_jepa`` writes them.
+    ``python -m ebjepa_tutorial.commands.train_image`` writes them.
     """
     torch.manual_seed(config.seed)
     encoder = ImageJEPA(config).encoder.to(device)
@@ -303,41 +266,3 @@ def train_or_load_encoder(config: ImageJEPAConfig, name: str, images: torch.Tens
         encoder, config, images, name, device, keep=lambda m: m.encoder), encoder_dict(config),
         shipped, partial=_partial(name))
     return encoder.eval(), history
-
-
-def main(argv: list[str] | None = None) -> None:
-    """Train notebook 01's or 02's run longer and save its encoder: the documented command for
-    the shipped ``checkpoints/<loss>_class_long.pt``. Resumable: rerun the same command after a
-    stop; the stored minutes add up the training time of every part.
-    """
-    from .data import load_cifar10, random_subset
-    from .scale import SCALES, preset
-
-    parser = argparse.ArgumentParser(description="Train notebook 01's or 02's run for longer.")
-    parser.add_argument("--loss", choices=("vicreg", "sigreg"), default="vicreg")
-    parser.add_argument("--scale", default="class", choices=SCALES)
-    parser.add_argument("--steps", type=int, help="default: the scale's long run")
-    parser.add_argument("--out", required=True, help="where to write the encoder (a .pt file)")
-    args = parser.parse_args(argv)
-    sizes = preset("01" if args.loss == "vicreg" else "02", args.scale)
-    try:
-        config = replace(sizes.config, steps=args.steps or sizes.long_steps)
-    except ValueError as error:
-        parser.error(str(error))  # checked before the data is loaded
-    train = random_subset(*load_cifar10("train"), sizes.train_images)  # as the notebooks do
-    test = random_subset(*load_cifar10("test"), sizes.test_images)
-    partial = Path(args.out).with_suffix(".partial")
-    model, history = train_image_jepa(config, train[0], checkpoint=partial)
-    minutes = history.seconds / 60
-    scores = probe_encoder(model.encoder, config, train, test)
-    half = {k: v.half() if v.is_floating_point() else v  # float16 halves the file; features
-            for k, v in model.encoder.state_dict().items()}  # stay within 0.2% (measured)
-    save_checkpoint(args.out, model=half, history=dict(history), config=encoder_dict(config),
-                    minutes=round(minutes, 1), threads=torch.get_num_threads(), **scores)
-    partial.unlink(missing_ok=True)  # gone if its folder could not be written
-    print(f"saved {args.out}: {config.steps} steps in {minutes:.1f} min, linear probe "
-          f"{scores['probe_acc']:.1%}, kNN {scores['knn_acc']:.1%} ({protocol(config)})")
-
-
-if __name__ == "__main__":
-    main()

@@ -14,11 +14,12 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, replace
 
-from .image_jepa import ImageJEPAConfig
-from .models.world import WORLD_CONFIGS
-from .planning import PlannerConfig
-from .video_jepa import VIDEO_CONFIGS, VideoJEPAConfig
-from .world_training import ABLATABLE_TERMS, RefitConfig, WorldTrainConfig
+from ..evaluation.sweeps import FACTORS, Run, projector_runs, sensitivity_runs, shorten
+from ..models.world import WORLD_CONFIGS
+from ..planning import PlannerConfig
+from ..training.image import ImageJEPAConfig
+from ..training.video import VIDEO_CONFIGS, VideoJEPAConfig
+from ..training.world import ABLATABLE_TERMS, RefitConfig, WorldTrainConfig
 
 SCALES = ("ci", "class", "full")
 DEFAULT_SCALE = "class"
@@ -80,8 +81,8 @@ class ImagePreset:
     train_images: int = 50_000  # CIFAR-10 train images used to train and to fit the probe
     test_images: int = 10_000  # CIFAR-10 test images the probe and kNN are scored on
     sweep_steps: int = 500  # steps per run of notebook 02's sweeps and ablations
-    # the longer run that notebooks 01 and 02 load (class: shipped, `python -m
-    # ebjepa_tutorial.image_jepa`); at full scale the main run is the long one
+    # the longer run that notebooks 01 and 02 load (class: shipped, made by
+    # commands.train_image); at full scale the main run is the long one
     long_steps: int = 4000
 
 
@@ -214,3 +215,16 @@ def preset(notebook: str, scale: str | None = None):
     if notebook not in PRESETS:
         raise KeyError(f"no presets for notebook {notebook!r}; known: {', '.join(PRESETS)}")
     return PRESETS[notebook][scale]
+
+
+def sweep_plan(scale: str) -> dict[str, list[Run]]:
+    """Notebook 02's runs of both sweeps at ``scale``: ``{"sensitivity": [...],
+    "projector": [...]}``."""
+    sizes = preset("02", scale)
+    sigreg_config = shorten(sizes.config, sizes.sweep_steps)
+    vicreg_config = shorten(preset("01", scale).config, sizes.sweep_steps)
+    hidden = (sigreg_config.projector or (1024, 1024))[0]
+    outputs = (None, hidden // 16, hidden // 4, hidden)  # class: none, 64, 256, 1024
+    outputs = (None, hidden) if scale == "ci" else outputs  # ci: fewer runs, it only checks
+    return {"sensitivity": sensitivity_runs(sigreg_config, vicreg_config, FACTORS[scale]),
+            "projector": projector_runs(sigreg_config, vicreg_config, outputs)}

@@ -1,4 +1,4 @@
-"""Checker for the notebook exercise "write the wall-collision check for one step".
+"""Checker of chapter 04: "write the wall-collision check for one step".
 
 ``check_wall_collision(fn)`` runs the learner's ``fn(positions, moves,
 layouts) -> new positions`` and the reference :func:`wall_collision` on the
@@ -12,8 +12,15 @@ from __future__ import annotations
 
 import torch
 
-from ..exercises import ExerciseError
-from .two_rooms import HIGH, LOW, random_layouts, sample_positions, wall_bounds, wall_collision
+from ...envs.two_rooms import (
+    HIGH,
+    LOW,
+    random_layouts,
+    sample_positions,
+    wall_bounds,
+    wall_collision,
+)
+from .common import ExerciseError
 
 
 def _cases(seed: int, n: int) -> list[tuple[str, torch.Tensor, torch.Tensor, torch.Tensor]]:
@@ -112,7 +119,7 @@ def check_wall_collision(fn, n: int = 512, seed: int = 0) -> bool:
     """Compare ``fn(positions, moves, layouts)`` with the reference; print a verdict or raise.
 
     Returns True when ``fn`` agrees on every case; otherwise raises
-    :class:`~ebjepa_tutorial.exercises.ExerciseError` (an AssertionError)
+    :class:`~ebjepa_tutorial.course.exercises.ExerciseError` (an AssertionError)
     saying which case failed and how.
     """
     name = getattr(fn, "__name__", "your function")

@@ -22,7 +22,9 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .envs.two_rooms import HIGH, LOW, render
+from ..envs import generate_trajectories
+from ..envs.two_rooms import HIGH, LOW, render
+from ..models.world import WorldModel, encode_trajectories
 
 
 class PositionProbe(nn.Module):
@@ -107,20 +109,6 @@ def mean_baseline_px(train_positions: torch.Tensor, test_positions: torch.Tensor
     return (test_positions - train_positions.mean(dim=0)).norm(dim=1).mean().item()
 
 
-@torch.no_grad()
-def encode_trajectories(model, trajectories, batch_size: int = 64):
-    """Latents ``(N*(T+1), D)`` and positions ``(N*(T+1), 2)`` of every frame.
-
-    ``trajectories``: :class:`~ebjepa_tutorial.envs.Trajectories`; frames are
-    rendered ``batch_size`` trajectories at a time and encoded without gradients.
-    """
-    chunks, device = [], next(model.parameters()).device
-    for start in range(0, len(trajectories), batch_size):
-        frames = trajectories.frames(slice(start, start + batch_size)).to(device)
-        chunks.append(model.encode(frames).flatten(0, 1).cpu())
-    return torch.cat(chunks), trajectories.positions.reshape(-1, 2)
-
-
 def _wall_steps(trajectories, min_stop: float):
     """Steps the middle wall cut short by more than ``min_stop`` px (those whose action would
     leave the arena skipped) and free steps of at least ``min_stop`` px: two ``(B, T)`` masks."""
@@ -203,3 +191,19 @@ def wall_test_by_door_distance(model, trajectories, edges=(0, 8, 12, 16, 24, 65)
         bins.append({"lo": lo, "hi": hi, "n": int(inside.sum()),
                      "stopped": flags[inside].float().mean().item()})
     return bins
+
+
+def probe_report(model: WorldModel, n_fit: int = 1000, n_test: int = 300, seed: int = 12345):
+    """Position-probe error (px) of frozen latents on held-out trajectories, with baselines.
+
+    A linear probe is fitted on every frame of ``n_fit`` fresh trajectories
+    and scored on ``n_test`` others (seeds unseen in training). The baseline
+    always answers the mean position.
+    """
+    fit_trajectories = generate_trajectories(n_fit, seed=seed)
+    test_trajectories = generate_trajectories(n_test, seed=seed + 1)
+    z_fit, xy_fit = encode_trajectories(model, fit_trajectories)
+    z_test, xy_test = encode_trajectories(model, test_trajectories)
+    probe = fit_position_probe(z_fit, xy_fit)
+    return {"probe_px": probe_error_px(probe, z_test, xy_test),
+            "baseline_px": mean_baseline_px(xy_fit, xy_test), "probe": probe}

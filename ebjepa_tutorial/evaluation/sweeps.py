@@ -2,7 +2,7 @@
 
 Two families of short training runs of the CIFAR-10 recipe (``cfg.sweep_steps``
 steps each, from the same initial weights), each scored with the usual frozen
-protocol (:func:`ebjepa_tutorial.image_jepa.probe_encoder`, at the config's
+protocol (:func:`ebjepa_tutorial.evaluation.classify.probe_encoder`, at the config's
 ``eval_image_size``; a stored result is reused only at the same size):
 
 - **sensitivity** (the EB-JEPA paper's Figure 3, at our scale): SIGReg's one
@@ -12,9 +12,9 @@ protocol (:func:`ebjepa_tutorial.image_jepa.probe_encoder`, at the config's
   several widths (the bottleneck) after a hidden layer of the default width.
 
 At ``class`` scale that is about twenty runs, too many for a class period, so
-the results come from this command and are stored in a small JSON file::
+the results come from a command and are stored in a small JSON file::
 
-    python -m ebjepa_tutorial.sweeps --scale class --out checkpoints/sweeps_class.json
+    python -m ebjepa_tutorial.commands.sweep --scale class --out checkpoints/sweeps_class.json
 
 The notebook reads that file if it holds its runs, and otherwise trains the
 missing ones live (seconds at ``ci`` scale). The file is rewritten after every
@@ -23,7 +23,6 @@ run, so an interrupted sweep resumes where it stopped.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import tempfile
@@ -31,13 +30,13 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import torch
-
-from .image_jepa import ImageJEPAConfig, config_dict, probe_encoder, protocol, train_image_jepa
-from .scale import SCALES, preset
+from ..training.image import ImageJEPAConfig, config_dict, train_image_jepa
+from .classify import probe_encoder, protocol
 
 FACTORS = {"ci": (0.1, 1.0, 10.0), "class": (0.01, 0.1, 1.0, 10.0, 100.0),
            "full": (0.01, 0.1, 1.0, 10.0, 100.0)}  # multiples of each default coefficient
+
+
 SWEEP_LABELS = {
     "sigreg_lambda": "SIGReg: lambda",
     "std_coeff": "VICReg: variance weight",
@@ -93,19 +92,7 @@ def projector_runs(sigreg_config: ImageJEPAConfig, vicreg_config: ImageJEPAConfi
     return runs
 
 
-def plan(scale: str) -> dict[str, list[Run]]:
-    """The runs of both sweeps at ``scale``: ``{"sensitivity": [...], "projector": [...]}``."""
-    sizes = preset("02", scale)
-    sigreg_config = shorten(sizes.config, sizes.sweep_steps)
-    vicreg_config = shorten(preset("01", scale).config, sizes.sweep_steps)
-    hidden = (sigreg_config.projector or (1024, 1024))[0]
-    outputs = (None, hidden // 16, hidden // 4, hidden)  # class: none, 64, 256, 1024
-    outputs = (None, hidden) if scale == "ci" else outputs  # ci: fewer runs, it only checks
-    return {"sensitivity": sensitivity_runs(sigreg_config, vicreg_config, FACTORS[scale]),
-            "projector": projector_runs(sigreg_config, vicreg_config, outputs)}
-
-
-def _key(config: ImageJEPAConfig | dict, n_train: int, n_test: int) -> str:
+def key(config: ImageJEPAConfig | dict, n_train: int, n_test: int) -> str:
     """What identifies a result: the config as JSON (tuples become lists) and the data sizes.
 
     The config includes ``eval_image_size``: a run probed at another size is another result.
@@ -129,13 +116,13 @@ def load_results(path: str | Path | None) -> list[dict]:
 
 def stored_rows(*paths: str | Path | None) -> dict[str, dict]:
     """The result rows of the sweep files ``paths``, by what identifies a run (later files win)."""
-    return {_key(row["config"], row["n_train"], row["n_test"]): row
+    return {key(row["config"], row["n_train"], row["n_test"]): row
             for path in paths for row in load_results(path)}
 
 
 def missing_runs(runs: list[Run], n_train: int, n_test: int, stored: dict) -> list[Run]:
     """The runs in ``runs`` that ``stored`` (see :func:`stored_rows`) lacks at these sizes."""
-    return [run for run in runs if _key(run.config, n_train, n_test) not in stored]
+    return [run for run in runs if key(run.config, n_train, n_test) not in stored]
 
 
 def _save_results(path: Path, rows: list[dict], meta: dict) -> None:
@@ -177,53 +164,11 @@ def run_sweep(runs: list[Run], train, test, path: str | Path | None = None,
     own = load_results(path)
     for i, run in enumerate(todo, start=1):
         row = train_and_probe(run, train, test, device, progress)
-        stored[_key(run.config, *sizes)] = row
+        stored[key(run.config, *sizes)] = row
         print(f"[{i}/{len(todo)}] {run.sweep} = {run.value}: probe {row['probe_acc']:.1%}, "
               f"kNN {row['knn_acc']:.1%} ({row['seconds']:.0f} s)")
         if path is not None:
             own.append(row)
             _save_results(Path(path), own, meta or {"protocol": protocol(run.config)})
-    return [{**stored[_key(run.config, *sizes)], "sweep": run.sweep, "value": run.value,
+    return [{**stored[key(run.config, *sizes)], "sweep": run.sweep, "value": run.value,
              "factor": run.factor} for run in runs]
-
-
-def describe_data() -> str:
-    """Which copy of CIFAR-10 the loaders read: every accuracy depends on it."""
-    from .data import data_dir
-    from .data.cifar10 import find_cifar10
-
-    source = find_cifar10(data_dir(), "train")
-    if source is None:
-        return "CIFAR-10 (not found)"
-    jpeg = source.kind in ("tree", "packed")
-    return f"CIFAR-10{' (JPEG copy)' if jpeg else ''}, read from {source.path}"
-
-
-def main(argv: list[str] | None = None) -> None:
-    """Run both sweeps (or one) at a scale and store the results: the documented command."""
-    from .data import load_cifar10, random_subset
-    from .utils import get_device
-
-    parser = argparse.ArgumentParser(description="Notebook 02's sensitivity and projector sweeps.")
-    parser.add_argument("--scale", choices=SCALES, default="class")
-    parser.add_argument("--out", required=True, help="the JSON file to write (and resume)")
-    parser.add_argument("--only", choices=("sensitivity", "projector"), default=None)
-    args = parser.parse_args(argv)
-    sizes = preset("02", args.scale)
-    train = random_subset(*load_cifar10("train"), sizes.train_images)
-    test = random_subset(*load_cifar10("test"), sizes.test_images)
-    runs = plan(args.scale)
-    selected = [run for name, group in runs.items() if args.only in (None, name) for run in group]
-    unique = list({_key(run.config, 0, 0): run for run in selected}.values())  # shared defaults
-    only = f" --only {args.only}" if args.only else ""
-    meta = {"scale": args.scale, "data": describe_data(), "protocol": protocol(sizes.config),
-            "command": f"python -m ebjepa_tutorial.sweeps --scale {args.scale} --out {args.out}"
-                       f"{only}",
-            "torch_threads": torch.get_num_threads()}
-    start = time.perf_counter()
-    run_sweep(unique, train, test, path=args.out, device=get_device(), meta=meta)
-    print(f"done in {(time.perf_counter() - start) / 60:.1f} min; results in {args.out}")
-
-
-if __name__ == "__main__":
-    main()

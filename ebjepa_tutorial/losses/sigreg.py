@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import torch
 
-from .losses import _check_embeddings, invariance_term
+from .vicreg import _check_embeddings, invariance_term
 
 
 def _at_least_float32(x: torch.Tensor) -> torch.Tensor:

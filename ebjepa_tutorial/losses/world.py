@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from .losses import covariance_term, variance_term
+from .vicreg import covariance_term, variance_term
 
 
 @dataclass(frozen=True)

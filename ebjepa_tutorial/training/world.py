@@ -4,7 +4,7 @@ Data: offline trajectories of the paper's data policy, generated once as
 positions and actions (cheap) and rendered to frames batch by batch. Each
 training batch is ``batch_size`` random trajectories of ``17`` frames.
 
-Shipped checkpoint: ``python -m ebjepa_tutorial.world_training --out PATH``
+Shipped checkpoint: ``python -m ebjepa_tutorial.commands.train_world --out PATH``
 trains the class-scale model and writes it (see :func:`main`). With
 ``--refit TRAINED.pt`` it instead fits a new MLP predictor on that model's
 frozen latents (:func:`refit_predictor`).
@@ -12,34 +12,18 @@ frozen latents (:func:`refit_predictor`).
 
 from __future__ import annotations
 
-import argparse
 import math
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import torch
 
-from .envs import generate_trajectories
-from .envs.trajectories import Trajectories
-from .models.world import WORLD_CONFIGS, WorldConfig, WorldModel
-from .probe import (
-    encode_trajectories,
-    fit_position_probe,
-    mean_baseline_px,
-    middle_wall_test,
-    probe_error_px,
-)
-from .train import (
-    History,
-    checkpoint_paths,
-    fit,
-    load_checkpoint,
-    load_or_train,
-    resume,
-    save_checkpoint,
-)
-from .utils import check_fields, get_device, is_int_at_least, is_non_negative, is_positive
-from .world_losses import WorldLossCoeffs, multistep_prediction_loss, world_model_loss
+from ..envs import generate_trajectories
+from ..envs.trajectories import Trajectories
+from ..losses.world import WorldLossCoeffs, multistep_prediction_loss, world_model_loss
+from ..models.world import WORLD_CONFIGS, WorldConfig, WorldModel, encode_trajectories
+from ..utils import check_fields, get_device, is_int_at_least, is_non_negative, is_positive
+from .loop import History, checkpoint_paths, fit, load_checkpoint, load_or_train, resume
 
 TRAJECTORY_ACTIONS = 16  # per training trajectory (17 frames, the paper's clips)
 _ROLLOUT_RULE = (lambda k: is_int_at_least(1)(k) and k <= TRAJECTORY_ACTIONS,
@@ -174,28 +158,12 @@ def load_world_model(path: str | Path, config: WorldConfig | None = None) -> Wor
     weights = state.get("model") if isinstance(state, dict) else None
     if not isinstance(weights, dict) or "_extra_state" not in weights:
         raise ValueError(f"{path} holds no world model (expected a file written by "
-                         "python -m ebjepa_tutorial.world_training --out PATH)")
+                         "python -m ebjepa_tutorial.commands.train_world --out PATH)")
     if config is None:
         return WorldModel.from_state_dict(weights).eval()
     model = WorldModel(config)
     model.load_state_dict(weights)
     return model.eval()
-
-
-def probe_report(model: WorldModel, n_fit: int = 1000, n_test: int = 300, seed: int = 12345):
-    """Position-probe error (px) of frozen latents on held-out trajectories, with baselines.
-
-    A linear probe is fitted on every frame of ``n_fit`` fresh trajectories
-    and scored on ``n_test`` others (seeds unseen in training). The baseline
-    always answers the mean position.
-    """
-    fit_trajectories = generate_trajectories(n_fit, seed=seed)
-    test_trajectories = generate_trajectories(n_test, seed=seed + 1)
-    z_fit, xy_fit = encode_trajectories(model, fit_trajectories)
-    z_test, xy_test = encode_trajectories(model, test_trajectories)
-    probe = fit_position_probe(z_fit, xy_fit)
-    return {"probe_px": probe_error_px(probe, z_test, xy_test),
-            "baseline_px": mean_baseline_px(xy_fit, xy_test), "probe": probe}
 
 
 # -- a sharper predictor on frozen latents ----------------------------------------------------
@@ -260,7 +228,7 @@ def refit_predictor(model: WorldModel, config: RefitConfig = RefitConfig(),
 
     The encoder (so the planning energy) and the inverse-dynamics head are
     kept. The loss is the training loss's K-step rollout error
-    (:func:`~ebjepa_tutorial.world_losses.multistep_prediction_loss`) on
+    (:func:`~ebjepa_tutorial.losses.world.multistep_prediction_loss`) on
     :func:`windows_with_stays`; the targets are fixed, so no regulariser is
     needed. Returns ``(new model in eval mode, history)``.
     """
@@ -362,83 +330,3 @@ def config_dict(config: WorldTrainConfig) -> dict:
     if stored["model"]["predictor"] == "gru":
         del stored["model"]["predictor"], stored["model"]["predictor_hidden"]
     return stored
-
-
-def main(argv: list[str] | None = None) -> None:
-    """Train a world model at a scale and save it: the documented command for the checkpoint.
-
-    ``--refit TRAINED.pt`` instead refits that model's predictor
-    (:func:`refit_predictor`); ``--steps``, ``--trajectories`` and ``--seed`` then
-    set the refit's, and the training-only options are refused.
-    """
-    from .scale import SCALES, preset
-
-    parser = argparse.ArgumentParser(description="Train the Two Rooms world model.")
-    parser.add_argument("--out", required=True, help="where to write the trained model")
-    parser.add_argument("--scale", choices=SCALES,
-                        help="train notebook 05's run of this scale (default: class)")
-    parser.add_argument("--refit", metavar="TRAINED.pt",
-                        help="fit a new MLP predictor on this trained model's frozen latents")
-    parser.add_argument("--steps", type=int,
-                        help=f"default: the scale's ({WorldTrainConfig.steps} at class; "
-                             f"{RefitConfig.steps} with --refit)")
-    parser.add_argument("--trajectories", type=int,
-                        help=f"size of the offline data set (the paper: 100,000); default "
-                             f"{WorldTrainConfig.n_trajectories} "
-                             f"({RefitConfig.n_trajectories} with --refit)")
-    parser.add_argument("--decay-steps", type=int, default=0,
-                        help="lower the learning rate linearly to 0 over the last N steps")
-    parser.add_argument("--without", action="append", default=[], choices=ABLATABLE_TERMS,
-                        help="an ablation: set this term's coefficient to 0 (repeatable)")
-    parser.add_argument("--no-inverse-dynamics", action="store_true",
-                        help="the same as --without inverse_dynamics")
-    parser.add_argument("--coeff", action="append", default=[], metavar="NAME=VALUE",
-                        help="set one loss weight, e.g. covariance=1 (repeatable)")
-    parser.add_argument("--seed", type=int,
-                        help=f"default {WorldTrainConfig.seed} ({RefitConfig.seed} with --refit)")
-    args = parser.parse_args(argv)
-    given = {name: value for name, value in (("steps", args.steps), ("seed", args.seed),
-                                              ("n_trajectories", args.trajectories))
-             if value is not None}
-    if args.refit:
-        if (args.without or args.no_inverse_dynamics or args.coeff or args.decay_steps
-                or args.scale):
-            parser.error("--refit keeps the trained model's encoder: --scale, --without, "
-                         "--no-inverse-dynamics, --coeff and --decay-steps do not apply")
-        return refit_main(args.refit, args.out, RefitConfig(**given))
-    without = args.without + (["inverse_dynamics"] if args.no_inverse_dynamics else [])
-    try:
-        base = preset("05", args.scale or "class").train
-        config = with_coeffs(replace(base, decay_steps=args.decay_steps, **given), args.coeff)
-    except ValueError as error:
-        parser.error(str(error))  # a usage message, not a traceback
-    config = ablation_config(config, *without)
-    partial = Path(args.out).with_suffix(".partial")  # resumable while training
-    model, history = train_world_model(config, checkpoint=partial)
-    report = probe_report(model)
-    save_checkpoint(args.out, model=model.state_dict(), history=dict(history),
-                    config=config_dict(config), probe_px=report["probe_px"])
-    partial.unlink(missing_ok=True)  # gone if its folder could not be written
-    print(f"saved {args.out}: probe error {report['probe_px']:.2f} px "
-          f"(mean-position baseline {report['baseline_px']:.2f} px)")
-
-
-def refit_main(trained: str, out: str, config: RefitConfig) -> None:
-    """Refit the predictor of the model saved at ``trained``; save it to ``out`` with the
-    trained model's stored config (``"base"``), and print the wall test before and after."""
-    model = load_world_model(trained)
-    new, history = refit_predictor(model, config)
-    walls = generate_trajectories(400, seed=778)  # notebook 06's wall test
-    with torch.no_grad():
-        before, after = middle_wall_test(model, walls), middle_wall_test(new, walls)
-    base = load_checkpoint(trained)
-    save_checkpoint(out, model=new.state_dict(), history=dict(history),
-                    config={"refit": asdict(config), "base": base["config"]},
-                    probe_px=base.get("probe_px"))
-    print(f"saved {out}: the wall test stops {after['stopped']:.0%} of the wall's steps and "
-          f"moves {after['moved']:.0%} of the free ones (before: {before['stopped']:.0%} and "
-          f"{before['moved']:.0%})")
-
-
-if __name__ == "__main__":
-    main()

@@ -1,0 +1,107 @@
+"""Train the Two Rooms world model of a scale and save it, or refit a trained model's predictor.
+
+    python -m ebjepa_tutorial.commands.train_world --out FILE.pt [--steps N] [--without TERM]
+    python -m ebjepa_tutorial.commands.train_world --refit TRAINED.pt --out FILE.pt
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import torch
+
+from ..course.presets import SCALES, preset
+from ..envs import generate_trajectories
+from ..evaluation.position import middle_wall_test, probe_report
+from ..training.loop import load_checkpoint, save_checkpoint
+from ..training.world import (
+    ABLATABLE_TERMS,
+    RefitConfig,
+    WorldTrainConfig,
+    ablation_config,
+    config_dict,
+    load_world_model,
+    refit_predictor,
+    train_world_model,
+    with_coeffs,
+)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Train a world model at a scale and save it: the documented command for the checkpoint.
+
+    ``--refit TRAINED.pt`` instead refits that model's predictor
+    (:func:`refit_predictor`); ``--steps``, ``--trajectories`` and ``--seed`` then
+    set the refit's, and the training-only options are refused.
+    """
+    parser = argparse.ArgumentParser(description="Train the Two Rooms world model.")
+    parser.add_argument("--out", required=True, help="where to write the trained model")
+    parser.add_argument("--scale", choices=SCALES,
+                        help="train notebook 05's run of this scale (default: class)")
+    parser.add_argument("--refit", metavar="TRAINED.pt",
+                        help="fit a new MLP predictor on this trained model's frozen latents")
+    parser.add_argument("--steps", type=int,
+                        help=f"default: the scale's ({WorldTrainConfig.steps} at class; "
+                             f"{RefitConfig.steps} with --refit)")
+    parser.add_argument("--trajectories", type=int,
+                        help=f"size of the offline data set (the paper: 100,000); default "
+                             f"{WorldTrainConfig.n_trajectories} "
+                             f"({RefitConfig.n_trajectories} with --refit)")
+    parser.add_argument("--decay-steps", type=int, default=0,
+                        help="lower the learning rate linearly to 0 over the last N steps")
+    parser.add_argument("--without", action="append", default=[], choices=ABLATABLE_TERMS,
+                        help="an ablation: set this term's coefficient to 0 (repeatable)")
+    parser.add_argument("--no-inverse-dynamics", action="store_true",
+                        help="the same as --without inverse_dynamics")
+    parser.add_argument("--coeff", action="append", default=[], metavar="NAME=VALUE",
+                        help="set one loss weight, e.g. covariance=1 (repeatable)")
+    parser.add_argument("--seed", type=int,
+                        help=f"default {WorldTrainConfig.seed} ({RefitConfig.seed} with --refit)")
+    args = parser.parse_args(argv)
+    given = {name: value for name, value in (("steps", args.steps), ("seed", args.seed),
+                                              ("n_trajectories", args.trajectories))
+             if value is not None}
+    if args.refit:
+        if (args.without or args.no_inverse_dynamics or args.coeff or args.decay_steps
+                or args.scale):
+            parser.error("--refit keeps the trained model's encoder: --scale, --without, "
+                         "--no-inverse-dynamics, --coeff and --decay-steps do not apply")
+        return refit_main(args.refit, args.out, RefitConfig(**given))
+    without = args.without + (["inverse_dynamics"] if args.no_inverse_dynamics else [])
+    try:
+        base = preset("05", args.scale or "class").train
+        config = with_coeffs(replace(base, decay_steps=args.decay_steps, **given), args.coeff)
+    except ValueError as error:
+        parser.error(str(error))  # a usage message, not a traceback
+    config = ablation_config(config, *without)
+    partial = Path(args.out).with_suffix(".partial")  # resumable while training
+    model, history = train_world_model(config, checkpoint=partial)
+    report = probe_report(model)
+    save_checkpoint(args.out, model=model.state_dict(), history=dict(history),
+                    config=config_dict(config), probe_px=report["probe_px"])
+    partial.unlink(missing_ok=True)  # gone if its folder could not be written
+    print(f"saved {args.out}: probe error {report['probe_px']:.2f} px "
+          f"(mean-position baseline {report['baseline_px']:.2f} px)")
+
+
+def refit_main(trained: str, out: str, config: RefitConfig) -> None:
+    """Refit the predictor of the model saved at ``trained``; save it to ``out`` with the
+    trained model's stored config (``"base"``), and print the wall test before and after."""
+    model = load_world_model(trained)
+    new, history = refit_predictor(model, config)
+    walls = generate_trajectories(400, seed=778)  # notebook 06's wall test
+    with torch.no_grad():
+        before, after = middle_wall_test(model, walls), middle_wall_test(new, walls)
+    base = load_checkpoint(trained)
+    save_checkpoint(out, model=new.state_dict(), history=dict(history),
+                    config={"refit": asdict(config), "base": base["config"]},
+                    probe_px=base.get("probe_px"))
+    print(f"saved {out}: the wall test stops {after['stopped']:.0%} of the wall's steps and "
+          f"moves {after['moved']:.0%} of the free ones (before: {before['stopped']:.0%} and "
+          f"{before['moved']:.0%})")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,12 @@
+"""Evaluation on frozen features.
+
+- ``classify``: the linear probe and kNN of chapters 01-02
+- ``detection``: chapter 03's detection probe and AP per horizon
+- ``position``: chapter 05's position probes and the middle-wall test
+- ``metrics``: average precision and confidence intervals
+- ``sweeps``: chapter 02's grids of short runs, trained and scored
+"""
+
+from . import classify, detection, metrics, position, sweeps
+
+__all__ = ["classify", "detection", "metrics", "position", "sweeps"]

@@ -1,0 +1,116 @@
+"""Notebook 03's evaluation: a detection probe on frozen video latents, AP per horizon.
+
+On clips made from held-out digits, a small head trained on frozen latents
+marks which cells of an 8x8 grid hold a digit centre; it is scored on latents
+predicted ``k = 1..7`` steps ahead, and the average precision (AP) is computed
+over the whole evaluation set per horizon (not averaged per batch), with
+their mean (mAP). Boxes come exactly from the generator.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from ..data.moving_mnist import centres_to_grid, generate_moving_mnist
+from ..losses.rollout import rollout
+from ..models.video import DetectionHead, VideoJEPA
+from ..training.video import check_clips
+from .metrics import average_precision_per_horizon
+
+PROBE_SEED, EVAL_SEED = 1001, 1002  # seeds of the evaluation clips (training clips use 0, 1, ...)
+
+
+def _pool(z: torch.Tensor, grid: int) -> torch.Tensor:
+    """``(B, T, C, S, S) -> (B, T, C, grid, grid)`` by average pooling (the probe's first step)."""
+    return F.adaptive_avg_pool2d(z.flatten(0, 1), grid).unflatten(0, z.shape[:2])
+
+
+@torch.no_grad()
+def grid_features(model: VideoJEPA, clips: torch.Tensor, horizons: int = 7,
+                  batch_size: int = 100, grid: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pooled latents of uint8 ``clips`` ``(N, T, 1, 64, 64)`` for the probe, on the CPU.
+
+    Returns ``encoded`` ``(N, T, C, grid, grid)``, every frame encoded, and
+    ``predicted`` ``(N, horizons, C, grid, grid)``: the predictor unrolled from
+    the first ``context`` frames, so entry ``k - 1`` is the guess for frame
+    ``context - 1 + k``, made ``k`` steps ahead.
+    """
+    context = model.config.context
+    check_clips(clips, context + horizons)
+    model.eval()
+    device = next(model.parameters()).device
+    encoded, predicted = [], []
+    for lo in range(0, len(clips), batch_size):
+        z = model.encode(clips[lo:lo + batch_size].to(device))
+        predicted.append(_pool(rollout(model.predictor, z[:, :context], horizons), grid).cpu())
+        encoded.append(_pool(z, grid).cpu())
+    return torch.cat(encoded), torch.cat(predicted)
+
+
+def fit_detection_probe(features: torch.Tensor, targets: torch.Tensor, steps: int = 400,
+                        batch_size: int = 512, lr: float = 3e-3, hidden: int = 32,
+                        seed: int = 0) -> DetectionHead:
+    """Train a :class:`DetectionHead` on frozen latents; sigmoid / binary cross-entropy.
+
+    ``features``: ``(M, C, g, g)`` (pooled, from :func:`grid_features`, one row
+    per frame); ``targets``: 0/1 ``(M, g, g)`` from ``centres_to_grid``.
+    """
+    if features.shape[0] != targets.shape[0] or features.shape[-2:] != targets.shape[-2:]:
+        raise ValueError(f"features {tuple(features.shape)} and targets "
+                         f"{tuple(targets.shape)} must be (M, C, g, g) and (M, g, g)")
+    generator = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    probe = DetectionHead(features.shape[1], hidden, grid=targets.shape[-1])
+    optimizer = torch.optim.Adam(probe.parameters(), lr=lr)
+    for _ in range(steps):
+        index = torch.randint(0, len(features), (batch_size,), generator=generator)
+        loss = F.binary_cross_entropy_with_logits(probe(features[index]), targets[index])
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+    return probe.eval()
+
+
+@torch.no_grad()
+def detection_report(model: VideoJEPA, probe_data, eval_data, horizons: int = 7,
+                     probe_steps: int = 400, seed: int = 0) -> dict:
+    """Fit the probe on ``probe_data``'s encoded frames; AP per horizon on ``eval_data``.
+
+    Both are :class:`~ebjepa_tutorial.data.moving_mnist.MovingMNISTBatch`
+    (make ``eval_data`` from held-out digits). Returns float64 ``(horizons,)``
+    tensors ``ap`` (probe on predicted latents), ``ap_encoded`` (on the true
+    encodings of the same frames: what a perfect predictor would reach) and
+    ``ap_copy`` (on the last context frame: a predictor that never moves),
+    their means ``map``, ``map_encoded``, ``map_copy``, and the ``probe``.
+    """
+    context = model.config.context
+    fit_features, _ = grid_features(model, probe_data.clips, horizons=1)  # encodings only
+    with torch.enable_grad():
+        probe = fit_detection_probe(fit_features.flatten(0, 1),
+                                    centres_to_grid(probe_data.centres).flatten(0, 1),
+                                    steps=probe_steps, seed=seed)
+    encoded, predicted = grid_features(model, eval_data.clips, horizons)
+    targets = centres_to_grid(eval_data.centres)[:, context:context + horizons]
+
+    def scores(features):  # (N, H, C, g, g) -> (N, H, g, g)
+        return probe(features.flatten(0, 1)).unflatten(0, features.shape[:2])
+
+    last = encoded[:, context - 1:context].expand(-1, horizons, -1, -1, -1)
+    report = {"probe": probe}
+    for name, features in (("", predicted), ("_encoded", encoded[:, context:context + horizons]),
+                           ("_copy", last)):
+        report["ap" + name] = average_precision_per_horizon(scores(features), targets)
+        report["map" + name] = float(report["ap" + name].mean())
+    return report
+
+
+def evaluation_clips(train_digits: torch.Tensor, held_out: torch.Tensor, n_probe: int,
+                     n_eval: int, n_frames: int = 10):
+    """The protocol's two sets of clips, the same for every model compared.
+
+    Probe clips (fresh clips of the training digits) fit the detection probe;
+    evaluation clips, made only of ``held_out`` digits, are where AP is measured.
+    """
+    return (generate_moving_mnist(train_digits, n_probe, n_frames, seed=PROBE_SEED),
+            generate_moving_mnist(held_out, n_eval, n_frames, seed=EVAL_SEED))

@@ -1,0 +1,216 @@
+"""Video JEPA on Moving MNIST (notebook 03): the run's config, its clips, training, load-or-train.
+
+The loss is the K-step rollout loss (:mod:`ebjepa_tutorial.losses.rollout`)
+plus the variance and covariance terms on projected latents (each location of
+each frame is one sample), so that the latent cannot collapse:
+
+    L = (1/K) sum_k mean ||zhat_k - z_{s+1+k}||^2 + std v(P(Z)) + cov c(P(Z))
+
+Evaluation lives in :mod:`ebjepa_tutorial.evaluation.detection`; the command
+that trains notebook 03's runs ahead of a class is
+``python -m ebjepa_tutorial.commands.train_video --scale class``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from ..data.moving_mnist import generate_moving_mnist
+from ..losses import covariance_term, variance_term
+from ..losses.rollout import rollout_loss
+from ..models.video import VIDEO_MODEL_CONFIGS, FrameDecoder, VideoJEPA, VideoModelConfig
+from ..utils import check_fields, get_device, is_int_at_least, is_non_negative, is_positive
+from .loop import History, checkpoint_paths, fit, load_or_train, resume
+
+
+@dataclass(frozen=True)
+class VideoJEPAConfig:
+    """One training run. Defaults: the class scale (~10 minutes on 2 CPU cores)."""
+
+    model: VideoModelConfig = field(default_factory=lambda: VIDEO_MODEL_CONFIGS["class"])
+    n_clips: int = 4000  # training clips from the training digits (make_clips; 164 MB)
+    n_frames: int = 10  # frames per clip (needs >= context + rollout_steps)
+    batch_size: int = 16  # clips per step (the paper: 64; per clip, small batches run faster here)
+    steps: int = 600  # about 1.1 s per step on one busy CPU thread
+    lr: float = 1e-3  # Adam, as in the paper
+    std_coeff: float = 10.0  # the paper's weights
+    cov_coeff: float = 100.0
+    rollout_steps: int = 4  # K
+    tbptt: int | None = None  # truncated back-propagation through time (None: full)
+    seed: int = 0
+
+    def __post_init__(self):
+        at_least = {name: (is_int_at_least(1), "an int >= 1")
+                    for name in ("n_clips", "batch_size", "steps", "rollout_steps")}
+        frames = self.model.context + self.rollout_steps if is_int_at_least(1)(
+            self.rollout_steps) else self.model.context + 1
+        check_fields(self, {
+            **at_least,
+            "n_frames": (is_int_at_least(frames),
+                         f"an int >= context + rollout_steps = {frames}"),
+            "lr": (is_positive, "a number > 0"),
+            "std_coeff": (is_non_negative, "a number >= 0"),
+            "cov_coeff": (is_non_negative, "a number >= 0"),
+            "tbptt": (lambda m: m is None or is_int_at_least(1)(m), "None or an int >= 1"),
+        })
+
+
+VIDEO_CONFIGS = {
+    "ci": VideoJEPAConfig(model=VIDEO_MODEL_CONFIGS["ci"], n_clips=256, batch_size=8, steps=20),
+    "class": VideoJEPAConfig(),
+    # the paper: 18,000 clips of 10 frames, batch 64, 50 epochs
+    "full": VideoJEPAConfig(model=VIDEO_MODEL_CONFIGS["full"], n_clips=18_000, batch_size=64,
+                            steps=50 * 18_000 // 64),
+}
+
+
+def make_clips(config: VideoJEPAConfig, train_digits: torch.Tensor) -> torch.Tensor:
+    """The run's training clips: uint8 ``(n_clips, n_frames, 1, 64, 64)`` from ``train_digits``.
+
+    Pass the first half of ``split_digits``; evaluation clips come from the other half.
+    """
+    batch = generate_moving_mnist(train_digits, config.n_clips, config.n_frames, seed=config.seed)
+    return batch.clips
+
+
+def check_clips(clips: torch.Tensor, min_frames: int) -> None:
+    """Raise unless ``clips`` is uint8 ``(N, T, 1, 64, 64)`` with ``T >= min_frames``."""
+    if not isinstance(clips, torch.Tensor) or clips.ndim != 5 or clips.shape[2:] != (1, 64, 64):
+        got = tuple(clips.shape) if isinstance(clips, torch.Tensor) else type(clips).__name__
+        raise ValueError(f"clips must be (N, T, 1, 64, 64) from generate_moving_mnist, got {got}")
+    if clips.dtype != torch.uint8:
+        raise TypeError(f"clips must be uint8 (as generated), got {clips.dtype}")
+    if clips.shape[1] < min_frames:
+        raise ValueError(f"clips have {clips.shape[1]} frames; this needs at least {min_frames} "
+                         "(context + prediction steps): generate longer clips")
+
+
+def video_jepa_loss(model: VideoJEPA, frames: torch.Tensor, config: VideoJEPAConfig):
+    """Total loss of a batch of clips ``(B, T, 1, 64, 64)`` and its unweighted terms."""
+    z = model.encode(frames)
+    prediction = rollout_loss(model.predictor, z, model.config.context, config.rollout_steps,
+                              config.tbptt)
+    projected = model.project(z)  # (B*T*S*S, D): every location of every frame is a sample
+    variance, covariance = variance_term(projected), covariance_term(projected)
+    total = prediction + config.std_coeff * variance + config.cov_coeff * covariance
+    terms = {"prediction": prediction.item(), "variance": variance.item(),
+             "covariance": covariance.item()}
+    return total, terms
+
+
+def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
+                     checkpoint: str | Path | None = None, progress: bool = True,
+                     device: torch.device | str | None = None) -> tuple[VideoJEPA, History]:
+    """Train on uint8 ``clips`` ``(N, T, 1, 64, 64)``; resume from ``checkpoint`` if it exists.
+
+    Batch ``step`` is drawn from a generator seeded by ``(seed, step)``, so a
+    resumed run sees the same batches as an uninterrupted one. Returns the
+    model (in eval mode) and its history.
+    """
+    check_clips(clips, config.model.context + config.rollout_steps)
+    device = get_device(device)
+    torch.manual_seed(config.seed)
+    model = VideoJEPA(config.model).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
+    start, history = (0, History())
+    if checkpoint is not None:
+        start, history = resume(checkpoint, model, optimizer, config=config_dict(config))
+
+    def batch(step: int) -> torch.Tensor:
+        generator = torch.Generator().manual_seed(config.seed * 1_000_003 + step)
+        return clips[torch.randint(0, len(clips), (config.batch_size,), generator=generator)]
+
+    fit(model, optimizer, lambda frames: video_jepa_loss(model, frames.to(device), config),
+        batch, config.steps, history=history, start_step=start, checkpoint=checkpoint,
+        checkpoint_every=100, log_every=10, desc="video JEPA", progress=progress,
+        config=config_dict(config))
+    return model.eval(), history
+
+
+def config_dict(config: VideoJEPAConfig) -> dict:
+    """The config as a plain dict (what checkpoints store to recognise a matching run)."""
+    return asdict(config)
+
+
+def digits_fingerprint(digits: torch.Tensor) -> str:
+    """A short hash of the training digits: a saved run is reused only with the same digits."""
+    return hashlib.sha1(digits.contiguous().numpy().tobytes()).hexdigest()[:12]
+
+
+def run_name(scale: str, config: VideoJEPAConfig) -> str:
+    """Notebook 03's checkpoint name for ``config``: ``video_jepa_<scale>_K<K>_seed<seed>``."""
+    return f"video_jepa_{scale}_K{config.rollout_steps}_seed{config.seed}"
+
+
+def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor,
+                  device: torch.device | str | None = None, progress: bool = True):
+    """The model of ``config``: loaded if a run with exactly this config was saved, else trained.
+
+    Looks for ``checkpoints/<name>.pt`` (shipped with the course), then
+    ``data/cache/checkpoints/<name>.pt``; a file counts only if it stores this
+    config and the same ``train_digits`` (uint8 ``(D, 1, 28, 28)``, compared by
+    :func:`digits_fingerprint`). Otherwise makes the run's clips, trains
+    (resumable from ``<name>.partial`` in the cache) and saves. Notebook 03.
+    Returns ``(model in eval mode, history)``.
+    """
+    torch.manual_seed(config.seed)
+    model = VideoJEPA(config.model).to(get_device(device))
+    cache_path, shipped = checkpoint_paths(name)
+    partial = cache_path.with_suffix(".partial")
+
+    def train() -> History:
+        clips = make_clips(config, train_digits)
+        trained, history = train_video_jepa(config, clips, checkpoint=partial, progress=progress,
+                                            device=device)
+        model.load_state_dict(trained.state_dict())
+        return history
+
+    stored = {**config_dict(config), "train_digits": digits_fingerprint(train_digits)}
+    history = load_or_train(cache_path, model, train, stored, shipped, partial=partial)
+    return model.eval(), history
+
+
+# --- a decoder, to draw latents as pictures ---------------------------------------------------
+
+
+def fit_decoder(model: VideoJEPA, clips: torch.Tensor, steps: int = 200, batch_size: int = 32,
+                lr: float = 1e-3, seed: int = 0) -> FrameDecoder:
+    """Train a :class:`FrameDecoder` from frozen latents back to frames, for pictures only.
+
+    ``clips``: uint8 ``(N, T, 1, 64, 64)``; each step decodes ``batch_size``
+    random frames; the loss is a per-pixel binary cross-entropy. Decode with
+    ``torch.sigmoid(decoder(z))``, ``z`` ``(N, C, S, S)`` encoded or predicted.
+    """
+    check_clips(clips, 1)
+    model.eval()
+    device = next(model.parameters()).device
+    generator = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    decoder = FrameDecoder(model.config.latent_channels, model.config.latent_side).to(device)
+    optimizer = torch.optim.Adam(decoder.parameters(), lr=lr)
+    frames = clips.flatten(0, 1)  # (N*T, 1, 64, 64)
+    for _ in range(steps):
+        batch = frames[torch.randint(0, len(frames), (batch_size,), generator=generator)]
+        batch = batch[:, None].to(device)  # (B, 1, 1, 64, 64): clips of one frame
+        with torch.no_grad():
+            z = model.encode(batch)[:, 0]
+        loss = F.binary_cross_entropy_with_logits(decoder(z), batch[:, 0].float() / 255)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+    return decoder.eval()
+
+
+
+
+
+def ablation_configs(config: VideoJEPAConfig, rollout_steps=(1, 2, 4), seeds=(0, 1, 2)):
+    """``config`` with every ``K`` in ``rollout_steps`` and every seed (clips and weights)."""
+    return [replace(config, rollout_steps=k, seed=s) for k in rollout_steps for s in seeds]
+
+
