@@ -38,7 +38,7 @@ test: setup
 
 # Unit tests only (seconds), for quick edit-test loops.
 test-fast: setup
-	$(BIN)/python -m pytest tests -m "not slow and not browser"
+	$(BIN)/python -m pytest tests -m "not slow and not browser" -p no:nbval
 
 book: setup
 	$(BIN)/python -m ebjepa_tutorial.course.book build

@@ -82,8 +82,7 @@ class PlannerConfig:
     max_std: float = 2.0
     execute: int = 4  # m, actions executed before re-planning
     # 1: i.i.d. noise per step (Algorithm 1); p > 1: smooth noise, a fresh draw every p steps.
-    # Measured at class scale (seeds 10,000-10,019, true motion, learned energy): 10 of 20
-    # episodes with p = 1, 20 of 20 with p = 8; white noise does not explore far enough.
+    # White noise averages out over a plan and does not explore far enough around the wall.
     noise_period: int = 8
     action_bound: float = MAX_STEP  # sampled steps are clipped to the longest in the data, px
 

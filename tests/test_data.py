@@ -78,6 +78,7 @@ def real_loads(tmp_path_factory):
     return results
 
 
+@pytest.mark.slow  # decodes the real files: seconds
 def test_real_cifar10_test_split(real_loads):
     (images, labels), (again, again_labels), seconds = real_loads["cifar"]
     assert images.shape == (10_000, 3, 32, 32) and images.dtype == torch.uint8
@@ -91,6 +92,7 @@ def test_real_cifar10_test_split(real_loads):
     assert seconds < 1.0
 
 
+@pytest.mark.slow
 def test_real_mnist_test_split(real_loads):
     (images, labels), (again, _), seconds = real_loads["mnist"]
     assert images.shape == (10_000, 1, 28, 28) and images.dtype == torch.uint8

@@ -170,8 +170,7 @@ def test_train_or_load_trains_once_then_loads(tmp_path, monkeypatch, capsys):
 def test_checkpoints_do_not_depend_on_the_evaluation_size(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
     images = _images()
-    assert "eval_image_size" in image.config_dict(TINY)
-    assert "eval_image_size" not in image.training_dict(TINY)
+    assert "eval_image_size" not in image.identity(TINY)
     image.train_or_load(TINY, "tiny_run", images)
     capsys.readouterr()
     image.train_or_load(dataclasses.replace(TINY, eval_image_size=24), "tiny_run", images)
@@ -180,16 +179,16 @@ def test_checkpoints_do_not_depend_on_the_evaluation_size(tmp_path, monkeypatch,
     assert "Trained and saved" in capsys.readouterr().out  # training at another size is not
 
 
-def test_train_or_load_encoder_keeps_only_the_encoder(tmp_path, monkeypatch, capsys):
+def test_train_or_load_can_keep_only_the_encoder(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
     images = _images()
     model, _ = image.train_or_load(TINY, "tiny_run", images)
-    encoder, history = image.train_or_load_encoder(TINY, "tiny_encoder", images)
+    encoder, history = image.train_or_load(TINY, "tiny_encoder", images, encoder_only=True)
     assert "Trained and saved" in capsys.readouterr().out
     assert all(torch.equal(p, q) for p, q in zip(model.encoder.parameters(), encoder.parameters()))
     stored = torch.load(tmp_path / "checkpoints" / "tiny_encoder.pt", weights_only=False)
     assert set(stored["model"]) == set(encoder.state_dict())  # no projector weights
-    again, history2 = image.train_or_load_encoder(TINY, "tiny_encoder", images)
+    again, history2 = image.train_or_load(TINY, "tiny_encoder", images, encoder_only=True)
     assert "Loaded" in capsys.readouterr().out and history2 == history and not again.training
     image.train_or_load(TINY, "tiny_encoder", images)  # a whole-model run of that name
     assert "another configuration" in capsys.readouterr().out  # never reads encoder weights
@@ -204,7 +203,7 @@ def test_long_run_command_writes_a_float16_encoder(tmp_path, monkeypatch, capsys
     out = tmp_path / "long.pt"
     train_image.main(["--loss", "vicreg", "--steps", "6", "--out", str(out)])
     stored = torch.load(out, weights_only=False)
-    assert stored["config"] == image.encoder_dict(dataclasses.replace(TINY, steps=6))
+    assert stored["config"] == image.identity(dataclasses.replace(TINY, steps=6), encoder_only=True)
     assert all(v.dtype == torch.float16 for v in stored["model"].values() if v.is_floating_point())
     assert 0 <= stored["probe_acc"] <= 1 and not out.with_suffix(".partial").exists()
     assert "linear probe" in capsys.readouterr().out
@@ -244,6 +243,7 @@ def test_seconds_per_step_cancels_the_set_up_and_first_step(monkeypatch):
 
 
 
+@pytest.mark.slow  # the full-width ResNet-18
 @pytest.mark.parametrize("notebook, projector", [("01", (2048, 2048)), ("02", (2048, 128))])
 def test_full_scale_is_the_papers_recipe_and_takes_a_step(notebook, projector):
     config = preset(notebook, "full").config

@@ -10,6 +10,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 PACKAGE = Path(__file__).resolve().parents[1] / "ebjepa_tutorial"
 LAYERS = ["utils", "data", "envs", "augment", "models", "losses", "training", "evaluation",
           "planning", "viz", "course", "commands"]
@@ -81,6 +83,7 @@ def test_no_import_cycle():
     assert cycles == [], "import cycles: " + "; ".join(" -> ".join(c) for c in cycles)
 
 
+@pytest.mark.slow  # a fresh interpreter imports torch
 def test_lower_layers_load_without_the_course_or_the_commands():
     top = LAYERS.index("course")
     lower = sorted(m for m in modules() if layer(m) is not None and layer(m) < top)

@@ -7,9 +7,7 @@ habit of a class, where a learner runs a cell a second time after changing it.
 import os
 from pathlib import Path
 
-import nbformat
 import pytest
-from nbclient import NotebookClient
 
 NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb"))
 
@@ -17,6 +15,9 @@ NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.i
 @pytest.mark.slow
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
 def test_every_cell_can_run_twice(path, monkeypatch):
+    import nbformat  # slow imports, kept out of the collection of the fast tests
+    from nbclient import NotebookClient
+
     monkeypatch.setenv("EBJEPA_SCALE", "ci")
     monkeypatch.setenv("MPLBACKEND", "agg")
     notebook = nbformat.read(path, as_version=4)

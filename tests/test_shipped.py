@@ -1,10 +1,11 @@
 """Every shipped checkpoint is the run its notebook asks for at class scale.
 
-``train.load_or_train`` loads a file only if its stored configuration equals
-the notebook's; a shipped file that drifted from the preset would be skipped
+``load_or_train`` loads a file only if its stored run identity equals the
+notebook's; a shipped file that drifted from the preset would be skipped
 silently and the class would wait for a retrain. These tests compare the
-stored configurations with the presets (and the sweep file's runs with
-notebook 02's plan); no model is built.
+stored identities (brought up to date from the version they were saved in)
+with the presets, and the sweep file's runs with notebook 02's plan; no model
+is built.
 """
 
 from dataclasses import replace
@@ -18,15 +19,15 @@ from ebjepa_tutorial.data import DataNotFoundError, load_mnist
 from ebjepa_tutorial.data.moving_mnist import split_digits
 from ebjepa_tutorial.evaluation import sweeps
 from ebjepa_tutorial.training import image, video, world
-from ebjepa_tutorial.training.loop import load_checkpoint
+from ebjepa_tutorial.training.checkpoints import load_checkpoint, stored_identity
 
 SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints"
 
 
-def stored_config(name: str) -> dict:
+def stored_config(name: str, upgrade=world.upgrade_identity) -> dict:
     path = SHIPPED / f"{name}.pt"
     assert path.is_file(), f"{path} is documented in checkpoints/README.md but missing"
-    return load_checkpoint(path)["config"]
+    return stored_identity(load_checkpoint(path), upgrade)
 
 
 @pytest.mark.parametrize("term", [None, *world.ABLATABLE_TERMS])
@@ -34,13 +35,13 @@ def test_world_models_match_notebooks_05_and_06(term):
     base = preset("06", "class").world
     config = base if term is None else world.ablation_config(base, term)
     suffix = "" if term is None else "_" + world.ABLATION_SUFFIXES[term]
-    assert stored_config(f"world_model_class{suffix}") == world.config_dict(config)
+    assert stored_config(f"world_model_class{suffix}") == world.identity(config)
 
 
 def test_long_world_model_matches_notebook_06():
     config = preset("06", "class").long_world
     assert config.n_trajectories == 100_000 and config.steps > preset("06", "class").world.steps
-    assert stored_config("world_model_class_long") == world.config_dict(config)
+    assert stored_config("world_model_class_long") == world.identity(config)
 
 
 def test_paper_length_world_model_is_the_long_run_continued():
@@ -48,7 +49,7 @@ def test_paper_length_world_model_is_the_long_run_continued():
     # notebook trains it, so it is checked against the long model's config with 2x the steps
     config = preset("06", "class").long_world
     doubled = replace(config, steps=2 * config.steps)
-    assert stored_config("world_model_class_long20k") == world.config_dict(doubled)
+    assert stored_config("world_model_class_long20k") == world.identity(doubled)
 
 
 def test_refitted_model_matches_notebook_06():
@@ -57,15 +58,15 @@ def test_refitted_model_matches_notebook_06():
     cfg = preset("06", "class")
     assert cfg.refit_base == replace(cfg.long_world, steps=2 * cfg.long_world.steps)
     assert cfg.refit == world.RefitConfig()  # the command's defaults
-    assert stored_config("world_model_class_long20k_mlp") == world.refit_config_dict(
-        cfg.refit, cfg.refit_base)
+    stored = stored_config("world_model_class_long20k_mlp", world.upgrade_refit_identity)
+    assert stored == world.refit_identity(cfg.refit, world.identity(cfg.refit_base))
 
 
 @pytest.mark.parametrize("term", preset("06", "class").long_ablations)
 def test_long_ablations_match_notebook_06(term):
     config = world.ablation_config(preset("06", "class").long_world, term)
     name = f"world_model_class_long_{world.ABLATION_SUFFIXES[term]}"
-    assert stored_config(name) == world.config_dict(config)
+    assert stored_config(name) == world.identity(config)
 
 
 def test_video_jepas_match_notebook_03():
@@ -77,15 +78,16 @@ def test_video_jepas_match_notebook_03():
     train_digits, _ = split_digits(digits, n_train=cfg.n_train_digits)
     fingerprint = video.digits_fingerprint(train_digits)
     for config in video.ablation_configs(cfg.train, cfg.rollout_steps, cfg.seeds):
-        expected = {**video.config_dict(config), "train_digits": fingerprint}
-        assert stored_config(video.run_name("class", config)) == expected
+        expected = video.identity(config, train_digits)
+        assert expected["train_digits"] == fingerprint
+        assert stored_config(video.run_name("class", config), None) == expected
 
 
 @pytest.mark.parametrize("notebook, loss", [("01", "vicreg"), ("02", "sigreg")])
 def test_long_image_encoders_match_notebooks_01_and_02(notebook, loss):
     cfg = preset(notebook, "class")
-    expected = image.encoder_dict(replace(cfg.config, steps=cfg.long_steps))
-    assert stored_config(f"{loss}_class_long") == expected
+    expected = image.identity(replace(cfg.config, steps=cfg.long_steps), encoder_only=True)
+    assert stored_config(f"{loss}_class_long", None) == expected
 
 
 

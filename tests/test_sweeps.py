@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+from dataclasses import asdict
 
 import pytest
 import torch
@@ -85,7 +86,7 @@ def _record_training(monkeypatch) -> list:
     def fake(run, train, test, device="cpu", progress=True):
         calls.append(run)
         return {"probe_acc": 0.5, "knn_acc": 0.5, "seconds": 0.0, "n_train": len(train[0]),
-                "n_test": len(test[0]), "config": sweeps.config_dict(run.config)}
+                "n_test": len(test[0]), "config": asdict(run.config)}
 
     monkeypatch.setattr(sweeps, "train_and_probe", fake)
     return calls

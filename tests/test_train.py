@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from ebjepa_tutorial.training import loop
+from ebjepa_tutorial.training import checkpoints, loop
 
 
 def _problem(seed=0):
@@ -79,7 +79,7 @@ def test_resume_without_checkpoint_starts_at_zero(tmp_path):
 
 def test_checkpoint_write_is_atomic(tmp_path, monkeypatch):
     path = tmp_path / "ckpt.pt"
-    loop.save_checkpoint(path, value=1)
+    checkpoints.save_checkpoint(path, value=1)
 
     def broken_save(obj, f):
         f.write(b"half a checkpoint")
@@ -87,14 +87,14 @@ def test_checkpoint_write_is_atomic(tmp_path, monkeypatch):
 
     monkeypatch.setattr(torch, "save", broken_save)
     with pytest.raises(OSError, match="disk full"):
-        loop.save_checkpoint(path, value=2)
-    assert loop.load_checkpoint(path)["value"] == 1  # the old file survives
+        checkpoints.save_checkpoint(path, value=2)
+    assert checkpoints.load_checkpoint(path)["value"] == 1  # the old file survives
     assert [p.name for p in tmp_path.iterdir()] == ["ckpt.pt"]  # no temp file left
 
 
 def test_load_checkpoint_missing_file(tmp_path):
     with pytest.raises(FileNotFoundError, match="no checkpoint"):
-        loop.load_checkpoint(tmp_path / "missing.pt")
+        checkpoints.load_checkpoint(tmp_path / "missing.pt")
 
 
 def test_load_or_train_trains_once_then_loads(tmp_path, capsys):
@@ -126,7 +126,7 @@ def test_load_or_train_trains_once_then_loads(tmp_path, capsys):
 def test_load_or_train_prefers_a_matching_shipped_checkpoint(tmp_path, capsys):
     model, optimizer, loss_fn, batch = _problem()
     history = loop.fit(model, optimizer, loss_fn, batch, steps=5, progress=False)
-    shipped = loop.save_checkpoint(tmp_path / "shipped.pt", model=model.state_dict(),
+    shipped = checkpoints.save_checkpoint(tmp_path / "shipped.pt", model=model.state_dict(),
                                     history=dict(history), config={"steps": 5})
     fresh = _problem(seed=3)[0]
     loop.load_or_train(tmp_path / "cache.pt", fresh, lambda: 1 / 0, {"steps": 5},
@@ -138,7 +138,7 @@ def test_load_or_train_prefers_a_matching_shipped_checkpoint(tmp_path, capsys):
 
 def test_checkpoint_paths_separate_cache_and_shipped(monkeypatch, tmp_path):
     monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
-    cache, shipped = loop.checkpoint_paths("vicreg_class")
+    cache, shipped = checkpoints.checkpoint_paths("vicreg_class")
     assert cache == tmp_path / "checkpoints" / "vicreg_class.pt"
     assert shipped.parent.name == "checkpoints" and shipped.name == "vicreg_class.pt"
 
@@ -160,10 +160,10 @@ def test_a_checkpoint_that_would_run_code_is_refused_and_named(tmp_path):
     marker, path = tmp_path / "ran", tmp_path / "cache" / "model.pt"
     path.parent.mkdir()
     torch.save({"model": {}, "config": {"steps": 20}, "payload": _RunsCode(marker)}, path)
-    with pytest.raises(loop.UnsafeCheckpointError, match=f"{path}.*not loaded"):
-        loop.load_checkpoint(path)
+    with pytest.raises(checkpoints.UnsafeCheckpointError, match=f"{path}.*not loaded"):
+        checkpoints.load_checkpoint(path)
     model, optimizer, loss_fn, batch = _problem()
-    with pytest.raises(loop.UnsafeCheckpointError, match="model.pt"):  # as a notebook loads
+    with pytest.raises(checkpoints.UnsafeCheckpointError, match="model.pt"):  # as a notebook loads
         loop.load_or_train(path, model, lambda: 1 / 0, {"steps": 20})
     assert not marker.exists()
 
@@ -179,13 +179,13 @@ def test_a_failed_final_save_keeps_the_resumable_run(tmp_path, monkeypatch):
         def disk_full(*args, **kwargs):
             raise OSError(28, "No space left on device")
 
-        monkeypatch.setattr(loop, "save_checkpoint", disk_full)
+        monkeypatch.setattr(checkpoints, "save_checkpoint", disk_full)
         return history
 
     with pytest.warns(UserWarning, match="could not save a checkpoint to .*model.pt"):
         loop.load_or_train(path, model, run, {"steps": 6}, partial=partial)
     assert not path.exists()
-    assert loop.load_checkpoint(partial)["step"] == 6  # the run is still there to resume
+    assert checkpoints.load_checkpoint(partial)["step"] == 6  # the run is still there to resume
 
 
 def test_the_partial_file_goes_only_after_the_final_save(tmp_path):
@@ -201,7 +201,7 @@ def test_an_unwritable_checkpoint_folder_warns_once_and_training_goes_on(tmp_pat
     def read_only(*args, **kwargs):
         raise OSError(30, "Read-only file system")
 
-    monkeypatch.setattr(loop.tempfile, "mkstemp", read_only)
+    monkeypatch.setattr(checkpoints.tempfile, "mkstemp", read_only)
     model, optimizer, loss_fn, batch = _problem()
     with pytest.warns(UserWarning, match="Read-only") as warned:
         history = loop.fit(model, optimizer, loss_fn, batch, steps=20, checkpoint=tmp_path /
@@ -214,18 +214,18 @@ def test_an_unwritable_checkpoint_folder_warns_once_and_training_goes_on(tmp_pat
 def test_a_damaged_checkpoint_is_named_moved_aside_and_retrained(tmp_path, damage, capsys):
     path = tmp_path / "model.pt"
     model, optimizer, loss_fn, batch = _problem()
-    loop.save_checkpoint(path, model=model.state_dict(), history={}, config={"steps": 3})
+    checkpoints.save_checkpoint(path, model=model.state_dict(), history={}, config={"steps": 3})
     data = path.read_bytes()
     path.write_bytes({"empty": b"", "truncated": data[: len(data) // 2],
                       "not a checkpoint": b"hello"}[damage])
-    with pytest.raises(loop.CheckpointError, match=f"{path} is damaged"):
-        loop.load_checkpoint(path)
+    with pytest.raises(checkpoints.CheckpointError, match=f"{path} is damaged"):
+        checkpoints.load_checkpoint(path)
     run = lambda: loop.fit(model, optimizer, loss_fn, batch, steps=3, progress=False)  # noqa: E731
     loop.load_or_train(path, model, run, {"steps": 3})
     out = capsys.readouterr().out
     assert "is damaged; moved it to" in out and "Trained and saved" in out
     assert (tmp_path / "model.pt.damaged").is_file()
-    assert loop.load_checkpoint(path)["config"] == {"steps": 3}  # the next run loads it
+    assert checkpoints.load_checkpoint(path)["config"] == {"steps": 3}  # the next run loads it
 
 
 def test_a_damaged_shipped_checkpoint_is_reported_and_left_in_place(tmp_path):
@@ -253,14 +253,15 @@ def test_another_runs_checkpoint_is_kept_and_found_again(tmp_path, capsys):
     model = _problem()[0]
     loop.load_or_train(path, model, run(3), {"steps": 3})
     loop.load_or_train(path, model, run(5), {"steps": 5})
-    kept = loop.kept_path(path, {"steps": 3})
+    kept = checkpoints.kept_path(path, {"steps": 3})
     assert f"moved it to {kept}" in capsys.readouterr().out
-    assert loop.load_checkpoint(kept)["config"] == {"steps": 3}
-    assert loop.load_checkpoint(path)["config"] == {"steps": 5}
+    assert checkpoints.load_checkpoint(kept)["config"] == {"steps": 3}
+    assert checkpoints.load_checkpoint(path)["config"] == {"steps": 5}
     loop.load_or_train(path, model, run(3), {"steps": 3})  # back to the first config
     assert calls == [3, 5]  # found again, not retrained
-    assert loop.load_checkpoint(path)["config"] == {"steps": 3}
-    assert loop.load_checkpoint(loop.kept_path(path, {"steps": 5}))["config"] == {"steps": 5}
+    assert checkpoints.load_checkpoint(path)["config"] == {"steps": 3}
+    kept_five = checkpoints.kept_path(path, {"steps": 5})
+    assert checkpoints.load_checkpoint(kept_five)["config"] == {"steps": 5}
 
 
 def test_stale_temporaries_of_killed_writers_are_removed(tmp_path):
@@ -269,10 +270,10 @@ def test_stale_temporaries_of_killed_writers_are_removed(tmp_path):
     other = tmp_path / "notes.tmp"
     for file in (stale, fresh, other):
         file.write_bytes(b"x" * 10)
-    old = stale.stat().st_mtime - 2 * loop.STALE_AFTER_S
+    old = stale.stat().st_mtime - 2 * checkpoints.STALE_AFTER_S
     os.utime(stale, (old, old))
     os.utime(other, (old, old))
-    loop.save_checkpoint(path, value=1)
+    checkpoints.save_checkpoint(path, value=1)
     assert not stale.exists() and fresh.exists() and other.exists()
 
 
@@ -285,8 +286,8 @@ def test_training_time_adds_up_over_resumed_parts(tmp_path):
     history = loop.fit(model, optimizer, loss_fn, batch, steps=10, start_step=step,
                         history=history, checkpoint=ckpt, progress=False)
     assert history.seconds > first.seconds
-    assert loop.load_checkpoint(ckpt)["seconds"] == pytest.approx(history.seconds)
+    assert checkpoints.load_checkpoint(ckpt)["seconds"] == pytest.approx(history.seconds)
 
 
 def test_the_shipped_checkpoints_are_found_beside_the_package():
-    assert loop.checkpoint_paths("world_model_class")[1].is_file()
+    assert checkpoints.checkpoint_paths("world_model_class")[1].is_file()

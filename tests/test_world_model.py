@@ -17,6 +17,7 @@ from ebjepa_tutorial.evaluation.position import (
 )
 from ebjepa_tutorial.losses import world as wl
 from ebjepa_tutorial.models.world import WORLD_CONFIGS, WorldConfig, WorldModel, encode_trajectories
+from ebjepa_tutorial.training import world
 
 TINY = WorldConfig(widths=(4, 8), blocks=1, input_size=17, latent_dim=8,
                    action_embed_dim=8, idm_hidden=16)
@@ -337,7 +338,7 @@ def test_command_line_sets_steps_data_size_and_decay(tmp_path, monkeypatch, caps
 
 
 def test_learning_rate_decays_linearly_over_the_last_steps():
-    from ebjepa_tutorial.training.world import WorldTrainConfig, config_dict, learning_rate_decay
+    from ebjepa_tutorial.training.world import WorldTrainConfig, learning_rate_decay
 
     config = WorldTrainConfig(steps=6, decay_steps=4, lr=0.5)
     optimizer = torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], lr=config.lr)
@@ -349,9 +350,6 @@ def test_learning_rate_decays_linearly_over_the_last_steps():
         scheduler.step()
     assert rates == pytest.approx([0.5, 0.5, 0.5, 0.375, 0.25, 0.125])  # (6 - s) / 4, capped
     assert learning_rate_decay(optimizer, WorldTrainConfig()) is None  # the class run: constant
-    # stored configs: a constant-rate run matches checkpoints saved before decay_steps existed
-    assert "decay_steps" not in config_dict(WorldTrainConfig())
-    assert config_dict(config)["decay_steps"] == 4
     for bad in (-1, 7):
         with pytest.raises(ValueError, match="decay_steps must be in 0..steps=6"):
             WorldTrainConfig(steps=6, decay_steps=bad)
@@ -435,23 +433,25 @@ def test_refit_predictor_keeps_the_encoder_and_fits_a_new_step():
         RefitConfig(stay_probability=1.0)
 
 
+@pytest.mark.slow  # the command encodes the wall test's 400 trajectories twice
 def test_refit_command_saves_the_base_config_and_refuses_training_options(tmp_path, capsys):
     from ebjepa_tutorial.commands import train_world
     from ebjepa_tutorial.models.world import WORLD_CONFIGS
-    from ebjepa_tutorial.training.loop import save_checkpoint
+    from ebjepa_tutorial.training.checkpoints import save_checkpoint
 
     torch.manual_seed(0)
     old = WorldModel(WORLD_CONFIGS["ci"]).fit_input_stats(
         generate_trajectories(8, seed=1).frames())
     trained, out = tmp_path / "trained.pt", tmp_path / "refit.pt"
-    save_checkpoint(trained, model=old.state_dict(), config={"steps": 7}, probe_px=3.0)
+    base = world.identity(world.WorldTrainConfig(steps=7))
+    save_checkpoint(trained, model=old.state_dict(), config=base, probe_px=3.0)
     train_world.main(["--refit", str(trained), "--out", str(out), "--steps", "2",
                       "--trajectories", "16", "--seed", "5"])
     state = torch.load(out, weights_only=False)
-    assert state["config"]["base"] == {"steps": 7} and state["probe_px"] == 3.0
-    assert state["config"]["refit"] == asdict(train_world.RefitConfig(
-        steps=2, n_trajectories=16, seed=5))
-    assert train_world.load_world_model(out).config.predictor == "mlp"
+    assert state["config"] == world.refit_identity(
+        world.RefitConfig(steps=2, n_trajectories=16, seed=5), base)
+    assert state["probe_px"] == 3.0
+    assert world.load_world_model(out).config.predictor == "mlp"
     assert "the wall test stops" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         train_world.main(["--refit", str(trained), "--out", str(out), "--coeff", "temporal=1"])
@@ -477,3 +477,28 @@ def test_command_line_trains_the_run_of_a_scale(tmp_path, monkeypatch):
         train_world.main(["--refit", "x.pt", "--scale", "ci", "--out", "y.pt"])
     with pytest.raises(SystemExit):  # a usage message, not a traceback
         train_world.main(["--out", "y.pt", "--steps", "0"])
+
+
+def test_identities_saved_before_versions_are_upgraded():
+    from ebjepa_tutorial.training.checkpoints import same_run
+    from ebjepa_tutorial.training.world import (
+        RefitConfig,
+        WorldTrainConfig,
+        identity,
+        refit_identity,
+        upgrade_identity,
+        upgrade_refit_identity,
+    )
+
+    # a version-1 identity left decay_steps out when it was 0 and the predictor's fields
+    # for the GRU; today's identity holds every field and the schema version
+    legacy = identity(WorldTrainConfig())
+    del legacy["schema"], legacy["decay_steps"]
+    del legacy["model"]["predictor"], legacy["model"]["predictor_hidden"]
+    assert same_run({"config": legacy}, identity(WorldTrainConfig()), upgrade_identity)
+    assert not same_run({"config": legacy}, identity(WorldTrainConfig(decay_steps=4)),
+                        upgrade_identity)
+    refit = {"refit": asdict(RefitConfig()), "base": legacy}
+    today = refit_identity(RefitConfig(), identity(WorldTrainConfig()))
+    assert same_run({"config": refit}, today, upgrade_refit_identity)
+    assert today["schema"] == today["base"]["schema"] == 2

@@ -14,8 +14,8 @@ import torch
 from ..course.presets import SCALES, preset
 from ..data import load_cifar10, random_subset
 from ..evaluation.classify import probe_encoder, protocol
-from ..training.image import encoder_dict, train_image_jepa
-from ..training.loop import save_checkpoint
+from ..training.checkpoints import save_checkpoint
+from ..training.image import identity, train_image_jepa
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -40,10 +40,11 @@ def main(argv: list[str] | None = None) -> None:
     model, history = train_image_jepa(config, train[0], checkpoint=partial)
     minutes = history.seconds / 60
     scores = probe_encoder(model.encoder, config, train, test)
-    half = {k: v.half() if v.is_floating_point() else v  # float16 halves the file; features
-            for k, v in model.encoder.state_dict().items()}  # stay within 0.2% (measured)
-    save_checkpoint(args.out, model=half, history=dict(history), config=encoder_dict(config),
-                    minutes=round(minutes, 1), threads=torch.get_num_threads(), **scores)
+    half = {k: v.half() if v.is_floating_point() else v  # float16 halves the file; the
+            for k, v in model.encoder.state_dict().items()}  # probe barely moves
+    save_checkpoint(args.out, model=half, history=dict(history),
+                    config=identity(config, encoder_only=True), minutes=round(minutes, 1),
+                    threads=torch.get_num_threads(), **scores)
     partial.unlink(missing_ok=True)  # gone if its folder could not be written
     print(f"saved {args.out}: {config.steps} steps in {minutes:.1f} min, linear probe "
           f"{scores['probe_acc']:.1%}, kNN {scores['knn_acc']:.1%} ({protocol(config)})")

@@ -7,7 +7,7 @@
 from __future__ import annotations
 
 import argparse
-from dataclasses import asdict, replace
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -15,16 +15,18 @@ import torch
 from ..course.presets import SCALES, preset
 from ..envs import generate_trajectories
 from ..evaluation.position import middle_wall_test, probe_report
-from ..training.loop import load_checkpoint, save_checkpoint
+from ..training.checkpoints import load_checkpoint, save_checkpoint, stored_identity
 from ..training.world import (
     ABLATABLE_TERMS,
     RefitConfig,
     WorldTrainConfig,
     ablation_config,
-    config_dict,
+    identity,
     load_world_model,
+    refit_identity,
     refit_predictor,
     train_world_model,
+    upgrade_identity,
     with_coeffs,
 )
 
@@ -80,7 +82,7 @@ def main(argv: list[str] | None = None) -> None:
     model, history = train_world_model(config, checkpoint=partial)
     report = probe_report(model)
     save_checkpoint(args.out, model=model.state_dict(), history=dict(history),
-                    config=config_dict(config), probe_px=report["probe_px"])
+                    config=identity(config), probe_px=report["probe_px"])
     partial.unlink(missing_ok=True)  # gone if its folder could not be written
     print(f"saved {args.out}: probe error {report['probe_px']:.2f} px "
           f"(mean-position baseline {report['baseline_px']:.2f} px)")
@@ -96,7 +98,7 @@ def refit_main(trained: str, out: str, config: RefitConfig) -> None:
         before, after = middle_wall_test(model, walls), middle_wall_test(new, walls)
     base = load_checkpoint(trained)
     save_checkpoint(out, model=new.state_dict(), history=dict(history),
-                    config={"refit": asdict(config), "base": base["config"]},
+                    config=refit_identity(config, stored_identity(base, upgrade_identity)),
                     probe_px=base.get("probe_px"))
     print(f"saved {out}: the wall test stops {after['stopped']:.0%} of the wall's steps and "
           f"moves {after['moved']:.0%} of the free ones (before: {before['stopped']:.0%} and "

@@ -86,8 +86,7 @@ class ImagePreset:
     long_steps: int = 4000
 
 
-# ci probes at 16 px: it only checks that the code runs, and 32-px probes made the ci run of
-# notebooks 01 and 02 about a third slower (43 s -> 57 s, mean of three runs, 1 thread)
+# ci probes at 16 px: it only checks that the code runs, and 32-px probes slow its run
 _IMAGE_CI = ImageJEPAConfig(widths=(8, 8, 16, 16), projector=(64, 64), batch_size=32,
                             steps=15, warmup_steps=3, eval_image_size=16)
 # ResNet-18 at widths 16-128 trained on 16-px views, 2,000 AdamW steps; probed at 32 px
@@ -147,13 +146,13 @@ class PlanningPreset:
     n_wall_test: int = 400  # fresh data-policy trajectories for the one-step wall test
     # the same model trained longer on more data (class: shipped); None: `world` is already long
     long_world: WorldTrainConfig | None = None
-    # loss terms whose ablation is also trained like `long_world` (class: shipped, ~100 min each)
+    # loss terms whose ablation is also trained like `long_world` (class: shipped)
     long_ablations: tuple[str, ...] = ()
     n_long_ablation: int = 20  # episodes (the first seeds of the list) per long-trained ablation
     # the model whose predictor is refitted on its frozen latents (class: the paper's amount of
     # training, shipped with its refit); None: the long model
     refit_base: WorldTrainConfig | None = None
-    refit: RefitConfig = RefitConfig()  # class: ~12 min on 2 cores, so shipped
+    refit: RefitConfig = RefitConfig()  # class: past the class budget, so shipped
 
 
 # class: 10x the steps on the paper's 100,000 trajectories, constant rate (checkpoints/README.md);
@@ -173,7 +172,7 @@ PRESETS: dict[str, dict[str, object]] = {
     "03": {
         "ci": VideoPreset(VIDEO_CONFIGS["ci"], seeds=(0,), n_probe=64, n_eval=64,
                           probe_steps=60, decoder_steps=40),
-        "class": VideoPreset(VIDEO_CONFIGS["class"]),  # 600 steps of 16 clips: ~10 min per run
+        "class": VideoPreset(VIDEO_CONFIGS["class"]),  # one run fits a class; the nine ship
         "full": VideoPreset(VIDEO_CONFIGS["full"], n_probe=2000, n_eval=2000, probe_steps=2000,
                             decoder_steps=5000),
     },
@@ -194,9 +193,8 @@ PRESETS: dict[str, dict[str, object]] = {
                              long_ablations=ABLATABLE_TERMS, n_long_ablation=2,
                              refit=RefitConfig(hidden=32, n_trajectories=200, steps=100,
                                                batch_size=128)),
-        # the shipped checkpoints. 100 + 6 x 15 episodes took 22 min on a loaded 2-core machine,
-        # so a class plays 40 x 2 models + 20 x 4 long ablations + 8 x 10: 491 s on 2 idle
-        # cores (benchmarks/planning.py measures 100 per model for the README)
+        # the shipped checkpoints, with episode counts sized to fit a class period
+        # (benchmarks/planning.py plays 100 per model for the results page)
         "class": PlanningPreset(WorldTrainConfig(), PlannerConfig(), n_episodes=40, n_compare=10,
                                 long_world=_WORLD_CLASS_LONG, long_ablations=ABLATABLE_TERMS,
                                 refit_base=replace(_WORLD_CLASS_LONG, steps=20_000)),

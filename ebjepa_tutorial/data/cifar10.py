@@ -191,7 +191,7 @@ def _decode_all(items: list[tuple[int, str, bytes]]) -> tuple[np.ndarray, np.nda
     """(label, name, file bytes) items -> images (N, 3, 32, 32) uint8, labels (N,) int64.
 
     Sorted by label, then name, so the order never depends on the file system.
-    One thread: these images are so small that threads only add overhead (measured).
+    One thread: these images are so small that threads only add overhead.
     """
     items.sort(key=lambda item: item[:2])
     images = np.empty((len(items), SIZE, SIZE, 3), dtype=np.uint8)

@@ -12,11 +12,11 @@ Starts. A fraction ``door_fraction`` (35%) of trajectories is built to go
 through the door: the dot starts on a random side, 0.5 to 4 px in front of
 the wall's face (where the slab its centre may not enter begins), within 2 px
 of the door's centre row, with its first heading aimed at the door's centre.
-With kappa 5, about 68% of these end in the other room and about 79% cross
-at least once (the rest drift into the door's side or turn back). The other
-trajectories start uniformly on the free floor with a uniform heading; about
-1.4% of those change rooms, so about 25% of all trajectories end in the other
-room. Each trajectory gets a fresh layout.
+With kappa 5, most of these cross at least once and end in the other room
+(the rest drift into the door's side or turn back). The other trajectories
+start uniformly on the free floor with a uniform heading and rarely change
+rooms, so the data holds crossings without being made of them (notebook 04
+counts them). Each trajectory gets a fresh layout.
 
 Trajectories are stored compactly (positions, actions, layouts); render the
 frames on demand, in batches, with :meth:`Trajectories.frames`.

@@ -18,14 +18,14 @@ Shapes (``S`` = latent side, ``C`` = latent channels):
 ``full`` keeps the paper's sizes: a ResNet-5 at full resolution (S = 64,
 encoder width 32, 16 latent channels), a ResUNet of width 32 over a context
 of 2 frames, a 16-64-64 projector. ``class`` strides the encoder down to a
-16x16 latent (16 times fewer locations) and halves the widths: a step on 16
-clips of 10 frames takes about a second on one CPU thread.
+16x16 latent (16 times fewer locations) and halves the widths, so a class
+trains it on a CPU.
 
 One departure at ``ci`` and ``class``: the predictor is residual, ``zhat =
 z_last + UNet(window)`` with the UNet's last layer zero at initialisation, so
 an untrained predictor says "nothing moves" and training only has to learn the
-motion (measured after 100 steps at batch 8: detection AP one step ahead
-0.53 with it, 0.06 without). ``full`` keeps the paper's plain output (``residual=False``).
+motion, which short runs learn much sooner (the results page compares the
+two). ``full`` keeps the paper's plain output (``residual=False``).
 """
 
 from __future__ import annotations

@@ -8,8 +8,8 @@ makes to imagine ``B`` futures of ``H`` steps.
 
 - Input scaling. The dot (channel 0) covers ~0.3% of the pixels, the walls
   (channel 1) ~10%, so on raw inputs the walls dominate every activation and a
-  small encoder can settle on the static layout (measured: a collapsed latent,
-  position probe error ~14 px). Each channel is standardised by its own mean
+  small encoder can settle on the static layout and lose the dot (the results
+  page shows such a collapse). Each channel is standardised by its own mean
   and std, computed from data with :meth:`WorldModel.fit_input_stats` and kept
   as buffers, so every checkpoint carries them.
 - Encoder: IMPALA stacks (conv 3x3 -> max-pool 3x3 stride 2 -> residual
@@ -74,8 +74,7 @@ class WorldConfig:
 # paper trains it with batch 384, 12 epochs of 100,000 trajectories, AdamW lr
 # 1e-3, weight decay 1e-5 (loss weights: ebjepa_tutorial.losses.world). Its
 # latent is a 32-channel feature map; ours is a vector (latent_dim is our choice).
-# ``class`` on one busy CPU thread: encoding 64 x 17 frames ~0.5 s, a training
-# step at that batch ~1 s, a rollout of 6,400 latents x 50 steps ~0.55 s.
+# ``class`` is sized so that training and planning fit a class period on a CPU.
 WORLD_CONFIGS = {
     "ci": WorldConfig(widths=(8, 16, 16), blocks=1, latent_dim=32),
     "class": WorldConfig(),

@@ -1,10 +1,13 @@
 """Training: the loop with its checkpoints, the optimisers, and one recipe per chapter.
 
-- ``loop``: :func:`fit`, resumable checkpoints, :func:`load_or_train`, seeded batches
+- ``loop``: :func:`fit`, resuming, :func:`load_or_train`, seeded batches
 - ``optim``: LARS and the warm-up-then-cosine schedule
+- ``checkpoints``: safe files, run identities, where runs are cached and shipped
 - ``toy`` (chapter 00), ``image`` (01-02), ``video`` (03), ``world`` (05, with the refit)
+- ``runs``: :func:`train_or_load`, the one entry the notebooks call
 """
 
-from . import image, loop, optim, toy, video, world
+from . import checkpoints, image, loop, optim, toy, video, world
+from .runs import train_or_load
 
-__all__ = ["image", "loop", "optim", "toy", "video", "world"]
+__all__ = ["checkpoints", "image", "loop", "optim", "toy", "train_or_load", "video", "world"]

@@ -16,7 +16,7 @@ average pool, so one network takes images of any size.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -29,7 +29,8 @@ from ..models.encoders import ENCODERS, build_encoder
 from ..models.heads import build_projector
 from ..utils import check_fields, is_int_at_least, is_non_negative, is_positive
 from . import optim
-from .loop import History, checkpoint_paths, fit, load_or_train, resume
+from .checkpoints import checkpoint_paths, run_identity
+from .loop import History, fit, load_or_train, resume, step_generator
 
 LOSSES = ("vicreg", "sigreg", "invariance")
 EVAL_FIELDS = ("eval_image_size",)  # how a run is scored, not how it is trained
@@ -55,8 +56,7 @@ class ImageJEPAConfig:
     weight_decay: float = 1e-4
     # VICReg weights, covariance averaged over D(D-1) entries as in the EB-JEPA paper, but
     # the two views' regularisers averaged (losses.vicreg_loss), where the papers add them:
-    # the paper's 1 / 1 / 80 reads 1 / 2 / 160 here. (Measured at class scale: 51.0% probe
-    # after 1,000 steps, against 47.5% with 1 / 1 / 80.)
+    # the paper's 1 / 1 / 80 reads 1 / 2 / 160 here (the results page compares the two).
     inv_coeff: float = 1.0
     std_coeff: float = 2.0
     cov_coeff: float = 160.0
@@ -159,10 +159,10 @@ def train_image_jepa(
     pipeline = augment.build_augmentation(augment.AugmentConfig(size=config.image_size))
     start, history = (0, History())
     if checkpoint is not None:
-        start, history = resume(checkpoint, model, optimizer, scheduler, training_dict(config))
+        start, history = resume(checkpoint, model, optimizer, scheduler, identity(config))
 
     def batch(step: int):
-        generator = torch.Generator().manual_seed(config.seed * 1_000_003 + step)
+        generator = step_generator(config.seed, step)
         index = torch.randint(0, len(images), (config.batch_size,), generator=generator)
         views = augment.two_views(images[index].to(device), pipeline, generator)
         return views, generator
@@ -173,8 +173,7 @@ def train_image_jepa(
 
     fit(model, optimizer, loss, batch, config.steps, scheduler=scheduler, history=history,
         start_step=start, checkpoint=checkpoint, checkpoint_every=checkpoint_every, log_every=10,
-        desc=f"{config.loss} training", progress=progress,
-        config=training_dict(config))
+        desc=f"{config.loss} training", progress=progress, config=identity(config))
     return model, history
 
 
@@ -185,7 +184,7 @@ def seconds_per_step(config: ImageJEPAConfig, images: torch.Tensor, steps: int =
     Times a run of ``1 + steps`` steps and one of 1 step and divides the
     difference by ``steps``: building the model and the first (slower) step
     cancel out. A 1-step run before both pays the process's one-time costs
-    (measured: without it, the first call read about half the true time).
+    (without it, the first call reads low).
     Turns a number of steps into minutes on the machine at hand.
     """
     def run(n: int) -> float:
@@ -199,26 +198,14 @@ def seconds_per_step(config: ImageJEPAConfig, images: torch.Tensor, steps: int =
     return max(run(1 + steps) - first, 0.0) / steps
 
 
-def config_dict(config: ImageJEPAConfig) -> dict:
-    """The whole config as a plain dict, evaluation fields included (sweep results store it)."""
-    return asdict(config)
+def identity(config: ImageJEPAConfig, encoder_only: bool = False) -> dict:
+    """What a checkpoint stores to recognise its run: the config without ``EVAL_FIELDS``.
 
-
-def training_dict(config: ImageJEPAConfig) -> dict:
-    """What checkpoints store to recognise a matching run: the config without ``EVAL_FIELDS``.
-
-    How a network will be probed does not change how it is trained, so a run
-    saved before ``eval_image_size`` changed is still the same run.
+    How a network will be probed does not change how it is trained. A file of
+    the encoder alone is marked, so it is never read as a whole model.
     """
-    return {k: v for k, v in asdict(config).items() if k not in EVAL_FIELDS}
-
-
-def encoder_dict(config: ImageJEPAConfig) -> dict:
-    """What an encoder-only checkpoint stores to recognise its run: :func:`training_dict`, marked.
-
-    The mark keeps a file of encoder weights from ever being read as a whole model.
-    """
-    return {"weights": "encoder only", **training_dict(config)}
+    stored = run_identity(config, **({"weights": "encoder only"} if encoder_only else {}))
+    return {k: v for k, v in stored.items() if k not in EVAL_FIELDS}
 
 
 def _partial(name: str) -> Path:
@@ -233,36 +220,24 @@ def _train_into(module: nn.Module, config, images, name: str, device, keep) -> H
     return history  # load_or_train deletes the partial file once the model is saved
 
 
-def train_or_load(config: ImageJEPAConfig, name: str, images: torch.Tensor, device="cpu"):
-    """The model of ``config``: loaded if a run with exactly this config was saved, else trained.
-
-    "Exactly this config" leaves out the evaluation fields (:func:`training_dict`).
+def train_or_load(config: ImageJEPAConfig, name: str, images: torch.Tensor, device="cpu",
+                  encoder_only: bool = False):
+    """The model of ``config``: loaded if this run was saved, else trained on ``images``.
 
     Looks for ``checkpoints/<name>.pt`` (shipped with the course), then
-    ``data/cache/checkpoints/<name>.pt``; otherwise trains on ``images``
-    (resumable from ``<name>.partial`` in the cache) and saves. Returns
-    ``(model in eval mode, history)``.
+    ``data/cache/checkpoints/<name>.pt``; otherwise trains on uint8 ``images``
+    ``(N, 3, 32, 32)`` (resumable from ``<name>.partial`` in the cache) and
+    saves. With ``encoder_only`` it keeps and stores the encoder alone, as the
+    longer shipped runs are (the projector is three quarters of the weights at
+    class scale, and only training needs it). Returns ``(model or encoder in eval
+    mode, history)``.
     """
     torch.manual_seed(config.seed)
-    model = ImageJEPA(config).to(device)
+    model = ImageJEPA(config)
+    module = (model.encoder if encoder_only else model).to(device)
+    keep = (lambda m: m.encoder) if encoder_only else (lambda m: m)
     cache_path, shipped = checkpoint_paths(name)
-    history = load_or_train(cache_path, model, lambda: _train_into(
-        model, config, images, name, device, keep=lambda m: m), training_dict(config), shipped,
+    history = load_or_train(cache_path, module, lambda: _train_into(
+        module, config, images, name, device, keep), identity(config, encoder_only), shipped,
         partial=_partial(name))
-    return model.eval(), history
-
-
-def train_or_load_encoder(config: ImageJEPAConfig, name: str, images: torch.Tensor, device="cpu"):
-    """Like :func:`train_or_load`, but keeps only the encoder: ``(encoder in eval mode, history)``.
-
-    The longer runs that ship with the course are stored this way (the projector
-    is three quarters of the weights at class scale, and only training needs it);
-    ``python -m ebjepa_tutorial.commands.train_image`` writes them.
-    """
-    torch.manual_seed(config.seed)
-    encoder = ImageJEPA(config).encoder.to(device)
-    cache_path, shipped = checkpoint_paths(name)
-    history = load_or_train(cache_path, encoder, lambda: _train_into(
-        encoder, config, images, name, device, keep=lambda m: m.encoder), encoder_dict(config),
-        shipped, partial=_partial(name))
-    return encoder.eval(), history
+    return module.eval(), history

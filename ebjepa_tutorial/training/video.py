@@ -14,7 +14,7 @@ that trains notebook 03's runs ahead of a class is
 from __future__ import annotations
 
 import hashlib
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -25,7 +25,8 @@ from ..losses import covariance_term, variance_term
 from ..losses.rollout import rollout_loss
 from ..models.video import VIDEO_MODEL_CONFIGS, FrameDecoder, VideoJEPA, VideoModelConfig
 from ..utils import check_fields, get_device, is_int_at_least, is_non_negative, is_positive
-from .loop import History, checkpoint_paths, fit, load_or_train, resume
+from .checkpoints import checkpoint_paths, run_identity
+from .loop import History, fit, load_or_train, resume, step_generator
 
 
 @dataclass(frozen=True)
@@ -36,7 +37,7 @@ class VideoJEPAConfig:
     n_clips: int = 4000  # training clips from the training digits (make_clips; 164 MB)
     n_frames: int = 10  # frames per clip (needs >= context + rollout_steps)
     batch_size: int = 16  # clips per step (the paper: 64; per clip, small batches run faster here)
-    steps: int = 600  # about 1.1 s per step on one busy CPU thread
+    steps: int = 600  # sized for a class period on a laptop CPU
     lr: float = 1e-3  # Adam, as in the paper
     std_coeff: float = 10.0  # the paper's weights
     cov_coeff: float = 100.0
@@ -119,22 +120,25 @@ def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
     start, history = (0, History())
     if checkpoint is not None:
-        start, history = resume(checkpoint, model, optimizer, config=config_dict(config))
+        start, history = resume(checkpoint, model, optimizer, config=identity(config))
 
     def batch(step: int) -> torch.Tensor:
-        generator = torch.Generator().manual_seed(config.seed * 1_000_003 + step)
+        generator = step_generator(config.seed, step)
         return clips[torch.randint(0, len(clips), (config.batch_size,), generator=generator)]
 
     fit(model, optimizer, lambda frames: video_jepa_loss(model, frames.to(device), config),
         batch, config.steps, history=history, start_step=start, checkpoint=checkpoint,
         checkpoint_every=100, log_every=10, desc="video JEPA", progress=progress,
-        config=config_dict(config))
+        config=identity(config))
     return model.eval(), history
 
 
-def config_dict(config: VideoJEPAConfig) -> dict:
-    """The config as a plain dict (what checkpoints store to recognise a matching run)."""
-    return asdict(config)
+def identity(config: VideoJEPAConfig, train_digits: torch.Tensor | None = None) -> dict:
+    """What a checkpoint stores to recognise its run: ``config`` and, for a finished
+    run, the digits its clips were made from (:func:`digits_fingerprint`)."""
+    if train_digits is None:  # a run in progress: its clips are fixed by the caller
+        return run_identity(config)
+    return run_identity(config, train_digits=digits_fingerprint(train_digits))
 
 
 def digits_fingerprint(digits: torch.Tensor) -> str:
@@ -170,8 +174,8 @@ def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor
         model.load_state_dict(trained.state_dict())
         return history
 
-    stored = {**config_dict(config), "train_digits": digits_fingerprint(train_digits)}
-    history = load_or_train(cache_path, model, train, stored, shipped, partial=partial)
+    history = load_or_train(cache_path, model, train, identity(config, train_digits), shipped,
+                            partial=partial)
     return model.eval(), history
 
 

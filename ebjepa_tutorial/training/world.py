@@ -13,7 +13,7 @@ frozen latents (:func:`refit_predictor`).
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import torch
@@ -23,7 +23,8 @@ from ..envs.trajectories import Trajectories
 from ..losses.world import WorldLossCoeffs, multistep_prediction_loss, world_model_loss
 from ..models.world import WORLD_CONFIGS, WorldConfig, WorldModel, encode_trajectories
 from ..utils import check_fields, get_device, is_int_at_least, is_non_negative, is_positive
-from .loop import History, checkpoint_paths, fit, load_checkpoint, load_or_train, resume
+from .checkpoints import IDENTITY_SCHEMA, checkpoint_paths, load_checkpoint, run_identity
+from .loop import History, fit, load_or_train, resume, step_generator
 
 TRAJECTORY_ACTIONS = 16  # per training trajectory (17 frames, the paper's clips)
 _ROLLOUT_RULE = (lambda k: is_int_at_least(1)(k) and k <= TRAJECTORY_ACTIONS,
@@ -38,13 +39,12 @@ class WorldTrainConfig:
     coeffs: WorldLossCoeffs = field(default_factory=WorldLossCoeffs)  # the paper's weights
     n_trajectories: int = 20_000  # offline data set (the paper: ~1.2 million windows)
     batch_size: int = 64  # trajectories of 17 frames per step (the paper: 384)
-    steps: int = 1000  # ~10 minutes on 2 CPU cores
+    steps: int = 1000  # sized for a class period on a laptop CPU
     lr: float = 1e-3  # AdamW, as in the paper
     weight_decay: float = 1e-5
     rollout_steps: int = 8  # K, the prediction horizon of the loss
     # the last decay_steps steps lower the learning rate linearly towards 0 (0: constant, as
-    # every shipped run). Measured once, on the long run of checkpoints/README.md: annealing
-    # its steps 5,000-6,000 did not plan better than the constant rate (13 vs 15 of 20).
+    # every shipped run: annealing did not plan better, see the results page)
     decay_steps: int = 0
     seed: int = 0
 
@@ -106,11 +106,12 @@ def train_world_model(
     scheduler = learning_rate_decay(optimizer, config)
     start, history = (0, History())
     if checkpoint is not None:
-        start, history = resume(checkpoint, model, optimizer, scheduler, config_dict(config))
+        start, history = resume(checkpoint, model, optimizer, scheduler, identity(config),
+                                upgrade_identity)
     buffer = torch.empty(config.batch_size, data.positions.shape[1], 2, 65, 65)
 
     def batch(step: int):
-        generator = torch.Generator().manual_seed(config.seed * 1_000_003 + step)
+        generator = step_generator(config.seed, step)
         index = torch.randint(0, len(data), (config.batch_size,), generator=generator)
         return data.frames(index, out=buffer).to(device), data.actions[index].to(device)
 
@@ -120,30 +121,30 @@ def train_world_model(
 
     fit(model, optimizer, loss, batch, config.steps, scheduler=scheduler, history=history,
         start_step=start, checkpoint=checkpoint, checkpoint_every=250, log_every=10,
-        desc="world model", progress=progress, config=config_dict(config))
+        desc="world model", progress=progress, config=identity(config))
     model.eval()
     return model, history
 
 
 def train_or_load(config: WorldTrainConfig, name: str) -> tuple[WorldModel, History]:
-    """The model of ``config``: loaded if a run with exactly this config was saved, else trained.
+    """The model of ``config``: loaded if this run was saved, else trained.
 
     Looks for ``checkpoints/<name>.pt`` (shipped with the course), then
-    ``data/cache/checkpoints/<name>.pt``; otherwise trains (resumable from
-    ``<name>.partial`` in the cache) and saves. Returns ``(model in eval mode, history)``.
+    ``data/cache/checkpoints/<name>.pt``; otherwise makes the run's data, trains
+    (resumable from ``<name>.partial`` in the cache) and saves. Returns
+    ``(model in eval mode, history)``.
     """
-    data = make_data(config)
-    model = new_model(config, data)
+    model = WorldModel(config.model)  # a loaded file brings its input statistics too
     cache_path, shipped = checkpoint_paths(name)
     partial = cache_path.with_suffix(".partial")
 
     def train() -> History:
-        trained, history = train_world_model(config, data, checkpoint=partial)
+        trained, history = train_world_model(config, make_data(config), checkpoint=partial)
         model.load_state_dict(trained.state_dict())
         return history
 
-    history = load_or_train(cache_path, model, train, config_dict(config), shipped,
-                            partial=partial)
+    history = load_or_train(cache_path, model, train, identity(config), shipped,
+                            partial=partial, upgrade=upgrade_identity)
     return model.eval(), history
 
 
@@ -249,7 +250,7 @@ def refit_predictor(model: WorldModel, config: RefitConfig = RefitConfig(),
     k, last_start = config.rollout_steps, data.actions.shape[1] - config.rollout_steps
 
     def batch(step: int):
-        generator = torch.Generator().manual_seed(config.seed * 1_000_003 + step)
+        generator = step_generator(config.seed, step)
         index = torch.randint(0, len(data), (config.batch_size,), generator=generator)
         start = torch.randint(0, last_start + 1, (config.batch_size,), generator=generator)
         stay = torch.rand(config.batch_size, k, generator=generator) < config.stay_probability
@@ -265,9 +266,14 @@ def refit_predictor(model: WorldModel, config: RefitConfig = RefitConfig(),
     return new.eval(), history
 
 
-def refit_config_dict(config: RefitConfig, base: WorldTrainConfig) -> dict:
-    """What a refitted model's checkpoint stores: the refit and the base model's training."""
-    return {"refit": asdict(config), "base": config_dict(base)}
+def refit_identity(config: RefitConfig, base: dict) -> dict:
+    """What a refitted model's checkpoint stores: the refit and the base run's identity."""
+    return run_identity(config, base=base)
+
+
+def upgrade_refit_identity(stored: dict) -> dict:
+    """A refit's version-1 identity (``{"refit": ..., "base": ...}``) in today's form."""
+    return {"schema": IDENTITY_SCHEMA, **stored["refit"], "base": upgrade_identity(stored["base"])}
 
 
 def refit_or_load(model: WorldModel, base: WorldTrainConfig, config: RefitConfig,
@@ -283,7 +289,8 @@ def refit_or_load(model: WorldModel, base: WorldTrainConfig, config: RefitConfig
         refitted.load_state_dict(new.state_dict())
         return history
 
-    load_or_train(cache_path, refitted, refit, refit_config_dict(config, base), shipped)
+    load_or_train(cache_path, refitted, refit, refit_identity(config, identity(base)), shipped,
+                  upgrade=upgrade_refit_identity)
     return refitted.eval()
 
 
@@ -317,16 +324,16 @@ def with_coeffs(config: WorldTrainConfig, pairs: list[str]) -> WorldTrainConfig:
     return replace(config, coeffs=replace(config.coeffs, **values))
 
 
-def config_dict(config: WorldTrainConfig) -> dict:
-    """A plain dict of the config (stored in checkpoints to recognise a matching run).
+def identity(config: WorldTrainConfig) -> dict:
+    """What a checkpoint stores to recognise the run of ``config``."""
+    return run_identity(config)
 
-    ``decay_steps`` is left out when it is 0, and the predictor's fields when
-    it is the GRU: the runs saved before they existed (the shipped checkpoints
-    among them) had a constant learning rate and a GRU.
-    """
-    stored = asdict(config)
-    if stored["decay_steps"] == 0:
-        del stored["decay_steps"]
-    if stored["model"]["predictor"] == "gru":
-        del stored["model"]["predictor"], stored["model"]["predictor_hidden"]
-    return stored
+
+def upgrade_identity(stored: dict) -> dict:
+    """A version-1 identity in today's form: those runs left ``decay_steps`` out when
+    it was 0, and the predictor's fields out for the GRU."""
+    if "schema" in stored:
+        return stored
+    model = {"predictor": "gru", "predictor_hidden": WorldConfig.predictor_hidden,
+             **stored["model"]}
+    return {"schema": IDENTITY_SCHEMA, "decay_steps": 0, **stored, "model": model}

@@ -1,0 +1,221 @@
+"""Checkpoint files: written atomically, read safely, recognised by their run's identity.
+
+- :func:`save_checkpoint` writes a temp file, syncs it and renames it, so a
+  crash leaves the previous file intact; :func:`load_checkpoint` reads with
+  ``weights_only=True``, so a crafted file cannot run code.
+- :func:`run_identity` is what a file stores to say which run made it (the
+  config as plain data, with a schema version); a file of another run is
+  never loaded in its place, nor overwritten (it is kept under :func:`kept_path`).
+- :func:`checkpoint_paths`: where a notebook's run is cached, and where a
+  shipped copy would be.
+"""
+
+from __future__ import annotations
+
+import glob
+import hashlib
+import json
+import os
+import pickle
+import tempfile
+import warnings
+from collections.abc import Callable
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ..data.paths import cache_dir, remove_stale_temporaries
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint file that cannot be used: damaged, or holding more than weights."""
+
+
+class UnsafeCheckpointError(CheckpointError):
+    """A checkpoint whose pickle holds objects other than tensors and plain containers.
+
+    Such a file was not written by this course, and unpickling it could run code,
+    so it is never loaded.
+    """
+
+
+STALE_AFTER_S = 3600.0  # a temp file this old belongs to a killed writer, not a live one
+
+
+def save_checkpoint(path: str | Path, **state: Any) -> Path:
+    """Write ``state`` with ``torch.save`` atomically: a temp file, synced, then a rename.
+
+    A kernel that dies mid-write leaves the previous checkpoint intact, and a
+    power loss cannot leave an empty file at ``path``. Temp files of writers that
+    were killed (older than :data:`STALE_AFTER_S`) are removed first.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # the pattern of the temp names below: files of killed writers, never a live one's
+    remove_stale_temporaries(path.parent, [f"{glob.escape(path.name)}*.tmp"], STALE_AFTER_S)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(state, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)  # mkstemp makes the file private; a checkpoint is shareable
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
+    """Read a checkpoint written by :func:`save_checkpoint` (a dict of state).
+
+    Loads with ``weights_only=True``: tensors and plain containers only, so a
+    file that someone crafted cannot run code. Raises :class:`UnsafeCheckpointError`
+    for a file holding anything else and :class:`CheckpointError` for a damaged
+    one (truncated, empty, not a checkpoint), both naming the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no checkpoint at {path}")
+    try:
+        return torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as err:  # how the safe loader refuses a foreign object...
+        reason = [line.strip() for line in str(err).splitlines() if "Unsupported" in line]
+        if reason and "Unsupported operand" in reason[0]:  # ...or bytes that are no pickle
+            raise CheckpointError(f"{path} is damaged (not a checkpoint: {reason[0]}). Delete "
+                                  f"it, or rerun: the course's loaders move it aside.") from None
+        raise UnsafeCheckpointError(
+            f"{path} holds something other than tensors and plain data, so it was not loaded "
+            f"(unpickling it could run code; nothing in it was run). The course never writes "
+            f"such files: delete {path}, or get the checkpoint from a source you trust."
+            + (f"\nThe safe loader said: {reason[0]}" if reason else "")
+        ) from None
+    except Exception as err:  # the parser's many ways of meeting a damaged file
+        raise CheckpointError(
+            f"{path} is damaged (truncated, empty or not a checkpoint: "
+            f"{type(err).__name__}: {str(err)[:120]}). Delete it, or rerun: the course's "
+            f"loaders move it aside and train afresh."
+        ) from None
+
+
+IDENTITY_SCHEMA = 2  # 1: the plain config dicts that checkpoints stored before versions
+Upgrade = Callable[[dict], dict]  # a version-1 identity -> the same run's identity today
+
+
+def run_identity(config: Any, **extra: Any) -> dict:
+    """What a checkpoint stores to recognise its run: ``config`` (a dataclass) as plain
+    data, the ``extra`` fields that also define the run, and the schema version.
+
+    Two files hold the same run exactly when their identities are equal.
+    """
+    return {"schema": IDENTITY_SCHEMA, **asdict(config), **extra}
+
+
+def stored_identity(state: dict, upgrade: Upgrade | None = None) -> Any:
+    """The identity stored in ``state``, a version-1 identity brought up to date by
+    ``upgrade`` (by default it gains only its version number)."""
+    stored = state.get("config")
+    if not isinstance(stored, dict) or "schema" in stored:
+        return stored
+    return upgrade(stored) if upgrade is not None else {"schema": IDENTITY_SCHEMA, **stored}
+
+
+def same_run(state: dict, identity: Any, upgrade: Upgrade | None = None) -> bool:
+    """Whether ``state`` was saved by the run of ``identity`` (a plain dict, versioned or not)."""
+    if state.get("config") == identity:
+        return True
+    return _versioned(identity) and stored_identity(state, upgrade) == identity
+
+
+def _versioned(identity: Any) -> bool:
+    return isinstance(identity, dict) and "schema" in identity
+
+
+def config_key(config: Any) -> str:
+    """A short hash of a stored ``config`` (a plain dict), naming a run in file names."""
+    text = json.dumps(config, sort_keys=True, default=repr)
+    return hashlib.sha1(text.encode()).hexdigest()[:8]
+
+
+def kept_path(path: Path, config: Any) -> Path:
+    """Where the run of ``config`` is kept when another run takes ``path``:
+    ``<stem>.run-<config_key>.pt`` beside it."""
+    return path.with_name(f"{path.stem}.run-{config_key(config)}{path.suffix}")
+
+
+def _move_aside(path: Path, target: Path, why: str) -> None:
+    """Rename ``path`` to ``target`` and say so; only warn if the folder is read-only."""
+    try:
+        os.replace(path, target)
+        print(f"{path} {why}; moved it to {target}.")
+    except OSError as err:
+        warnings.warn(f"{path} {why}, and it could not be moved aside ({err})", stacklevel=3)
+
+
+def read_run(path: Path, device, movable: bool) -> dict | None:
+    """The state stored at ``path``; None if there is none or it is damaged.
+
+    A damaged file is moved aside to ``<name>.damaged`` when ``movable`` (a cache
+    file, so the next run does not trip on it); a shipped one is only reported.
+    An unsafe file raises :class:`UnsafeCheckpointError`: the user must see it.
+    """
+    if not path.is_file():
+        return None
+    try:
+        return load_checkpoint(path, map_location=device)
+    except UnsafeCheckpointError:
+        raise
+    except CheckpointError as err:
+        if movable:
+            _move_aside(path, path.with_name(path.name + ".damaged"), "is damaged")
+        else:
+            warnings.warn(f"{err} Not using it.", stacklevel=3)
+        return None
+
+
+def save_or_warn(path: Path, **state: Any) -> bool:
+    """:func:`save_checkpoint`, but a folder that cannot be written only warns (returns False)."""
+    try:
+        save_checkpoint(path, **state)
+        return True
+    except OSError as err:
+        warnings.warn(f"could not save a checkpoint to {path} ({err}); training goes on "
+                      "without one, so an interruption will not be resumable.", stacklevel=3)
+        return False
+
+
+def claim(path: Path, identity: Any, device, upgrade: Upgrade | None = None) -> dict | None:
+    """The state of the run of ``identity`` stored at ``path``, or None if there is none.
+
+    Another run's file at ``path`` is renamed to its own :func:`kept_path`, so
+    nothing trained is ever overwritten; a kept file of this run is moved back.
+    """
+    state = read_run(path, device, movable=True)
+    if state is not None and same_run(state, identity, upgrade):
+        return state
+    if state is not None:
+        other = stored_identity(state, upgrade) if _versioned(identity) else state.get("config")
+        _move_aside(path, kept_path(path, other), "belongs to a run with another configuration")
+    kept = kept_path(path, identity)
+    state = read_run(kept, device, movable=True)
+    if state is None or not same_run(state, identity, upgrade):
+        return None
+    os.replace(kept, path)
+    print(f"Found this configuration's earlier run at {kept}; moved it back to {path}.")
+    return state
+
+
+SHIPPED_DIR = Path(__file__).resolve().parents[2] / "checkpoints"  # beside the package
+
+
+def checkpoint_paths(name: str) -> tuple[Path, Path]:
+    """Where a notebook's run called ``name`` is saved, and where a shipped copy would be.
+
+    Runs trained on your machine go to ``data/cache/checkpoints/<name>.pt``
+    (git-ignored); checkpoints that come with the course are in
+    ``checkpoints/<name>.pt``, made by the command documented in checkpoints/README.md.
+    """
+    return cache_dir() / "checkpoints" / f"{name}.pt", SHIPPED_DIR / f"{name}.pt"
