@@ -36,7 +36,7 @@ lab: setup
 test: setup
 	EBJEPA_SCALE=ci $(BIN)/python -m pytest --nbval-lax -p no:cacheprovider
 
-# Unit tests only (seconds), for quick edit-test loops.
+# The fast unit tests (under 30 s on 2 idle cores), for quick edit-test loops; `slow` marks the rest.
 test-fast: setup
 	$(BIN)/python -m pytest tests -m "not slow and not browser" -p no:nbval
 

@@ -125,8 +125,8 @@ class WorldModelPreset:
     n_positions: int = 32
 
 
-_WORLD_CI = WorldTrainConfig(model=WORLD_CONFIGS["ci"], n_trajectories=2000, batch_size=16,
-                             steps=30)
+_WORLD_CI = WorldTrainConfig(model=WORLD_CONFIGS["ci"], n_trajectories=500, batch_size=16,
+                             steps=10)  # ci runs every cell; notebook 06 trains eleven of these
 _WORLD_FULL = WorldTrainConfig(  # the paper: batch 384, 12 epochs of 100,000 trajectories
     model=WORLD_CONFIGS["full"], n_trajectories=100_000, batch_size=384,
     steps=12 * 100_000 // 384,
@@ -189,7 +189,7 @@ PRESETS: dict[str, dict[str, object]] = {
     },
     "06": {
         "ci": PlanningPreset(_WORLD_CI, _PLANNER_CI, n_episodes=4, n_compare=2, episode_steps=40,
-                             n_wall_test=100, long_world=replace(_WORLD_CI, steps=60),
+                             n_wall_test=100, long_world=replace(_WORLD_CI, steps=20),
                              long_ablations=ABLATABLE_TERMS, n_long_ablation=2,
                              refit=RefitConfig(hidden=32, n_trajectories=200, steps=100,
                                                batch_size=128)),
