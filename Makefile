@@ -1,6 +1,7 @@
 # The course's commands. The two a newcomer needs:
 #   make lab    set up .venv (first time only) and open JupyterLab on notebooks/
 #   make test   set up .venv (first time only) and run every test
+# A learner starts with `make lab-student` (the exercises unsolved, in student/).
 #
 # torch is installed first, on its own, so you choose the build that fits your
 # machine, e.g. `make lab TORCH="torch==2.13.0"` (the default, a CPU build) or
@@ -14,7 +15,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup lab test test-fast book student bench lint clean
+.PHONY: setup lab lab-student test test-fast book student bench lint clean
 
 setup: $(STAMP)
 
@@ -32,6 +33,10 @@ ROOT_FLAG := $(if $(filter 0,$(shell id -u)),--allow-root,)
 lab: setup
 	$(BIN)/jupyter lab $(ROOT_FLAG) $(LAB_ARGS) notebooks/
 
+# The learner's path: the student versions (exercises left as stubs; your edits are kept).
+lab-student: student
+	$(BIN)/jupyter lab $(ROOT_FLAG) $(LAB_ARGS) student/
+
 # Unit tests, nbval of every notebook at ci scale, and the book in a browser.
 test: setup
 	EBJEPA_SCALE=ci $(BIN)/python -m pytest --nbval-lax -p no:cacheprovider
@@ -43,6 +48,7 @@ test-fast: setup
 book: setup
 	$(BIN)/python -m ebjepa_tutorial.course.book build
 
+# Writes student/NN_*.ipynb for every chapter; one that exists (your work) is kept.
 student: setup
 	$(BIN)/python -m ebjepa_tutorial.course.student notebooks student
 

@@ -155,7 +155,7 @@ def test_clip_actions_keeps_direction_and_caps_norm():
 
 
 def test_checker_accepts_reference_and_explains_mistakes(capsys):
-    assert check_wall_collision(wall_collision) is True
+    assert check_wall_collision(wall_collision) is wall_collision
     assert "Correct" in capsys.readouterr().out
 
     def no_inner_wall(pos, moves, layouts):
@@ -184,8 +184,8 @@ def test_checker_accepts_reference_and_explains_mistakes(capsys):
     def todo(pos, moves, layouts):
         raise NotImplementedError
 
-    with pytest.raises(ExerciseError, match="not implemented yet"):
-        check_wall_collision(todo)
+    assert check_wall_collision(todo) is wall_collision  # the notebook runs on with the course's
+    assert "not implemented yet" in capsys.readouterr().out
 
 
 # ----------------------------------------------------------------- bad input

@@ -4,9 +4,16 @@ A notebook is written once, with its solutions. In a code cell, a solution is
 the lines between ``### BEGIN SOLUTION`` and ``### END SOLUTION``; comment
 lines inside it that start with ``# HINT:`` are kept. The student version
 replaces each region by its hints and a ``raise NotImplementedError`` at the
-same indentation, and drops all outputs::
+same indentation, drops the text of markdown cells between
+``<!-- BEGIN SOLUTION -->`` and ``<!-- END SOLUTION -->`` (sentences about the
+solutions), and drops all outputs. Each exercise's checker hands the course's
+implementation to the rest of the notebook while the stub is unsolved, so a
+student version runs to the end::
 
     python -m ebjepa_tutorial.course.student notebooks student   # what `make student` runs
+
+A student notebook that already exists is kept (it holds the learner's work);
+``--overwrite`` replaces it.
 """
 
 from __future__ import annotations
@@ -20,6 +27,7 @@ import nbformat
 BEGIN = re.compile(r"^(\s*)### BEGIN SOLUTION\s*$")
 END = re.compile(r"^\s*### END SOLUTION\s*$")
 HINT = re.compile(r"^\s*# HINT:\s*(.*)$")
+MARKDOWN_SOLUTION = re.compile(r"<!-- BEGIN SOLUTION -->.*?<!-- END SOLUTION -->\s*", re.S)
 
 
 def strip_solutions(source: str) -> str:
@@ -46,21 +54,30 @@ def strip_solutions(source: str) -> str:
 
 
 def student_notebook(notebook: nbformat.NotebookNode) -> nbformat.NotebookNode:
-    """A copy of ``notebook`` with solutions stripped and all outputs removed."""
+    """A copy of ``notebook`` with solutions (code and markdown) stripped, outputs removed."""
     student = nbformat.from_dict(notebook)
     for cell in student.cells:
         if cell.cell_type == "code":
             cell.source = strip_solutions(cell.source)
             cell.outputs, cell.execution_count = [], None
+        elif cell.cell_type == "markdown":
+            cell.source = MARKDOWN_SOLUTION.sub("", cell.source)
     return student
 
 
-def write_student_versions(src: str | Path, dst: str | Path) -> list[Path]:
-    """Write the student version of every ``src/*.ipynb`` into ``dst``; return the paths."""
+def write_student_versions(src: str | Path, dst: str | Path, overwrite: bool = False) -> list[Path]:
+    """Write the student version of every ``src/*.ipynb`` into ``dst``; return the paths written.
+
+    A student notebook already in ``dst`` holds a learner's work: it is kept
+    unless ``overwrite`` (delete it to start that chapter afresh).
+    """
     src, dst = Path(src), Path(dst)
     dst.mkdir(parents=True, exist_ok=True)
     written = []
     for path in sorted(src.glob("*.ipynb")):
+        if (dst / path.name).exists() and not overwrite:
+            print(f"kept {dst / path.name}: it may hold your work (delete it to start afresh)")
+            continue
         try:
             notebook = student_notebook(nbformat.read(path, as_version=4))
         except ValueError as err:
@@ -72,8 +89,8 @@ def write_student_versions(src: str | Path, dst: str | Path) -> list[Path]:
 
 
 if __name__ == "__main__":
-    args = sys.argv[1:]
+    args = [a for a in sys.argv[1:] if a != "--overwrite"]
     source = args[0] if args else "notebooks"
     target = args[1] if len(args) > 1 else "student"
-    for written in write_student_versions(source, target):
+    for written in write_student_versions(source, target, "--overwrite" in sys.argv):
         print(f"wrote {written}")

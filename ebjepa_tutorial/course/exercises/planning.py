@@ -7,7 +7,7 @@ from collections.abc import Callable
 import torch
 
 from ...planning import mppi_update
-from .common import Case, _describe, compare
+from .common import Case, _describe, compare, exercise
 
 
 def _mppi_cases() -> list[Case]:
@@ -38,6 +38,7 @@ def _stacked(fn: Callable) -> Callable:
     return run
 
 
+@exercise(mppi_update)
 def check_mppi_update(fn: Callable) -> bool:
     """Notebook 06: ``mppi_update(actions, costs, elites, temperature) -> (mean, std)``.
 

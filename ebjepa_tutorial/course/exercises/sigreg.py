@@ -7,7 +7,7 @@ from collections.abc import Callable
 import torch
 
 from ...losses.sigreg import epps_pulley
-from .common import Case, ExerciseError, _call, compare
+from .common import Case, ExerciseError, _call, compare, exercise
 
 
 def _epps_pulley_reference(x, knots=17, t_max=3.0, scale_by_n=True):
@@ -46,6 +46,7 @@ def _epps_pulley_slip(got: float, expected: float, n: int) -> str:
     return ""
 
 
+@exercise(_epps_pulley_reference)
 def check_epps_pulley(fn: Callable) -> bool:
     """Notebook 02: ``epps_pulley_1d(x, knots=17, t_max=3.0, scale_by_n=True)`` -> a 0-d tensor.
 

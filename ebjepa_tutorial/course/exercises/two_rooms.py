@@ -20,7 +20,7 @@ from ...envs.two_rooms import (
     wall_bounds,
     wall_collision,
 )
-from .common import ExerciseError
+from .common import ExerciseError, exercise, not_implemented
 
 
 def _cases(seed: int, n: int) -> list[tuple[str, torch.Tensor, torch.Tensor, torch.Tensor]]:
@@ -115,13 +115,11 @@ def _first_problem(desc, pos, move, layouts, got, expected) -> str | None:
     return None
 
 
+@exercise(wall_collision)
 def check_wall_collision(fn, n: int = 512, seed: int = 0) -> bool:
-    """Compare ``fn(positions, moves, layouts)`` with the reference; print a verdict or raise.
-
-    Returns True when ``fn`` agrees on every case; otherwise raises
-    :class:`~ebjepa_tutorial.course.exercises.ExerciseError` (an AssertionError)
-    saying which case failed and how.
-    """
+    """Compare ``fn(positions, moves, layouts)`` with the reference; print a verdict or raise
+    :class:`~ebjepa_tutorial.course.exercises.ExerciseError` (an AssertionError) saying
+    which case failed and how."""
     name = getattr(fn, "__name__", "your function")
     cases = _cases(seed, n)
     for desc, pos, move, layouts in cases:
@@ -129,10 +127,7 @@ def check_wall_collision(fn, n: int = 512, seed: int = 0) -> bool:
         try:
             got = fn(pos.clone(), move.clone(), layouts.clone())
         except NotImplementedError:
-            raise ExerciseError(
-                f"{name} is not implemented yet: replace the `raise NotImplementedError` line "
-                "with your code, run that cell, then run this check again."
-            ) from None
+            raise not_implemented(name) from None
         except Exception as err:
             raise ExerciseError(f"{name} raised {type(err).__name__}: {err} on {desc}.") from err
         if not isinstance(got, torch.Tensor) or got.shape != expected.shape:

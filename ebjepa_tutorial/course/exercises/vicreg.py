@@ -8,7 +8,7 @@ from collections.abc import Callable
 import torch
 
 from ... import losses
-from .common import Case, ExerciseError, _call, _describe, compare
+from .common import Case, ExerciseError, _call, _describe, compare, exercise
 
 
 def _embedding_cases(seed: int = 0) -> list[Case]:
@@ -23,6 +23,7 @@ def _embedding_cases(seed: int = 0) -> list[Case]:
     ]
 
 
+@exercise(losses.variance_term)
 def check_variance_term(fn: Callable) -> bool:
     """Notebook 00 and 01: ``variance_term(z, gamma=1.0, eps=1e-4)`` on ``(B, D)``."""
     cases = _embedding_cases() + [
@@ -32,6 +33,7 @@ def check_variance_term(fn: Callable) -> bool:
     return compare(fn, losses.variance_term, cases)
 
 
+@exercise(losses.covariance_term)
 def check_covariance_term(fn: Callable) -> bool:
     """Notebook 00 and 01: ``covariance_term(z)`` on ``(B, D)``."""
     return compare(fn, losses.covariance_term, _embedding_cases(seed=2))
@@ -41,6 +43,7 @@ def _vicreg_total(z_a, z_b, inv_coeff, std_coeff, cov_coeff):
     return losses.vicreg_loss(z_a, z_b, inv_coeff, std_coeff, cov_coeff)[0]
 
 
+@exercise(_vicreg_total)
 def check_vicreg(fn: Callable) -> bool:
     """Notebook 01: ``vicreg(z_a, z_b, inv_coeff, std_coeff, cov_coeff)`` -> a 0-d tensor.
 
@@ -78,6 +81,7 @@ def _vicreg_paper_to_ebjepa(inv: float, std: float, cov: float, dim: int) -> tup
     return 1.0, std / inv, cov * (dim - 1) / inv
 
 
+@exercise(_vicreg_paper_to_ebjepa)
 def check_vicreg_paper_to_ebjepa(fn: Callable) -> bool:
     """Notebook 01: ``vicreg_paper_to_ebjepa(inv, std, cov, dim)`` -> three floats."""
     name = getattr(fn, "__name__", "your function")

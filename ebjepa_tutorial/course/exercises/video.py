@@ -8,7 +8,7 @@ from collections.abc import Callable
 import torch
 
 from ...losses.rollout import Predictor, rollout_loss
-from .common import Case, compare
+from .common import Case, compare, exercise
 
 
 def _toy_predictor(kind: str, weight: torch.Tensor | None = None) -> Predictor:
@@ -49,6 +49,7 @@ def _run_rollout_loss(loss_fn: Callable) -> Callable:
     return run
 
 
+@exercise(rollout_loss)
 def check_rollout_loss(fn: Callable) -> bool:
     """Notebook 03: ``rollout_loss(predictor, z, context=2, steps=4[, tbptt=None])`` -> 0-d tensor.
 

@@ -7,7 +7,7 @@ from collections.abc import Callable
 import torch
 
 from ...losses import world as world_losses
-from .common import Case, compare
+from .common import Case, compare, exercise
 
 
 def _trajectory_latents(seed: int = 3) -> list[Case]:
@@ -25,6 +25,7 @@ def _trajectory_latents(seed: int = 3) -> list[Case]:
     ]
 
 
+@exercise(world_losses.temporal_similarity_loss)
 def check_temporal_similarity(fn: Callable) -> bool:
     """Notebook 05: ``temporal_similarity(z)`` on latents ``(B, T, D)`` -> a 0-d tensor."""
     return compare(fn, world_losses.temporal_similarity_loss, _trajectory_latents())
@@ -47,6 +48,7 @@ def _difference_model(z, z_next):
     return (z_next - z)[..., :2]
 
 
+@exercise(world_losses.inverse_dynamics_loss)
 def check_inverse_dynamics(fn: Callable) -> bool:
     """Notebook 05: ``inverse_dynamics(predict_actions, z, actions)`` -> a 0-d tensor.
 
