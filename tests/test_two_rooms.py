@@ -155,7 +155,10 @@ def test_clip_actions_keeps_direction_and_caps_norm():
 
 
 def test_checker_accepts_reference_and_explains_mistakes(capsys):
-    assert check_wall_collision(wall_collision) is wall_collision
+    def mine(positions, moves, layouts):  # a learner's copy of the rule (the reference
+        return wall_collision(positions, moves, layouts)  # itself is handed back unchecked)
+
+    assert check_wall_collision(mine) is mine
     assert "Correct" in capsys.readouterr().out
 
     def no_inner_wall(pos, moves, layouts):
@@ -180,6 +183,17 @@ def test_checker_accepts_reference_and_explains_mistakes(capsys):
 
     with pytest.raises(ExerciseError, match="stopped the dot at the wall, but the door is open"):
         check_wall_collision(door_always_shut)
+
+    def stops_at_contact(pos, moves, layouts):  # no sliding: y stops where the path hits x_lo/x_hi
+        new = wall_collision(pos, moves, layouts)
+        target = (pos + moves).clamp(LOW, HIGH)
+        at_face = new[:, 0] != target[:, 0]
+        t = (new[:, 0] - pos[:, 0]) / torch.where(at_face, target[:, 0] - pos[:, 0], 1.0)
+        y = torch.where(at_face, pos[:, 1] + t * (target[:, 1] - pos[:, 1]), new[:, 1])
+        return torch.stack([new[:, 0], y], -1)
+
+    with pytest.raises(ExerciseError, match="reference gives .* where its path meets the wall"):
+        check_wall_collision(stops_at_contact)
 
     def todo(pos, moves, layouts):
         raise NotImplementedError

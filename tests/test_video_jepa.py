@@ -111,7 +111,10 @@ def test_tbptt_changes_gradients_not_the_loss():
 
 
 def test_checker_accepts_reference_and_rejects_wrong_answers(capsys):
-    assert check_rollout_loss(rollout_loss)
+    def mine(predictor, z, context=2, steps=4, tbptt=None):  # a learner's correct copy
+        return rollout_loss(predictor, z, context, steps, tbptt)
+
+    assert check_rollout_loss(mine) is mine
     assert "Correct" in capsys.readouterr().out
 
     def teacher_forcing(predictor, z, context=2, steps=4, tbptt=None):
@@ -130,8 +133,11 @@ def test_checker_accepts_reference_and_rejects_wrong_answers(capsys):
     def ignores_tbptt(predictor, z, context=2, steps=4, tbptt=None):
         return rollout_loss(predictor, z, context, steps)
 
-    for wrong in (teacher_forcing, context_two, detached_targets, ignores_tbptt):
-        with pytest.raises(ExerciseError):
+    for wrong, mistake in [(teacher_forcing, "teacher forcing"),
+                           (context_two, "ignored the context argument"),
+                           (detached_targets, r"no gradient reaches the target latents"),
+                           (ignores_tbptt, "ignored tbptt")]:
+        with pytest.raises(ExerciseError, match=mistake):
             check_rollout_loss(wrong)
 
 
@@ -176,6 +182,7 @@ def test_bad_inputs_raise_clear_errors():
         train_video_jepa(CI, torch.zeros(4, 8, 1, 64, 64), progress=False)
 
 
+@pytest.mark.slow  # trains, resumes, probes and decodes: seconds
 def test_training_resumes_and_evaluation_runs(digits, tmp_path):
     clips = generate_moving_mnist(digits, 32, 10, seed=1).clips
     config = replace(CI, steps=4, batch_size=4)

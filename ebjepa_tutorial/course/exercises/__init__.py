@@ -3,7 +3,11 @@
 Each ``check_*`` runs the learner's function and the package's reference
 implementation on the same small inputs, prints a one-line verdict when they
 agree, and otherwise raises :class:`ExerciseError` saying in plain words which
-input went wrong and how. One module per chapter's exercises.
+input went wrong and how. Each checker also knows its exercise's typical
+mistakes (a wrong variant per mistake, see :func:`common.diagnose`): when the
+learner's output matches one, the message names it and how to fix it. Where
+the lesson depends on a gradient, the gradient is compared too. One module per
+chapter's exercises.
 """
 
 from .common import Case, ExerciseError, compare

@@ -6,6 +6,7 @@ from collections.abc import Callable
 
 import torch
 
+from ... import planning
 from ...planning import mppi_update
 from .common import Case, _describe, compare, exercise
 
@@ -38,11 +39,64 @@ def _stacked(fn: Callable) -> Callable:
     return run
 
 
-@exercise(mppi_update)
+def _mppi_slip(weights=None, std=None, elites_of=None, largest=False) -> Callable:
+    """An MPPI update with one mistake: ``weights(elite_costs, tau)``, ``std(elites, w, mean)``,
+    the number of elites ``elites_of(N, Q)``, or the ``largest`` costs taken as elites."""
+    def mppi_update(actions, costs, elites, temperature):
+        q = elites_of(actions.shape[1], elites) if elites_of else elites
+        elite_costs, index = costs.topk(q, dim=1, largest=largest)
+        elite = actions.gather(1, index[:, :, None, None].expand(-1, -1, *actions.shape[2:]))
+        w = (weights or planning.mppi_weights)(elite_costs, temperature)[:, :, None, None]
+        mean = (w * elite).sum(dim=1)
+        if std is None:
+            return mean, (w * (elite - mean[:, None]).pow(2)).sum(dim=1).sqrt()
+        return mean, std(elite, w, mean)
+
+    return mppi_update
+
+
+def _shifted(costs: torch.Tensor) -> torch.Tensor:
+    return costs - costs.min(dim=1, keepdim=True).values
+
+
+_MPPI_SLIPS = [(words, _mppi_slip(**slip)) for words, slip in [
+    ("your weights do not subtract the minimum cost: exp(-S / tau) underflows to 0 when the "
+     "costs are large, and 0 / 0 gives NaN. Use exp(-(S - S_min) / tau), e.g. "
+     "torch.softmax(-(S - S_min) / tau, dim=1).",
+     {"weights": lambda s, tau: torch.exp(-s / tau) / torch.exp(-s / tau).sum(1, keepdim=True)}),
+    ("you weighted all N sampled plans; MPPI weighs only the Q elites "
+     "(costs.topk(Q, dim=1, largest=False)).", {"elites_of": lambda n, q: n}),
+    ("you kept the Q most expensive plans: the elites are the cheapest, topk(..., "
+     "largest=False).", {"largest": True}),
+    ("you multiplied by the temperature; divide: exp(-(S - S_min) / tau), so that a larger "
+     "tau gives softer weights.",
+     {"weights": lambda s, tau: torch.softmax(-_shifted(s) * tau, dim=1)}),
+    ("your weights grow with the cost: the exponent is -(S - S_min) / tau.",
+     {"weights": lambda s, tau: torch.softmax(_shifted(s) / tau, dim=1)}),
+    ("you gave every elite the same weight (the CEM update); MPPI weighs each by "
+     "exp(-(S - S_min) / tau), normalised.",
+     {"weights": lambda s, tau: torch.full_like(s, 1 / s.shape[1])}),
+    ("your weights do not sum to 1: divide exp(-(S - S_min) / tau) by its sum over the "
+     "elites (torch.softmax does).", {"weights": lambda s, tau: torch.exp(-_shifted(s) / tau)}),
+    ("your std is the weighted variance: take its square root.",
+     {"std": lambda a, w, m: (w * (a - m[:, None]).pow(2)).sum(1)}),
+    ("your std ignores the weights (the plain std of the elites); use "
+     "sqrt(sum_i w_i (a_i - mean)^2) with the new mean.", {"std": lambda a, w, m: a.std(1)}),
+    ("your std ignores the weights (the plain std of the elites); use "
+     "sqrt(sum_i w_i (a_i - mean)^2) with the new mean.",
+     {"std": lambda a, w, m: a.std(1, unbiased=False)}),
+    ("your std does not subtract the mean: sqrt(sum_i w_i (a_i - mean)^2).",
+     {"std": lambda a, w, m: (w * a.pow(2)).sum(1).sqrt()}),
+]]
+
+
+@exercise(mppi_update, _MPPI_SLIPS)
 def check_mppi_update(fn: Callable) -> bool:
     """Notebook 06: ``mppi_update(actions, costs, elites, temperature) -> (mean, std)``.
 
     ``actions (B, N, H, A)``, ``costs (B, N)`` -> two ``(B, H, A)`` tensors, compared
     (stacked: mean first, then std) with :func:`ebjepa_tutorial.planning.mppi_update`.
     """
-    return compare(_stacked(fn), _stacked(mppi_update), _mppi_cases())
+    slips = [(words, _stacked(variant)) for words, variant in _MPPI_SLIPS]
+    return compare(_stacked(fn), _stacked(mppi_update), _mppi_cases(), diagnoses=slips,
+                   parts=("mean", "std"))

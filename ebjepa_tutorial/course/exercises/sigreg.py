@@ -31,7 +31,7 @@ def _epps_pulley_cases() -> list[Case]:
     ]
 
 
-def _epps_pulley_slip(got: float, expected: float, n: int) -> str:
+def _epps_pulley_factor(got: float, expected: float, n: int) -> str:
     """A likely cause when the learner's statistic is off by a telling factor, else ''."""
     ratio = got / expected if expected != 0 else float("nan")
     for factor, why in [
@@ -46,7 +46,42 @@ def _epps_pulley_slip(got: float, expected: float, n: int) -> str:
     return ""
 
 
-@exercise(_epps_pulley_reference)
+def _epps_pulley_slip(weight=True, imag=True, square=True, rule="trapezoid", average=True,
+                      symmetric=False) -> Callable:
+    """The notebook's statistic with one mistake (each keyword undoes one step)."""
+    def epps_pulley_1d(x, knots=17, t_max=3.0, scale_by_n=True):
+        t = torch.linspace(-t_max if symmetric else 0.0, t_max, knots)
+        xt = x[:, None] * t
+        real = torch.cos(xt).mean(0) if average else torch.cos(xt).sum(0)
+        im = (torch.sin(xt).mean(0) if average else torch.sin(xt).sum(0)) if imag else 0.0
+        gaussian = torch.exp(-(t**2) / 2)
+        gap = (real - gaussian) ** 2 + im**2
+        y = (gaussian if weight else 1.0) * (gap if square else gap.sqrt())
+        area = torch.trapezoid(y, t) if rule == "trapezoid" else y.sum() * (t[1] - t[0])
+        statistic = area if symmetric else 2 * area
+        return statistic * len(x) if scale_by_n else statistic
+
+    return epps_pulley_1d
+
+
+_EPPS_PULLEY_SLIPS = [
+    ("the weight w(t) = exp(-t^2/2) is missing from the integrand: integrate "
+     "w(t) |phi_N(t) - phi(t)|^2.", _epps_pulley_slip(weight=False)),
+    ("the imaginary part is missing: |phi_N - phi|^2 = (mean cos(tx) - exp(-t^2/2))^2 "
+     "+ (mean sin(tx))^2.", _epps_pulley_slip(imag=False)),
+    ("you integrated |phi_N - phi| unsquared; the statistic integrates its square.",
+     _epps_pulley_slip(square=False)),
+    ("you used a plain sum times the knot spacing (a rectangle rule); integrate with "
+     "torch.trapezoid(y, t).", _epps_pulley_slip(rule="sum")),
+    ("you summed cos(tx) and sin(tx) over the sample; the empirical characteristic function "
+     "averages them (.mean(dim=0)).", _epps_pulley_slip(average=False)),
+    ("you spread the knots over [-t_max, t_max]; the course puts them on [0, t_max] and "
+     "doubles the integral (the integrand is even): the same integral on a finer grid.",
+     _epps_pulley_slip(symmetric=True)),
+]
+
+
+@exercise(_epps_pulley_reference, _EPPS_PULLEY_SLIPS)
 def check_epps_pulley(fn: Callable) -> bool:
     """Notebook 02: ``epps_pulley_1d(x, knots=17, t_max=3.0, scale_by_n=True)`` -> a 0-d tensor.
 
@@ -60,9 +95,9 @@ def check_epps_pulley(fn: Callable) -> bool:
         expected = _epps_pulley_reference(*case.args, **case.kwargs)
         got = _call(fn, name, case)
         if isinstance(got, torch.Tensor) and got.numel() == 1:
-            hint = _epps_pulley_slip(float(got), float(expected), len(case.args[0]))
+            hint = _epps_pulley_factor(float(got), float(expected), len(case.args[0]))
             if hint and not torch.allclose(got.double().reshape(()), expected.double(),
                                            atol=1e-4, rtol=1e-4):
                 raise ExerciseError(f"{name} gave {float(got):.6g} on {case.description}, but "
                                     f"the answer is {float(expected):.6g}.{hint}")
-    return compare(fn, _epps_pulley_reference, cases, atol=1e-4)
+    return compare(fn, _epps_pulley_reference, cases, atol=1e-4, diagnoses=_EPPS_PULLEY_SLIPS)

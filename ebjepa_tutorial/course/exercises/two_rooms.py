@@ -5,7 +5,10 @@ layouts) -> new positions`` and the reference :func:`wall_collision` on the
 same cases (through the door, into the wall, into the door's side, into the
 border, free moves, random ones, huge ones) and says in plain words what went
 wrong first: leaving the arena, passing through the wall, ending inside it,
-stopping at an open door, or any other disagreement with the reference rule.
+stopping at an open door, or any other disagreement with the reference rule;
+then, if the learner's positions match a typical wrong rule on that case
+(cancelling the whole move, no sliding along the wall, no door sides), it
+names that rule.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from ...envs.two_rooms import (
     wall_bounds,
     wall_collision,
 )
-from .common import ExerciseError, exercise, not_implemented
+from .common import Case, ExerciseError, diagnose, exercise, not_implemented
 
 
 def _cases(seed: int, n: int) -> list[tuple[str, torch.Tensor, torch.Tensor, torch.Tensor]]:
@@ -115,7 +118,44 @@ def _first_problem(desc, pos, move, layouts, got, expected) -> str | None:
     return None
 
 
-@exercise(wall_collision)
+def _stay_put(positions, moves, layouts):
+    """Cancel the whole move whenever a wall blocks it."""
+    target = (positions + moves).clamp(LOW, HIGH)
+    expected = wall_collision(positions, moves, layouts)
+    blocked = ~torch.isclose(expected, target).all(-1, keepdim=True)
+    return torch.where(blocked, positions, expected)
+
+
+def _stop_at_contact(positions, moves, layouts):
+    """Stop both coordinates where the path meets the wall's face (no sliding along it)."""
+    target = (positions + moves).clamp(LOW, HIGH)
+    expected = wall_collision(positions, moves, layouts)
+    x0, y0 = positions.unbind(-1)
+    x1, y1 = target.unbind(-1)
+    at_face = ~torch.isclose(expected[:, 0], x1)
+    t = (expected[:, 0] - x0) / torch.where(at_face, x1 - x0, torch.ones_like(x0))
+    y = torch.where(at_face, y0 + t * (y1 - y0), expected[:, 1])
+    return torch.stack([expected[:, 0], y], -1)
+
+
+def _no_door_sides(positions, moves, layouts):
+    """Stop at the wall's faces but let y leave the doorway inside the slab."""
+    target = (positions + moves).clamp(LOW, HIGH)
+    return torch.stack([wall_collision(positions, moves, layouts)[:, 0], target[:, 1]], -1)
+
+
+_WALL_SLIPS = [
+    ("you cancel the whole move when the wall blocks it; stop only the blocked coordinate "
+     "(x at the wall's face) and let the other one (y) slide on.", _stay_put),
+    ("you stop the dot where its path meets the wall's face, y included; only x stops there: "
+     "y still moves the whole way (the dot slides along the wall).", _stop_at_contact),
+    ("you handled the wall's faces but not the door's sides: a move that enters the doorway "
+     "and would leave its span inside the slab must stop y at the door's edge (y_lo or y_hi).",
+     _no_door_sides),
+]
+
+
+@exercise(wall_collision, _WALL_SLIPS)
 def check_wall_collision(fn, n: int = 512, seed: int = 0) -> bool:
     """Compare ``fn(positions, moves, layouts)`` with the reference; print a verdict or raise
     :class:`~ebjepa_tutorial.course.exercises.ExerciseError` (an AssertionError) saying
@@ -138,6 +178,8 @@ def check_wall_collision(fn, n: int = 512, seed: int = 0) -> bool:
             )
         problem = _first_problem(desc, pos, move, layouts, got.detach().float(), expected)
         if problem:
-            raise ExerciseError(problem.replace("your function", name, 1))
+            why = diagnose(got.detach().float(), _WALL_SLIPS, Case(desc, (pos, move, layouts)),
+                           atol=1e-3)
+            raise ExerciseError(problem.replace("your function", name, 1) + why)
     print(f"Correct: {name} matches the reference wall collision on {n * len(cases)} moves.")
     return True

@@ -8,7 +8,7 @@ from collections.abc import Callable
 import torch
 
 from ... import losses
-from .common import Case, ExerciseError, _call, _describe, compare, exercise
+from .common import Case, ExerciseError, _call, _describe, compare, diagnose, exercise
 
 
 def _embedding_cases(seed: int = 0) -> list[Case]:
@@ -23,27 +23,138 @@ def _embedding_cases(seed: int = 0) -> list[Case]:
     ]
 
 
-@exercise(losses.variance_term)
+def _hinge(std: torch.Tensor, gamma: float) -> torch.Tensor:
+    return torch.relu(gamma - std).mean()
+
+
+_VARIANCE_SLIPS = [
+    ("you used the biased variance (dividing by B); the course uses the unbiased one, "
+     "z.var(dim=0), which divides by B - 1.",
+     lambda z, gamma=1.0, eps=1e-4: _hinge((z.var(0, unbiased=False) + eps).sqrt(), gamma)),
+    ("eps is missing from the square root: std = sqrt(Var + eps), so that a collapsed "
+     "dimension has std sqrt(eps), not 0 (and a finite gradient).",
+     lambda z, gamma=1.0, eps=1e-4: _hinge(z.var(0).sqrt(), gamma)),
+    ("you added eps after the square root; it goes inside: sqrt(Var + eps).",
+     lambda z, gamma=1.0, eps=1e-4: _hinge(z.var(0).sqrt() + eps, gamma)),
+    ("you used the variance where the standard deviation belongs: take sqrt(Var + eps).",
+     lambda z, gamma=1.0, eps=1e-4: _hinge(z.var(0) + eps, gamma)),
+    ("you took the variance over dim=1 (each sample's D numbers); it is over the batch, "
+     "dim=0: one std per dimension.",
+     lambda z, gamma=1.0, eps=1e-4: _hinge((z.var(1) + eps).sqrt(), gamma)),
+    ("you summed the hinge over the D dimensions; the course averages it (.mean()).",
+     lambda z, gamma=1.0, eps=1e-4: torch.relu(gamma - (z.var(0) + eps).sqrt()).sum()),
+    ("the hinge is missing: max(0, gamma - std) (torch.relu) makes a dimension whose std is "
+     "above gamma cost nothing, instead of a reward.",
+     lambda z, gamma=1.0, eps=1e-4: (gamma - (z.var(0) + eps).sqrt()).mean()),
+    ("you ignored the gamma argument (the target std): use relu(gamma - std).",
+     lambda z, gamma=1.0, eps=1e-4: _hinge((z.var(0) + eps).sqrt(), 1.0)),
+    ("you returned one hinge per dimension; take their mean, a single number.",
+     lambda z, gamma=1.0, eps=1e-4: torch.relu(gamma - (z.var(0) + eps).sqrt())),
+]
+
+
+@exercise(losses.variance_term, _VARIANCE_SLIPS)
 def check_variance_term(fn: Callable) -> bool:
     """Notebook 00 and 01: ``variance_term(z, gamma=1.0, eps=1e-4)`` on ``(B, D)``."""
     cases = _embedding_cases() + [
         Case("gamma=2.0", (torch.randn(32, 4, generator=torch.Generator().manual_seed(1)),),
              {"gamma": 2.0}),
     ]
-    return compare(fn, losses.variance_term, cases)
+    return compare(fn, losses.variance_term, cases, diagnoses=_VARIANCE_SLIPS)
 
 
-@exercise(losses.covariance_term)
+def _covariance(z: torch.Tensor, unbiased: bool = True, centre: bool = True) -> torch.Tensor:
+    centred = z - z.mean(dim=0) if centre else z
+    return centred.T @ centred / (len(z) - 1 if unbiased else len(z))
+
+
+def _off_diagonal(cov: torch.Tensor) -> torch.Tensor:
+    return cov - torch.diag(torch.diagonal(cov))
+
+
+def _mean_square(cov: torch.Tensor, dim: int) -> torch.Tensor:
+    return _off_diagonal(cov).pow(2).sum() / (dim * (dim - 1))
+
+
+_COVARIANCE_SLIPS = [
+    ("you divided the covariance by B; the sample covariance divides by B - 1.",
+     lambda z: _mean_square(_covariance(z, unbiased=False), z.shape[1])),
+    ("you divided the sum by D, as the VICReg paper does; the course divides by D(D - 1), "
+     "the number of off-diagonal entries, so that the term is their mean.",
+     lambda z: _off_diagonal(_covariance(z)).pow(2).sum() / z.shape[1]),
+    ("you divided the sum by D^2; there are D(D - 1) off-diagonal entries.",
+     lambda z: _off_diagonal(_covariance(z)).pow(2).sum() / z.shape[1] ** 2),
+    ("you forgot to zero the diagonal (the variances): use cov - torch.diag(torch.diagonal("
+     "cov)) before squaring and summing.",
+     lambda z: _covariance(z).pow(2).sum() / (z.shape[1] * (z.shape[1] - 1))),
+    ("you averaged all D^2 squared entries, the diagonal (the variances) included; zero the "
+     "diagonal and divide by D(D - 1).", lambda z: _covariance(z).pow(2).mean()),
+    ("you did not centre z: subtract its mean over the batch before z.T @ z.",
+     lambda z: _mean_square(_covariance(z, centre=False), z.shape[1])),
+    ("you summed the covariances themselves; square them first (a positive and a negative "
+     "correlation must not cancel).",
+     lambda z: _off_diagonal(_covariance(z)).sum() / (z.shape[1] * (z.shape[1] - 1))),
+    ("you took absolute values; the term squares the covariances.",
+     lambda z: _off_diagonal(_covariance(z)).abs().sum() / (z.shape[1] * (z.shape[1] - 1))),
+    ("torch.cov treats each row as a variable: for z of shape (B, D) use torch.cov(z.T).",
+     lambda z: _mean_square(torch.cov(z), z.shape[1])),
+    ("torch.cov treats each row as a variable: for z of shape (B, D) use torch.cov(z.T).",
+     lambda z: _mean_square(torch.cov(z), z.shape[0])),
+]
+
+
+@exercise(losses.covariance_term, _COVARIANCE_SLIPS)
 def check_covariance_term(fn: Callable) -> bool:
     """Notebook 00 and 01: ``covariance_term(z)`` on ``(B, D)``."""
-    return compare(fn, losses.covariance_term, _embedding_cases(seed=2))
+    return compare(fn, losses.covariance_term, _embedding_cases(seed=2),
+                   diagnoses=_COVARIANCE_SLIPS)
 
 
 def _vicreg_total(z_a, z_b, inv_coeff, std_coeff, cov_coeff):
     return losses.vicreg_loss(z_a, z_b, inv_coeff, std_coeff, cov_coeff)[0]
 
 
-@exercise(_vicreg_total)
+def _vicreg_slip(invariance=losses.invariance_term, views="both", swap=False) -> Callable:
+    """A VICReg loss with one mistake: another ``invariance``, a ``views`` rule (``sum``,
+    ``stacked``, ``z_a``, ``z_b``), or ``swap``ped variance and covariance weights."""
+    def vicreg(z_a, z_b, inv_coeff, std_coeff, cov_coeff):
+        v, c = losses.variance_term, losses.covariance_term
+        if views == "sum":
+            var, cov = v(z_a) + v(z_b), c(z_a) + c(z_b)
+        elif views == "stacked":
+            var, cov = v(torch.cat([z_a, z_b])), c(torch.cat([z_a, z_b]))
+        elif views in ("z_a", "z_b"):
+            var, cov = v(z_a if views == "z_a" else z_b), c(z_a if views == "z_a" else z_b)
+        else:
+            var, cov = (v(z_a) + v(z_b)) / 2, (c(z_a) + c(z_b)) / 2
+        if swap:
+            std_coeff, cov_coeff = cov_coeff, std_coeff
+        return inv_coeff * invariance(z_a, z_b) + std_coeff * var + cov_coeff * cov
+
+    return vicreg
+
+
+_ONE_VIEW = ("you regularised one view only; apply variance_term and covariance_term to each "
+             "view and average the two.")
+_VICREG_SLIPS = [
+    ("you added the two views' variance and covariance terms; average them: "
+     "(term(z_a) + term(z_b)) / 2.", _vicreg_slip(views="sum")),
+    (_ONE_VIEW, _vicreg_slip(views="z_a")),
+    (_ONE_VIEW, _vicreg_slip(views="z_b")),
+    ("you computed the variance and covariance on the two views stacked into one batch; "
+     "compute each on one view, then average the two.", _vicreg_slip(views="stacked")),
+    ("you swapped the weights: std_coeff multiplies the variance term, cov_coeff the "
+     "covariance term.", _vicreg_slip(swap=True)),
+    ("your invariance sums the squared difference over the D dimensions; invariance_term "
+     "(the mean squared error) averages over them too.",
+     _vicreg_slip(invariance=lambda a, b: (a - b).pow(2).sum(1).mean())),
+    ("your invariance is an unsquared distance ||z_a - z_b||; it is the mean squared "
+     "difference, invariance_term(z_a, z_b).",
+     _vicreg_slip(invariance=lambda a, b: (a - b).norm(dim=1).mean())),
+]
+
+
+@exercise(_vicreg_total, _VICREG_SLIPS)
 def check_vicreg(fn: Callable) -> bool:
     """Notebook 01: ``vicreg(z_a, z_b, inv_coeff, std_coeff, cov_coeff)`` -> a 0-d tensor.
 
@@ -68,7 +179,7 @@ def check_vicreg(fn: Callable) -> bool:
         Case("two identical collapsed views (every row the same), coefficients 2, 3, 4",
              (torch.ones(8, 3), torch.ones(8, 3), 2.0, 3.0, 4.0)),
     ]
-    return compare(fn, _vicreg_total, cases)
+    return compare(fn, _vicreg_total, cases, diagnoses=_VICREG_SLIPS)
 
 
 def _vicreg_paper_to_ebjepa(inv: float, std: float, cov: float, dim: int) -> tuple:
@@ -81,7 +192,26 @@ def _vicreg_paper_to_ebjepa(inv: float, std: float, cov: float, dim: int) -> tup
     return 1.0, std / inv, cov * (dim - 1) / inv
 
 
-@exercise(_vicreg_paper_to_ebjepa)
+_CONVERSION_SLIPS = [
+    ("you forgot the factor (D - 1): the paper divides the covariance sum by D, EB-JEPA by "
+     "D(D - 1), a term D - 1 times smaller, so its weight must be D - 1 times larger.",
+     lambda inv, std, cov, dim: (1.0, std / inv, cov / inv)),
+    ("you multiplied the covariance weight by D; the ratio of the two divisors is "
+     "D(D - 1) / D = D - 1.", lambda inv, std, cov, dim: (1.0, std / inv, cov * dim / inv)),
+    ("you divided the covariance weight by (D - 1); EB-JEPA's term is D - 1 times smaller "
+     "than the paper's, so its weight must grow by D - 1.",
+     lambda inv, std, cov, dim: (1.0, std / inv, cov / (dim - 1) / inv)),
+    ("you divided the covariance weight by inv but not the variance weight: divide all three.",
+     lambda inv, std, cov, dim: (1.0, std, cov * (dim - 1) / inv)),
+    ("you did not divide by the invariance weight: divide all three weights by inv, so that "
+     "the invariance weight is 1.", lambda inv, std, cov, dim: (inv, std, cov * (dim - 1))),
+    ("you divided the weights by the variance weight std; EB-JEPA's invariance weight is 1, "
+     "so divide all three by inv.",
+     lambda inv, std, cov, dim: (inv / std, 1.0, cov * (dim - 1) / std)),
+]
+
+
+@exercise(_vicreg_paper_to_ebjepa, _CONVERSION_SLIPS)
 def check_vicreg_paper_to_ebjepa(fn: Callable) -> bool:
     """Notebook 01: ``vicreg_paper_to_ebjepa(inv, std, cov, dim)`` -> three floats."""
     name = getattr(fn, "__name__", "your function")
@@ -101,11 +231,14 @@ def check_vicreg_paper_to_ebjepa(fn: Callable) -> bool:
         except (TypeError, ValueError):
             raise ExerciseError(f"{name} returned {got!r} on {where}; expected numbers.") from None
         expected = _vicreg_paper_to_ebjepa(inv, std, cov, dim)
-        for label, value, answer in zip(labels, values, expected):
+        for k, (label, value, answer) in enumerate(zip(labels, values, expected)):
             if abs(value - answer) > 1e-6 * max(1.0, abs(answer)):
+                one = [(words, lambda *a, v=v, k=k: v(*a)[k])
+                       for words, v in _CONVERSION_SLIPS]  # the first wrong weight's slip
+                why = diagnose(value, one, Case(where, (inv, std, cov, dim)), atol=1e-6)
                 raise ExerciseError(
                     f"{name} gave {label} weight {value:.6g} on {where}, but the answer is "
-                    f"{answer:.6g} (all three: {tuple(round(a, 6) for a in expected)})."
+                    f"{answer:.6g} (all three: {tuple(round(a, 6) for a in expected)}).{why}"
                 )
     print(f"Correct: {name} matches the reference on {len(cases)} test inputs.")
     return True

@@ -49,7 +49,60 @@ def _run_rollout_loss(loss_fn: Callable) -> Callable:
     return run
 
 
-@exercise(rollout_loss)
+def _rollout_slip(**slip) -> Callable:
+    """The notebook's rollout loop with one mistake, named by a keyword of ``slip``."""
+    error = slip.get("error", lambda d: d.pow(2).mean())
+
+    def rollout_loss(predictor, z, context=2, steps=4, tbptt=None):
+        context = slip.get("context", context)
+        tbptt = None if slip.get("ignore_tbptt") else tbptt
+        targets = z.detach() if slip.get("detach_targets") else z
+        errors = []
+        for s in range(1 if slip.get("one_start") else z.shape[1] - context - steps + 1):
+            window = z[:, s:s + context]
+            for k in range(steps):
+                if tbptt is not None and k > 0 and k % tbptt == 0:
+                    window = window.detach()
+                if slip.get("teacher_forcing"):
+                    window = z[:, s + k:s + k + context]
+                z_hat = predictor(window)
+                errors.append(error(z_hat - targets[:, s + context + k - slip.get("early", 0)]))
+                if not slip.get("no_slide"):
+                    window = torch.cat([window[:, 1:], z_hat[:, None]], dim=1)
+        return torch.stack(errors).sum() if slip.get("sum") else torch.stack(errors).mean()
+
+    return rollout_loss
+
+
+_ROLLOUT_SLIPS = [(words, _rollout_slip(**slip)) for words, slip in [
+    ("no gradient reaches the target latents: did you .detach() them? The course keeps the "
+     "targets' gradient, as the paper does.", {"detach_targets": True}),
+    ("you ignored tbptt: detach the window when k > 0 and k % tbptt == 0.",
+     {"ignore_tbptt": True}),
+    ("an off-by-one target: step k (k = 0 .. K-1) from start s predicts z[:, s + context + k], "
+     "the frame after the window; you compared it with z[:, s + context + k - 1].",
+     {"early": 1}),
+    ("teacher forcing: you gave the predictor the true latents at every step; a rollout feeds "
+     "it its own predictions: window = torch.cat([window[:, 1:], z_hat[:, None]], dim=1).",
+     {"teacher_forcing": True}),
+    ("the window never slides: every step predicts from the same true context; append each "
+     "prediction and drop the oldest latent.", {"no_slide": True}),
+    ("you rolled out from the first start only; roll out from every start s = 0 .. "
+     "T - context - K.", {"one_start": True}),
+    ("you ignored the context argument (your window always holds 2 latents).", {"context": 2}),
+    ("you summed the errors instead of averaging them.", {"sum": True}),
+    ("you summed the squared error over each latent's elements; average over them "
+     "(.pow(2).mean()).", {"error": lambda d: d.pow(2).flatten(1).sum(1).mean()}),
+    ("an unsquared distance: the loss is the mean *squared* error, (z_hat - z).pow(2).mean().",
+     {"error": lambda d: d.flatten(1).norm(dim=1).mean()}),
+    ("an unsquared distance: the loss is the mean *squared* error, not its square root.",
+     {"error": lambda d: d.pow(2).mean().sqrt()}),
+    ("you used the absolute error; the loss is the mean squared error.",
+     {"error": lambda d: d.abs().mean()}),
+]]
+
+
+@exercise(rollout_loss, _ROLLOUT_SLIPS)
 def check_rollout_loss(fn: Callable) -> bool:
     """Notebook 03: ``rollout_loss(predictor, z, context=2, steps=4[, tbptt=None])`` -> 0-d tensor.
 
@@ -88,4 +141,5 @@ def check_rollout_loss(fn: Callable) -> bool:
     else:
         print("(your function has no tbptt argument: the truncation cases are skipped)")
     return compare(_run_rollout_loss(fn), _run_rollout_loss(rollout_loss),
-                   [Case(description, args) for description, args in cases])
+                   [Case(description, args) for description, args in cases],
+                   diagnoses=[(w, _run_rollout_loss(v)) for w, v in _ROLLOUT_SLIPS])
