@@ -183,11 +183,17 @@ def index_md(book: Book, scale: str) -> str:
 
 
 def link_or_copy(source: Path, target: Path) -> None:
-    """Make ``target`` show ``source``: a symlink (notebooks then run in their own folder)."""
+    """Make ``target`` show ``source``: a folder of notebooks is symlinked (they then run in
+    their own folder); pages are copied, because Sphinx resolves a link between pages
+    from where a symlink points, not from where the book shows it."""
+    copy = shutil.copytree if source.is_dir() else shutil.copy2
+    if not (source.is_dir() and any(source.glob("*.ipynb"))):
+        copy(source, target)
+        return
     try:
-        target.symlink_to(source, target_is_directory=source.is_dir())
+        target.symlink_to(source, target_is_directory=True)
     except OSError:  # no symlinks (e.g. Windows without developer mode)
-        (shutil.copytree if source.is_dir() else shutil.copy2)(source, target)
+        copy(source, target)
 
 
 def write_sphinx_project(book: Book, scale: str, src: Path, cache_dir: Path | None) -> None:
