@@ -374,9 +374,11 @@ class EpisodeResults:
 
     def summary(self) -> str:
         low, high = self.interval()
+        arrival = self.mean_first_arrival()
+        arrived = ("no episode reached the goal" if arrival != arrival  # NaN: none arrived
+                   else f"mean first arrival {arrival:.0f} steps")
         return (f"success {self.success_rate:.0%} (95% CI {low:.0%}-{high:.0%}) over "
-                f"{len(self.seeds)} episodes, mean first arrival "
-                f"{self.mean_first_arrival():.0f} steps, "
+                f"{len(self.seeds)} episodes, {arrived}, "
                 f"{self.cpu_seconds_per_episode:.2f} s CPU per episode")
 
 

@@ -359,3 +359,11 @@ def test_plot_energy_shapes_draws_each_profile_over_its_ring_middles_scaled_to_1
     assert list(yb) == pytest.approx([0.5, 0.5, 1.0])
     assert [t.get_text() for t in ax.get_legend().get_texts()] == ["a", "b"]
     matplotlib.pyplot.close(ax.figure)
+
+
+def test_a_summary_with_no_arrival_says_so_instead_of_nan():
+    episodes, _ = planning.episode_generators([0, 1])
+    result = planning.EpisodeResults([0, 1], episodes, torch.zeros(2, 3, 2),
+                                     torch.zeros(2, dtype=torch.bool), torch.tensor([-1, -1]),
+                                     cpu_seconds=1.0, wall_seconds=1.0)
+    assert "no episode reached the goal" in result.summary() and "nan" not in result.summary()
