@@ -39,7 +39,8 @@ def imports(name: str, path: Path, known: set[str]) -> set[str]:
                 anchor = package.split(".")
                 anchor = anchor[:len(anchor) - node.level + 1]
                 base = ".".join(anchor + ([base] if base else []))
-            for alias in node.names:  # `from pkg import submodule` imports the submodule
+            targets.add(base)  # `from pkg import x` runs pkg's __init__ first
+            for alias in node.names:  # ... and imports x itself when x is a submodule
                 full = f"{base}.{alias.name}"
                 targets.add(full if full in known else base)
     return {t for t in targets if t in known and t != name}

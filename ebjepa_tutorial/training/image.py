@@ -28,9 +28,9 @@ from ..losses import sigreg
 from ..models.encoders import ENCODERS, build_encoder
 from ..models.heads import build_projector
 from ..utils import check_fields, is_int_at_least, is_non_negative, is_positive
-from . import optim
 from .checkpoints import checkpoint_paths, run_identity
 from .loop import History, fit, load_or_train, resume, step_generator
+from .optim import LARS, split_decay_params, warmup_cosine_scheduler
 
 LOSSES = ("vicreg", "sigreg", "invariance")
 EVAL_FIELDS = ("eval_image_size",)  # how a run is scored, not how it is trained
@@ -134,8 +134,8 @@ def jepa_loss(config: ImageJEPAConfig, z_a, z_b, generator=None):
 def make_optimizer(model: nn.Module, config: ImageJEPAConfig):
     """AdamW or LARS, with biases and norm parameters excluded from weight decay."""
     if config.optimizer == "lars":
-        return optim.LARS(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
-    groups = optim.split_decay_params(model, config.weight_decay)
+        return LARS(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    groups = split_decay_params(model, config.weight_decay)
     return torch.optim.AdamW(groups, lr=config.lr)
 
 
@@ -155,7 +155,7 @@ def train_image_jepa(
     torch.manual_seed(config.seed)
     model = ImageJEPA(config).to(device)
     optimizer = make_optimizer(model, config)
-    scheduler = optim.warmup_cosine_scheduler(optimizer, config.steps, config.warmup_steps)
+    scheduler = warmup_cosine_scheduler(optimizer, config.steps, config.warmup_steps)
     pipeline = augment.build_augmentation(augment.AugmentConfig(size=config.image_size))
     start, history = (0, History())
     if checkpoint is not None:

@@ -8,7 +8,12 @@ from __future__ import annotations
 
 from functools import singledispatch
 
-from . import image, video, world
+from .image import ImageJEPAConfig
+from .image import train_or_load as train_image
+from .video import VideoJEPAConfig
+from .video import train_or_load as train_video
+from .world import WorldTrainConfig
+from .world import train_or_load as train_world
 
 
 @singledispatch
@@ -27,18 +32,18 @@ def train_or_load(config, name: str, data=None, device=None, **options):
                     "a VideoJEPAConfig or a WorldTrainConfig")
 
 
-@train_or_load.register(image.ImageJEPAConfig)
+@train_or_load.register(ImageJEPAConfig)
 def _image(config, name, data=None, device=None, encoder_only: bool = False):
-    return image.train_or_load(config, name, data, device or "cpu", encoder_only)
+    return train_image(config, name, data, device or "cpu", encoder_only)
 
 
-@train_or_load.register(video.VideoJEPAConfig)
+@train_or_load.register(VideoJEPAConfig)
 def _video(config, name, data=None, device=None):
-    return video.train_or_load(config, name, data, device)
+    return train_video(config, name, data, device)
 
 
-@train_or_load.register(world.WorldTrainConfig)
+@train_or_load.register(WorldTrainConfig)
 def _world(config, name, data=None, device=None):
     if data is not None:
         raise ValueError("a world model makes its own data from its config; pass data=None")
-    return world.train_or_load(config, name)
+    return train_world(config, name)
