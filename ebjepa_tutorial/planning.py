@@ -59,6 +59,7 @@ from .envs import (
 )
 from .envs.two_rooms import HIGH, LOW, render, transition, wall_bounds
 from .evaluation.metrics import wilson_interval
+from .utils import check_fields, is_int_at_least, is_positive
 
 METHODS = ("mppi", "cem")
 COSTS = ("sum", "last")
@@ -90,26 +91,21 @@ class PlannerConfig:
         if self.method not in METHODS or self.cost not in COSTS:
             raise ValueError(f"method must be one of {METHODS} and cost one of {COSTS}, "
                              f"got method={self.method!r}, cost={self.cost!r}")
-        for name in ("horizon", "samples", "elites", "iterations", "execute", "noise_period"):
-            _require_count(name, getattr(self, name))
+        check_fields(self, {name: (is_int_at_least(1), "an int >= 1") for name in
+                            ("horizon", "samples", "elites", "iterations", "execute",
+                             "noise_period")})
         if self.elites > self.samples:
             raise ValueError(f"elites (Q={self.elites}) cannot exceed samples (N={self.samples})")
         if self.execute > self.horizon:
             raise ValueError(f"execute (m={self.execute}) cannot exceed horizon "
                              f"(H={self.horizon})")
-        for name, meaning in _POSITIVE_FIELDS.items():
-            _require_positive(name, getattr(self, name), meaning)
+        check_fields(self, {name: (is_positive, "a finite number > 0", meaning)
+                            for name, meaning in _POSITIVE_FIELDS.items()})
         if self.min_std > self.max_std:
             raise ValueError(f"min_std ({self.min_std}) cannot exceed max_std ({self.max_std}): "
                              "they are the range the updated spread is clamped to")
         if not isinstance(self.update_std, bool):
             raise ValueError(f"update_std must be True or False, got {self.update_std!r}")
-
-
-def _require_count(name: str, value) -> None:
-    """Raise unless ``value`` is a whole number >= 1 (not a bool)."""
-    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-        raise ValueError(f"{name} must be an int >= 1, got {value!r}")
 
 
 # Each must be > 0: a zero spread samples N copies of the mean (and with
@@ -122,13 +118,6 @@ _POSITIVE_FIELDS = {
     "max_std": "the largest spread after an update, px",
     "action_bound": f"the longest sampled step, px (the world allows {MAX_STEP})",
 }
-
-
-def _require_positive(name: str, value, meaning: str) -> None:
-    """Raise unless ``value`` is a finite real number > 0 (not a bool)."""
-    number = isinstance(value, (int, float)) and not isinstance(value, bool)
-    if not (number and math.isfinite(value) and value > 0):
-        raise ValueError(f"{name} ({meaning}) must be a finite number > 0, got {value!r}")
 
 
 # -- the energy ------------------------------------------------------------------------------

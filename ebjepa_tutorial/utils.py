@@ -63,9 +63,11 @@ def check_fields(config, rules: dict) -> None:
     """Raise ValueError naming the first field of ``config`` that breaks its rule.
 
     ``rules`` maps a field name to ``(predicate, "what it must be")``, e.g.
-    ``{"lr": (is_positive, "a number > 0")}``.
+    ``{"lr": (is_positive, "a number > 0")}``, optionally with a third element
+    saying what the field means, shown beside its name.
     """
-    for name, (ok, rule) in rules.items():
+    for name, (ok, rule, *meaning) in rules.items():
         value = getattr(config, name)
         if not ok(value):
-            raise ValueError(f"{type(config).__name__}.{name} must be {rule}, got {value!r}")
+            label = f"{name} ({meaning[0]})" if meaning else name
+            raise ValueError(f"{type(config).__name__}.{label} must be {rule}, got {value!r}")
