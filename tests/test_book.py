@@ -13,6 +13,7 @@ from html.parser import HTMLParser
 from pathlib import Path
 from urllib.parse import urljoin, urlparse
 
+import nbformat
 import pytest
 from PIL import Image, ImageStat
 
@@ -37,10 +38,12 @@ def write_book(tmp_path: Path, text: str, chapters=("notebooks/00_a.ipynb",)) ->
 
 def test_load_book_reads_every_setting(tmp_path):
     path = write_book(tmp_path, "title: T\nauthors: Ada\nchapters: [notebooks/00_a.ipynb]\n"
-                                "execute: {scale: ci, cache: false, timeout: 60}\n")
+                                "execute: {scale: ci, cache: false, timeout: 60, "
+                                "long_timeout: 600}\n")
     book = bk.load_book(path)
     assert (book.title, book.authors, book.chapters) == ("T", ("Ada",), ("notebooks/00_a.ipynb",))
-    assert (book.scale, book.cache, book.timeout, book.root) == ("ci", False, 60, tmp_path)
+    assert (book.scale, book.cache, book.timeout, book.long_timeout, book.root) == (
+        "ci", False, 60, 600, tmp_path)
 
 
 @pytest.mark.parametrize("text, problem", [
@@ -69,22 +72,73 @@ def test_generated_project_is_offline_and_lists_chapters(tmp_path):
     chapters = ("notebooks/00_a.ipynb", "notebooks/01_b.ipynb")
     book = bk.load_book(write_book(tmp_path, "title: My Book\nchapters: [notebooks/00_a.ipynb, "
                                              "notebooks/01_b.ipynb]\n", chapters))
-    conf = bk.conf_py(book, tmp_path / "cache")
+    conf = bk.conf_py(book)
     assert "mathjax_path = 'mathjax/MathJax.js'" in conf and "http" not in conf
-    assert "nb_execution_raise_on_error = True" in conf
+    assert "nb_execution_mode = 'off'" in conf  # execute_notebook runs them, with time limits
     index = bk.index_md(book, "ci")
     assert index.startswith("# My Book") and "`ci`" in index
     assert index.index("notebooks/00_a\n") < index.index("notebooks/01_b\n")
 
 
-def test_failure_message_names_notebook_cell_and_error():
-    log = ("\x1b[31mValueError\x1b[39m: boom\nAn error occurred while executing the following "
-           "cell:\n------------------\nx = 1 / 0\n------------------\n\nZeroDivisionError: "
-           "division by zero\n [mystnb.exec]\nTraceback\n  myst_nb.ExecutionError: "
-           "/b/book-src/notebooks/03_x.ipynb\nValueError: unrelated\n")
-    message = bk.explain_failure(log, "ci", 2)
-    assert "03_x.ipynb" in message and "x = 1 / 0" in message
-    assert "ZeroDivisionError: division by zero" in message and "EBJEPA_SCALE=ci" in message
+def tiny_notebook(tmp_path: Path, *cells: tuple[str, list[str]]) -> Path:
+    """A notebook of code cells (source, tags) in ``tmp_path``; return its path."""
+    notebook = nbformat.v4.new_notebook()
+    notebook.cells = [nbformat.v4.new_code_cell(source, metadata={"tags": tags})
+                      for source, tags in cells]
+    notebook.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3"}
+    path = tmp_path / "07_tiny.ipynb"
+    nbformat.write(notebook, path)
+    return path
+
+
+def quick_book(tmp_path: Path, timeout: int = 60, long_timeout: int = 60) -> bk.Book:
+    return bk.Book(root=tmp_path, title="T", authors=(), chapters=("07_tiny.ipynb",),
+                   timeout=timeout, long_timeout=long_timeout)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("failing, named", [
+    ("x = 1 / 0", "with ZeroDivisionError: division by zero"),
+    ("import os\nos._exit(1)  # the kernel dies", "Its kernel died"),
+])
+def test_failed_cell_is_named_with_its_notebook(tmp_path, failing, named):
+    path = tiny_notebook(tmp_path, ("import os\nscale = os.environ['EBJEPA_SCALE']", []),
+                         (failing, []), ("never_runs = True", []))
+    with pytest.raises(bk.BookError) as raised:
+        bk.execute_notebook(path, tmp_path / "out.ipynb", quick_book(tmp_path), "ci")
+    message = str(raised.value)
+    assert "notebook 07_tiny.ipynb" in message and "in its cell 1" in message
+    assert failing.splitlines()[0] in message and named in message
+    assert not (tmp_path / "out.ipynb").exists()
+
+
+@pytest.mark.slow
+def test_long_running_cells_get_their_own_time_limit(tmp_path):
+    book = quick_book(tmp_path, timeout=1, long_timeout=60)
+    path = tiny_notebook(tmp_path, ("import time\ntime.sleep(3)\nprint('trained')", [bk.LONG_TAG]))
+    bk.execute_notebook(path, tmp_path / "out.ipynb", book, "ci")
+    executed = nbformat.read(tmp_path / "out.ipynb", as_version=4)
+    assert executed.cells[0].outputs[0]["text"] == "trained\n"
+
+    path = tiny_notebook(tmp_path, ("import time\ntime.sleep(3)", []))
+    with pytest.raises(bk.BookError, match="past its limit of 1 s.*tag the cell 'long-running'"):
+        bk.execute_notebook(path, tmp_path / "out.ipynb", book, "ci")
+
+
+LONG_CALLS = re.compile(r"train_or_load\(|probe_encoder\(|refit_or_load\(|run_episodes\(|"
+                        r"probe_report\(")
+
+
+def test_cells_that_train_or_play_are_tagged_long_running():
+    """Training, probes and episodes take minutes at class scale, several times that on busy
+    cores: the book gives them execute.long_timeout instead of the per-cell timeout."""
+    untagged = []
+    for path in sorted((bk.DEFAULT_CONFIG.parent / "notebooks").glob("*.ipynb")):
+        for index, cell in enumerate(nbformat.read(path, as_version=4).cells):
+            if (cell.cell_type == "code" and LONG_CALLS.search(cell.source)
+                    and bk.LONG_TAG not in cell.metadata.get("tags", ())):
+                untagged.append(f"{path.name} cell {index}")
+    assert not untagged, f"tag these cells {bk.LONG_TAG!r}: {untagged}"
 
 
 # ---- the real book, built at ci scale and opened in a browser (slow) ----

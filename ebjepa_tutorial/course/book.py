@@ -3,12 +3,17 @@
     python -m ebjepa_tutorial.course.book build [--scale ci|class|full] [--out DIR] [--config FILE]
 
 ``book.yml`` names the title, authors, chapters (notebooks, in order) and how
-to execute them. ``build`` writes a Sphinx project into ``build/book-src``
-(generated ``conf.py`` and title page, a link to the chapters' folder, a local
-MathJax), then runs sphinx-build: myst-nb executes every chapter at the chosen
-scale and the HTML site lands in ``build/book/html``. Executed notebooks are
-cached (jupyter-cache, ``build/book-cache``) per scale and per version of the
-package's code, so a second build is fast. Nothing comes from the network.
+to execute them. ``build`` executes every notebook at the chosen scale in its own
+folder, writes a Sphinx project into ``build/book-src`` (generated ``conf.py`` and
+title page, the executed chapters, a local MathJax), then runs sphinx-build, which
+renders them (myst-nb) into ``build/book/html``. Nothing comes from the network.
+
+Executed notebooks are cached in ``build/book-cache`` per scale, per notebook text
+and per version of the package's code, so a second build is fast. A cell may run
+``execute.timeout`` seconds; a cell tagged ``long-running`` (training, probes,
+episodes: minutes when the cores are idle, several times that when they are
+shared) may run ``execute.long_timeout``. A kernel that dies fails the build at
+once, naming the notebook and the cell.
 """
 
 from __future__ import annotations
@@ -20,10 +25,14 @@ import re
 import shutil
 import subprocess
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import nbformat
 import yaml
+from nbclient import NotebookClient
+from nbclient.exceptions import CellExecutionError, CellTimeoutError, DeadKernelError
 
 from .presets import SCALES
 
@@ -31,7 +40,8 @@ PACKAGE_DIR = Path(__file__).resolve().parents[1]  # ebjepa_tutorial/
 DEFAULT_CONFIG = PACKAGE_DIR.parent / "book.yml"
 MATHJAX_DIR = "mathjax"  # under _static/
 BOOK_KEYS = {"title", "subtitle", "authors", "description", "chapters", "execute"}
-EXECUTE_KEYS = {"scale", "cache", "timeout"}
+EXECUTE_KEYS = {"scale", "cache", "timeout", "long_timeout"}
+LONG_TAG = "long-running"  # cells that train, probe or play episodes
 
 
 class BookError(RuntimeError):
@@ -51,6 +61,7 @@ class Book:
     scale: str = "class"
     cache: bool = True
     timeout: int = 1800  # seconds per cell
+    long_timeout: int = 4 * 3600  # seconds per cell tagged LONG_TAG
 
 
 def load_book(path: str | Path = DEFAULT_CONFIG) -> Book:
@@ -73,7 +84,8 @@ def load_book(path: str | Path = DEFAULT_CONFIG) -> Book:
                 subtitle=str(raw.get("subtitle") or ""),
                 description=str(raw.get("description") or ""),
                 scale=str(execute.get("scale", "class")), cache=bool(execute.get("cache", True)),
-                timeout=int(execute.get("timeout", 1800)))
+                timeout=int(execute.get("timeout", 1800)),
+                long_timeout=int(execute.get("long_timeout", 4 * 3600)))
     check_book(book, path.name)
     return book
 
@@ -82,8 +94,9 @@ def check_book(book: Book, name: str = "book.yml") -> None:
     """Raise BookError if a chapter is missing or outside the book, or a setting is invalid."""
     if book.scale not in SCALES:
         raise BookError(f"{name}: execute.scale {book.scale!r} is not one of {SCALES}")
-    if book.timeout <= 0:
-        raise BookError(f"{name}: execute.timeout must be a positive number of seconds")
+    if min(book.timeout, book.long_timeout) <= 0:
+        raise BookError(f"{name}: execute.timeout and execute.long_timeout must be positive "
+                        f"numbers of seconds")
     for chapter in book.chapters:
         rel = Path(chapter)
         if rel.is_absolute() or ".." in rel.parts or rel.suffix not in (".ipynb", ".md"):
@@ -128,7 +141,7 @@ def mathjax_config() -> dict:
     }
 
 
-def conf_py(book: Book, cache_dir: Path | None) -> str:
+def conf_py(book: Book) -> str:
     """The text of the generated Sphinx ``conf.py``."""
     settings = {
         "project": book.title,
@@ -141,11 +154,7 @@ def conf_py(book: Book, cache_dir: Path | None) -> str:
         "myst_update_mathjax": False,  # it writes MathJax 3+ settings; we serve MathJax 2
         "mathjax_path": f"{MATHJAX_DIR}/MathJax.js",  # relative to _static: served locally
         "mathjax2_config": mathjax_config(),
-        "nb_execution_mode": "cache" if book.cache else "force",
-        "nb_execution_cache_path": str(cache_dir) if cache_dir else "",
-        "nb_execution_timeout": book.timeout,
-        "nb_execution_raise_on_error": True,
-        "nb_execution_show_tb": True,
+        "nb_execution_mode": "off",  # execute_notebook ran them, with per-cell time limits
         "nb_merge_streams": True,
         "nb_ipywidgets_js": {},  # the default loads require.js and widgets from CDNs
         "html_theme": "sphinx_book_theme",
@@ -182,22 +191,9 @@ def index_md(book: Book, scale: str) -> str:
     return "\n".join(parts)
 
 
-def link_or_copy(source: Path, target: Path) -> None:
-    """Make ``target`` show ``source``: a folder of notebooks is symlinked (they then run in
-    their own folder); pages are copied, because Sphinx resolves a link between pages
-    from where a symlink points, not from where the book shows it."""
-    copy = shutil.copytree if source.is_dir() else shutil.copy2
-    if not (source.is_dir() and any(source.glob("*.ipynb"))):
-        copy(source, target)
-        return
-    try:
-        target.symlink_to(source, target_is_directory=True)
-    except OSError:  # no symlinks (e.g. Windows without developer mode)
-        copy(source, target)
-
-
-def write_sphinx_project(book: Book, scale: str, src: Path, cache_dir: Path | None) -> None:
-    """Fill ``src`` with conf.py, index.md, links to the chapters and MathJax in _static."""
+def write_sphinx_project(book: Book, scale: str, src: Path, executed: dict[str, Path]) -> None:
+    """Fill ``src`` with conf.py, index.md, the chapters' folders (``executed`` maps a
+    notebook chapter to its executed copy) and MathJax in _static."""
     src.mkdir(parents=True, exist_ok=True)
     for entry in src.iterdir():  # start clean, but keep the (large, unchanging) _static copy
         if entry.name == "_static":
@@ -206,10 +202,14 @@ def write_sphinx_project(book: Book, scale: str, src: Path, cache_dir: Path | No
             shutil.rmtree(entry)
         else:
             entry.unlink()
-    (src / "conf.py").write_text(conf_py(book, cache_dir), encoding="utf-8")
+    (src / "conf.py").write_text(conf_py(book), encoding="utf-8")
     (src / "index.md").write_text(index_md(book, scale), encoding="utf-8")
     for top in sorted({Path(chapter).parts[0] for chapter in book.chapters}):
-        link_or_copy(book.root / top, src / top)
+        source = book.root / top
+        copy = shutil.copytree if source.is_dir() else shutil.copy2
+        copy(source, src / top)  # pages are copied: Sphinx resolves links from where a file is
+    for chapter, notebook in executed.items():
+        shutil.copy2(notebook, src / chapter)
     copy_mathjax(src / "_static" / MATHJAX_DIR)
 
 
@@ -231,43 +231,90 @@ def is_noise(line: str) -> bool:
         ("myst v", "myst-nb v"))
 
 
-def run_sphinx(src: Path, out: Path, doctrees: Path, scale: str) -> None:
-    """Run sphinx-build (which executes the notebooks) with ``EBJEPA_SCALE=scale``."""
-    command = [sys.executable, "-m", "sphinx", "-b", "html", "-E", "-d", str(doctrees),
-               str(src), str(out)]
-    env = dict(os.environ, EBJEPA_SCALE=scale, PYDEVD_DISABLE_FILE_VALIDATION="1")
-    log: list[str] = []
-    failing = False  # after a notebook fails, Sphinx's crash report would only confuse
-    with subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                          text=True, bufsize=1) as process:
-        for line in process.stdout:
-            log.append(line)
-            if not failing and not is_noise(line):
-                print(line, end="", flush=True)
-            failing = failing or "[mystnb.exec]" in line
-    if process.returncode != 0:
-        raise BookError(explain_failure("".join(log), scale, process.returncode))
+def notebook_key(path: Path, scale: str) -> str:
+    """What an executed notebook depends on: its code, the scale and the package's code."""
+    digest = hashlib.sha256(f"{scale} {package_fingerprint()}".encode())
+    for cell in nbformat.read(path, as_version=4).cells:
+        if cell.cell_type == "code":
+            digest.update(cell.source.encode() + b"\0")
+    return f"{path.stem}-{digest.hexdigest()[:12]}"
 
 
-def explain_failure(log: str, scale: str, returncode: int) -> str:
-    """One message for a failed sphinx-build: which notebook, which cell, which error."""
-    failed = re.findall(r"ExecutionError: (\S+)", log)
-    if not failed:
-        return f"sphinx-build failed with exit code {returncode} (messages above)"
-    plain = re.sub(r"\x1b\[[0-9;]*m", "", log)  # drop terminal colours
-    plain = plain.split("[mystnb.exec]")[0]  # the notebook's traceback, not Sphinx's
-    cell = re.search(r"(?:executing the following cell|preview of the cell contents):\n-+\n"
-                     r"(.*?)\n-+\n", plain, re.S)
-    errors = re.findall(r"^((?:\w+\.)*\w+(?:Error|Exception|Interrupt)\b.*)$", plain, re.M)
-    message = f"notebook {Path(failed[-1]).name} failed while executing at scale {scale}"
-    if cell:
-        message += " in the cell\n\n    " + cell.group(1).replace("\n", "\n    ") + "\n"
-    if errors:
-        message += f"\nwith {errors[-1]}\n"
-    if "CellTimeoutError" in plain:
-        message += "\nIf the cell is only slow, raise execute.timeout in book.yml.\n"
+def execute_notebook(path: Path, target: Path, book: Book, scale: str) -> None:
+    """Run the notebook at ``path`` in its own folder at ``scale``; write it, with its outputs,
+    to ``target``. Raise BookError naming the notebook and the cell if a cell fails, runs
+    out of time or its kernel dies."""
+    notebook = nbformat.read(path, as_version=4)
+    running = {}
+
+    def note_cell(cell, cell_index, **_):
+        running.update(cell=cell, index=cell_index)
+
+    def time_limit(cell):
+        return book.long_timeout if LONG_TAG in cell.metadata.get("tags", ()) else book.timeout
+
+    client = NotebookClient(notebook, timeout_func=time_limit, kernel_name="python3",
+                            resources={"metadata": {"path": str(path.parent)}},
+                            on_cell_start=note_cell)
+    try:
+        client.execute(env=dict(os.environ, EBJEPA_SCALE=scale,
+                                PYDEVD_DISABLE_FILE_VALIDATION="1"))
+    except (CellExecutionError, CellTimeoutError, DeadKernelError) as error:
+        raise BookError(describe_failure(path.name, running, error, scale, book)) from None
+    target.parent.mkdir(parents=True, exist_ok=True)
+    nbformat.write(notebook, target)
+
+
+def describe_failure(name: str, running: dict, error: Exception, scale: str, book: Book) -> str:
+    """One message for a notebook that did not run: which notebook, which cell, what error."""
+    message = f"notebook {name} failed while executing at scale {scale}"
+    cell = running.get("cell")
+    if cell is not None:
+        source = cell.source.strip().splitlines()
+        shown = "\n    ".join(source[:12] + (["..."] if len(source) > 12 else []))
+        message += (f" in its cell {running['index']} (from 0, markdown cells counted):"
+                    f"\n\n    {shown}\n")
+    if isinstance(error, DeadKernelError):
+        message += "\nIts kernel died (out of memory, or killed): nothing after this cell ran.\n"
+    elif isinstance(error, CellTimeoutError):
+        tagged = cell is not None and LONG_TAG in cell.metadata.get("tags", ())
+        limit, key = (book.long_timeout, "long_timeout") if tagged else (book.timeout, "timeout")
+        message += (f"\nThe cell ran past its limit of {limit} s. If it is only slow (cores "
+                    f"shared with other jobs), raise execute.{key} in book.yml"
+                    + ("" if tagged else f" or tag the cell {LONG_TAG!r}") + ".\n")
+    else:
+        message += f"\nwith {error.ename}: {error.evalue}\n"
     return message + (f"\nReproduce it with `EBJEPA_SCALE={scale} make lab`, fix the notebook "
                       f"or the package, then build again.")
+
+
+def execute_chapters(book: Book, scale: str, cache_dir: Path) -> dict[str, Path]:
+    """Execute every notebook chapter (or take it from ``cache_dir``); map each to its copy."""
+    executed = {}
+    for chapter in book.chapters:
+        path = book.root / chapter
+        if path.suffix != ".ipynb":
+            continue
+        done = cache_dir / f"{notebook_key(path, scale)}.ipynb"
+        if not done.is_file():
+            print(f"executing {chapter} at scale {scale} ...", flush=True)
+            start = time.monotonic()
+            execute_notebook(path, done.with_suffix(".running"), book, scale)
+            done.with_suffix(".running").replace(done)  # cached only once it ran to the end
+            print(f"    {chapter}: {(time.monotonic() - start) / 60:.1f} min", flush=True)
+        executed[chapter] = done
+    return executed
+
+
+def run_sphinx(src: Path, out: Path, doctrees: Path) -> None:
+    """Run sphinx-build on the executed chapters; raise BookError if it fails."""
+    command = [sys.executable, "-m", "sphinx", "-b", "html", "-E", "-q", "-d", str(doctrees),
+               str(src), str(out)]
+    result = subprocess.run(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines = [line for line in result.stdout.splitlines() if not is_noise(line)]
+    print("\n".join(lines), flush=True)
+    if result.returncode != 0:
+        raise BookError(f"sphinx-build failed with exit code {result.returncode} (messages above)")
 
 
 def find_external_assets(html_dir: str | Path) -> list[tuple[str, str]]:
@@ -305,17 +352,19 @@ def build_book(config: str | Path = DEFAULT_CONFIG, scale: str | None = None,
             raise BookError(f"refusing to overwrite {out}: it is not a previous book build; "
                             f"choose an empty or new --out folder")
         shutil.rmtree(out)  # so the site holds exactly the chapters book.yml lists today
-    cache_dir = None
-    if book.cache:
-        cache_root, key = work / "book-cache", f"{scale}-{package_fingerprint()}"
-        for old in cache_root.glob(f"{scale}-*"):  # outputs of older package code are stale
-            if old.name != key:
-                shutil.rmtree(old)
-        cache_dir = (cache_root / key).resolve()
+    cache_root, key = work / "book-cache", f"{scale}-{package_fingerprint()}"
+    for old in cache_root.glob(f"{scale}-*"):  # outputs of older package code are stale
+        if old.name != key or not book.cache:
+            shutil.rmtree(old)
+    cache_dir = (cache_root / key).resolve()
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    start = time.monotonic()
+    executed = execute_chapters(book, scale, cache_dir)
     src = work / "book-src"
-    write_sphinx_project(book, scale, src, cache_dir)
-    print(f"Building the book at scale {scale!r} into {out}", flush=True)
-    run_sphinx(src, out, work / "book-doctrees", scale)
+    write_sphinx_project(book, scale, src, executed)
+    print(f"Rendering the book at scale {scale!r} into {out}", flush=True)
+    run_sphinx(src, out, work / "book-doctrees")
+    print(f"built in {(time.monotonic() - start) / 60:.1f} min", flush=True)
     for file, url in find_external_assets(out):
         print(f"warning: {file} loads {url} from the network", file=sys.stderr)
     return out
