@@ -127,6 +127,34 @@ def test_multistep_prediction_with_z_plus_a():
     assert wl.multistep_prediction_loss(add, shifted, actions, steps=1).item() == 0.0
 
 
+def test_prediction_from_every_start_frame_by_hand():
+    # scalar latents along one trajectory, a predictor that adds the action, K = 2
+    z = torch.tensor([[[0.0], [1.0], [3.0], [3.0]]])  # (1, 4, 1)
+    actions = torch.ones(1, 3, 1)
+    add = lambda z, a: z + a  # noqa: E731
+    # start 0: zhat 1, 2 vs 1, 3 -> errors 0, 1; start 1: zhat 2, 3 vs 3, 3 -> errors 1, 0
+    # (start 2 has only one frame after it: not a K-step window) -> mean over 4 errors: 1/2
+    loss = wl.multistep_prediction_loss(add, z, actions, steps=2, starts="all")
+    assert loss.item() == pytest.approx(0.5)
+    assert wl.multistep_prediction_loss(add, z, actions, steps=2).item() == pytest.approx(0.5)
+    z[0, 3] = 5.0  # the last frame is a target only of the second start: (5 - 3)^2 = 4 more
+    assert wl.multistep_prediction_loss(add, z, actions, steps=2, starts="all").item() == (
+        pytest.approx(1.5))
+    assert wl.multistep_prediction_loss(add, z, actions, steps=2).item() == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="starts must be one of"):
+        wl.multistep_prediction_loss(add, z, actions, steps=2, starts="every")
+
+
+def test_all_starts_average_the_first_start_loss_of_each_window():
+    torch.manual_seed(0)
+    z, actions, weight = torch.randn(3, 7, 4), torch.randn(3, 6, 2), torch.randn(2, 4)
+    step = lambda z, a: 0.5 * z + a @ weight  # noqa: E731
+    each = [wl.multistep_prediction_loss(step, z[:, t:t + 4], actions[:, t:t + 3], steps=3)
+            for t in range(4)]
+    every = wl.multistep_prediction_loss(step, z, actions, steps=3, starts="all")
+    assert every.item() == pytest.approx(torch.stack(each).mean().item(), rel=1e-6)
+
+
 def test_detached_targets_stop_the_gradient():
     z = torch.zeros(1, 3, 2, requires_grad=True)
     actions = torch.ones(1, 2, 2)
@@ -502,3 +530,11 @@ def test_identities_saved_before_versions_are_upgraded():
     today = refit_identity(RefitConfig(), identity(WorldTrainConfig()))
     assert same_run({"config": refit}, today, upgrade_refit_identity)
     assert today["schema"] == today["base"]["schema"] == 2
+    # runs saved before prediction_starts existed rolled out from the first frame only
+    before = identity(WorldTrainConfig())
+    del before["prediction_starts"]
+    assert same_run({"config": before}, identity(WorldTrainConfig()), upgrade_identity)
+    assert not same_run({"config": before}, identity(WorldTrainConfig(prediction_starts="all")),
+                        upgrade_identity)
+    refit_before = {**today, "base": before}
+    assert same_run({"config": refit_before}, today, upgrade_refit_identity)

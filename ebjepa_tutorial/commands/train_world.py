@@ -15,6 +15,7 @@ import torch
 from ..course.presets import SCALES, preset
 from ..envs import generate_trajectories
 from ..evaluation.position import middle_wall_test, probe_report
+from ..losses.world import PREDICTION_STARTS
 from ..training.checkpoints import load_checkpoint, save_checkpoint, stored_identity
 from ..training.world import (
     ABLATABLE_TERMS,
@@ -59,17 +60,22 @@ def main(argv: list[str] | None = None) -> None:
                         help="the same as --without inverse_dynamics")
     parser.add_argument("--coeff", action="append", default=[], metavar="NAME=VALUE",
                         help="set one loss weight, e.g. covariance=1 (repeatable)")
+    parser.add_argument("--prediction-starts", choices=PREDICTION_STARTS,
+                        help="roll the prediction loss out from the first frame (default) or "
+                             "from every frame with K after it (the paper's Eq. 8)")
     parser.add_argument("--seed", type=int,
                         help=f"default {WorldTrainConfig.seed} ({RefitConfig.seed} with --refit)")
     args = parser.parse_args(argv)
     given = {name: value for name, value in (("steps", args.steps), ("seed", args.seed),
-                                              ("n_trajectories", args.trajectories))
+                                              ("n_trajectories", args.trajectories),
+                                              ("prediction_starts", args.prediction_starts))
              if value is not None}
     if args.refit:
         if (args.without or args.no_inverse_dynamics or args.coeff or args.decay_steps
-                or args.scale):
+                or args.scale or args.prediction_starts):
             parser.error("--refit keeps the trained model's encoder: --scale, --without, "
-                         "--no-inverse-dynamics, --coeff and --decay-steps do not apply")
+                         "--no-inverse-dynamics, --coeff, --decay-steps and "
+                         "--prediction-starts do not apply")
         return refit_main(args.refit, args.out, RefitConfig(**given))
     without = args.without + (["inverse_dynamics"] if args.no_inverse_dynamics else [])
     try:

@@ -57,18 +57,27 @@ def _check_sequence(z: torch.Tensor, actions: torch.Tensor | None = None) -> Non
         raise ValueError("actions contain NaN or infinite values")
 
 
+PREDICTION_STARTS = ("first", "all")
+
+
 def multistep_prediction_loss(
     predict: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
     z: torch.Tensor,
     actions: torch.Tensor,
     steps: int = 8,
     detach_targets: bool = False,
+    starts: str = "first",
 ) -> torch.Tensor:
-    """Mean squared error of a ``steps``-step autoregressive rollout from the first latent.
+    """Mean squared error of ``steps``-step autoregressive rollouts under the true actions.
 
-    ``L_pred = (1/K) sum_{k=1..K} (1/(B D)) sum_b ||zhat_k - z_k||^2`` with
-    ``zhat_0 = z_0`` and ``zhat_k = P(zhat_{k-1}, a_{k-1})``: the predictor runs
-    on its own predictions under the true actions, as a planner will use it.
+    From a start frame ``t``: ``zhat_0 = z_t``, ``zhat_k = P(zhat_{k-1}, a_{t+k-1})``, and
+    ``L_t = (1/K) sum_{k=1..K} (1/(B D)) sum_b ||zhat_k - z_{t+k}||^2``: the predictor runs
+    on its own predictions, as a planner will use it.
+
+    ``starts="first"`` rolls out from frame 0 only (as the reference code does), so
+    frames ``K+1 .. T-1`` are never a target; ``starts="all"`` averages ``L_t`` over
+    every start ``t = 0 .. T-1-K`` that has ``K`` frames after it (the paper's Eq. 8 sums
+    over start frames), several times the prediction signal for the predictor's cost.
 
     ``predict(z (B, D), a (B, A)) -> (B, D)``; ``z``: ``(B, T, D)`` encoded
     frames; ``actions``: ``(B, T-1, A)``; ``1 <= steps <= T-1``.
@@ -81,6 +90,11 @@ def multistep_prediction_loss(
     _check_sequence(z, actions)
     if not 1 <= steps <= z.shape[1] - 1:
         raise ValueError(f"steps must be in 1..{z.shape[1] - 1} (T - 1), got {steps}")
+    if starts not in PREDICTION_STARTS:
+        raise ValueError(f"starts must be one of {PREDICTION_STARTS}, got {starts!r}")
+    if starts == "all":  # every window of K + 1 frames becomes a trajectory of its own
+        z = z.unfold(1, steps + 1, 1).permute(0, 1, 3, 2).flatten(0, 1)  # (B S, K + 1, D)
+        actions = actions.unfold(1, steps, 1).permute(0, 1, 3, 2).flatten(0, 1)  # (B S, K, A)
     targets = z.detach() if detach_targets else z
     zhat, total = z[:, 0], z.new_zeros(())
     for k in range(1, steps + 1):
@@ -136,11 +150,13 @@ def world_model_loss(
     coeffs: WorldLossCoeffs = WorldLossCoeffs(),
     steps: int = 8,
     detach_targets: bool = False,
+    starts: str = "first",
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """The weighted total for a batch of trajectories, and each unweighted term.
 
     ``model``: a :class:`~ebjepa_tutorial.models.world.WorldModel`; ``frames``:
-    ``(B, T, 2, 65, 65)``; ``actions``: ``(B, T-1, 2)``; ``steps``: K. Returns
+    ``(B, T, 2, 65, 65)``; ``actions``: ``(B, T-1, 2)``; ``steps``: K; ``starts``: the
+    rollouts' start frames (:func:`multistep_prediction_loss`). Returns
     ``(total, terms)``: a 0-d tensor to back-propagate and a dict of floats
     (``prediction``, ``variance``, ``covariance``, ``temporal``,
     ``inverse_dynamics``) for the history.
@@ -157,7 +173,8 @@ def world_model_loss(
     z = model.encode(frames)
     _check_sequence(z, actions)
     terms = {
-        "prediction": multistep_prediction_loss(model.predict, z, actions, steps, detach_targets),
+        "prediction": multistep_prediction_loss(model.predict, z, actions, steps, detach_targets,
+                                                starts),
         "temporal": temporal_similarity_loss(z),
         "inverse_dynamics": inverse_dynamics_loss(model.predict_actions, z, actions),
     }

@@ -102,7 +102,7 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
 
 
 IDENTITY_SCHEMA = 2  # 1: the plain config dicts that checkpoints stored before versions
-Upgrade = Callable[[dict], dict]  # a version-1 identity -> the same run's identity today
+Upgrade = Callable[[dict], dict]  # a stored identity (any version) -> the same run's identity today
 
 
 def run_identity(config: Any, **extra: Any) -> dict:
@@ -115,12 +115,14 @@ def run_identity(config: Any, **extra: Any) -> dict:
 
 
 def stored_identity(state: dict, upgrade: Upgrade | None = None) -> Any:
-    """The identity stored in ``state``, a version-1 identity brought up to date by
-    ``upgrade`` (by default it gains only its version number)."""
+    """The identity stored in ``state``, brought up to date by ``upgrade`` (older runs lack
+    fields added since; without ``upgrade`` a version-1 identity gains only its version)."""
     stored = state.get("config")
-    if not isinstance(stored, dict) or "schema" in stored:
+    if not isinstance(stored, dict):
         return stored
-    return upgrade(stored) if upgrade is not None else {"schema": IDENTITY_SCHEMA, **stored}
+    if upgrade is not None:
+        return upgrade(stored)
+    return stored if "schema" in stored else {"schema": IDENTITY_SCHEMA, **stored}
 
 
 def same_run(state: dict, identity: Any, upgrade: Upgrade | None = None) -> bool:

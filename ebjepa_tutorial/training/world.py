@@ -20,7 +20,12 @@ import torch
 
 from ..envs import generate_trajectories
 from ..envs.trajectories import Trajectories
-from ..losses.world import WorldLossCoeffs, multistep_prediction_loss, world_model_loss
+from ..losses.world import (
+    PREDICTION_STARTS,
+    WorldLossCoeffs,
+    multistep_prediction_loss,
+    world_model_loss,
+)
 from ..models.world import WORLD_CONFIGS, WorldConfig, WorldModel, encode_trajectories
 from ..utils import check_fields, get_device, is_int_at_least, is_non_negative, is_positive
 from .checkpoints import IDENTITY_SCHEMA, checkpoint_paths, load_checkpoint, run_identity
@@ -43,6 +48,9 @@ class WorldTrainConfig:
     lr: float = 1e-3  # AdamW, as in the paper
     weight_decay: float = 1e-5
     rollout_steps: int = 8  # K, the prediction horizon of the loss
+    # the rollouts' start frames: "first" (frame 0, as the reference code) or "all" (every
+    # frame with K after it, the paper's Eq. 8); see losses.world.multistep_prediction_loss
+    prediction_starts: str = "first"
     # the last decay_steps steps lower the learning rate linearly towards 0 (0: constant, as
     # every shipped run: annealing did not plan better, see the results page)
     decay_steps: int = 0
@@ -56,6 +64,7 @@ class WorldTrainConfig:
             "lr": (is_positive, "a number > 0"),
             "weight_decay": (is_non_negative, "a number >= 0"),
             "rollout_steps": _ROLLOUT_RULE,
+            "prediction_starts": (lambda v: v in PREDICTION_STARTS, f"one of {PREDICTION_STARTS}"),
         })
         if not 0 <= self.decay_steps <= self.steps:
             raise ValueError(f"decay_steps must be in 0..steps={self.steps}, "
@@ -117,7 +126,8 @@ def train_world_model(
 
     def loss(frames_and_actions):
         frames, actions = frames_and_actions
-        return world_model_loss(model, frames, actions, config.coeffs, config.rollout_steps)
+        return world_model_loss(model, frames, actions, config.coeffs, config.rollout_steps,
+                                starts=config.prediction_starts)
 
     fit(model, optimizer, loss, batch, config.steps, scheduler=scheduler, history=history,
         start_step=start, checkpoint=checkpoint, checkpoint_every=250, log_every=10,
@@ -272,8 +282,10 @@ def refit_identity(config: RefitConfig, base: dict) -> dict:
 
 
 def upgrade_refit_identity(stored: dict) -> dict:
-    """A refit's version-1 identity (``{"refit": ..., "base": ...}``) in today's form."""
-    return {"schema": IDENTITY_SCHEMA, **stored["refit"], "base": upgrade_identity(stored["base"])}
+    """A refit's older identity (version 1: ``{"refit": ..., "base": ...}``) in today's form."""
+    if "refit" in stored:
+        stored = {"schema": IDENTITY_SCHEMA, **stored["refit"], "base": stored["base"]}
+    return {**stored, "base": upgrade_identity(stored["base"])}
 
 
 def refit_or_load(model: WorldModel, base: WorldTrainConfig, config: RefitConfig,
@@ -330,8 +342,10 @@ def identity(config: WorldTrainConfig) -> dict:
 
 
 def upgrade_identity(stored: dict) -> dict:
-    """A version-1 identity in today's form: those runs left ``decay_steps`` out when
-    it was 0, and the predictor's fields out for the GRU."""
+    """An older identity in today's form: version-1 runs left ``decay_steps`` out when
+    it was 0, and the predictor's fields out for the GRU; runs from before
+    ``prediction_starts`` existed rolled out from the first frame."""
+    stored = {"prediction_starts": "first", **stored}
     if "schema" in stored:
         return stored
     model = {"predictor": "gru", "predictor_hidden": WorldConfig.predictor_hidden,
