@@ -9,17 +9,21 @@ class and full scale, whatever size the training views had; 16 px at ci scale;
 classifier fitted on the train split and scored on the test split (CIFAR-10,
 the JPEG copy where ``EBJEPA_DATA`` points at it). The random-init encoder is
 scored the same way for comparison. Last line:
-``images_per_s=... minutes=... probe_acc=... knn_acc=...``.
+``images_per_s=... minutes=... probe_acc=... knn_acc=...``. ``--record`` (class
+scale, no overrides) stores the probe accuracies in ``checkpoints/reference.json``,
+which notebooks 01 and 02 print beside the learner's.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from dataclasses import replace
 
 import torch
 
+from ebjepa_tutorial.course import reference
 from ebjepa_tutorial.course.presets import SCALES, image_preset
 from ebjepa_tutorial.data import load_cifar10, random_subset
 from ebjepa_tutorial.evaluation.classify import probe_encoder, protocol
@@ -34,7 +38,12 @@ def main() -> None:
     parser.add_argument("--eval-size", type=int, default=None,
                         help="side in px of the images the probe and kNN see (class preset: 32)")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    parser.add_argument("--record", action="store_true",
+                        help="store the result in checkpoints/reference.json (class recipe only)")
     args = parser.parse_args()
+    if args.record and (args.scale, args.steps, args.eval_size) != ("class", None, None):
+        parser.error("--record stores the class recipe's figures: drop --scale, --steps, "
+                     "--eval-size")
     torch.set_num_threads(args.threads)
 
     preset = image_preset(args.scale, args.loss)
@@ -58,6 +67,11 @@ def main() -> None:
           f"probe {trained['probe_acc']:.3f}, kNN {trained['knn_acc']:.3f}")
     print(f"images_per_s={images_per_s:.1f} minutes={seconds / 60:.2f} "
           f"probe_acc={trained['probe_acc']:.4f} knn_acc={trained['knn_acc']:.4f}")
+    if args.record and args.loss != "invariance":
+        where = dict(command=" ".join(["python", *sys.argv]), threads=args.threads,
+                     protocol=f"{config.steps} steps; {protocol(config)}")
+        reference.record(f"{args.loss}_probe_acc", trained["probe_acc"], **where)
+        reference.record(f"{args.loss}_random_init_probe_acc", random_init["probe_acc"], **where)
 
 
 if __name__ == "__main__":

@@ -9,18 +9,28 @@ from that seed); success when the dot ends within 4.5 px of the goal after
 200 steps. Episodes run ``--batch`` at a time. Prints the success rate with
 its Wilson 95% interval, the mean first-arrival step (episodes that
 arrived), and process CPU seconds per episode (all threads counted). Last
-line: ``success=... ci_low=... ci_high=... s_per_episode=...``.
+line: ``success=... ci_low=... ci_high=... s_per_episode=...``. ``--record``
+(chapter 05's model or the shipped one, the chapter's planner, first seed 10,000)
+stores the success rate in ``checkpoints/reference.json``, which notebook 06
+prints beside the learner's.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import sys
+from pathlib import Path
 
 import torch
 
+from ebjepa_tutorial.course import reference
 from ebjepa_tutorial.planning import PlannerConfig, run_episodes
 from ebjepa_tutorial.training.world import load_world_model
+
+# the checkpoints whose success rates notebook 06 prints beside the learner's
+RECORDED = {"world_model_class.pt": "planning_success_class",
+            "world_model_class_long20k_mlp.pt": "planning_success_shipped"}
 
 
 def _yes_no(text: str) -> bool:
@@ -44,10 +54,16 @@ def main() -> None:
     for field in dataclasses.fields(PlannerConfig):  # --method, --cost, --horizon, ...
         kind = _yes_no if isinstance(field.default, bool) else type(field.default)
         parser.add_argument(f"--{field.name.replace('_', '-')}", type=kind, default=field.default)
+    parser.add_argument("--record", action="store_true",
+                        help="store the success rate in checkpoints/reference.json")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     config = PlannerConfig(**{f.name: getattr(args, f.name)
                               for f in dataclasses.fields(PlannerConfig)})
+    key = RECORDED.get(Path(args.checkpoint).name)
+    if args.record and (key is None or config != PlannerConfig() or args.first_seed != 10_000):
+        parser.error(f"--record stores the chapter's planner (no planner options, first seed "
+                     f"10000) with one of {sorted(RECORDED)}")
     model = load_world_model(args.checkpoint)
     seeds = list(range(args.first_seed, args.first_seed + args.episodes))
     result = run_episodes(model, seeds, config, batch=args.batch)
@@ -57,6 +73,11 @@ def main() -> None:
           f"on {args.threads} threads")
     print(f"success={result.success_rate:.3f} ci_low={low:.3f} ci_high={high:.3f} "
           f"s_per_episode={result.cpu_seconds_per_episode:.2f}")
+    if args.record:
+        reference.record(key, result.success_rate, threads=args.threads,
+                         command=" ".join(["python", *sys.argv]),
+                         protocol=f"{args.checkpoint}; {len(seeds)} episodes, seeds "
+                                  f"{seeds[0]}-{seeds[-1]}; 200 steps; success within 4.5 px")
 
 
 if __name__ == "__main__":

@@ -6,18 +6,23 @@ and with every 65x65x2 frame rendered (float32, in batches into one reused
 buffer, as a training loop would); then trains the class-scale world model
 from scratch for ``--steps`` steps (default: the class preset, ~10 minutes on
 2 cores; ``--steps 0`` skips it) and reports training trajectories per second
-and the linear position probe's error on held-out trajectories (pixels).
-Last line: ``traj_per_s=... train_traj_per_s=... probe_px=...``.
+and the linear position probe's error on held-out trajectories (pixels), by
+notebook 05's protocol. Last line: ``traj_per_s=... train_traj_per_s=... probe_px=...``.
+``--record`` (class preset's steps) stores the probe error in
+``checkpoints/reference.json``, which notebook 05 prints beside the learner's.
 """
 
 from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
 
 import torch
 
+from ebjepa_tutorial.course import reference
+from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.envs import generate_trajectories
 from ebjepa_tutorial.evaluation.position import probe_report
 from ebjepa_tutorial.training.world import WorldTrainConfig, train_world_model
@@ -58,7 +63,11 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     parser.add_argument("--steps", type=int, default=WorldTrainConfig.steps,
                         help="world-model training steps (0: data generation only)")
+    parser.add_argument("--record", action="store_true",
+                        help="store the probe error in checkpoints/reference.json")
     args = parser.parse_args()
+    if args.record and args.steps != WorldTrainConfig.steps:
+        parser.error("--record stores the class recipe's figure: drop --steps")
     torch.set_num_threads(args.threads)
     speed = data_generation_speed(args.n, args.batch)
     print(f"Two Rooms data, {args.n} trajectories of 17 frames, {args.threads} threads:")
@@ -73,12 +82,20 @@ def main() -> None:
     model, _ = train_world_model(config, device="cpu")
     seconds = time.perf_counter() - start
     train_speed = config.steps * config.batch_size / seconds
-    report = probe_report(model)
+    chapter = preset("05", "class")  # notebook 05's probe: fit seed 101, test seed 102
+    report = probe_report(model, n_fit=chapter.n_probe, n_test=chapter.n_test, seed=101,
+                          test_steps=chapter.horizon)
     print(f"world model, {config.steps} steps of {config.batch_size} trajectories in "
           f"{seconds / 60:.1f} min: {train_speed:.0f} traj/s; position probe "
           f"{report['probe_px']:.2f} px (mean-position baseline {report['baseline_px']:.2f} px)")
     print(f"traj_per_s={speed['traj_per_s']:.0f} train_traj_per_s={train_speed:.1f} "
           f"probe_px={report['probe_px']:.3f}")
+    if args.record:
+        reference.record("world_probe_px", report["probe_px"], threads=args.threads,
+                         command=" ".join(["python", *sys.argv]),
+                         protocol=f"{config.steps} steps; linear probe fitted on {chapter.n_probe} "
+                                  f"trajectories, scored on {chapter.n_test} held-out ones of "
+                                  f"{chapter.horizon} steps")
 
 
 if __name__ == "__main__":

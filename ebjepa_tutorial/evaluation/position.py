@@ -193,15 +193,17 @@ def wall_test_by_door_distance(model, trajectories, edges=(0, 8, 12, 16, 24, 65)
     return bins
 
 
-def probe_report(model: WorldModel, n_fit: int = 1000, n_test: int = 300, seed: int = 12345):
+def probe_report(model: WorldModel, n_fit: int = 1000, n_test: int = 300, seed: int = 12345,
+                 test_steps: int = 16):
     """Position-probe error (px) of frozen latents on held-out trajectories, with baselines.
 
-    A linear probe is fitted on every frame of ``n_fit`` fresh trajectories
-    and scored on ``n_test`` others (seeds unseen in training). The baseline
-    always answers the mean position.
+    A linear probe is fitted on every frame of ``n_fit`` fresh 17-frame
+    trajectories (seed ``seed``) and scored on every frame of ``n_test``
+    others of ``test_steps`` actions (seed ``seed + 1``); no seed is one the
+    training used. The baseline always answers the mean position.
     """
     fit_trajectories = generate_trajectories(n_fit, seed=seed)
-    test_trajectories = generate_trajectories(n_test, seed=seed + 1)
+    test_trajectories = generate_trajectories(n_test, steps=test_steps, seed=seed + 1)
     z_fit, xy_fit = encode_trajectories(model, fit_trajectories)
     z_test, xy_test = encode_trajectories(model, test_trajectories)
     probe = fit_position_probe(z_fit, xy_fit)

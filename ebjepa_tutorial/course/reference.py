@@ -1,0 +1,106 @@
+"""Reference figures that a notebook prints beside the learner's own result.
+
+Two references stand next to a number a cell computes: the course's own run of
+the same recipe at class scale, which a benchmark measured and recorded with
+``--record`` in ``checkpoints/reference.json`` (with its command, threads and
+date), and the paper's figure (EB-JEPA, Terver et al., 2026, arXiv 2602.03604),
+cited below with the setting it was measured in. Nothing here is typed by hand
+from a run: re-run the benchmark with ``--record`` to refresh a figure.
+
+    print(reference.compare("vicreg_probe_acc", 0.551))
+    # linear probe accuracy: yours 55.1% | the course's class run 55.4% (2 CPU threads, ...)
+    #     | the paper 90.1% (ResNet-18, 300 epochs on a GPU)
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..training.checkpoints import SHIPPED_DIR
+from .presets import current_scale
+
+REFERENCE_FILE = SHIPPED_DIR / "reference.json"
+
+
+@dataclass(frozen=True)
+class Metric:
+    """What a key measures, how to print it, the paper's figure (None: the paper has none) and
+    the benchmark that records the course's class run (None: none records it yet)."""
+
+    label: str
+    fmt: str
+    paper: float | None = None
+    paper_setting: str = ""
+    benchmark: str | None = None
+
+
+_IMAGE = "benchmarks/image_jepa.py"
+_CIFAR = "ResNet-18, 300 epochs on a GPU"
+_MPPI = "MPPI, a model trained on a GPU"
+METRICS = {
+    "vicreg_probe_acc": Metric("linear probe accuracy", "{:.1%}", 0.901, _CIFAR, _IMAGE),
+    "vicreg_random_init_probe_acc": Metric("random-init probe accuracy", "{:.1%}",
+                                           benchmark=_IMAGE),
+    "sigreg_probe_acc": Metric("linear probe accuracy", "{:.1%}", 0.910, _CIFAR, _IMAGE),
+    "sigreg_random_init_probe_acc": Metric("random-init probe accuracy", "{:.1%}",
+                                           benchmark=_IMAGE),
+    "video_map": Metric("detection mAP over horizons 1-7", "{:.3f}", 0.607,
+                        "K = 4, trained on a GPU"),
+    "world_probe_px": Metric("position probe error", "{:.2f} px",
+                             benchmark="benchmarks/two_rooms.py"),
+    "planning_success_class": Metric("planning success", "{:.0%}", 0.97, _MPPI,
+                                     "benchmarks/planning.py"),
+    "planning_success_shipped": Metric("planning success", "{:.0%}", 0.97, _MPPI,
+                                       "benchmarks/planning.py"),
+}
+
+
+def load(path: Path = REFERENCE_FILE) -> dict:
+    """The recorded figures, ``{key: {"value", "command", "threads", "date", "protocol"}}``."""
+    return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {}
+
+
+def record(key: str, value: float, command: str, protocol: str, threads: int,
+           path: Path = REFERENCE_FILE) -> None:
+    """Store a benchmark's measured ``value`` under ``key`` (atomically; other keys are kept)."""
+    if key not in METRICS:
+        raise KeyError(f"unknown reference key {key!r}; known: {sorted(METRICS)}")
+    figures = load(path)
+    figures[key] = {"value": float(value), "command": command, "protocol": protocol,
+                    "threads": threads, "date": datetime.date.today().isoformat()}
+    partial = path.with_suffix(".json.partial")
+    partial.write_text(json.dumps(figures, indent=1, sort_keys=True) + "\n", encoding="utf-8")
+    os.replace(partial, path)
+
+
+def references(key: str, path: Path = REFERENCE_FILE) -> list[str]:
+    """The course's recorded class run (where a benchmark records it) and the paper's figure."""
+    metric, parts = METRICS[key], []
+    if metric.benchmark is not None:
+        ours = load(path).get(key)
+        parts.append(f"the course's class run: not recorded (run {metric.benchmark} --record)"
+                     if ours is None else
+                     f"the course's class run {metric.fmt.format(ours['value'])} "
+                     f"({ours['threads']} CPU threads, {ours['date']})")
+    if metric.paper is not None:
+        parts.append(f"the paper {metric.fmt.format(metric.paper)} ({metric.paper_setting})")
+    return parts
+
+
+def compare(key: str, yours: float, scale: str | None = None, path: Path = REFERENCE_FILE) -> str:
+    """One line: your figure, the course's recorded class run and the paper's, each labelled."""
+    metric = METRICS[key]
+    line = " | ".join([f"{metric.label}: yours {metric.fmt.format(yours)}",
+                       *references(key, path)])
+    if (scale or current_scale()) == "ci":
+        line += "\n(a ci run is a smoke test, far too short for its figure to mean anything)"
+    return line
+
+
+def show(key: str, path: Path = REFERENCE_FILE) -> str:
+    """The references alone, for a figure the notebook does not compute itself."""
+    return f"{METRICS[key].label}: " + " | ".join(references(key, path))

@@ -1,0 +1,59 @@
+"""Reference figures: what benchmarks record and notebooks print beside a learner's run."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from ebjepa_tutorial.course import reference
+
+NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
+USED = re.compile(r"reference\.(?:compare|show)\(\s*\"(\w+)\"")
+
+
+def notebook_code(path: Path) -> str:
+    cells = json.loads(path.read_text(encoding="utf-8"))["cells"]
+    return "\n".join("".join(c["source"]) for c in cells if c["cell_type"] == "code")
+
+
+def test_record_keeps_other_figures_and_compare_prints_all_three(tmp_path):
+    path = tmp_path / "reference.json"
+    reference.record("vicreg_probe_acc", 0.554, "python b.py --record", "2,000 steps", 2, path)
+    reference.record("world_probe_px", 1.063, "python c.py --record", "probe", 2, path)
+    assert set(reference.load(path)) == {"vicreg_probe_acc", "world_probe_px"}
+    line = reference.compare("vicreg_probe_acc", 0.5512, scale="class", path=path)
+    assert line.startswith("linear probe accuracy: yours 55.1% | the course's class run 55.4% "
+                           "(2 CPU threads, ")
+    assert line.endswith("| the paper 90.1% (ResNet-18, 300 epochs on a GPU)")
+    assert "smoke test" in reference.compare("vicreg_probe_acc", 0.1, scale="ci", path=path)
+    assert reference.show("world_probe_px", path).startswith(
+        "position probe error: the course's class run 1.06 px")
+
+
+def test_a_missing_figure_names_the_benchmark_that_records_it(tmp_path):
+    line = reference.compare("planning_success_class", 0.3, "class", tmp_path / "none.json")
+    assert "not recorded (run benchmarks/planning.py --record)" in line
+    with pytest.raises(KeyError, match="unknown reference key"):
+        reference.record("made_up", 1.0, "", "", 2, tmp_path / "r.json")
+
+
+@pytest.mark.parametrize("chapter", ["01", "02", "03", "05", "06"])
+def test_chapter_prints_its_result_beside_the_references(chapter):
+    (path,) = NOTEBOOKS.glob(f"{chapter}_*.ipynb")
+    keys = USED.findall(notebook_code(path))
+    assert any(f"reference.compare(\"{key}\"" in notebook_code(path) for key in keys), (
+        f"{path.name} has no cell printing reference.compare(...) beside its result")
+    assert set(keys) <= set(reference.METRICS)
+
+
+def test_every_figure_a_notebook_prints_has_been_recorded():
+    keys = {key for path in NOTEBOOKS.glob("*.ipynb") for key in USED.findall(notebook_code(path))}
+    recorded = reference.load()
+    missing = [key for key in sorted(keys)
+               if reference.METRICS[key].benchmark and key not in recorded]
+    assert not missing, f"run the benchmarks with --record for {missing}"
+    for key in keys & set(recorded):
+        assert "--record" in recorded[key]["command"] and recorded[key]["threads"] >= 1
