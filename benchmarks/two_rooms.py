@@ -1,13 +1,16 @@
 """Two Rooms benchmark: data generation speed, world-model training speed, probe error.
 
-Run: ``python benchmarks/two_rooms.py [--n 4096] [--batch 256] [--threads 2] [--steps N]``.
+Run: ``python benchmarks/two_rooms.py [--n 4096] [--batch 256] [--threads 2] [--steps N]
+[--prediction-starts first|all] [--out PATH] [--record]``.
 Prints trajectories per second (17 frames, 16 actions) for the states alone
 and with every 65x65x2 frame rendered (float32, in batches into one reused
 buffer, as a training loop would); then trains the class-scale world model
 from scratch for ``--steps`` steps (default: the class preset, ~10 minutes on
 2 cores; ``--steps 0`` skips it) and reports training trajectories per second
-and the linear position probe's error on held-out trajectories (pixels), by
-notebook 05's protocol. Last line: ``traj_per_s=... train_traj_per_s=... probe_px=...``.
+the linear position probe's error on held-out trajectories (pixels), by
+notebook 05's protocol, and notebook 06's one-step wall test. ``--out PATH``
+saves the model for ``benchmarks/planning.py --checkpoint PATH``.
+Last line: ``traj_per_s=... train_traj_per_s=... probe_px=...``.
 ``--record`` (class preset's steps) stores the probe error in
 ``checkpoints/reference.json``, which notebook 05 prints beside the learner's.
 """
@@ -24,8 +27,10 @@ import torch
 from ebjepa_tutorial.course import reference
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.envs import generate_trajectories
-from ebjepa_tutorial.evaluation.position import probe_report
-from ebjepa_tutorial.training.world import WorldTrainConfig, train_world_model
+from ebjepa_tutorial.evaluation.position import middle_wall_test, probe_report
+from ebjepa_tutorial.losses.world import PREDICTION_STARTS
+from ebjepa_tutorial.training.checkpoints import save_checkpoint
+from ebjepa_tutorial.training.world import WorldTrainConfig, identity, train_world_model
 
 
 def _median_seconds(fn, repeats: int) -> float:
@@ -63,11 +68,17 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     parser.add_argument("--steps", type=int, default=WorldTrainConfig.steps,
                         help="world-model training steps (0: data generation only)")
+    parser.add_argument("--prediction-starts", choices=PREDICTION_STARTS,
+                        default=WorldTrainConfig.prediction_starts,
+                        help="the prediction loss's rollout start frames")
+    parser.add_argument("--out", help="save the trained model here (for planning.py --checkpoint)")
     parser.add_argument("--record", action="store_true",
                         help="store the probe error in checkpoints/reference.json")
     args = parser.parse_args()
-    if args.record and args.steps != WorldTrainConfig.steps:
-        parser.error("--record stores the class recipe's figure: drop --steps")
+    class_recipe = (WorldTrainConfig.steps, WorldTrainConfig.prediction_starts)
+    if args.record and (args.steps, args.prediction_starts) != class_recipe:
+        parser.error("--record stores the class recipe's figure: drop --steps and "
+                     "--prediction-starts")
     torch.set_num_threads(args.threads)
     speed = data_generation_speed(args.n, args.batch)
     print(f"Two Rooms data, {args.n} trajectories of 17 frames, {args.threads} threads:")
@@ -77,17 +88,26 @@ def main() -> None:
     if args.steps == 0:
         print(f"traj_per_s={speed['traj_per_s']:.0f}")
         return
-    config = WorldTrainConfig(steps=args.steps)
+    config = WorldTrainConfig(steps=args.steps, prediction_starts=args.prediction_starts)
     start = time.perf_counter()
-    model, _ = train_world_model(config, device="cpu")
+    model, history = train_world_model(config, device="cpu")
     seconds = time.perf_counter() - start
     train_speed = config.steps * config.batch_size / seconds
     chapter = preset("05", "class")  # notebook 05's probe: fit seed 101, test seed 102
     report = probe_report(model, n_fit=chapter.n_probe, n_test=chapter.n_test, seed=101,
                           test_steps=chapter.horizon)
-    print(f"world model, {config.steps} steps of {config.batch_size} trajectories in "
-          f"{seconds / 60:.1f} min: {train_speed:.0f} traj/s; position probe "
-          f"{report['probe_px']:.2f} px (mean-position baseline {report['baseline_px']:.2f} px)")
+    walls = middle_wall_test(model, generate_trajectories(400, seed=778))  # notebook 06's
+    print(f"world model, {config.steps} steps of {config.batch_size} trajectories "
+          f"(prediction from {config.prediction_starts} start frames) in {seconds / 60:.1f} min: "
+          f"{train_speed:.0f} traj/s; position probe {report['probe_px']:.2f} px (mean-position "
+          f"baseline {report['baseline_px']:.2f} px); wall test: stopped {walls['stopped']:.0%} "
+          f"of {walls['n_stopped']} wall-stopped steps, moved {walls['moved']:.0%} of "
+          f"{walls['n_moved']} free steps")
+    if args.out:
+        save_checkpoint(args.out, model=model.state_dict(), history=dict(history),
+                        config=identity(config), probe_px=report["probe_px"])
+        print(f"saved {args.out}: play it with python benchmarks/planning.py --checkpoint "
+              f"{args.out}")
     print(f"traj_per_s={speed['traj_per_s']:.0f} train_traj_per_s={train_speed:.1f} "
           f"probe_px={report['probe_px']:.3f}")
     if args.record:

@@ -186,6 +186,43 @@ def test_world_model_loss_combines_terms(data):
     assert model.inverse_dynamics[0].weight.grad.abs().sum() > 0
 
 
+def test_sigreg_joins_the_world_model_loss_when_weighted(data):
+    from ebjepa_tutorial.losses.sigreg import random_directions, sigreg
+
+    trajectories, frames = data
+    model = tiny_model(frames)
+    coeffs = wl.WorldLossCoeffs(variance=0.0, covariance=0.0, sigreg=0.05)
+    total, terms = wl.world_model_loss(model, frames, trajectories.actions, coeffs, steps=3,
+                                       generator=torch.Generator().manual_seed(7))
+    # the statistic of every frame's latent, with the directions the generator draws
+    z = model.encode(frames).reshape(-1, model.latent_dim)
+    directions = random_directions(model.latent_dim, 256, torch.Generator().manual_seed(7))
+    assert terms["sigreg"] == pytest.approx(sigreg(z, directions=directions).item(), rel=1e-5)
+    expected = sum(getattr(coeffs, name) * value for name, value in terms.items())
+    assert total.item() == pytest.approx(expected, rel=1e-5)
+    total.backward()
+    assert model.encoder.linear.weight.grad.abs().sum() > 0
+    off = wl.world_model_loss(model, frames, trajectories.actions, wl.WorldLossCoeffs(), 3)[1]
+    assert "sigreg" not in off  # off by default: the paper's recipe costs nothing more
+
+
+def test_a_sigreg_world_model_trains_and_older_runs_read_as_without_it():
+    from ebjepa_tutorial.training.world import (
+        WorldTrainConfig,
+        identity,
+        train_world_model,
+        upgrade_identity,
+    )
+
+    config = WorldTrainConfig(model=tiny_model().config, n_trajectories=16, batch_size=4,
+                              steps=2, coeffs=wl.WorldLossCoeffs(sigreg=0.05))
+    _, history = train_world_model(config, progress=False)
+    assert len(history["sigreg"]) == 2 and all(math.isfinite(v) for v in history["sigreg"])
+    before = identity(WorldTrainConfig())
+    del before["coeffs"]["sigreg"]
+    assert upgrade_identity(before) == identity(WorldTrainConfig())
+
+
 # -- the probe ---------------------------------------------------------------------------
 def test_probe_on_an_invertible_map_of_positions_is_exact():
     g = torch.Generator().manual_seed(0)

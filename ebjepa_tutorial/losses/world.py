@@ -7,7 +7,10 @@ predictor and inverse-dynamics head together on
     L = L_pred + alpha v(Z) + beta c(Z) + delta L_sim + omega L_idm
 
 with alpha 16 (variance), beta 8 (covariance), delta 12 (temporal
-similarity), omega 1 (inverse dynamics), K 8 prediction steps. The variance
+similarity), omega 1 (inverse dynamics), K 8 prediction steps. SIGReg
+(:mod:`ebjepa_tutorial.losses.sigreg`, chapter 02) can replace or join the
+variance and covariance terms as the anti-collapse term: weight ``sigreg``, off
+by default. The variance
 and covariance terms (:mod:`ebjepa_tutorial.losses`) keep the latent from
 collapsing; temporal similarity makes it change slowly along a trajectory
 (so that a straight path in latent space is a short path in the world); the
@@ -24,6 +27,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from .sigreg import sigreg
 from .vicreg import covariance_term, variance_term
 
 
@@ -36,6 +40,7 @@ class WorldLossCoeffs:
     covariance: float = 8.0
     temporal: float = 12.0
     inverse_dynamics: float = 1.0
+    sigreg: float = 0.0  # SIGReg on every frame's latent, N-scaled as in chapter 02 (0: off)
 
 
 def _check_sequence(z: torch.Tensor, actions: torch.Tensor | None = None) -> None:
@@ -151,15 +156,17 @@ def world_model_loss(
     steps: int = 8,
     detach_targets: bool = False,
     starts: str = "first",
+    generator: torch.Generator | None = None,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """The weighted total for a batch of trajectories, and each unweighted term.
 
     ``model``: a :class:`~ebjepa_tutorial.models.world.WorldModel`; ``frames``:
     ``(B, T, 2, 65, 65)``; ``actions``: ``(B, T-1, 2)``; ``steps``: K; ``starts``: the
-    rollouts' start frames (:func:`multistep_prediction_loss`). Returns
+    rollouts' start frames (:func:`multistep_prediction_loss`); ``generator``: draws
+    SIGReg's random directions when its weight is not 0. Returns
     ``(total, terms)``: a 0-d tensor to back-propagate and a dict of floats
     (``prediction``, ``variance``, ``covariance``, ``temporal``,
-    ``inverse_dynamics``) for the history.
+    ``inverse_dynamics``, and ``sigreg`` when it is on) for the history.
     """
     if not bool(model.input_stats_fitted):
         raise RuntimeError(
@@ -179,5 +186,7 @@ def world_model_loss(
         "inverse_dynamics": inverse_dynamics_loss(model.predict_actions, z, actions),
     }
     terms["variance"], terms["covariance"] = variance_covariance_loss(z)
+    if coeffs.sigreg:  # the statistics over every frame of every trajectory, like v and c
+        terms["sigreg"] = sigreg(z.reshape(-1, z.shape[-1]), generator=generator)
     total = sum(getattr(coeffs, name) * value for name, value in terms.items())
     return total, {name: value.item() for name, value in terms.items()}

@@ -120,14 +120,14 @@ def train_world_model(
     buffer = torch.empty(config.batch_size, data.positions.shape[1], 2, 65, 65)
 
     def batch(step: int):
-        generator = step_generator(config.seed, step)
+        generator = step_generator(config.seed, step)  # then draws SIGReg's directions, if on
         index = torch.randint(0, len(data), (config.batch_size,), generator=generator)
-        return data.frames(index, out=buffer).to(device), data.actions[index].to(device)
+        return data.frames(index, out=buffer).to(device), data.actions[index].to(device), generator
 
-    def loss(frames_and_actions):
-        frames, actions = frames_and_actions
+    def loss(step_batch):
+        frames, actions, generator = step_batch
         return world_model_loss(model, frames, actions, config.coeffs, config.rollout_steps,
-                                starts=config.prediction_starts)
+                                starts=config.prediction_starts, generator=generator)
 
     fit(model, optimizer, loss, batch, config.steps, scheduler=scheduler, history=history,
         start_step=start, checkpoint=checkpoint, checkpoint_every=250, log_every=10,
@@ -344,8 +344,10 @@ def identity(config: WorldTrainConfig) -> dict:
 def upgrade_identity(stored: dict) -> dict:
     """An older identity in today's form: version-1 runs left ``decay_steps`` out when
     it was 0, and the predictor's fields out for the GRU; runs from before
-    ``prediction_starts`` existed rolled out from the first frame."""
-    stored = {"prediction_starts": "first", **stored}
+    ``prediction_starts`` and the ``sigreg`` weight existed rolled out from the first
+    frame, without SIGReg."""
+    stored = {"prediction_starts": "first", **stored,
+              "coeffs": {"sigreg": 0.0, **stored["coeffs"]}}
     if "schema" in stored:
         return stored
     model = {"predictor": "gru", "predictor_hidden": WorldConfig.predictor_hidden,
