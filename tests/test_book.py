@@ -113,12 +113,14 @@ def test_failed_cell_is_named_with_its_notebook(tmp_path, failing, named):
 
 
 @pytest.mark.slow
-def test_long_running_cells_get_their_own_time_limit(tmp_path):
+def test_long_running_cells_get_their_own_time_limit(tmp_path, monkeypatch):
+    monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)
     book = quick_book(tmp_path, timeout=1, long_timeout=60)
-    path = tiny_notebook(tmp_path, ("import time\ntime.sleep(3)\nprint('trained')", [bk.LONG_TAG]))
+    path = tiny_notebook(tmp_path, ("import os, time\ntime.sleep(3)\n"
+                                    "print(os.environ['OMP_WAIT_POLICY'])", [bk.LONG_TAG]))
     bk.execute_notebook(path, tmp_path / "out.ipynb", book, "ci")
     executed = nbformat.read(tmp_path / "out.ipynb", as_version=4)
-    assert executed.cells[0].outputs[0]["text"] == "trained\n"
+    assert executed.cells[0].outputs[0]["text"] == "PASSIVE\n"  # waiting threads sleep
 
     path = tiny_notebook(tmp_path, ("import time\ntime.sleep(3)", []))
     with pytest.raises(bk.BookError, match="past its limit of 1 s.*tag the cell 'long-running'"):

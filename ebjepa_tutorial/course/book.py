@@ -256,9 +256,12 @@ def execute_notebook(path: Path, target: Path, book: Book, scale: str) -> None:
     client = NotebookClient(notebook, timeout_func=time_limit, kernel_name="python3",
                             resources={"metadata": {"path": str(path.parent)}},
                             on_cell_start=note_cell)
+    # OpenMP threads that wait sleep instead of spinning: on cores shared with other jobs,
+    # spinning threads of two torch processes slowed each other several-fold (RESULTS.md)
+    env = dict(os.environ, EBJEPA_SCALE=scale, PYDEVD_DISABLE_FILE_VALIDATION="1",
+               OMP_WAIT_POLICY=os.environ.get("OMP_WAIT_POLICY", "PASSIVE"))
     try:
-        client.execute(env=dict(os.environ, EBJEPA_SCALE=scale,
-                                PYDEVD_DISABLE_FILE_VALIDATION="1"))
+        client.execute(env=env)
     except (CellExecutionError, CellTimeoutError, DeadKernelError) as error:
         raise BookError(describe_failure(path.name, running, error, scale, book)) from None
     target.parent.mkdir(parents=True, exist_ok=True)
