@@ -200,8 +200,19 @@ def test_long_run_command_writes_a_float16_encoder(tmp_path, monkeypatch, capsys
     monkeypatch.setattr(
         "ebjepa_tutorial.commands.train_image.preset", lambda notebook, scale: dataclasses.replace(
         preset("01", "ci"), config=TINY, train_images=40, test_images=40))
+    # trains on the best device there is (a GPU: the full scale is the paper's run); the
+    # stand-in "cpu:0" is a device of its own, the CPU by another name
+    monkeypatch.setattr(train_image, "get_device", lambda: torch.device("cpu:0"))
+    devices, real_train = [], train_image.train_image_jepa
+
+    def recording_train(*args, device, **kwargs):
+        devices.append(device)
+        return real_train(*args, device=device, **kwargs)
+
+    monkeypatch.setattr(train_image, "train_image_jepa", recording_train)
     out = tmp_path / "long.pt"
     train_image.main(["--loss", "vicreg", "--steps", "6", "--out", str(out)])
+    assert devices == [torch.device("cpu:0")]
     stored = torch.load(out, weights_only=False)
     assert stored["config"] == image.identity(dataclasses.replace(TINY, steps=6), encoder_only=True)
     assert all(v.dtype == torch.float16 for v in stored["model"].values() if v.is_floating_point())

@@ -16,6 +16,7 @@ from ..data import load_cifar10, random_subset
 from ..evaluation.classify import probe_encoder, protocol
 from ..training.checkpoints import save_checkpoint
 from ..training.image import identity, train_image_jepa
+from ..utils import get_device
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -37,11 +38,12 @@ def main(argv: list[str] | None = None) -> None:
     train = random_subset(*load_cifar10("train"), sizes.train_images)  # as the notebooks do
     test = random_subset(*load_cifar10("test"), sizes.test_images)
     partial = Path(args.out).with_suffix(".partial")
-    model, history = train_image_jepa(config, train[0], checkpoint=partial)
+    # the best device there is: the full scale is the paper's run, sized for a GPU
+    model, history = train_image_jepa(config, train[0], checkpoint=partial, device=get_device())
     minutes = history.seconds / 60
     scores = probe_encoder(model.encoder, config, train, test)
-    half = {k: v.half() if v.is_floating_point() else v  # float16 halves the file; the
-            for k, v in model.encoder.state_dict().items()}  # probe barely moves
+    half = {k: (v.half() if v.is_floating_point() else v).cpu()  # float16 halves the file;
+            for k, v in model.encoder.state_dict().items()}  # the probe barely moves
     save_checkpoint(args.out, model=half, history=dict(history),
                     config=identity(config, encoder_only=True), minutes=round(minutes, 1),
                     threads=torch.get_num_threads(), **scores)
