@@ -1,8 +1,9 @@
 """The package's layers follow the data: each imports only itself and layers below it.
 
-Read bottom to top: utilities, data, worlds, augmentations, networks, losses,
-training, evaluation, planning, pictures, then the teaching layer (course) and
-the command lines. No import cycle, and nothing below the course imports it.
+Read bottom to top: utilities, the helpers of multi-process training, data,
+worlds, augmentations, networks, losses, training, evaluation, planning,
+pictures, then the teaching layer (course) and the command lines. No import
+cycle, and nothing below the course imports it.
 """
 
 import ast
@@ -13,8 +14,8 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "ebjepa_tutorial"
-LAYERS = ["utils", "data", "envs", "augment", "models", "losses", "training", "evaluation",
-          "planning", "viz", "course", "commands"]
+LAYERS = ["utils", "distributed", "data", "envs", "augment", "models", "losses", "training",
+          "evaluation", "planning", "viz", "course", "commands"]
 
 
 def modules() -> dict[str, Path]:

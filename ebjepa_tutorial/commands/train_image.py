@@ -1,6 +1,14 @@
 """Train notebook 01's or 02's CIFAR-10 run longer and save its encoder (float16).
 
     python -m ebjepa_tutorial.commands.train_image --loss vicreg --steps 8000 --out FILE.pt
+
+On several devices, one process each (DistributedDataParallel; nccl on GPUs, gloo on CPUs):
+
+    torchrun --nproc_per_node=N -m ebjepa_tutorial.commands.train_image --scale full --out FILE.pt
+
+The preset's batch size is the global batch: global batch = per-rank batch x N, so N must
+divide it. VICReg's variance and covariance and SIGReg's statistic are computed on the global
+batch, as on one device. Rank 0 alone writes the files; a stopped run resumes on any N.
 """
 
 from __future__ import annotations
@@ -11,6 +19,7 @@ from pathlib import Path
 
 import torch
 
+from .. import distributed
 from ..course.presets import SCALES, preset
 from ..data import load_cifar10, random_subset
 from ..evaluation.classify import probe_encoder, protocol
@@ -19,37 +28,81 @@ from ..training.image import identity, train_image_jepa
 from ..utils import get_device
 
 
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description="Train notebook 01's or 02's run for longer.")
+    parser.add_argument("--loss", choices=("vicreg", "sigreg"), default="vicreg")
+    parser.add_argument("--scale", default="class", choices=SCALES,
+                        help="the preset. Its batch size is the global batch over all "
+                             "processes: global batch = per-rank batch x world size")
+    parser.add_argument("--steps", type=int, help="default: the scale's long run")
+    parser.add_argument("--out", required=True, help="where to write the encoder (a .pt file)")
+    parser.add_argument("--ddp", action="store_true",
+                        help="train with DistributedDataParallel and fail if torchrun did not "
+                             "start this process (default: on whenever torchrun started it)")
+    parser.add_argument("--sync-bn", action="store_true",
+                        help="with several processes, batch norm over the global batch "
+                             "(SyncBatchNorm, GPUs only); default off: each process normalises "
+                             "over its own share of the batch")
+    return parser
+
+
+def _join(parser: argparse.ArgumentParser, args, config) -> torch.device:
+    """Join torchrun's process group and check the set-up; a bad one stops every rank."""
+    if not (args.ddp or distributed.launched_by_torchrun()):
+        if args.sync_bn:
+            parser.error("--sync-bn needs several processes: start with torchrun")
+        return get_device()  # the best device there is: the full scale is sized for a GPU
+    try:
+        device = distributed.init_from_env()
+        distributed.per_rank_batch(config.batch_size)
+        distributed.check_same_on_all_ranks({"args": vars(args), "run": identity(config)},
+                                            "arguments")
+    except (RuntimeError, ValueError) as error:
+        distributed.shutdown()
+        parser.error(str(error))
+    return device
+
+
 def main(argv: list[str] | None = None) -> None:
     """Train notebook 01's or 02's run longer and save its encoder: the documented command for
     the shipped ``checkpoints/<loss>_class_long.pt``. Resumable: rerun the same command after a
-    stop; the stored minutes add up the training time of every part.
+    stop; the stored minutes add up the training time of every part. Under torchrun it trains
+    on every process (global batch = per-rank batch x world size); rank 0 probes and saves.
     """
-    parser = argparse.ArgumentParser(description="Train notebook 01's or 02's run for longer.")
-    parser.add_argument("--loss", choices=("vicreg", "sigreg"), default="vicreg")
-    parser.add_argument("--scale", default="class", choices=SCALES)
-    parser.add_argument("--steps", type=int, help="default: the scale's long run")
-    parser.add_argument("--out", required=True, help="where to write the encoder (a .pt file)")
+    parser = _parser()
     args = parser.parse_args(argv)
     sizes = preset("01" if args.loss == "vicreg" else "02", args.scale)
     try:
         config = replace(sizes.config, steps=args.steps or sizes.long_steps)
     except ValueError as error:
         parser.error(str(error))  # checked before the data is loaded
+    device = _join(parser, args, config)
+    try:
+        _train_and_save(args, sizes, config, device)
+    finally:
+        distributed.shutdown()
+
+
+def _train_and_save(args, sizes, config, device) -> None:
     train = random_subset(*load_cifar10("train"), sizes.train_images)  # as the notebooks do
     test = random_subset(*load_cifar10("test"), sizes.test_images)
     partial = Path(args.out).with_suffix(".partial")
-    # the best device there is: the full scale is the paper's run, sized for a GPU
-    model, history = train_image_jepa(config, train[0], checkpoint=partial, device=get_device())
+    model, history = train_image_jepa(config, train[0], checkpoint=partial, device=device,
+                                      sync_batchnorm=args.sync_bn)
+    if not distributed.is_main():
+        return
     minutes = history.seconds / 60
     scores = probe_encoder(model.encoder, config, train, test)
     half = {k: (v.half() if v.is_floating_point() else v).cpu()  # float16 halves the file;
             for k, v in model.encoder.state_dict().items()}  # the probe barely moves
     save_checkpoint(args.out, model=half, history=dict(history),
                     config=identity(config, encoder_only=True), minutes=round(minutes, 1),
-                    threads=torch.get_num_threads(), **scores)
+                    threads=torch.get_num_threads(), processes=distributed.world_size(),
+                    **scores)
     partial.unlink(missing_ok=True)  # gone if its folder could not be written
-    print(f"saved {args.out}: {config.steps} steps in {minutes:.1f} min, linear probe "
-          f"{scores['probe_acc']:.1%}, kNN {scores['knn_acc']:.1%} ({protocol(config)})")
+    print(f"saved {args.out}: {config.steps} steps in {minutes:.1f} min on "
+          f"{distributed.world_size()} process(es), linear probe {scores['probe_acc']:.1%}, "
+          f"kNN {scores['knn_acc']:.1%} ({protocol(config)})")
 
 
 if __name__ == "__main__":

@@ -28,12 +28,20 @@ later releases multiply by N and use lambda 0.1 on CIFAR-10. Switching
 ``scale_by_n`` off divides the effective lambda by N (the batch size): keep
 ``lam * N`` fixed when you switch. With the factor N, a lambda carries over
 from one batch size to another; without it, lambda must grow with the batch.
+
+Across several processes (``torchrun``), ``across_ranks=True`` makes the
+statistic that of the global batch: each rank's ECF (a mean over its b samples)
+is averaged over the W ranks, which is the ECF of all W b samples, and N is the
+global batch W b. Every rank must then project on the same directions: draw
+them from a generator seeded identically on every rank (the training loop
+seeds it with the step).
 """
 
 from __future__ import annotations
 
 import torch
 
+from .. import distributed
 from .vicreg import _check_embeddings, invariance_term
 
 
@@ -48,6 +56,7 @@ def epps_pulley(
     t_max: float = 3.0,
     sigma: float = 1.0,
     scale_by_n: bool = True,
+    across_ranks: bool = False,
 ) -> torch.Tensor:
     """Epps-Pulley statistic of 1-D samples against N(0, 1): ``(N,) -> ()`` or ``(N, M) -> (M,)``.
 
@@ -56,7 +65,9 @@ def epps_pulley(
     integrate over [0, t_max] with ``knots`` trapezoid knots and double it.
     ``sigma`` is the width of the Gaussian weight w(t); ``scale_by_n``
     multiplies by N (see the module docstring). Zero iff the empirical
-    characteristic function matches exp(-t^2/2) at every knot.
+    characteristic function matches exp(-t^2/2) at every knot. With
+    ``across_ranks`` (a no-op in a single process), the ECF and N are those of
+    the samples of all ranks, each holding as many (see the module docstring).
     """
     if x.ndim not in (1, 2) or x.shape[0] < 2:
         raise ValueError(
@@ -73,6 +84,9 @@ def epps_pulley(
     xt = x.unsqueeze(-1) * t  # (N, K) or (N, M, K): t * x_n for every sample and knot
     ecf_real = torch.cos(xt).mean(dim=0)  # Re phi_N(t)
     ecf_imag = torch.sin(xt).mean(dim=0)  # Im phi_N(t)
+    if across_ranks:  # the mean of equal-sized ranks' means: the ECF of the global batch
+        ecf_real, ecf_imag = distributed.mean_across_ranks(ecf_real, ecf_imag)
+        n = n * distributed.world_size()
     gaussian_cf = torch.exp(-(t**2) / 2)  # phi(t) of N(0, 1): real
     weight = torch.exp(-(t**2) / (2 * sigma**2))  # w(t)
 
@@ -110,12 +124,14 @@ def sigreg(
     t_max: float = 3.0,
     sigma: float = 1.0,
     scale_by_n: bool = True,
+    across_ranks: bool = False,
 ) -> torch.Tensor:
     """Sliced Epps-Pulley statistic of embeddings ``z`` ``(B, D)``, averaged over slices: ``()``.
 
     Fresh directions are drawn from ``generator`` on every call (so a training
     loop tests new directions each step), unless ``directions`` ``(D, M)`` are
-    given. ``knots``, ``t_max``, ``sigma`` and ``scale_by_n`` go to :func:`epps_pulley`.
+    given. ``knots``, ``t_max``, ``sigma``, ``scale_by_n`` and ``across_ranks``
+    go to :func:`epps_pulley`.
     The cost is O(B * num_slices * knots); the reference uses 1024 slices on a
     GPU, 256 is enough to see the effect on a CPU.
     """
@@ -128,7 +144,7 @@ def sigreg(
         )
     z = _at_least_float32(z)
     projected = z @ directions.to(z.device, z.dtype)  # (B, M)
-    return epps_pulley(projected, knots, t_max, sigma, scale_by_n).mean()
+    return epps_pulley(projected, knots, t_max, sigma, scale_by_n, across_ranks).mean()
 
 
 def sigreg_loss(
@@ -141,6 +157,7 @@ def sigreg_loss(
     t_max: float = 3.0,
     sigma: float = 1.0,
     scale_by_n: bool = True,
+    across_ranks: bool = False,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Invariance + ``lam`` * SIGReg on two views ``(B, D)``: returns ``(total, terms)``.
 
@@ -149,12 +166,14 @@ def sigreg_loss(
     applied to each view with the same random directions and averaged.
     ``terms`` holds the unweighted terms as floats, like ``losses.vicreg_loss``.
     The default ``lam = 0.1`` is the EB-JEPA CIFAR-10 setting for ``scale_by_n=True``.
+    ``across_ranks``: SIGReg of the global batch (module docstring); the invariance
+    stays a local mean over pairs, which DDP averages over ranks.
     """
     inv = invariance_term(z_a, z_b)
     _check_embeddings(z_a, "z_a", min_batch=2)
     directions = random_directions(z_a.shape[1], num_slices, generator, z_a.device)
     options = dict(directions=directions, knots=knots, t_max=t_max, sigma=sigma)
-    options["scale_by_n"] = scale_by_n
+    options.update(scale_by_n=scale_by_n, across_ranks=across_ranks)
     reg = (sigreg(z_a, **options) + sigreg(z_b, **options)) / 2
     total = inv + lam * reg
     return total, {"invariance": inv.item(), "sigreg": reg.item()}

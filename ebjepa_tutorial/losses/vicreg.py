@@ -3,12 +3,18 @@
 All functions take embeddings ``z`` of shape ``(B, D)`` (batch, dimensions)
 and return a 0-d tensor. Introduced in notebook 00 (variance, covariance) and
 used again in notebooks 01, 03 and 05.
+
+Across several processes (``torchrun``), :func:`vicreg_loss` with
+``across_ranks=True`` computes the variance and covariance on the global batch
+(see :mod:`ebjepa_tutorial.distributed`); the terms themselves only see a batch.
 """
 
 from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
+
+from .. import distributed
 
 
 def _check_embeddings(z: torch.Tensor, name: str = "z", min_batch: int = 1) -> None:
@@ -74,13 +80,21 @@ def vicreg_loss(
     inv_coeff: float = 1.0,
     std_coeff: float = 1.0,
     cov_coeff: float = 1.0,
+    across_ranks: bool = False,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """VICReg on two views ``(B, D)``: weighted invariance + variance + covariance.
 
     The variance and covariance terms are applied to each view and averaged.
     Returns the total and a dict of the unweighted terms (floats, for logging).
+    With ``across_ranks`` (a no-op in a single process), each rank's ``(b, D)``
+    views are gathered from all ranks to ``(W b, D)`` for variance and covariance,
+    gradients flowing back to each rank's own rows; the invariance term is a mean
+    over pairs and stays local (DDP averages it over ranks). The logged invariance
+    is this rank's.
     """
     inv = invariance_term(z_a, z_b)
+    if across_ranks:  # the batch statistics of the global batch, as on one device
+        z_a, z_b = distributed.gather_rows(z_a, z_b)
     var = (variance_term(z_a) + variance_term(z_b)) / 2
     cov = (covariance_term(z_a) + covariance_term(z_b)) / 2
     total = inv_coeff * inv + std_coeff * var + cov_coeff * cov

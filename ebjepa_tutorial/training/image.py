@@ -11,6 +11,14 @@ features of un-augmented images (see :mod:`ebjepa_tutorial.evaluation.classify`)
 their own size: ``eval_image_size``, 32 px (CIFAR-10's native size) by
 default, whatever size the training views had. The ResNet ends in a global
 average pool, so one network takes images of any size.
+
+Several processes (``torchrun``, see :mod:`ebjepa_tutorial.distributed`): the
+config's ``batch_size`` is the global batch, and global batch = per-rank batch x
+world size. Every rank draws and augments the same global batch (seeded by the
+step) and keeps its own rows, so the data, the views and SIGReg's directions do
+not depend on the world size (at the price of augmenting the whole batch on
+every rank); the regularisers see the global batch. Batch norm normalises over
+each rank's rows, unless ``sync_batchnorm`` (GPUs only).
 """
 
 from __future__ import annotations
@@ -23,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .. import augment, losses
+from .. import augment, distributed, losses
 from ..losses import sigreg
 from ..models.encoders import ENCODERS, build_encoder
 from ..models.heads import build_projector
@@ -48,7 +56,7 @@ class ImageJEPAConfig:
     # natively, so 32 means no resizing.
     eval_image_size: int = 32
     projector: tuple[int, int] | None = (1024, 1024)  # (hidden, output); None: no projector
-    batch_size: int = 256
+    batch_size: int = 256  # the global batch: per-rank batch x world size under torchrun
     steps: int = 2000
     warmup_steps: int = 200  # linear warm-up from step 0, then cosine to 0
     optimizer: str = "adamw"  # "adamw" (CPU scales) or "lars" (the paper's)
@@ -111,6 +119,21 @@ class ImageJEPA(nn.Module):
         return self.projector(self.encoder(views))
 
 
+class BothViews(nn.Module):
+    """``model`` on two views in one call: ``(b, 3, S, S) x 2 -> (b, D) x 2``.
+
+    DistributedDataParallel pairs each forward call with one backward, so the
+    two views must go through a single call of the wrapped module.
+    """
+
+    def __init__(self, model: nn.Module):
+        super().__init__()
+        self.model = model
+
+    def forward(self, view_a: torch.Tensor, view_b: torch.Tensor):
+        return self.model(view_a), self.model(view_b)
+
+
 def resize(images: torch.Tensor, size: int) -> torch.Tensor:
     """Normalise uint8 images ``(B, 3, 32, 32)`` and resize them to ``size`` (antialiased)."""
     images = augment.normalize(images)
@@ -119,14 +142,19 @@ def resize(images: torch.Tensor, size: int) -> torch.Tensor:
     return F.interpolate(images, size=size, mode="bilinear", antialias=True, align_corners=False)
 
 
-def jepa_loss(config: ImageJEPAConfig, z_a, z_b, generator=None):
-    """The training loss of two embedded views ``(B, D)``: returns ``(loss, terms)``."""
+def jepa_loss(config: ImageJEPAConfig, z_a, z_b, generator=None, across_ranks=False):
+    """The training loss of two embedded views ``(B, D)``: returns ``(loss, terms)``.
+
+    ``across_ranks``: the regulariser sees the global batch of all ranks (a no-op in
+    one process); see :func:`losses.vicreg_loss` and :func:`sigreg.sigreg_loss`.
+    """
     if config.loss == "vicreg":
-        return losses.vicreg_loss(z_a, z_b, config.inv_coeff, config.std_coeff, config.cov_coeff)
+        return losses.vicreg_loss(z_a, z_b, config.inv_coeff, config.std_coeff, config.cov_coeff,
+                                  across_ranks=across_ranks)
     if config.loss == "sigreg":
         return sigreg.sigreg_loss(z_a, z_b, lam=config.sigreg_lambda,
                                   num_slices=config.sigreg_slices, generator=generator,
-                                  scale_by_n=config.sigreg_scale_by_n)
+                                  scale_by_n=config.sigreg_scale_by_n, across_ranks=across_ranks)
     invariance = losses.invariance_term(z_a, z_b)
     return invariance, {"invariance": invariance.item()}
 
@@ -146,14 +174,23 @@ def train_image_jepa(
     device: torch.device | str = "cpu",
     progress: bool = True,
     checkpoint_every: int = 250,
+    sync_batchnorm: bool = False,
 ) -> tuple[ImageJEPA, History]:
     """Train on uint8 ``images`` ``(N, 3, 32, 32)``; resume from ``checkpoint`` if it exists.
 
     Batch ``step`` (indices and augmentations) is drawn from a generator seeded
     with ``(seed, step)``, so a resumed run matches an uninterrupted one.
+
+    Inside a process group (``torchrun``) it trains with DistributedDataParallel:
+    ``config.batch_size`` is the global batch, and global batch = per-rank batch x
+    world size (a world size that does not divide it is refused). Rank 0 alone
+    writes ``checkpoint``, which resumes on any world size. ``sync_batchnorm``
+    (off by default; GPUs only) normalises over the global batch, not each rank's.
     """
+    distributed.per_rank_batch(config.batch_size)  # refuses an uneven split before any work
     torch.manual_seed(config.seed)
     model = ImageJEPA(config).to(device)
+    net = distributed.data_parallel(BothViews(model), device, sync_batchnorm)
     optimizer = make_optimizer(model, config)
     scheduler = warmup_cosine_scheduler(optimizer, config.steps, config.warmup_steps)
     pipeline = augment.build_augmentation(augment.AugmentConfig(size=config.image_size))
@@ -165,11 +202,12 @@ def train_image_jepa(
         generator = step_generator(config.seed, step)
         index = torch.randint(0, len(images), (config.batch_size,), generator=generator)
         views = augment.two_views(images[index].to(device), pipeline, generator)
-        return views, generator
+        # every rank made the same global batch; each keeps its rows (all of them on one)
+        return tuple(map(distributed.local_rows, views)), generator
 
     def loss(views_and_generator):
         (view_a, view_b), generator = views_and_generator
-        return jepa_loss(config, model(view_a), model(view_b), generator)
+        return jepa_loss(config, *net(view_a, view_b), generator, across_ranks=True)
 
     fit(model, optimizer, loss, batch, config.steps, scheduler=scheduler, history=history,
         start_step=start, checkpoint=checkpoint, checkpoint_every=checkpoint_every, log_every=10,

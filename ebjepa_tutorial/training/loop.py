@@ -8,10 +8,15 @@ it would have seen without the interruption.
 
 Introduced in notebook 00; every training cell of the course goes through
 :func:`fit` or :func:`load_or_train`.
+
+In a process group (``torchrun``), :func:`fit` logs the mean over ranks of the
+loss and its terms, shows progress and writes checkpoints on rank 0 only, and
+:func:`resume` reads the checkpoint on rank 0 and sends it to every rank.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -20,6 +25,7 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
+from .. import distributed
 from .checkpoints import Upgrade, claim, read_run, same_run, save_or_warn
 
 LossFn = Callable[[Any], tuple[torch.Tensor, dict[str, float]]]
@@ -54,13 +60,22 @@ def step_generator(seed: int, step: int) -> torch.Generator:
     return torch.Generator().manual_seed(seed * 1_000_003 + step)
 
 
-def _check_finite(loss: torch.Tensor, terms: dict[str, float], step: int) -> None:
-    if not torch.isfinite(loss):
+def _check_finite(loss: float, terms: dict[str, float], step: int) -> None:
+    if not math.isfinite(loss):
         detail = ", ".join(f"{k}={v:.4g}" for k, v in terms.items())
         raise FloatingPointError(
-            f"the loss became {loss.item()} at step {step} ({detail}). Lower the "
+            f"the loss became {loss} at step {step} ({detail}). Lower the "
             "learning rate, check the inputs for NaN, or check the loss coefficients."
         )
+
+
+def _over_ranks(loss: torch.Tensor, terms: dict[str, float]) -> tuple[float, dict[str, float]]:
+    """The loss and terms averaged over ranks (as is in one process): what one device would log.
+
+    Every rank gets the same numbers, so a non-finite loss stops all ranks together.
+    """
+    values = distributed.mean_of_floats([loss.item(), *terms.values()])
+    return values[0], dict(zip(terms, values[1:]))
 
 
 def fit(
@@ -88,26 +103,31 @@ def fit(
     With ``checkpoint``, the model, optimiser, scheduler, history and step are
     saved every ``checkpoint_every`` steps and at the end, with ``config`` (a
     plain dict describing the run) so that :func:`resume` recognises its own runs.
+    In a process group, ``model`` is the bare module (its state dict is saved,
+    by rank 0 alone) and ``loss_fn`` calls its DDP wrapper.
     """
     history = History() if history is None else history
     model.train()
-    bar = tqdm(range(start_step, steps), desc=desc, disable=not progress,
-               initial=start_step, total=steps)
+    shown = progress and distributed.is_main()  # one bar, not one per rank
+    bar = tqdm(range(start_step, steps), desc=desc, disable=not shown, initial=start_step,
+               total=steps)
     started = time.perf_counter() - history.seconds
     for step in bar:
         loss, terms = loss_fn(batch_fn(step))
-        _check_finite(loss, terms, step)
+        value, terms = _over_ranks(loss, terms)
+        _check_finite(value, terms, step)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
         if scheduler is not None:
             scheduler.step()
         if step % log_every == 0 or step == steps - 1:
-            history.log(step, loss=loss.item(), **terms)
-            bar.set_postfix(loss=f"{loss.item():.4f}", refresh=False)
+            history.log(step, loss=value, **terms)
+            bar.set_postfix(loss=f"{value:.4f}", refresh=False)
         done = step + 1
         history.seconds = time.perf_counter() - started
-        if checkpoint is not None and (done % checkpoint_every == 0 or done == steps):
+        due = done % checkpoint_every == 0 or done == steps
+        if checkpoint is not None and due and distributed.is_main():
             saved = save_or_warn(
                 Path(checkpoint),
                 model=model.state_dict(),
@@ -137,7 +157,9 @@ def resume(
     :func:`~ebjepa_tutorial.training.checkpoints.kept_path` (and resumed from
     there when you return to that run); a damaged one is moved aside.
     """
-    state = claim(Path(path), config, next(model.parameters()).device, upgrade)
+    device = "cpu" if distributed.world_size() > 1 else next(model.parameters()).device
+    # rank 0 alone reads (and may move) the files; every rank gets its state, on the CPU
+    state = distributed.from_main(lambda: claim(Path(path), config, device, upgrade))
     if state is None:
         return 0, History()
     model.load_state_dict(state["model"])
