@@ -29,6 +29,7 @@ from ebjepa_tutorial.training.world import RefitConfig, WorldTrainConfig
     (WorldTrainConfig, {"batch_size": 0}, "WorldTrainConfig.batch_size must be an int >= 2"),
     (WorldTrainConfig, {"rollout_steps": 17}, "rollout_steps must be an int in 1..16"),
     (WorldTrainConfig, {"prediction_starts": "every"}, "prediction_starts must be one of"),
+    (WorldTrainConfig, {"stay_probability": 1.0}, "stay_probability must be a number in \\[0, 1"),
     (WorldTrainConfig, {"lr": 0.0}, "WorldTrainConfig.lr must be a number > 0"),
     (RefitConfig, {"hidden": 0}, "RefitConfig.hidden must be an int >= 1"),
 ])

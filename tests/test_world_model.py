@@ -155,6 +155,31 @@ def test_all_starts_average_the_first_start_loss_of_each_window():
     assert every.item() == pytest.approx(torch.stack(each).mean().item(), rel=1e-6)
 
 
+def test_still_steps_repeat_the_target_under_a_zero_action():
+    z = torch.tensor([[[0.0], [1.0], [3.0]]])  # (1, K + 1 = 3, 1)
+    actions = torch.tensor([[[1.0], [2.0]]])  # (1, K = 2, 1)
+    sequence, taken = wl.with_still_steps(z, actions, torch.tensor([[True, False]]))
+    assert sequence.flatten().tolist() == [0.0, 0.0, 1.0]  # stand still, then the first move
+    assert taken.flatten().tolist() == [0.0, 1.0]
+    sequence, taken = wl.with_still_steps(z, actions, torch.tensor([[False, True]]))
+    assert sequence.flatten().tolist() == [0.0, 1.0, 1.0] and taken.flatten().tolist() == [1, 0]
+
+
+def test_a_predictor_that_adds_the_action_is_exact_with_still_steps_too():
+    actions = torch.randn(5, 8, 2)
+    exact = torch.cat([torch.zeros(5, 1, 2), actions.cumsum(dim=1)], dim=1)  # (5, 9, 2)
+    add = lambda z, a: z + a  # noqa: E731
+    for starts in wl.PREDICTION_STARTS:
+        loss = wl.multistep_prediction_loss(add, exact, actions, 4, starts=starts,
+                                            stay_probability=0.5,
+                                            generator=torch.Generator().manual_seed(0))
+        assert loss.item() == pytest.approx(0.0, abs=1e-10)
+    drift = lambda z, a: z + a + 0.1  # noqa: E731  (moves even under a zero action)
+    still = wl.multistep_prediction_loss(drift, exact, actions, 4, stay_probability=0.5,
+                                         generator=torch.Generator().manual_seed(0))
+    assert still.item() > 0
+
+
 def test_detached_targets_stop_the_gradient():
     z = torch.zeros(1, 3, 2, requires_grad=True)
     actions = torch.ones(1, 2, 2)
@@ -573,5 +598,7 @@ def test_identities_saved_before_versions_are_upgraded():
     assert same_run({"config": before}, identity(WorldTrainConfig()), upgrade_identity)
     assert not same_run({"config": before}, identity(WorldTrainConfig(prediction_starts="all")),
                         upgrade_identity)
+    del before["stay_probability"]
+    assert same_run({"config": before}, identity(WorldTrainConfig()), upgrade_identity)
     refit_before = {**today, "base": before}
     assert same_run({"config": refit_before}, today, upgrade_refit_identity)

@@ -65,6 +65,23 @@ def _check_sequence(z: torch.Tensor, actions: torch.Tensor | None = None) -> Non
 PREDICTION_STARTS = ("first", "all")
 
 
+def with_still_steps(z: torch.Tensor, actions: torch.Tensor, stay: torch.Tensor):
+    """Rollout windows with "still" steps spliced in: ``z (N, K+1, D)``, ``actions (N, K, A)``,
+    ``stay (N, K)`` bool -> the same shapes.
+
+    Where ``stay[n, k]``, step ``k`` takes a zero action and its target repeats the
+    previous frame; elsewhere the window's next action and frame follow, so a window
+    with ``s`` stays ends ``s`` frames early. The data policy never stands still,
+    but a planner at its goal must: these steps teach the predictor what "no
+    action" does.
+    """
+    moves = (~stay).long()
+    frame = moves.cumsum(1)  # (N, K): the window's frame reached after each step
+    rows = torch.arange(len(z), device=z.device)[:, None]
+    taken = actions[rows, (frame - 1).clamp_min(0)] * moves[..., None]
+    return torch.cat([z[:, :1], z[rows, frame]], dim=1), taken
+
+
 def multistep_prediction_loss(
     predict: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
     z: torch.Tensor,
@@ -72,6 +89,8 @@ def multistep_prediction_loss(
     steps: int = 8,
     detach_targets: bool = False,
     starts: str = "first",
+    stay_probability: float = 0.0,
+    generator: torch.Generator | None = None,
 ) -> torch.Tensor:
     """Mean squared error of ``steps``-step autoregressive rollouts under the true actions.
 
@@ -83,6 +102,8 @@ def multistep_prediction_loss(
     frames ``K+1 .. T-1`` are never a target; ``starts="all"`` averages ``L_t`` over
     every start ``t = 0 .. T-1-K`` that has ``K`` frames after it (the paper's Eq. 8 sums
     over start frames), several times the prediction signal for the predictor's cost.
+    With ``stay_probability > 0`` each step is, with that probability, a still step
+    (:func:`with_still_steps`), drawn from ``generator``.
 
     ``predict(z (B, D), a (B, A)) -> (B, D)``; ``z``: ``(B, T, D)`` encoded
     frames; ``actions``: ``(B, T-1, A)``; ``1 <= steps <= T-1``.
@@ -100,6 +121,10 @@ def multistep_prediction_loss(
     if starts == "all":  # every window of K + 1 frames becomes a trajectory of its own
         z = z.unfold(1, steps + 1, 1).permute(0, 1, 3, 2).flatten(0, 1)  # (B S, K + 1, D)
         actions = actions.unfold(1, steps, 1).permute(0, 1, 3, 2).flatten(0, 1)  # (B S, K, A)
+    if stay_probability:
+        z, actions = z[:, : steps + 1], actions[:, :steps]
+        stay = torch.rand(len(z), steps, generator=generator) < stay_probability
+        z, actions = with_still_steps(z, actions, stay.to(z.device))
     targets = z.detach() if detach_targets else z
     zhat, total = z[:, 0], z.new_zeros(())
     for k in range(1, steps + 1):
@@ -157,13 +182,15 @@ def world_model_loss(
     detach_targets: bool = False,
     starts: str = "first",
     generator: torch.Generator | None = None,
+    stay_probability: float = 0.0,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """The weighted total for a batch of trajectories, and each unweighted term.
 
     ``model``: a :class:`~ebjepa_tutorial.models.world.WorldModel`; ``frames``:
     ``(B, T, 2, 65, 65)``; ``actions``: ``(B, T-1, 2)``; ``steps``: K; ``starts``: the
-    rollouts' start frames (:func:`multistep_prediction_loss`); ``generator``: draws
-    SIGReg's random directions when its weight is not 0. Returns
+    rollouts' start frames and ``stay_probability`` its still steps
+    (:func:`multistep_prediction_loss`); ``generator`` draws those and SIGReg's random
+    directions. Returns
     ``(total, terms)``: a 0-d tensor to back-propagate and a dict of floats
     (``prediction``, ``variance``, ``covariance``, ``temporal``,
     ``inverse_dynamics``, and ``sigreg`` when it is on) for the history.
@@ -181,7 +208,7 @@ def world_model_loss(
     _check_sequence(z, actions)
     terms = {
         "prediction": multistep_prediction_loss(model.predict, z, actions, steps, detach_targets,
-                                                starts),
+                                                starts, stay_probability, generator),
         "temporal": temporal_similarity_loss(z),
         "inverse_dynamics": inverse_dynamics_loss(model.predict_actions, z, actions),
     }

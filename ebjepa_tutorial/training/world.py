@@ -24,6 +24,7 @@ from ..losses.world import (
     PREDICTION_STARTS,
     WorldLossCoeffs,
     multistep_prediction_loss,
+    with_still_steps,
     world_model_loss,
 )
 from ..models.world import WORLD_CONFIGS, WorldConfig, WorldModel, encode_trajectories
@@ -51,6 +52,9 @@ class WorldTrainConfig:
     # the rollouts' start frames: "first" (frame 0, as the reference code) or "all" (every
     # frame with K after it, the paper's Eq. 8); see losses.world.multistep_prediction_loss
     prediction_starts: str = "first"
+    # the share of imagined steps that are "still" (zero action, unchanged target), as the
+    # refit trains them; 0 in the paper's recipe
+    stay_probability: float = 0.0
     # the last decay_steps steps lower the learning rate linearly towards 0 (0: constant, as
     # every shipped run: annealing did not plan better, see the results page)
     decay_steps: int = 0
@@ -65,6 +69,7 @@ class WorldTrainConfig:
             "weight_decay": (is_non_negative, "a number >= 0"),
             "rollout_steps": _ROLLOUT_RULE,
             "prediction_starts": (lambda v: v in PREDICTION_STARTS, f"one of {PREDICTION_STARTS}"),
+            "stay_probability": (lambda p: is_non_negative(p) and p < 1, "a number in [0, 1)"),
         })
         if not 0 <= self.decay_steps <= self.steps:
             raise ValueError(f"decay_steps must be in 0..steps={self.steps}, "
@@ -127,7 +132,8 @@ def train_world_model(
     def loss(step_batch):
         frames, actions, generator = step_batch
         return world_model_loss(model, frames, actions, config.coeffs, config.rollout_steps,
-                                starts=config.prediction_starts, generator=generator)
+                                starts=config.prediction_starts, generator=generator,
+                                stay_probability=config.stay_probability)
 
     fit(model, optimizer, loss, batch, config.steps, scheduler=scheduler, history=history,
         start_step=start, checkpoint=checkpoint, checkpoint_every=250, log_every=10,
@@ -222,10 +228,11 @@ def windows_with_stays(latents: torch.Tensor, actions: torch.Tensor, index: torc
     frame; elsewhere the trajectory's next action and frame follow. Needs
     ``start + K <= T``. Returns ``z0 (B, D)``, ``actions (B, K, A)``, ``targets (B, K, D)``.
     """
-    moves = (~stay).long()
-    frame = start[:, None] + moves.cumsum(1)  # the frame reached after each step
-    taken = actions[index[:, None], (frame - 1).clamp_min(0)] * moves[..., None]
-    return latents[index, start], taken, latents[index[:, None], frame]
+    k = torch.arange(stay.shape[1] + 1)
+    window = latents[index[:, None], start[:, None] + k]  # (B, K + 1, D)
+    sequence, taken = with_still_steps(window, actions[index[:, None], start[:, None] + k[:-1]],
+                                       stay)
+    return sequence[:, 0], taken, sequence[:, 1:]
 
 
 def refitted_model(model: WorldModel, config: RefitConfig) -> WorldModel:
@@ -346,7 +353,7 @@ def upgrade_identity(stored: dict) -> dict:
     it was 0, and the predictor's fields out for the GRU; runs from before
     ``prediction_starts`` and the ``sigreg`` weight existed rolled out from the first
     frame, without SIGReg."""
-    stored = {"prediction_starts": "first", **stored,
+    stored = {"prediction_starts": "first", "stay_probability": 0.0, **stored,
               "coeffs": {"sigreg": 0.0, **stored["coeffs"]}}
     if "schema" in stored:
         return stored
