@@ -12,7 +12,11 @@ statistics of the whole batch: on one rank's share they would be other, noisier 
 Two collectives that autograd can differentiate compute them on the global batch instead:
 
 - :func:`gather_rows`: every rank's embeddings, ``(b, D) -> (W b, D)`` (VICReg);
-- :func:`mean_across_ranks`: the mean over ranks of a per-rank mean (SIGReg's ECF).
+- :func:`mean_across_ranks`: the mean over ranks of a per-rank mean (SIGReg's ECF, and the
+  sums behind a covariance when gathering the rows would move too much).
+
+DDP pairs each forward call with one backward: a loss that calls several methods of a
+model (encode, predict, ...) runs inside one forward call of :class:`Forward`.
 
 Why their backward sums over ranks: DDP minimises the mean of the ranks' losses,
 ``J = (1/W) sum_r L_r``, by averaging each rank's own gradient. Through a collective, every
@@ -66,12 +70,14 @@ def launched_by_torchrun(environ: Mapping[str, str] | None = None) -> bool:
     return "RANK" in environ or "WORLD_SIZE" in environ
 
 
-def init_from_env(environ: Mapping[str, str] | None = None) -> torch.device:
+def init_from_env(environ: Mapping[str, str] | None = None,
+                  command: str = "ebjepa_tutorial.commands.train_image") -> torch.device:
     """Join the process group that torchrun described in the environment; return our device.
 
     Backend ``nccl`` with one GPU per process (``cuda:LOCAL_RANK``) when CUDA is available,
-    else ``gloo`` on the CPU. Raises RuntimeError, naming what is missing, when the process
-    was not started by torchrun, rather than waiting for peers that will never come.
+    else ``gloo`` on the CPU. Raises RuntimeError, naming what is missing and how to start
+    ``command`` (a module) under torchrun, when the process was not started by torchrun,
+    rather than waiting for peers that will never come.
     ``environ`` (default ``os.environ``) is what is checked; torch itself reads ``os.environ``.
     """
     environ = os.environ if environ is None else environ
@@ -80,7 +86,7 @@ def init_from_env(environ: Mapping[str, str] | None = None) -> torch.device:
         raise RuntimeError(
             f"distributed training needs torchrun's environment, and {', '.join(missing)} "
             f"{'is' if len(missing) == 1 else 'are'} not set. Start it with "
-            "`torchrun --nproc_per_node=N -m ebjepa_tutorial.commands.train_image ...`, or "
+            f"`torchrun --nproc_per_node=N -m {command} ...`, or "
             "drop --ddp to train in one process.")
     if running():
         raise RuntimeError("torch.distributed is already initialised in this process")
@@ -248,6 +254,23 @@ def mean_across_ranks(*tensors: torch.Tensor) -> tuple[torch.Tensor, ...]:
     flat = _MeanAcrossRanks.apply(torch.cat([t.reshape(-1) for t in tensors]))
     pieces = flat.split([t.numel() for t in tensors])
     return tuple(p.view_as(t) for p, t in zip(pieces, tensors))
+
+
+class Forward(nn.Module):
+    """``fn(module, *args, **kwargs)`` as the one forward call of a wrapper around ``module``.
+
+    DistributedDataParallel pairs each forward call with one backward, so a loss that calls
+    several methods of a model (encode, predict, project, ...) must run inside a single
+    forward: wrap ``Forward(model, loss_fn)`` in DDP. The parameters are ``model``'s; save
+    ``model`` itself (the wrapper's state dict keys start with ``module.``).
+    """
+
+    def __init__(self, module: nn.Module, fn: Callable[..., Any]):
+        super().__init__()
+        self.module, self.fn = module, fn
+
+    def forward(self, *args, **kwargs):
+        return self.fn(self.module, *args, **kwargs)
 
 
 def data_parallel(module: nn.Module, device: torch.device | str,

@@ -1,5 +1,6 @@
 """Several processes through torchrun: the batch statistics, gradients and checkpoints of a
-two-process run (gloo on this CPU) equal those of one process on the whole batch.
+two-process run (gloo on this CPU) equal those of one process on the whole batch, for the
+image chapters (01-02), the video JEPA (03) and the world model (05).
 
 The multi-process tests start two processes with ``torch.multiprocessing`` (or torchrun)
 and a process group on 127.0.0.1; every check runs inside both ranks, and a failed
@@ -12,6 +13,7 @@ import socket
 import subprocess
 import sys
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
 import pytest
@@ -21,17 +23,34 @@ import torch.multiprocessing as mp
 from torch import nn
 
 from ebjepa_tutorial import distributed
-from ebjepa_tutorial.commands import train_image
+from ebjepa_tutorial.commands import train_image, train_video, train_world
 from ebjepa_tutorial.course.presets import preset
+from ebjepa_tutorial.data.mnist import find_mnist, load_mnist
+from ebjepa_tutorial.data.moving_mnist import split_digits
+from ebjepa_tutorial.envs import generate_trajectories
 from ebjepa_tutorial.losses import vicreg_loss
 from ebjepa_tutorial.losses.sigreg import sigreg_loss
-from ebjepa_tutorial.training import image
+from ebjepa_tutorial.losses.world import WorldLossCoeffs, world_model_loss
+from ebjepa_tutorial.models.video import VideoJEPA, VideoModelConfig
+from ebjepa_tutorial.models.world import WorldConfig, WorldModel
+from ebjepa_tutorial.training import image, video, world
 from ebjepa_tutorial.training.checkpoints import load_checkpoint
+from ebjepa_tutorial.training.loop import History, load_or_train
 
 REPO = Path(__file__).resolve().parents[1]
 WORLD = 2
 TINY = image.ImageJEPAConfig(widths=(4, 4, 8, 8), projector=(16, 16), batch_size=8, steps=4,
                              warmup_steps=1, image_size=16)
+VIDEO_TINY = video.VideoJEPAConfig(
+    model=VideoModelConfig(encoder_width=4, latent_channels=4, strides=(2, 2, 2),
+                           predictor_width=4, predictor_levels=1, projector_dim=8),
+    n_frames=4, rollout_steps=2, batch_size=4)
+WORLD_TINY = WorldConfig(widths=(4, 8), blocks=1, input_size=17, latent_dim=8,
+                         action_embed_dim=8, idm_hidden=16)
+# every term on, SIGReg included, rollouts from every frame, with still steps: each draws
+# from the generator or reads the whole batch
+WORLD_OPTIONS = dict(coeffs=WorldLossCoeffs(sigreg=0.5), steps=3, starts="all",
+                     stay_probability=0.3)
 
 
 def free_port() -> int:
@@ -86,6 +105,53 @@ def test_one_process_gives_the_same_bits_with_or_without_across_ranks(loss):
     assert all(torch.equal(p, q) for p, q in zip(plain[:1] + plain[2:], across[:1] + across[2:]))
 
 
+def _video_case():
+    """A video model and 4 clips of 4 frames in [0, 1]. Its batch norm is in eval mode (fixed
+    statistics), so each clip's output depends on that clip alone, as the comparison of a
+    split batch with the whole one needs (training normalises over each rank's frames)."""
+    torch.manual_seed(0)
+    return VideoJEPA(VIDEO_TINY.model).eval(), torch.rand(4, 4, 1, 64, 64)
+
+
+def _video_loss(model, frames, across_ranks):
+    return video.video_jepa_loss(model, frames, VIDEO_TINY, across_ranks=across_ranks)
+
+
+def _world_case():
+    """A world model (no batch norm) and 4 trajectories of 5 actions, in the default dtype."""
+    trajectories = generate_trajectories(4, steps=5, seed=0)
+    rendered = torch.empty(4, 6, 2, 65, 65, dtype=torch.float32)  # render draws in float32
+    dtype = torch.get_default_dtype()
+    frames = trajectories.frames(out=rendered).to(dtype)
+    actions = trajectories.actions.to(dtype)
+    torch.manual_seed(0)
+    return WorldModel(WORLD_TINY).to(dtype).fit_input_stats(frames), frames, actions
+
+
+def _world_loss(model, frames, actions, across_ranks):
+    generator = torch.Generator().manual_seed(5)  # seeded alike on every rank, as in training
+    return world_model_loss(model, frames, actions, generator=generator,
+                            across_ranks=across_ranks, **WORLD_OPTIONS)
+
+
+CHAPTERS = {"video": (_video_case, _video_loss), "world": (_world_case, _world_loss)}
+
+
+@pytest.mark.parametrize("chapter", CHAPTERS)
+def test_one_process_chapter_losses_give_the_same_bits_with_or_without_across_ranks(chapter):
+    make, loss_fn = CHAPTERS[chapter]
+    runs = []
+    for across_ranks in (False, True):
+        model, *inputs = make()
+        model.train()  # as in training: one process normalises over its whole batch
+        total, terms = loss_fn(model, *inputs, across_ranks)
+        total.backward()
+        runs.append((total, terms, [p.grad for p in model.parameters()]))
+    (total, terms, grads), (again, terms_again, grads_again) = runs
+    assert torch.equal(total, again) and terms == terms_again
+    assert all(torch.equal(g, h) for g, h in zip(grads, grads_again, strict=True))
+
+
 def test_helpers_are_no_ops_in_one_process():
     x, y = torch.randn(4, 3), torch.randn(5)
     assert (distributed.world_size(), distributed.rank(), distributed.is_main()) == (1, 0, True)
@@ -94,6 +160,9 @@ def test_helpers_are_no_ops_in_one_process():
     module = nn.Linear(2, 2)
     assert distributed.data_parallel(module, "cpu") is module
     assert distributed.from_main(lambda: 7) == 7
+    wrapped = distributed.Forward(module, lambda m, x, scale=1: m(x) * scale)
+    assert torch.equal(wrapped(x[:, :2], scale=2), module(x[:, :2]) * 2)
+    assert list(wrapped.parameters()) == list(module.parameters())
 
 
 def test_the_global_batch_must_split_evenly():
@@ -130,13 +199,43 @@ def test_a_distributed_flag_without_torchrun_is_a_clear_error(no_torchrun, capsy
     assert message in capsys.readouterr().err
 
 
+@pytest.fixture
+def no_torchrun_nor_work(no_torchrun, monkeypatch):
+    def no_work(*args, **kwargs):
+        raise AssertionError("the command started work before the set-up was checked")
+
+    monkeypatch.setattr(train_video, "load_mnist", no_work)
+    monkeypatch.setattr(train_world, "train_world_model", no_work)
+    monkeypatch.setattr(train_world, "load_world_model", no_work)
+
+
+@pytest.mark.parametrize("command, flags, message", [
+    (train_video, ["--ddp"], "Start it with `torchrun --nproc_per_node=N -m "
+                             "ebjepa_tutorial.commands.train_video ...`"),
+    (train_video, ["--sync-bn"], "--sync-bn needs several processes"),
+    (train_world, ["--out", "x.pt", "--ddp"], "Start it with `torchrun --nproc_per_node=N -m "
+                                              "ebjepa_tutorial.commands.train_world ...`"),
+    (train_world, ["--refit", "m.pt", "--out", "x.pt", "--ddp"], "--refit runs in one process"),
+], ids=["video --ddp", "video --sync-bn", "world --ddp", "world --refit --ddp"])
+def test_a_distributed_flag_without_torchrun_stops_the_video_and_world_commands(
+        no_torchrun_nor_work, capsys, command, flags, message):
+    with pytest.raises(SystemExit):
+        command.main(["--scale", "ci", *flags] if command is train_video else flags)
+    assert message in " ".join(capsys.readouterr().err.split())
+
+
 def test_the_help_states_the_global_batch_rule(capsys):
     with pytest.raises(SystemExit):
         train_image.main(["--help"])
     words = " ".join(capsys.readouterr().out.split())
     assert "global batch = per-rank batch x world size" in words and "SyncBatchNorm" in words
-    assert "global batch = per-rank batch x world size" in " ".join(
-        image.train_image_jepa.__doc__.split())
+    for documented in (image.train_image_jepa, video.train_video_jepa, world.train_world_model,
+                       train_video, train_world):
+        assert "global batch = per-rank batch x" in " ".join(documented.__doc__.split())
+    for command in (train_video, train_world):
+        with pytest.raises(SystemExit):
+            command.main(["--help"])
+        assert "per-rank batch x world size" in " ".join(capsys.readouterr().out.split())
 
 
 # --- two processes: the same numbers as one ------------------------------------------------
@@ -186,12 +285,44 @@ def test_two_ranks_give_the_terms_and_gradients_of_one_process():  # VICReg and 
     spawn(_match_one_process)
 
 
+def _chapters_match_one_process(rank):
+    torch.set_default_dtype(torch.float64)  # so that "equal" can mean 1e-12, not 1e-6
+    for chapter, (make, loss_fn) in CHAPTERS.items():
+        model, *inputs = make()  # the same weights and data on both ranks
+        reference = copy.deepcopy(model)
+        total, terms = loss_fn(reference, *inputs, False)
+        total.backward()
+
+        loss_in_one_forward = distributed.Forward(model, partial(loss_fn, across_ranks=True))
+        net = distributed.data_parallel(loss_in_one_forward, "cpu")
+        local, local_terms = net(*map(distributed.local_rows, inputs))  # this rank's half
+        local.backward()  # DDP averages the gradients over the ranks
+
+        mean_total, *mean_terms = distributed.mean_of_floats([local.item(), *local_terms.values()])
+        assert mean_total == pytest.approx(total.item(), rel=1e-12), chapter
+        assert local_terms.keys() == terms.keys()
+        for name, value in zip(local_terms, mean_terms):
+            assert value == pytest.approx(terms[name], rel=1e-12), (chapter, name)
+        for (name, p), q in zip(model.named_parameters(), reference.parameters(), strict=True):
+            assert torch.allclose(p.grad, q.grad, rtol=1e-10, atol=1e-14), (chapter, name)
+
+
+@pytest.mark.slow
+def test_two_ranks_give_the_video_and_world_terms_and_gradients_of_one_process():
+    spawn(_chapters_match_one_process)
+
+
 def _refuse_bad_setups(rank):
     distributed.check_same_on_all_ranks({"lr": 0.1, "steps": 4})  # agreeing ranks pass
     with pytest.raises(RuntimeError, match="different configs"):
         distributed.check_same_on_all_ranks({"lr": 0.1, "steps": 4 + rank})
     with pytest.raises(ValueError, match="multiple of the world size 2"):
         image.train_image_jepa(replace(TINY, batch_size=9), _images(), progress=False)
+    with pytest.raises(ValueError, match="multiple of the world size 2"):
+        video.train_video_jepa(replace(VIDEO_TINY, batch_size=9),
+                               torch.zeros(4, 4, 1, 64, 64, dtype=torch.uint8), progress=False)
+    with pytest.raises(ValueError, match="multiple of the world size 2"):  # before any data
+        world.train_world_model(world.WorldTrainConfig(batch_size=9), progress=False)
     with pytest.raises(ValueError, match="CUDA devices only"):
         distributed.data_parallel(nn.BatchNorm1d(3), "cpu", sync_batchnorm=True)
 
@@ -239,7 +370,26 @@ def test_a_two_rank_checkpoint_resumes_in_one_process(tmp_path, monkeypatch):
     assert history["loss"][0] == stored["history"]["loss"][0]  # the two-rank part, kept
 
 
-# --- the command under torchrun --------------------------------------------------------------
+def _train_then_load(rank, path):
+    torch.manual_seed(rank)  # different weights on each rank until one is loaded
+    model = nn.Linear(2, 2)
+    trained = load_or_train(path, model, lambda: History(loss=[float(rank)]), {"steps": 1})
+    assert trained["loss"] == [float(rank)]  # every rank trained; rank 0 saved its model
+    again = nn.Linear(2, 2)
+    loaded = load_or_train(path, again, lambda: 1 / 0, {"steps": 1})  # read on rank 0, sent
+    assert loaded["loss"] == [0.0]
+    weights = [torch.empty_like(again.weight) for _ in range(WORLD)]
+    dist.all_gather(weights, again.weight.detach())
+    assert torch.equal(weights[0], weights[1])
+
+
+@pytest.mark.slow
+def test_load_or_train_saves_on_rank_0_and_loads_on_every_rank(tmp_path):
+    spawn(_train_then_load, tmp_path / "run.pt")
+    assert [p.name for p in tmp_path.iterdir()] == ["run.pt"]
+
+
+# --- the commands under torchrun -------------------------------------------------------------
 
 
 def shared_data() -> Path:
@@ -250,16 +400,20 @@ def shared_data() -> Path:
                 "cifar10-jpeg.tar.gz): the command trains on the real images")
 
 
+def torchrun(command: str, *args: str, **env: str) -> subprocess.CompletedProcess:
+    """``python -m ebjepa_tutorial.commands.<command> args`` on two processes under torchrun."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "OMP_WAIT_POLICY": "PASSIVE", **env}
+    launcher = Path(sys.executable).with_name("torchrun")
+    line = [str(launcher), "--nnodes=1", "--nproc_per_node=2", "--master_addr=127.0.0.1",
+            f"--master_port={free_port()}", "-m", f"ebjepa_tutorial.commands.{command}", *args]
+    return subprocess.run(line, env=env, capture_output=True, text=True, timeout=600)
+
+
 @pytest.mark.slow  # two processes; the first run also decodes CIFAR-10 into the cache (~20 s)
 def test_torchrun_trains_the_image_command_on_two_processes(tmp_path):
-    env = {**os.environ, "EBJEPA_DATA": str(shared_data()), "OMP_NUM_THREADS": "1",
-           "OMP_WAIT_POLICY": "PASSIVE"}
     out = tmp_path / "encoder.pt"
-    torchrun = Path(sys.executable).with_name("torchrun")
-    command = [str(torchrun), "--nnodes=1", "--nproc_per_node=2", "--master_addr=127.0.0.1",
-               f"--master_port={free_port()}", "-m", "ebjepa_tutorial.commands.train_image",
-               "--scale", "ci", "--steps", "4", "--out", str(out)]
-    done = subprocess.run(command, env=env, capture_output=True, text=True, timeout=600)
+    done = torchrun("train_image", "--scale", "ci", "--steps", "4", "--out", str(out),
+                    EBJEPA_DATA=str(shared_data()))
     assert done.returncode == 0, done.stderr[-3000:]
     assert "on 2 process(es)" in done.stdout and done.stdout.count("saved") == 1
     stored = load_checkpoint(out)
@@ -268,4 +422,46 @@ def test_torchrun_trains_the_image_command_on_two_processes(tmp_path):
     assert stored["processes"] == 2 and stored["history"]["step"] == [0, 3]  # logged: 0, last
     encoder = image.ImageJEPA(config).encoder
     encoder.load_state_dict({k: v.float() for k, v in stored["model"].items()})
+    assert not out.with_suffix(".partial").exists()
+
+
+def mnist_data() -> Path:
+    for candidate in (os.environ.get("EBJEPA_DATA"), REPO.parent / "shared" / "data"):
+        if candidate and find_mnist(Path(candidate), "test") is not None:
+            return Path(candidate)
+    pytest.skip("the MNIST test digits are not on this machine (set EBJEPA_DATA to a folder "
+                "holding t10k-images-idx3-ubyte.gz and t10k-labels-idx1-ubyte.gz): the video "
+                "command makes its clips from them")
+
+
+@pytest.mark.slow  # two processes train 20 steps, then rank 0 fits and scores two probes
+def test_torchrun_trains_the_video_command_on_two_processes(tmp_path, monkeypatch):
+    data = mnist_data()
+    done = torchrun("train_video", "--scale", "ci", "--K", "1", EBJEPA_DATA=str(data),
+                    EBJEPA_CACHE=str(tmp_path))  # checkpoints go to tmp_path/checkpoints
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "video_jepa_ci_K1_seed0: ready in" in done.stdout and "on 2 process(es)" in done.stdout
+    assert done.stdout.count("Trained and saved") == 1 and "K=1 seed=0: mAP" in done.stdout
+    sizes = preset("03", "ci")
+    config = replace(sizes.train, rollout_steps=1)
+    monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))  # the digits as the command decoded them
+    train_digits = split_digits(load_mnist("test", root=data)[0], n_train=sizes.n_train_digits)[0]
+    stored = load_checkpoint(tmp_path / "checkpoints" / "video_jepa_ci_K1_seed0.pt")
+    assert stored["config"] == video.identity(config, train_digits)
+    assert stored["history"]["step"] == [0, 10, 19]  # logged every 10 steps and the last
+    VideoJEPA(config.model).load_state_dict(stored["model"])
+    assert not list((tmp_path / "checkpoints").glob("*.partial"))
+
+
+@pytest.mark.slow  # two processes train 4 steps, then rank 0 fits and scores the position probe
+def test_torchrun_trains_the_world_command_on_two_processes(tmp_path):
+    out = tmp_path / "world.pt"
+    done = torchrun("train_world", "--scale", "ci", "--steps", "4", "--out", str(out))
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "on 2 process(es)" in done.stdout and done.stdout.count("saved") == 1
+    stored = load_checkpoint(out)
+    config = replace(preset("05", "ci").train, steps=4)
+    assert stored["config"] == world.identity(config) and stored["processes"] == 2
+    assert stored["history"]["step"] == [0, 3]  # logged every 10 steps and the last
+    world.load_world_model(out, config.model)
     assert not out.with_suffix(".partial").exists()

@@ -202,7 +202,7 @@ def test_long_run_command_writes_a_float16_encoder(tmp_path, monkeypatch, capsys
         preset("01", "ci"), config=TINY, train_images=40, test_images=40))
     # trains on the best device there is (a GPU: the full scale is the paper's run); the
     # stand-in "cpu:0" is a device of its own, the CPU by another name
-    monkeypatch.setattr(train_image, "get_device", lambda: torch.device("cpu:0"))
+    monkeypatch.setattr("ebjepa_tutorial.commands.launch.get_device", lambda: torch.device("cpu:0"))
     devices, real_train = [], train_image.train_image_jepa
 
     def recording_train(*args, device, **kwargs):

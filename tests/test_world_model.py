@@ -407,7 +407,7 @@ def test_command_line_sets_steps_data_size_and_decay(tmp_path, monkeypatch, caps
 
     seen = {}
 
-    def fake_train(config, checkpoint=None):
+    def fake_train(config, checkpoint=None, device=None):
         seen["config"], seen["partial"] = config, checkpoint
         return tiny_model(), {"loss": [1.0]}
 
@@ -554,7 +554,7 @@ def test_command_line_trains_the_run_of_a_scale(tmp_path, monkeypatch):
 
     seen = {}
 
-    def fake_train(config, checkpoint=None):
+    def fake_train(config, checkpoint=None, device=None):
         seen["config"] = config
         return tiny_model(), {"loss": [1.0]}
 

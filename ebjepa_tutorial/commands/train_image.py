@@ -25,7 +25,7 @@ from ..data import load_cifar10, random_subset
 from ..evaluation.classify import probe_encoder, protocol
 from ..training.checkpoints import save_checkpoint
 from ..training.image import identity, train_image_jepa
-from ..utils import get_device
+from . import launch
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -36,31 +36,8 @@ def _parser() -> argparse.ArgumentParser:
                              "processes: global batch = per-rank batch x world size")
     parser.add_argument("--steps", type=int, help="default: the scale's long run")
     parser.add_argument("--out", required=True, help="where to write the encoder (a .pt file)")
-    parser.add_argument("--ddp", action="store_true",
-                        help="train with DistributedDataParallel and fail if torchrun did not "
-                             "start this process (default: on whenever torchrun started it)")
-    parser.add_argument("--sync-bn", action="store_true",
-                        help="with several processes, batch norm over the global batch "
-                             "(SyncBatchNorm, GPUs only); default off: each process normalises "
-                             "over its own share of the batch")
+    launch.add_flags(parser)
     return parser
-
-
-def _join(parser: argparse.ArgumentParser, args, config) -> torch.device:
-    """Join torchrun's process group and check the set-up; a bad one stops every rank."""
-    if not (args.ddp or distributed.launched_by_torchrun()):
-        if args.sync_bn:
-            parser.error("--sync-bn needs several processes: start with torchrun")
-        return get_device()  # the best device there is: the full scale is sized for a GPU
-    try:
-        device = distributed.init_from_env()
-        distributed.per_rank_batch(config.batch_size)
-        distributed.check_same_on_all_ranks({"args": vars(args), "run": identity(config)},
-                                            "arguments")
-    except (RuntimeError, ValueError) as error:
-        distributed.shutdown()
-        parser.error(str(error))
-    return device
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -76,7 +53,8 @@ def main(argv: list[str] | None = None) -> None:
         config = replace(sizes.config, steps=args.steps or sizes.long_steps)
     except ValueError as error:
         parser.error(str(error))  # checked before the data is loaded
-    device = _join(parser, args, config)
+    device = launch.join(parser, args, config.batch_size, identity(config),
+                         "ebjepa_tutorial.commands.train_image")
     try:
         _train_and_save(args, sizes, config, device)
     finally:

@@ -1,6 +1,15 @@
 """Train (or load) and evaluate notebook 03's video JEPAs at a scale, printing AP per horizon.
 
     python -m ebjepa_tutorial.commands.train_video --scale class [--K 4] [--seed 0]
+
+On several devices, one process each (DistributedDataParallel; nccl on GPUs, gloo on CPUs):
+
+    torchrun --nproc_per_node=N -m ebjepa_tutorial.commands.train_video --scale full
+
+The preset's batch size is the global batch: global batch = per-rank batch x N, so N must
+divide it. The variance and covariance are those of the global batch, as on one device; batch
+norm normalises over each process's clips unless --sync-bn (GPUs only). Rank 0 alone reads
+and writes the checkpoints and evaluates; a stopped run resumes on any N.
 """
 
 from __future__ import annotations
@@ -10,12 +19,25 @@ import time
 
 import torch
 
+from .. import distributed
 from ..course.presets import SCALES, preset
 from ..data.mnist import load_mnist
 from ..data.moving_mnist import split_digits
 from ..evaluation.detection import detection_report, evaluation_clips
 from ..models.video import VideoJEPA
-from ..training.video import ablation_configs, run_name, train_or_load
+from ..training.video import ablation_configs, identity, run_name, train_or_load
+from . import launch
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description="Train and evaluate notebook 03's video JEPAs.")
+    parser.add_argument("--scale", default="class", choices=SCALES,
+                        help="the preset. Its batch size is the global batch over all "
+                             "processes: global batch = per-rank batch x world size")
+    parser.add_argument("--K", type=int, action="append", help="only these K (repeatable)")
+    parser.add_argument("--seed", type=int, action="append", help="only these seeds (repeatable)")
+    launch.add_flags(parser)
+    return parser
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -24,27 +46,48 @@ def main(argv: list[str] | None = None) -> None:
     ``python -m ebjepa_tutorial.commands.train_video --scale class`` trains the K ablation
     (K 1, 2, 4 times three seeds, about ten minutes each on 2 CPU cores) into
     ``data/cache/checkpoints/``, where the notebook finds them; an interrupted
-    run resumes. Same digits, clips and probe protocol as the notebook.
+    run resumes. Same digits, clips and probe protocol as the notebook. Under torchrun
+    every process trains each run (global batch = per-rank batch x world size); rank 0
+    saves and evaluates.
     """
-    parser = argparse.ArgumentParser(description="Train and evaluate notebook 03's video JEPAs.")
-    parser.add_argument("--scale", default="class", choices=SCALES)
-    parser.add_argument("--K", type=int, action="append", help="only these K (repeatable)")
-    parser.add_argument("--seed", type=int, action="append", help="only these seeds (repeatable)")
+    parser = _parser()
     args = parser.parse_args(argv)
     cfg = preset("03", args.scale)
+    try:
+        configs = ablation_configs(cfg.train, args.K or cfg.rollout_steps, args.seed or cfg.seeds)
+    except ValueError as error:
+        parser.error(str(error))  # checked before the data is loaded
+    device = launch.join(parser, args, cfg.train.batch_size, [identity(c) for c in configs],
+                         "ebjepa_tutorial.commands.train_video")
+    try:
+        _train_and_report(args, cfg, configs, device)
+    finally:
+        distributed.shutdown()
+
+
+def _say(text: str) -> None:
+    if distributed.is_main():  # one process prints
+        print(text)
+
+
+def _train_and_report(args, cfg, configs, device) -> None:
     train_digits, held_out = split_digits(load_mnist("test")[0], n_train=cfg.n_train_digits)
     probe_data, eval_data = evaluation_clips(train_digits, held_out, cfg.n_probe, cfg.n_eval,
                                              cfg.train.n_frames)
-    print(f"protocol: AP per horizon 1..{cfg.horizons} of a detection probe on frozen latents, "
-          f"fitted on {cfg.n_probe} clips of training digits, scored on {cfg.n_eval} clips of "
-          f"{len(held_out)} held-out MNIST test digits")
+    _say(f"protocol: AP per horizon 1..{cfg.horizons} of a detection probe on frozen latents, "
+         f"fitted on {cfg.n_probe} clips of training digits, scored on {cfg.n_eval} clips of "
+         f"{len(held_out)} held-out MNIST test digits")
     torch.manual_seed(cfg.train.seed)
     runs = [("random init", VideoJEPA(cfg.train.model).eval())]
-    for config in ablation_configs(cfg.train, args.K or cfg.rollout_steps, args.seed or cfg.seeds):
-        start = time.perf_counter()
-        model, _ = train_or_load(config, run_name(args.scale, config), train_digits)
-        print(f"{run_name(args.scale, config)}: ready in {time.perf_counter() - start:.0f} s")
+    for config in configs:
+        start, name = time.perf_counter(), run_name(args.scale, config)
+        model, _ = train_or_load(config, name, train_digits, device=device,
+                                 sync_batchnorm=args.sync_bn)
+        _say(f"{name}: ready in {time.perf_counter() - start:.0f} s on "
+             f"{distributed.world_size()} process(es)")
         runs.append((f"K={config.rollout_steps} seed={config.seed}", model))
+    if not distributed.is_main():
+        return
     for label, model in runs:
         report = detection_report(model.cpu(), probe_data, eval_data, cfg.horizons,
                                   cfg.probe_steps)

@@ -2,6 +2,15 @@
 
     python -m ebjepa_tutorial.commands.train_world --out FILE.pt [--steps N] [--without TERM]
     python -m ebjepa_tutorial.commands.train_world --refit TRAINED.pt --out FILE.pt
+
+On several devices, one process each (DistributedDataParallel; nccl on GPUs, gloo on CPUs):
+
+    torchrun --nproc_per_node=N -m ebjepa_tutorial.commands.train_world --scale full --out FILE.pt
+
+The preset's batch size is the global batch: global batch = per-rank batch x N, so N must
+divide it. Every loss term is that of the global batch, as on one device (the model has no
+batch norm, so there is no --sync-bn). Rank 0 alone writes the files; a stopped run resumes on
+any N. The refit runs in one process.
 """
 
 from __future__ import annotations
@@ -12,6 +21,7 @@ from pathlib import Path
 
 import torch
 
+from .. import distributed
 from ..course.presets import SCALES, preset
 from ..envs import generate_trajectories
 from ..evaluation.position import middle_wall_test, probe_report
@@ -30,6 +40,7 @@ from ..training.world import (
     upgrade_identity,
     with_coeffs,
 )
+from . import launch
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -42,7 +53,9 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description="Train the Two Rooms world model.")
     parser.add_argument("--out", required=True, help="where to write the trained model")
     parser.add_argument("--scale", choices=SCALES,
-                        help="train notebook 05's run of this scale (default: class)")
+                        help="train notebook 05's run of this scale (default: class). Its batch "
+                             "size is the global batch over all processes: global batch = "
+                             "per-rank batch x world size")
     parser.add_argument("--refit", metavar="TRAINED.pt",
                         help="fit a new MLP predictor on this trained model's frozen latents")
     parser.add_argument("--steps", type=int,
@@ -65,6 +78,7 @@ def main(argv: list[str] | None = None) -> None:
                              "from every frame with K after it (the paper's Eq. 8)")
     parser.add_argument("--seed", type=int,
                         help=f"default {WorldTrainConfig.seed} ({RefitConfig.seed} with --refit)")
+    launch.add_flags(parser, sync_bn=False)  # no batch norm in the world model
     args = parser.parse_args(argv)
     given = {name: value for name, value in (("steps", args.steps), ("seed", args.seed),
                                               ("n_trajectories", args.trajectories),
@@ -76,6 +90,9 @@ def main(argv: list[str] | None = None) -> None:
             parser.error("--refit keeps the trained model's encoder: --scale, --without, "
                          "--no-inverse-dynamics, --coeff, --decay-steps and "
                          "--prediction-starts do not apply")
+        if args.ddp or distributed.launched_by_torchrun():
+            parser.error("--refit runs in one process (a small MLP on precomputed latents): "
+                         "start it with python -m, without torchrun or --ddp")
         return refit_main(args.refit, args.out, RefitConfig(**given))
     without = args.without + (["inverse_dynamics"] if args.no_inverse_dynamics else [])
     try:
@@ -84,14 +101,27 @@ def main(argv: list[str] | None = None) -> None:
     except ValueError as error:
         parser.error(str(error))  # a usage message, not a traceback
     config = ablation_config(config, *without)
-    partial = Path(args.out).with_suffix(".partial")  # resumable while training
-    model, history = train_world_model(config, checkpoint=partial)
+    device = launch.join(parser, args, config.batch_size, identity(config),
+                         "ebjepa_tutorial.commands.train_world")
+    try:
+        _train_and_save(args.out, config, device)
+    finally:
+        distributed.shutdown()
+
+
+def _train_and_save(out: str, config: WorldTrainConfig, device) -> None:
+    """Train ``config`` (every process) and save it to ``out`` with its probe error (rank 0)."""
+    partial = Path(out).with_suffix(".partial")  # resumable while training
+    model, history = train_world_model(config, checkpoint=partial, device=device)
+    if not distributed.is_main():
+        return
     report = probe_report(model)
-    save_checkpoint(args.out, model=model.state_dict(), history=dict(history),
-                    config=identity(config), probe_px=report["probe_px"])
+    save_checkpoint(out, model=model.state_dict(), history=dict(history),
+                    config=identity(config), probe_px=report["probe_px"],
+                    processes=distributed.world_size())
     partial.unlink(missing_ok=True)  # gone if its folder could not be written
-    print(f"saved {args.out}: probe error {report['probe_px']:.2f} px "
-          f"(mean-position baseline {report['baseline_px']:.2f} px)")
+    print(f"saved {out}: probe error {report['probe_px']:.2f} px (mean-position baseline "
+          f"{report['baseline_px']:.2f} px) on {distributed.world_size()} process(es)")
 
 
 def refit_main(trained: str, out: str, config: RefitConfig) -> None:

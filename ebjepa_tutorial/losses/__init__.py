@@ -8,7 +8,14 @@
 """
 
 from . import rollout, sigreg, vicreg, world
-from .vicreg import covariance_matrix, covariance_term, invariance_term, variance_term, vicreg_loss
+from .vicreg import (
+    covariance_matrix,
+    covariance_term,
+    invariance_term,
+    variance_and_covariance,
+    variance_term,
+    vicreg_loss,
+)
 
 __all__ = [
     "covariance_matrix",
@@ -16,6 +23,7 @@ __all__ = [
     "invariance_term",
     "rollout",
     "sigreg",
+    "variance_and_covariance",
     "variance_term",
     "vicreg",
     "vicreg_loss",

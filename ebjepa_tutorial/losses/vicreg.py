@@ -6,7 +6,9 @@ used again in notebooks 01, 03 and 05.
 
 Across several processes (``torchrun``), :func:`vicreg_loss` with
 ``across_ranks=True`` computes the variance and covariance on the global batch
-(see :mod:`ebjepa_tutorial.distributed`); the terms themselves only see a batch.
+(see :mod:`ebjepa_tutorial.distributed`) by gathering its rows, and
+:func:`variance_and_covariance` from per-rank sums; the terms themselves only
+see a batch.
 """
 
 from __future__ import annotations
@@ -72,6 +74,37 @@ def covariance_term(z: torch.Tensor) -> torch.Tensor:
         raise ValueError("the covariance term needs at least 2 embedding dimensions")
     off_diagonal = cov - torch.diag(torch.diagonal(cov))
     return off_diagonal.pow(2).sum() / (dim * (dim - 1))
+
+
+def variance_and_covariance(
+    z: torch.Tensor, gamma: float = 1.0, eps: float = 1e-4, across_ranks: bool = False
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(variance_term(z, gamma, eps), covariance_term(z))`` of embeddings ``(B, D)``.
+
+    With ``across_ranks`` (a no-op in a single process), those of the global batch, every
+    rank holding ``b`` rows of ``(W b, D)``, computed from per-rank sums rather than from
+    gathered rows: two all-reduces of ``D`` and ``D x D`` numbers, however many rows. That
+    matters when the rows are every location of every frame (chapter 03: millions at full
+    scale). The rows are centred on the global mean first, as in :func:`covariance_matrix`.
+    """
+    if not across_ranks or distributed.world_size() == 1:
+        return variance_term(z, gamma, eps), covariance_term(z)
+    _check_embeddings(z)
+    cov = _covariance_across_ranks(z)  # (D, D); then the two terms' formulas, as above
+    dim, variances = cov.shape[0], torch.diagonal(cov)
+    if dim < 2:
+        raise ValueError("the covariance term needs at least 2 embedding dimensions")
+    variance = F.relu(gamma - torch.sqrt(variances + eps)).mean()
+    return variance, (cov - torch.diag(variances)).pow(2).sum() / (dim * (dim - 1))
+
+
+def _covariance_across_ranks(z: torch.Tensor) -> torch.Tensor:
+    # this rank's rows (b, D) of a global batch (W b, D) -> its sample covariance (D, D)
+    world = distributed.world_size()
+    (mean,) = distributed.mean_across_ranks(z.mean(dim=0))  # (D,): the global mean
+    centred = z - mean
+    (scatter,) = distributed.mean_across_ranks(centred.T @ centred)  # (D, D): 1/W of the sum
+    return scatter * (world / (world * z.shape[0] - 1))
 
 
 def vicreg_loss(

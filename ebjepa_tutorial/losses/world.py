@@ -17,6 +17,12 @@ collapsing; temporal similarity makes it change slowly along a trajectory
 inverse-dynamics head forces the latent to keep what the action changed
 (the dot), which the static walls cannot explain. Every term averages over
 its elements, so each coefficient does not depend on ``B``, ``T`` or ``D``.
+
+Across several processes (``torchrun``), ``across_ranks=True`` gives every rank
+the terms of the global batch: the prediction, temporal and inverse-dynamics
+terms are means over trajectories (DDP averages them over ranks), the variance
+and covariance see every rank's latents (gathered), SIGReg the global batch's
+characteristic function, and the still steps are drawn for the global batch.
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from .. import distributed
 from .sigreg import sigreg
 from .vicreg import covariance_term, variance_term
 
@@ -82,6 +89,19 @@ def with_still_steps(z: torch.Tensor, actions: torch.Tensor, stay: torch.Tensor)
     return torch.cat([z[:, :1], z[rows, frame]], dim=1), taken
 
 
+def draw_still_steps(windows: int, steps: int, probability: float,
+                     generator: torch.Generator | None, across_ranks: bool = False):
+    """Which steps are still: ``(windows, steps)`` bool, each True with ``probability``.
+
+    With ``across_ranks`` the draw is that of the global batch ``(W windows, steps)``, cut
+    to this rank's rows: every rank consumes the generator as one process would, and its
+    windows get the steps that they would get there.
+    """
+    drawn = windows * (distributed.world_size() if across_ranks else 1)
+    stay = torch.rand(drawn, steps, generator=generator) < probability
+    return distributed.local_rows(stay) if across_ranks else stay
+
+
 def multistep_prediction_loss(
     predict: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
     z: torch.Tensor,
@@ -91,6 +111,7 @@ def multistep_prediction_loss(
     starts: str = "first",
     stay_probability: float = 0.0,
     generator: torch.Generator | None = None,
+    across_ranks: bool = False,
 ) -> torch.Tensor:
     """Mean squared error of ``steps``-step autoregressive rollouts under the true actions.
 
@@ -103,7 +124,8 @@ def multistep_prediction_loss(
     every start ``t = 0 .. T-1-K`` that has ``K`` frames after it (the paper's Eq. 8 sums
     over start frames), several times the prediction signal for the predictor's cost.
     With ``stay_probability > 0`` each step is, with that probability, a still step
-    (:func:`with_still_steps`), drawn from ``generator``.
+    (:func:`with_still_steps`), drawn from ``generator`` (for the global batch with
+    ``across_ranks``: :func:`draw_still_steps`).
 
     ``predict(z (B, D), a (B, A)) -> (B, D)``; ``z``: ``(B, T, D)`` encoded
     frames; ``actions``: ``(B, T-1, A)``; ``1 <= steps <= T-1``.
@@ -123,7 +145,7 @@ def multistep_prediction_loss(
         actions = actions.unfold(1, steps, 1).permute(0, 1, 3, 2).flatten(0, 1)  # (B S, K, A)
     if stay_probability:
         z, actions = z[:, : steps + 1], actions[:, :steps]
-        stay = torch.rand(len(z), steps, generator=generator) < stay_probability
+        stay = draw_still_steps(len(z), steps, stay_probability, generator, across_ranks)
         z, actions = with_still_steps(z, actions, stay.to(z.device))
     targets = z.detach() if detach_targets else z
     zhat, total = z[:, 0], z.new_zeros(())
@@ -133,17 +155,22 @@ def multistep_prediction_loss(
     return total / steps
 
 
-def variance_covariance_loss(z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def variance_covariance_loss(
+    z: torch.Tensor, across_ranks: bool = False
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Variance hinge ``v`` and covariance ``c`` over every frame: ``(B, T, D)`` -> two 0-d tensors.
 
     The latents are flattened to ``(B*T, D)``, so the statistics are taken over
     all frames of all trajectories together (the paper's setting): a dimension
     that varies only along time, like the dot's position, counts as varied.
     ``v(Z) = (1/D) sum_d max(0, 1 - sqrt(Var(z_d) + eps))``,
-    ``c(Z) = sum_{i != j} C_ij^2 / (D (D - 1))``.
+    ``c(Z) = sum_{i != j} C_ij^2 / (D (D - 1))``. With ``across_ranks`` (a no-op in
+    one process), every rank's ``(b*T, D)`` rows are gathered to the global ``(W b*T, D)``.
     """
     _check_sequence(z)
     flat = z.reshape(-1, z.shape[-1])
+    if across_ranks:  # the statistics of the global batch; gradients reach each rank's rows
+        (flat,) = distributed.gather_rows(flat)
     return variance_term(flat), covariance_term(flat)
 
 
@@ -183,6 +210,7 @@ def world_model_loss(
     starts: str = "first",
     generator: torch.Generator | None = None,
     stay_probability: float = 0.0,
+    across_ranks: bool = False,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """The weighted total for a batch of trajectories, and each unweighted term.
 
@@ -194,6 +222,8 @@ def world_model_loss(
     ``(total, terms)``: a 0-d tensor to back-propagate and a dict of floats
     (``prediction``, ``variance``, ``covariance``, ``temporal``,
     ``inverse_dynamics``, and ``sigreg`` when it is on) for the history.
+    ``across_ranks`` (a no-op in one process): the terms of the global batch of all
+    ranks, every rank drawing from an identically seeded ``generator`` (module docstring).
     """
     if not bool(model.input_stats_fitted):
         raise RuntimeError(
@@ -208,12 +238,14 @@ def world_model_loss(
     _check_sequence(z, actions)
     terms = {
         "prediction": multistep_prediction_loss(model.predict, z, actions, steps, detach_targets,
-                                                starts, stay_probability, generator),
+                                                starts, stay_probability, generator,
+                                                across_ranks),
         "temporal": temporal_similarity_loss(z),
         "inverse_dynamics": inverse_dynamics_loss(model.predict_actions, z, actions),
     }
-    terms["variance"], terms["covariance"] = variance_covariance_loss(z)
+    terms["variance"], terms["covariance"] = variance_covariance_loss(z, across_ranks)
     if coeffs.sigreg:  # the statistics over every frame of every trajectory, like v and c
-        terms["sigreg"] = sigreg(z.reshape(-1, z.shape[-1]), generator=generator)
+        terms["sigreg"] = sigreg(z.reshape(-1, z.shape[-1]), generator=generator,
+                                 across_ranks=across_ranks)
     total = sum(getattr(coeffs, name) * value for name, value in terms.items())
     return total, {name: value.item() for name, value in terms.items()}

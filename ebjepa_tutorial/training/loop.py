@@ -11,7 +11,8 @@ Introduced in notebook 00; every training cell of the course goes through
 
 In a process group (``torchrun``), :func:`fit` logs the mean over ranks of the
 loss and its terms, shows progress and writes checkpoints on rank 0 only, and
-:func:`resume` reads the checkpoint on rank 0 and sends it to every rank.
+:func:`resume` and :func:`load_or_train` read the files on rank 0 and send them
+to every rank.
 """
 
 from __future__ import annotations
@@ -194,25 +195,38 @@ def load_or_train(
     another run is not loaded; at ``path`` it is kept under another name.
     ``partial``, the resumable checkpoint ``train()`` writes, is deleted only
     once the trained model is safely saved. Prints which happened and how long
-    it took, so a class knows whether it waited.
+    it took, so a class knows whether it waited. In a process group every rank
+    trains (or loads), and rank 0 alone reads the files, prints and saves.
     """
-    start, device = time.perf_counter(), next(model.parameters()).device
-    path, source = Path(path), shipped
-    state = None if shipped is None else read_run(Path(shipped), device, movable=False)
-    if state is not None and not same_run(state, config, upgrade):
-        print(f"{shipped} was trained with another configuration; not using it.")
-        state = None
-    if state is None:
-        state, source = claim(path, config, device, upgrade), path
-    if state is not None:
+    start = time.perf_counter()
+    device = "cpu" if distributed.world_size() > 1 else next(model.parameters()).device
+    # rank 0 alone reads (and may move) the files; every rank gets the state, on the CPU
+    found = distributed.from_main(lambda: _saved_run(Path(path), config, device, shipped,
+                                                     upgrade))
+    if found is not None:
+        state, source = found
         model.load_state_dict(state["model"])
-        print(f"Loaded a trained model from {source} (skip training).")
+        if distributed.is_main():
+            print(f"Loaded a trained model from {source} (skip training).")
         return _history(state)
     history = train()
     seconds = time.perf_counter() - start
-    if save_or_warn(path, model=model.state_dict(), history=dict(history), config=config,
-                    seconds=getattr(history, "seconds", 0.0)):
+    if distributed.is_main() and save_or_warn(
+            Path(path), model=model.state_dict(), history=dict(history), config=config,
+            seconds=getattr(history, "seconds", 0.0)):
         print(f"Trained and saved to {path} ({seconds:.0f} s).")
         if partial is not None:  # only now: until the save, it is all there is of the run
             Path(partial).unlink(missing_ok=True)
     return history
+
+
+def _saved_run(path: Path, config, device, shipped, upgrade) -> tuple[dict, Path] | None:
+    """The stored state of the run ``config`` and where it was: ``shipped`` first, then
+    ``path`` (see :func:`~ebjepa_tutorial.training.checkpoints.claim`); None if neither."""
+    state = None if shipped is None else read_run(Path(shipped), device, movable=False)
+    if state is not None and same_run(state, config, upgrade):
+        return state, shipped
+    if state is not None:
+        print(f"{shipped} was trained with another configuration; not using it.")
+    state = claim(path, config, device, upgrade)
+    return None if state is None else (state, path)

@@ -9,6 +9,14 @@ each frame is one sample), so that the latent cannot collapse:
 Evaluation lives in :mod:`ebjepa_tutorial.evaluation.detection`; the command
 that trains notebook 03's runs ahead of a class is
 ``python -m ebjepa_tutorial.commands.train_video --scale class``.
+
+Several processes (``torchrun``, see :mod:`ebjepa_tutorial.distributed`): the
+config's ``batch_size`` is the global batch (clips), and global batch = per-rank
+batch x world size. Every rank draws the same global batch (seeded by the step)
+and keeps its own clips; the rollout loss is a mean over them (DDP averages it),
+while the variance and covariance are those of every location of every frame of
+the global batch. Batch norm (in the encoder, the predictor and the projector)
+normalises over each rank's frames, unless ``sync_batchnorm`` (GPUs only).
 """
 
 from __future__ import annotations
@@ -20,8 +28,9 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
+from .. import distributed
 from ..data.moving_mnist import generate_moving_mnist
-from ..losses import covariance_term, variance_term
+from ..losses import variance_and_covariance
 from ..losses.rollout import rollout_loss
 from ..models.video import VIDEO_MODEL_CONFIGS, FrameDecoder, VideoJEPA, VideoModelConfig
 from ..utils import check_fields, get_device, is_int_at_least, is_non_negative, is_positive
@@ -91,13 +100,18 @@ def check_clips(clips: torch.Tensor, min_frames: int) -> None:
                          "(context + prediction steps): generate longer clips")
 
 
-def video_jepa_loss(model: VideoJEPA, frames: torch.Tensor, config: VideoJEPAConfig):
-    """Total loss of a batch of clips ``(B, T, 1, 64, 64)`` and its unweighted terms."""
+def video_jepa_loss(model: VideoJEPA, frames: torch.Tensor, config: VideoJEPAConfig,
+                    across_ranks: bool = False):
+    """Total loss of a batch of clips ``(B, T, 1, 64, 64)`` and its unweighted terms.
+
+    ``across_ranks`` (a no-op in one process): the variance and covariance of the global
+    batch of all ranks (:func:`~ebjepa_tutorial.losses.variance_and_covariance`).
+    """
     z = model.encode(frames)
     prediction = rollout_loss(model.predictor, z, model.config.context, config.rollout_steps,
                               config.tbptt)
     projected = model.project(z)  # (B*T*S*S, D): every location of every frame is a sample
-    variance, covariance = variance_term(projected), covariance_term(projected)
+    variance, covariance = variance_and_covariance(projected, across_ranks=across_ranks)
     total = prediction + config.std_coeff * variance + config.cov_coeff * covariance
     terms = {"prediction": prediction.item(), "variance": variance.item(),
              "covariance": covariance.item()}
@@ -106,17 +120,31 @@ def video_jepa_loss(model: VideoJEPA, frames: torch.Tensor, config: VideoJEPACon
 
 def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
                      checkpoint: str | Path | None = None, progress: bool = True,
-                     device: torch.device | str | None = None) -> tuple[VideoJEPA, History]:
+                     device: torch.device | str | None = None,
+                     sync_batchnorm: bool = False) -> tuple[VideoJEPA, History]:
     """Train on uint8 ``clips`` ``(N, T, 1, 64, 64)``; resume from ``checkpoint`` if it exists.
 
     Batch ``step`` is drawn from a generator seeded by ``(seed, step)``, so a
     resumed run sees the same batches as an uninterrupted one. Returns the
     model (in eval mode) and its history.
+
+    Inside a process group (``torchrun``) it trains with DistributedDataParallel:
+    ``config.batch_size`` is the global batch, and global batch = per-rank batch x
+    world size (a world size that does not divide it is refused). Rank 0 alone
+    writes ``checkpoint``, which resumes on any world size. Batch norm normalises
+    over each rank's frames; ``sync_batchnorm`` (GPUs only) over the global batch.
     """
+    if distributed.world_size() > 1:  # refuse an uneven split before any work (one
+        distributed.per_rank_batch(config.batch_size)  # process may take one-clip batches)
     check_clips(clips, config.model.context + config.rollout_steps)
     device = get_device(device)
     torch.manual_seed(config.seed)
     model = VideoJEPA(config.model).to(device)
+
+    def loss(module: VideoJEPA, frames: torch.Tensor):  # the whole model in one forward (DDP)
+        return video_jepa_loss(module, frames, config, across_ranks=True)
+
+    net = distributed.data_parallel(distributed.Forward(model, loss), device, sync_batchnorm)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
     start, history = (0, History())
     if checkpoint is not None:
@@ -124,9 +152,10 @@ def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
 
     def batch(step: int) -> torch.Tensor:
         generator = step_generator(config.seed, step)
-        return clips[torch.randint(0, len(clips), (config.batch_size,), generator=generator)]
+        index = torch.randint(0, len(clips), (config.batch_size,), generator=generator)
+        return clips[distributed.local_rows(index)]  # every rank drew the global batch
 
-    fit(model, optimizer, lambda frames: video_jepa_loss(model, frames.to(device), config),
+    fit(model, optimizer, lambda frames: net(frames.to(device)),
         batch, config.steps, history=history, start_step=start, checkpoint=checkpoint,
         checkpoint_every=100, log_every=10, desc="video JEPA", progress=progress,
         config=identity(config))
@@ -152,7 +181,8 @@ def run_name(scale: str, config: VideoJEPAConfig) -> str:
 
 
 def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor,
-                  device: torch.device | str | None = None, progress: bool = True):
+                  device: torch.device | str | None = None, progress: bool = True,
+                  sync_batchnorm: bool = False):
     """The model of ``config``: loaded if a run with exactly this config was saved, else trained.
 
     Looks for ``checkpoints/<name>.pt`` (shipped with the course), then
@@ -160,7 +190,8 @@ def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor
     config and the same ``train_digits`` (uint8 ``(D, 1, 28, 28)``, compared by
     :func:`digits_fingerprint`). Otherwise makes the run's clips, trains
     (resumable from ``<name>.partial`` in the cache) and saves. Notebook 03.
-    Returns ``(model in eval mode, history)``.
+    Returns ``(model in eval mode, history)``. In a process group every rank trains
+    (:func:`train_video_jepa`, with ``sync_batchnorm``); rank 0 reads and writes the files.
     """
     torch.manual_seed(config.seed)
     model = VideoJEPA(config.model).to(get_device(device))
@@ -170,7 +201,7 @@ def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor
     def train() -> History:
         clips = make_clips(config, train_digits)
         trained, history = train_video_jepa(config, clips, checkpoint=partial, progress=progress,
-                                            device=device)
+                                            device=device, sync_batchnorm=sync_batchnorm)
         model.load_state_dict(trained.state_dict())
         return history
 

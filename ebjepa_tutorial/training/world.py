@@ -8,6 +8,14 @@ Shipped checkpoint: ``python -m ebjepa_tutorial.commands.train_world --out PATH`
 trains the class-scale model and writes it (see :func:`main`). With
 ``--refit TRAINED.pt`` it instead fits a new MLP predictor on that model's
 frozen latents (:func:`refit_predictor`).
+
+Several processes (``torchrun``, see :mod:`ebjepa_tutorial.distributed`):
+:func:`train_world_model` trains with DistributedDataParallel; ``batch_size`` is
+the global batch, and global batch = per-rank batch x world size. Every rank
+draws the same global batch (seeded by the step) and renders only its own
+trajectories. The model has no batch norm (its norm is a LayerNorm, per
+sample), so W ranks compute the loss and gradients of one process on the whole
+batch. The refit runs in one process.
 """
 
 from __future__ import annotations
@@ -18,6 +26,7 @@ from pathlib import Path
 
 import torch
 
+from .. import distributed
 from ..envs import generate_trajectories
 from ..envs.trajectories import Trajectories
 from ..losses.world import (
@@ -111,7 +120,13 @@ def train_world_model(
     Batch ``step`` is drawn from a generator seeded by ``(seed, step)``, so a
     resumed run sees the same batches as an uninterrupted one. ``device``
     defaults to the best available (cuda, mps, cpu).
+
+    Inside a process group (``torchrun``) it trains with DistributedDataParallel:
+    ``config.batch_size`` is the global batch, and global batch = per-rank batch x
+    world size (a world size that does not divide it is refused). Rank 0 alone
+    writes ``checkpoint``, which resumes on any world size.
     """
+    per_rank = distributed.per_rank_batch(config.batch_size)  # refuse an uneven split early
     data = make_data(config) if data is None else data
     device = get_device(device)
     model = new_model(config, data).to(device)
@@ -122,22 +137,25 @@ def train_world_model(
     if checkpoint is not None:
         start, history = resume(checkpoint, model, optimizer, scheduler, identity(config),
                                 upgrade_identity)
-    buffer = torch.empty(config.batch_size, data.positions.shape[1], 2, 65, 65)
+    buffer = torch.empty(per_rank, data.positions.shape[1], 2, 65, 65)
+
+    def loss(module, frames, actions, generator):  # the whole model in one forward (DDP)
+        return world_model_loss(module, frames, actions, config.coeffs, config.rollout_steps,
+                                starts=config.prediction_starts, generator=generator,
+                                stay_probability=config.stay_probability, across_ranks=True)
+
+    net = distributed.data_parallel(distributed.Forward(model, loss), device)
 
     def batch(step: int):
-        generator = step_generator(config.seed, step)  # then draws SIGReg's directions, if on
+        generator = step_generator(config.seed, step)  # then draws still steps and SIGReg's
         index = torch.randint(0, len(data), (config.batch_size,), generator=generator)
+        index = distributed.local_rows(index)  # every rank drew the global batch: keep ours
         return data.frames(index, out=buffer).to(device), data.actions[index].to(device), generator
 
-    def loss(step_batch):
-        frames, actions, generator = step_batch
-        return world_model_loss(model, frames, actions, config.coeffs, config.rollout_steps,
-                                starts=config.prediction_starts, generator=generator,
-                                stay_probability=config.stay_probability)
-
-    fit(model, optimizer, loss, batch, config.steps, scheduler=scheduler, history=history,
-        start_step=start, checkpoint=checkpoint, checkpoint_every=250, log_every=10,
-        desc="world model", progress=progress, config=identity(config))
+    fit(model, optimizer, lambda step_batch: net(*step_batch), batch, config.steps,
+        scheduler=scheduler, history=history, start_step=start, checkpoint=checkpoint,
+        checkpoint_every=250, log_every=10, desc="world model", progress=progress,
+        config=identity(config))
     model.eval()
     return model, history
 
