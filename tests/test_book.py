@@ -203,6 +203,21 @@ def site(tmp_path_factory):
     server.shutdown()
 
 
+NOTEBOOK_CHAPTERS = [c for c in bk.load_book(bk.DEFAULT_CONFIG).chapters if c.endswith(".ipynb")]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("chapter", NOTEBOOK_CHAPTERS, ids=lambda c: Path(c).stem)
+def test_every_chapter_ran_top_to_bottom_at_ci(site, chapter):
+    """CI's run of each notebook: the build executed every code cell, in order, without error."""
+    book, _, _, work = site
+    key = bk.notebook_key(book.root / chapter, "ci")
+    [executed] = (work / "book-cache").glob(f"ci-*/{key}.ipynb")
+    cells = [c for c in nbformat.read(executed, as_version=4).cells if c.cell_type == "code"]
+    assert [c.execution_count for c in cells] == list(range(1, len(cells) + 1))
+    assert not [o for c in cells for o in c.outputs if o.output_type == "error"]
+
+
 @pytest.mark.slow
 def test_site_loads_nothing_from_the_network(site):
     _, html, _, _ = site
