@@ -1,7 +1,8 @@
-"""Device choice and seeding, used by every notebook."""
+"""Device choice, precision and seeding, used by every notebook."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import random
 
@@ -18,6 +19,23 @@ def get_device(prefer: str | None = None) -> torch.device:
     if getattr(torch.backends, "mps", None) is not None and torch.backends.mps.is_available():
         return torch.device("mps")
     return torch.device("cpu")
+
+
+def mixed_precision(device: torch.device | str) -> contextlib.AbstractContextManager:
+    """bfloat16 autocast on a CUDA GPU that has it; on any other device, nothing.
+
+    Training loops run their networks under it and compute the losses after it,
+    on ``.float()`` outputs: the batch statistics (variance, covariance, the
+    Epps-Pulley test) lose their digits in bfloat16. The CPU path is unchanged.
+    """
+    if torch.device(device).type == "cuda" and torch.cuda.is_bf16_supported():
+        return torch.autocast("cuda", dtype=torch.bfloat16)
+    return contextlib.nullcontext()
+
+
+def memory_format(device: torch.device | str) -> torch.memory_format:
+    """``channels_last`` for convolutions on a CUDA GPU (faster there); the default elsewhere."""
+    return torch.channels_last if torch.device(device).type == "cuda" else torch.contiguous_format
 
 
 def seed_everything(seed: int) -> torch.Generator:

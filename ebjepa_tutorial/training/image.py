@@ -35,7 +35,14 @@ from .. import augment, distributed, losses
 from ..losses import sigreg
 from ..models.encoders import ENCODERS, build_encoder
 from ..models.heads import build_projector
-from ..utils import check_fields, is_int_at_least, is_non_negative, is_positive
+from ..utils import (
+    check_fields,
+    is_int_at_least,
+    is_non_negative,
+    is_positive,
+    memory_format,
+    mixed_precision,
+)
 from .checkpoints import checkpoint_paths, run_identity
 from .loop import History, fit, load_or_train, resume, step_generator
 from .optim import LARS, split_decay_params, warmup_cosine_scheduler
@@ -189,7 +196,8 @@ def train_image_jepa(
     """
     distributed.per_rank_batch(config.batch_size)  # refuses an uneven split before any work
     torch.manual_seed(config.seed)
-    model = ImageJEPA(config).to(device)
+    layout = memory_format(device)  # channels_last on a GPU; nothing changes on the CPU
+    model = ImageJEPA(config).to(device, memory_format=layout)
     net = distributed.data_parallel(BothViews(model), device, sync_batchnorm)
     optimizer = make_optimizer(model, config)
     scheduler = warmup_cosine_scheduler(optimizer, config.steps, config.warmup_steps)
@@ -198,16 +206,21 @@ def train_image_jepa(
     if checkpoint is not None:
         start, history = resume(checkpoint, model, optimizer, scheduler, identity(config))
 
+    images = images.to(device)  # CIFAR-10 is 150 MB as uint8: it stays on the GPU
+
     def batch(step: int):
         generator = step_generator(config.seed, step)
         index = torch.randint(0, len(images), (config.batch_size,), generator=generator)
-        views = augment.two_views(images[index].to(device), pipeline, generator)
+        views = augment.two_views(images[index.to(images.device)], pipeline, generator)
         # every rank made the same global batch; each keeps its rows (all of them on one)
-        return tuple(map(distributed.local_rows, views)), generator
+        views = (distributed.local_rows(v).contiguous(memory_format=layout) for v in views)
+        return tuple(views), generator
 
     def loss(views_and_generator):
         (view_a, view_b), generator = views_and_generator
-        return jepa_loss(config, *net(view_a, view_b), generator, across_ranks=True)
+        with mixed_precision(device):  # bf16 networks on a GPU; the loss in float32
+            z_a, z_b = net(view_a, view_b)
+        return jepa_loss(config, z_a.float(), z_b.float(), generator, across_ranks=True)
 
     fit(model, optimizer, loss, batch, config.steps, scheduler=scheduler, history=history,
         start_step=start, checkpoint=checkpoint, checkpoint_every=checkpoint_every, log_every=10,

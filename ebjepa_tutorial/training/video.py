@@ -33,7 +33,14 @@ from ..data.moving_mnist import generate_moving_mnist
 from ..losses import variance_and_covariance
 from ..losses.rollout import rollout_loss
 from ..models.video import VIDEO_MODEL_CONFIGS, FrameDecoder, VideoJEPA, VideoModelConfig
-from ..utils import check_fields, get_device, is_int_at_least, is_non_negative, is_positive
+from ..utils import (
+    check_fields,
+    get_device,
+    is_int_at_least,
+    is_non_negative,
+    is_positive,
+    mixed_precision,
+)
 from .checkpoints import checkpoint_paths, run_identity
 from .loop import History, fit, load_or_train, resume, step_generator
 
@@ -107,11 +114,12 @@ def video_jepa_loss(model: VideoJEPA, frames: torch.Tensor, config: VideoJEPACon
     ``across_ranks`` (a no-op in one process): the variance and covariance of the global
     batch of all ranks (:func:`~ebjepa_tutorial.losses.variance_and_covariance`).
     """
-    z = model.encode(frames)
-    prediction = rollout_loss(model.predictor, z, model.config.context, config.rollout_steps,
-                              config.tbptt)
-    projected = model.project(z)  # (B*T*S*S, D): every location of every frame is a sample
-    variance, covariance = variance_and_covariance(projected, across_ranks=across_ranks)
+    with mixed_precision(frames.device):  # bf16 networks on a GPU; the statistics in float32
+        z = model.encode(frames)
+        prediction = rollout_loss(model.predictor, z, model.config.context,
+                                  config.rollout_steps, config.tbptt).float()
+        projected = model.project(z)  # (B*T*S*S, D): every location of every frame is a sample
+    variance, covariance = variance_and_covariance(projected.float(), across_ranks=across_ranks)
     total = prediction + config.std_coeff * variance + config.cov_coeff * covariance
     terms = {"prediction": prediction.item(), "variance": variance.item(),
              "covariance": covariance.item()}

@@ -1,0 +1,75 @@
+"""Mixed precision on a GPU: the networks run in bfloat16, the losses' batch statistics in float32.
+
+There is no GPU here, so the GPU's autocast is stood in for by the CPU's bfloat16 autocast
+(patched into the training modules): it lowers the same matmuls and convolutions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+import torch
+
+from ebjepa_tutorial import utils
+from ebjepa_tutorial.data.moving_mnist import generate_moving_mnist
+from ebjepa_tutorial.training import image, video
+from ebjepa_tutorial.training.video import VIDEO_CONFIGS
+
+
+def test_on_the_cpu_nothing_is_lowered_or_reordered():
+    with utils.mixed_precision("cpu"):
+        product = torch.ones(4, 4) @ torch.ones(4, 4)
+    assert product.dtype == torch.float32
+    assert utils.memory_format("cpu") == torch.contiguous_format
+    assert utils.memory_format("cuda") == torch.channels_last
+
+
+def cpu_bf16(device):
+    return torch.autocast("cpu", dtype=torch.bfloat16)
+
+
+def spy(monkeypatch, module, name: str) -> list[torch.dtype]:
+    """Record the dtype of the first argument each call of ``module.name`` receives."""
+    seen, original = [], getattr(module, name)
+
+    def wrapper(*args, **kwargs):
+        first = next(a for a in args if isinstance(a, torch.Tensor))
+        seen.append(first.dtype)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(module, name, wrapper)
+    return seen
+
+
+@pytest.mark.parametrize("loss", ["vicreg", "sigreg"])
+def test_image_training_lowers_the_network_and_not_the_loss(monkeypatch, loss):
+    monkeypatch.setattr(image, "mixed_precision", cpu_bf16)
+    received = spy(monkeypatch, image, "jepa_loss")
+    outputs = []
+    monkeypatch.setattr(image.ImageJEPA, "forward",
+                        lambda self, v: outputs.append(z := self.projector(self.encoder(v))) or z)
+    config = image.ImageJEPAConfig(loss=loss, widths=(4, 8, 8, 8), projector=(16, 16),
+                                   batch_size=8, steps=2, warmup_steps=0)
+    images = torch.randint(0, 256, (32, 3, 32, 32), dtype=torch.uint8)
+    _, history = image.train_image_jepa(config, images, progress=False)
+    assert {z.dtype for z in outputs} == {torch.bfloat16}  # the network ran lowered
+    assert set(received) == {torch.float32}  # ... and the loss was given float32
+    assert all(map(torch.isfinite, map(torch.tensor, history["loss"])))
+
+
+def test_video_training_keeps_variance_and_covariance_in_float32(monkeypatch):
+    monkeypatch.setattr(video, "mixed_precision", cpu_bf16)
+    received = spy(monkeypatch, video, "variance_and_covariance")
+    config = replace(VIDEO_CONFIGS["ci"], steps=2, batch_size=4)
+    digits = torch.randint(0, 256, (20, 1, 28, 28), dtype=torch.uint8)
+    clips = generate_moving_mnist(digits, 8, config.n_frames, seed=0).clips
+    model = video.VideoJEPA(config.model)
+    encoded = []
+    model.encoder.register_forward_hook(lambda module, args, out: encoded.append(out.dtype))
+    loss, terms = video.video_jepa_loss(model, clips[:4], config)
+    assert encoded == [torch.bfloat16] and received == [torch.float32]
+    assert loss.dtype == torch.float32 and torch.isfinite(loss)
+    _, history = video.train_video_jepa(config, clips, progress=False, device="cpu")
+    assert set(received) == {torch.float32} and len(received) == 3
+    assert all(map(torch.isfinite, map(torch.tensor, history["loss"])))
