@@ -1,0 +1,38 @@
+"""``benchmarks/full_scale.py`` runs here and ends with the line that scripts (and the GPU
+session, ``benchmarks/gpu_session.sh``) parse; a GPU's minutes are too few to find out there."""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+CHAPTERS = ("image", "sigreg", "vit", "video", "world")
+
+
+@pytest.mark.slow
+def test_full_scale_benchmark_times_a_step_and_prints_a_parseable_last_line():
+    # two chapters of different training functions, at batch 2 (the video and ViT-S steps
+    # take seconds each on one core); the others are left out and read nan
+    command = [sys.executable, "benchmarks/full_scale.py", "--device", "cpu", "--threads", "1",
+               "--batch", "2", "--steps", "1", "--warmup", "1", "--only", "image", "world"]
+    environment = {**os.environ, "OMP_NUM_THREADS": "1", "OMP_WAIT_POLICY": "PASSIVE"}
+    done = subprocess.run(command, cwd=ROOT, env=environment, capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.strip().splitlines()
+    assert any("projected" in line for line in lines)  # the paper's schedule, never "measured"
+    fields = dict(pair.split("=") for pair in lines[-1].split())
+    assert fields["device"] == "cpu" and fields["ranks"] == "1"
+    assert set(fields) == {"device", "ranks", *(f"{c}_s_per_step" for c in CHAPTERS)}
+    for chapter in CHAPTERS:
+        seconds = float(fields[f"{chapter}_s_per_step"])
+        if chapter in ("image", "world"):
+            assert math.isfinite(seconds) and seconds > 0, (chapter, seconds)
+        else:
+            assert math.isnan(seconds), (chapter, seconds)
