@@ -491,18 +491,21 @@ def energy_map(model, layout: torch.Tensor, goal: torch.Tensor, spacing: float =
 
     ``layout``: ``(2,)`` long; ``goal``: ``(2,)`` px. Returns ``(coords (G,),
     energy (G, G))`` with ``energy[i, j]`` at ``(x=coords[j], y=coords[i])``
-    (image orientation), NaN where the dot cannot be (walls).
+    (image orientation), NaN where the dot cannot be (walls). Frames are rendered
+    on the CPU and encoded on the model's device; the map is on the CPU.
     """
+    device = next(model.parameters()).device
+    layout, goal = layout.cpu(), goal.cpu()
     coords, positions = dot_grid(spacing)
     layouts = layout.view(1, 2).expand(len(positions), 2)
     x_lo, x_hi, y_lo, y_hi = wall_bounds(layouts)
     x, y = positions.unbind(1)
     free = ~((x > x_lo) & (x < x_hi) & ((y < y_lo) | (y > y_hi)))
-    z_goal = model.encode(render(goal.view(1, 2), layout.view(1, 2)))
+    z_goal = model.encode(render(goal.view(1, 2), layout.view(1, 2)).to(device))
     energy = torch.full((len(positions),), math.nan)
     for chunk in free.nonzero().squeeze(1).split(1024):
-        z = model.encode(render(positions[chunk], layouts[chunk]))
-        energy[chunk] = (z - z_goal).norm(dim=1)
+        z = model.encode(render(positions[chunk], layouts[chunk]).to(device))
+        energy[chunk] = (z - z_goal).norm(dim=1).cpu()
     return coords, energy.view(len(coords), len(coords))
 
 

@@ -367,3 +367,36 @@ def test_a_summary_with_no_arrival_says_so_instead_of_nan():
                                      torch.zeros(2, dtype=torch.bool), torch.tensor([-1, -1]),
                                      cpu_seconds=1.0, wall_seconds=1.0)
     assert "no episode reached the goal" in result.summary() and "nan" not in result.summary()
+
+
+# -- on the model's device ------------------------------------------------------------------
+class MetaModel(nn.Module):
+    """A model on another device, "meta" (shapes without numbers: there is no GPU here), that
+    refuses inputs from anywhere else. Latents are ``(B, 3)``; a rollout stays on meta, while
+    ``encode`` answers zeros on the CPU, as a copy back from a GPU would (a meta tensor holds
+    nothing to copy)."""
+
+    def __init__(self):
+        super().__init__()
+        self.config = SimpleNamespace(action_dim=2)
+        self.unused = nn.Parameter(torch.zeros((), device="meta"))
+
+    def encode(self, frames):
+        assert frames.is_meta, f"frames on {frames.device}, the model is on meta"
+        return torch.zeros(len(frames), 3)
+
+    def rollout(self, z0, actions):
+        assert z0.is_meta and actions.is_meta, f"{z0.device} and {actions.device}, not meta"
+        return z0.new_zeros(len(z0), actions.shape[1], 3)
+
+
+def test_plans_and_energy_maps_are_computed_on_the_models_device():
+    model, z = MetaModel(), torch.zeros(2, 3, device="meta")
+    config = PlannerConfig(horizon=6, samples=8, elites=2, iterations=2, execute=2)
+    result = planning.plan(model, z, z, config, generators(2))
+    assert {t.device.type for t in (result.mean, result.std, result.costs)} == {"meta"}
+    episodes, _ = planning.episode_generators([0])
+    _, energy = planning.energy_map(model, episodes.layouts[0], episodes.goals[0], spacing=8.0)
+    assert energy.device.type == "cpu" and (energy[energy.isfinite()] == 0).all()
+    rings = planning.energy_by_distance(model, episodes, spacing=8.0)
+    assert rings.device.type == "cpu"

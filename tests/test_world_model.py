@@ -602,3 +602,90 @@ def test_identities_saved_before_versions_are_upgraded():
     assert same_run({"config": before}, identity(WorldTrainConfig()), upgrade_identity)
     refit_before = {**today, "base": before}
     assert same_run({"config": refit_before}, today, upgrade_refit_identity)
+
+
+# -- the device asked for ------------------------------------------------------------------
+# With no GPU here, the other device is "meta": tensors with shapes and no numbers, which
+# refuse to meet CPU tensors in an operation. A model or batch left on the CPU shows up.
+def devices_of(model) -> set[str]:
+    """The device types of every parameter and buffer of ``model``."""
+    return {t.device.type for t in model.state_dict().values() if isinstance(t, torch.Tensor)}
+
+
+def fit_that_records(seen: list):
+    """A stand-in for ``training.loop.fit`` (a meta loss has no value to log): it notes the
+    devices of the model and of batch 0, and trains nothing."""
+    from ebjepa_tutorial.training.loop import History
+
+    def fit(model, optimizer, loss_fn, batch_fn, steps, **options):
+        batch = [t for t in batch_fn(0) if isinstance(t, torch.Tensor)]
+        seen.append(devices_of(model) | {t.device.type for t in batch})
+        history = History()
+        history.log(0, loss=0.0)
+        return history
+    return fit
+
+
+WORLD_RUN = world.WorldTrainConfig(model=WORLD_CONFIGS["ci"], n_trajectories=16, batch_size=4,
+                                   steps=2, rollout_steps=2)
+
+
+def test_train_or_load_returns_the_model_on_the_device_asked_for(tmp_path, monkeypatch):
+    from ebjepa_tutorial import training
+
+    monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
+    trained, _ = world.train_or_load(WORLD_RUN, "run", device="cpu")  # two real steps
+    assert devices_of(trained) == {"cpu"}
+    loaded, _ = training.train_or_load(WORLD_RUN, "run", device="meta")  # the notebooks' entry
+    assert devices_of(loaded) == {"meta"}  # read from the cache straight onto the device
+    seen = []
+    monkeypatch.setattr(world, "fit", fit_that_records(seen))
+    on_meta, _ = training.train_or_load(WORLD_RUN, "another_run", device="meta")
+    assert seen == [{"meta"}] and devices_of(on_meta) == {"meta"}  # model and every batch
+
+
+@pytest.mark.filterwarnings("ignore:for .*copying from a non-meta parameter")  # a no-op copy
+def test_the_refit_works_on_the_device_asked_for_and_leaves_the_model_where_it_is(
+        tmp_path, monkeypatch):
+    monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
+    torch.manual_seed(0)
+    old = WorldModel(WORLD_CONFIGS["ci"]).fit_input_stats(generate_trajectories(8, seed=1).frames())
+    config = world.RefitConfig(hidden=8, n_trajectories=8, steps=2, batch_size=4)
+    new, _ = world.refit_predictor(old, config, progress=False, device="cpu")
+    assert devices_of(new) == {"cpu"}
+    seen = []
+    monkeypatch.setattr(world, "fit", fit_that_records(seen))
+    new, _ = world.refit_predictor(old, config, progress=False, device="meta")
+    assert seen == [{"meta"}] and devices_of(new) == {"meta"}  # the new model and its windows
+    refitted = world.refit_or_load(old, WORLD_RUN, config, "refit", device="meta")
+    assert seen[1:] == [{"meta"}] and devices_of(refitted) == {"meta"}
+    assert devices_of(old) == {"cpu"}  # it encoded where it was
+
+
+class MetaWorldModel(torch.nn.Module):
+    """A world model on "meta" that refuses inputs from elsewhere and answers zeros on the CPU,
+    as a copy back from a GPU would (meta tensors hold nothing to copy): latents ``(B, 4)``."""
+
+    def __init__(self):
+        super().__init__()
+        self.unused = torch.nn.Parameter(torch.zeros((), device="meta"))
+
+    def encode(self, frames):
+        assert frames.is_meta, f"frames on {frames.device}, the model is on meta"
+        return torch.zeros(*frames.shape[:-3], 4)
+
+    def predict(self, z, actions):
+        assert z.is_meta and actions.is_meta, f"{z.device} and {actions.device}, not meta"
+        return torch.zeros(len(z), 4)
+
+
+def test_probes_and_wall_tests_hand_the_model_its_inputs_on_its_device():
+    model, trajectories = MetaWorldModel(), generate_trajectories(40, seed=778)
+    latents, positions = encode_trajectories(model, trajectories)
+    assert latents.shape == (40 * 17, 4) and latents.device.type == "cpu"
+    assert middle_wall_test(model, trajectories)["n_stopped"] > 0
+    assert len(wall_test_by_door_distance(model, trajectories)) == 5
+    on_meta = fit_position_probe(latents.to("meta"), positions)  # a fit where the latents are
+    assert devices_of(on_meta) == {"meta"}
+    assert devices_of(fit_position_probe(latents.to("meta"), positions, hidden=4, steps=2)) == {
+        "meta"}

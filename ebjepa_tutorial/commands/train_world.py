@@ -40,6 +40,7 @@ from ..training.world import (
     upgrade_identity,
     with_coeffs,
 )
+from ..utils import get_device
 from . import launch
 
 
@@ -126,9 +127,11 @@ def _train_and_save(out: str, config: WorldTrainConfig, device) -> None:
 
 def refit_main(trained: str, out: str, config: RefitConfig) -> None:
     """Refit the predictor of the model saved at ``trained``; save it to ``out`` with the
-    trained model's stored config (``"base"``), and print the wall test before and after."""
-    model = load_world_model(trained)
-    new, history = refit_predictor(model, config)
+    trained model's stored config (``"base"``), and print the wall test before and after.
+    Both models are on the best available device (cuda, mps, cpu)."""
+    device = get_device()
+    model = load_world_model(trained).to(device)  # it encodes every refit trajectory
+    new, history = refit_predictor(model, config, device=device)
     walls = generate_trajectories(400, seed=778)  # notebook 06's wall test
     with torch.no_grad():
         before, after = middle_wall_test(model, walls), middle_wall_test(new, walls)

@@ -65,16 +65,18 @@ def fit_position_probe(
     ``hidden=0``: linear least squares with an L2 penalty ``ridge`` (per
     sample) on the standardised latents, solved exactly. ``hidden > 0``: an MLP
     ``D -> hidden -> 2`` trained full-batch with Adam for ``steps`` steps, seeded.
+    The fit and the probe are on the latents' device.
     """
     _check_pair(latents, positions)
-    x, y = latents.detach().float(), positions.detach().float()
+    x = latents.detach().float()
+    y = positions.detach().float().to(x.device)
     mean, std = x.mean(dim=0), x.std(dim=0).clamp_min(1e-6)
     x = (x - mean) / std
     if hidden == 0:
-        head = nn.Linear(x.shape[1], y.shape[1])
+        head = nn.Linear(x.shape[1], y.shape[1]).to(x.device)  # its weights are solved for
         y_mean = y.mean(dim=0)
         # Normal equations on centred data: (X^T X + N ridge I) W = X^T (Y - mean Y).
-        gram = x.T @ x + len(x) * ridge * torch.eye(x.shape[1])
+        gram = x.T @ x + len(x) * ridge * torch.eye(x.shape[1], device=x.device)
         weight = torch.linalg.solve(gram, x.T @ (y - y_mean))  # (D, 2)
         with torch.no_grad():
             head.weight.copy_(weight.T)
@@ -87,6 +89,7 @@ def fit_position_probe(
             bound = layer.in_features ** -0.5
             layer.weight.uniform_(-bound, bound, generator=generator)
             layer.bias.zero_()
+        head = head.to(x.device)  # initialised on the CPU: the same start on every device
         head[2].bias.copy_(y.mean(dim=0))
     optimizer = torch.optim.Adam(head.parameters(), lr=lr)
     for _ in range(steps):
@@ -101,7 +104,8 @@ def fit_position_probe(
 def probe_error_px(probe: nn.Module, latents: torch.Tensor, positions: torch.Tensor) -> float:
     """Mean Euclidean error ``mean_n ||probe(z_n) - p_n||`` in pixels, on held-out rows."""
     _check_pair(latents, positions)
-    return (probe(latents.float()) - positions.float()).norm(dim=1).mean().item()
+    read = probe(latents.float())  # (N, 2), on the probe's device
+    return (read - positions.float().to(read.device)).norm(dim=1).mean().item()
 
 
 def mean_baseline_px(train_positions: torch.Tensor, test_positions: torch.Tensor) -> float:
@@ -200,7 +204,9 @@ def probe_report(model: WorldModel, n_fit: int = 1000, n_test: int = 300, seed: 
     A linear probe is fitted on every frame of ``n_fit`` fresh 17-frame
     trajectories (seed ``seed``) and scored on every frame of ``n_test``
     others of ``test_steps`` actions (seed ``seed + 1``); no seed is one the
-    training used. The baseline always answers the mean position.
+    training used. The baseline always answers the mean position. The model
+    encodes on its device; the latents, and so the probe, are on the CPU (a
+    ``(D, D)`` solve is instant, and what a probe reads is plotted).
     """
     fit_trajectories = generate_trajectories(n_fit, seed=seed)
     test_trajectories = generate_trajectories(n_test, steps=test_steps, seed=seed + 1)

@@ -27,6 +27,8 @@ def train_or_load(config, name: str, data=None, device=None, **options):
     ``encoder_only``), the training digits ``(D, 1, 28, 28)`` for a
     :class:`~ebjepa_tutorial.training.video.VideoJEPAConfig`, nothing for a
     :class:`~ebjepa_tutorial.training.world.WorldTrainConfig` (it makes its own).
+    ``device``: where the model is trained and returned, loaded or not (each recipe's
+    default is its own; the world model's is the best available, cuda, mps, cpu).
     """
     raise TypeError(f"no recipe trains a {type(config).__name__}: pass an ImageJEPAConfig, "
                     "a VideoJEPAConfig or a WorldTrainConfig")
@@ -46,4 +48,4 @@ def _video(config, name, data=None, device=None):
 def _world(config, name, data=None, device=None):
     if data is not None:
         raise ValueError("a world model makes its own data from its config; pass data=None")
-    return train_world(config, name)
+    return train_world(config, name, device)

@@ -160,20 +160,25 @@ def train_world_model(
     return model, history
 
 
-def train_or_load(config: WorldTrainConfig, name: str) -> tuple[WorldModel, History]:
+def train_or_load(config: WorldTrainConfig, name: str,
+                  device: torch.device | str | None = None) -> tuple[WorldModel, History]:
     """The model of ``config``: loaded if this run was saved, else trained.
 
     Looks for ``checkpoints/<name>.pt`` (shipped with the course), then
     ``data/cache/checkpoints/<name>.pt``; otherwise makes the run's data, trains
     (resumable from ``<name>.partial`` in the cache) and saves. Returns
-    ``(model in eval mode, history)``.
+    ``(model in eval mode, history)``, the model on ``device`` (default: the
+    best available, cuda, mps, cpu) whether it was loaded or trained.
     """
-    model = WorldModel(config.model)  # a loaded file brings its input statistics too
+    device = get_device(device)
+    # a loaded file brings its input statistics too; it is read straight onto the device
+    model = WorldModel(config.model).to(device)
     cache_path, shipped = checkpoint_paths(name)
     partial = cache_path.with_suffix(".partial")
 
     def train() -> History:
-        trained, history = train_world_model(config, make_data(config), checkpoint=partial)
+        trained, history = train_world_model(config, make_data(config), checkpoint=partial,
+                                             device=device)
         model.load_state_dict(trained.state_dict())
         return history
 
@@ -246,7 +251,7 @@ def windows_with_stays(latents: torch.Tensor, actions: torch.Tensor, index: torc
     frame; elsewhere the trajectory's next action and frame follow. Needs
     ``start + K <= T``. Returns ``z0 (B, D)``, ``actions (B, K, A)``, ``targets (B, K, D)``.
     """
-    k = torch.arange(stay.shape[1] + 1)
+    k = torch.arange(stay.shape[1] + 1, device=latents.device)
     window = latents[index[:, None], start[:, None] + k]  # (B, K + 1, D)
     sequence, taken = with_still_steps(window, actions[index[:, None], start[:, None] + k[:-1]],
                                        stay)
@@ -259,20 +264,25 @@ def refitted_model(model: WorldModel, config: RefitConfig) -> WorldModel:
 
 
 def refit_predictor(model: WorldModel, config: RefitConfig = RefitConfig(),
-                    progress: bool = True) -> tuple[WorldModel, History]:
+                    progress: bool = True,
+                    device: torch.device | str | None = None) -> tuple[WorldModel, History]:
     """``model`` with a new MLP predictor and action encoder fitted on its frozen latents.
 
     The encoder (so the planning energy) and the inverse-dynamics head are
     kept. The loss is the training loss's K-step rollout error
     (:func:`~ebjepa_tutorial.losses.world.multistep_prediction_loss`) on
     :func:`windows_with_stays`; the targets are fixed, so no regulariser is
-    needed. Returns ``(new model in eval mode, history)``.
+    needed. ``model`` encodes on its own device (it is not moved); the latents,
+    the new model and the fit are on ``device`` (default: the best available).
+    Returns ``(new model in eval mode, on device, history)``.
     """
+    device = get_device(device)
     data = generate_trajectories(config.n_trajectories, seed=config.seed)
     latents = encode_trajectories(model, data, batch_size=200)[0].view(len(data), -1,
                                                                        model.latent_dim)
+    latents, actions = latents.to(device), data.actions.to(device)  # (N, T+1, D), (N, T, 2)
     torch.manual_seed(config.seed)
-    new = refitted_model(model, config)
+    new = refitted_model(model, config).to(device)
     new.load_state_dict({name: value for name, value in model.state_dict().items()
                          if not name.startswith(("predictor.", "action_encoder.", "_extra"))},
                         strict=False)
@@ -289,7 +299,8 @@ def refit_predictor(model: WorldModel, config: RefitConfig = RefitConfig(),
         index = torch.randint(0, len(data), (config.batch_size,), generator=generator)
         start = torch.randint(0, last_start + 1, (config.batch_size,), generator=generator)
         stay = torch.rand(config.batch_size, k, generator=generator) < config.stay_probability
-        return windows_with_stays(latents, data.actions, index, start, stay)
+        # drawn on the CPU (the same windows on every device), gathered on the device
+        return windows_with_stays(latents, actions, *(t.to(device) for t in (index, start, stay)))
 
     def loss(window):
         z0, actions, targets = window
@@ -314,15 +325,17 @@ def upgrade_refit_identity(stored: dict) -> dict:
 
 
 def refit_or_load(model: WorldModel, base: WorldTrainConfig, config: RefitConfig,
-                  name: str) -> WorldModel:
+                  name: str, device: torch.device | str | None = None) -> WorldModel:
     """``model`` (trained with ``base``) with its predictor refitted by ``config``: loaded
     from ``checkpoints/<name>.pt`` or the cache if one was saved for exactly these, else
-    refitted and saved to the cache. Returns the new model in eval mode."""
-    refitted = refitted_model(model, config)
+    refitted and saved to the cache. Returns the new model in eval mode, on ``device``
+    (default: the best available)."""
+    device = get_device(device)
+    refitted = refitted_model(model, config).to(device)
     cache_path, shipped = checkpoint_paths(name)
 
     def refit() -> History:
-        new, history = refit_predictor(model, config)
+        new, history = refit_predictor(model, config, device=device)
         refitted.load_state_dict(new.state_dict())
         return history
 
