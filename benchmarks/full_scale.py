@@ -34,6 +34,7 @@ video_s_per_step=... world_s_per_step=...`` (``nan`` for a chapter left out).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import math
 import os
@@ -140,13 +141,32 @@ def synchronize(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def seconds_per_step(chapter: Chapter, batch: int, steps: int, warmup: int,
-                     device: torch.device) -> float:
-    """Wall seconds of one training step: ``(T(warmup + steps) - T(warmup)) / steps``.
+@contextlib.contextmanager
+def output_dtypes():
+    """The set of dtypes that modules output while the block runs: what the networks computed
+    in (``bfloat16`` among them under autocast), read off the run rather than assumed."""
+    seen: set[torch.dtype] = set()
+
+    def hook(module, inputs, output):
+        if isinstance(output, torch.Tensor) and output.is_floating_point():
+            seen.add(output.dtype)
+
+    handle = torch.nn.modules.module.register_module_forward_hook(hook)
+    try:
+        yield seen
+    finally:
+        handle.remove()
+
+
+def time_steps(chapter: Chapter, batch: int, steps: int, warmup: int,
+               device: torch.device) -> tuple[float, set[torch.dtype]]:
+    """Wall seconds of one training step, ``(T(warmup + steps) - T(warmup)) / steps``, and the
+    dtypes its networks computed in.
 
     Every run starts from a fresh model, so building it and its first (slow) steps cancel
-    in the difference; a run before both pays the process's one-time costs (the CUDA context,
-    cuDNN's autotuning, the allocator's growth), which would otherwise read as negative time.
+    in the difference. A first, untimed run pays the process's one-time costs (the CUDA
+    context, cuDNN's autotuning, the allocator's growth), which would otherwise read as
+    negative time, and records the dtypes (its hooks would slow a timed run).
     """
     def timed(n: int) -> float:
         synchronize(device)
@@ -155,8 +175,9 @@ def seconds_per_step(chapter: Chapter, batch: int, steps: int, warmup: int,
         synchronize(device)
         return time.perf_counter() - start
 
-    timed(warmup)
-    return max(timed(warmup + steps) - timed(warmup), 0.0) / steps
+    with output_dtypes() as dtypes:
+        chapter.train(warmup, batch, device)
+    return max(timed(warmup + steps) - timed(warmup), 0.0) / steps, dtypes
 
 
 def chosen_batch(chapter: Chapter, args, ranks: int) -> int:
@@ -167,7 +188,9 @@ def chosen_batch(chapter: Chapter, args, ranks: int) -> int:
 
 # -- printing ----------------------------------------------------------------------------
 HEADER = (f"{'chapter':<7}{'batch':>6}{'s/step':>10}{'samples/s':>11}{'epochs/h':>10}"
-          f"{'peak GiB':>9}   the paper's schedule at this speed")
+          f"{'peak GiB':>9}  {'compute':<10} the paper's schedule at this speed")
+SHORT = {torch.float32: "fp32", torch.bfloat16: "bf16", torch.float16: "fp16",
+         torch.float64: "fp64"}
 
 
 def duration(seconds: float) -> str:
@@ -176,27 +199,30 @@ def duration(seconds: float) -> str:
     return f"{seconds / 3600:.1f} h" if seconds < 72 * 3600 else f"{seconds / 86400:.1f} days"
 
 
-def row(name: str, chapter: Chapter, batch: int, s_per_step: float, peak_gib: float) -> str:
+def row(name: str, chapter: Chapter, batch: int, s_per_step: float, peak_gib: float,
+        dtypes: set[torch.dtype]) -> str:
     """One line of the table; the schedule's wall time assumes this many samples per second."""
     rate = batch / s_per_step if s_per_step > 0 else math.inf
     epochs = chapter.schedule_steps * chapter.batch / chapter.epoch  # e.g. 300 of CIFAR-10
     projected = "projected" if batch == chapter.batch else (
         f"projected from batch {batch}, not the paper's {chapter.batch}")
+    compute = "+".join(sorted(SHORT.get(d, str(d)) for d in dtypes))  # e.g. bf16+fp32
     return (f"{name:<7}{batch:>6}{s_per_step:>10.4f}{rate:>11.1f}"
-            f"{3600 * rate / chapter.epoch:>10.2f}{peak_gib:>9.2f}   "
+            f"{3600 * rate / chapter.epoch:>10.2f}{peak_gib:>9.2f}  {compute:<10} "
             f"{epochs:.0f} epochs of {chapter.epoch:,} {chapter.unit}: "
             f"{duration(epochs * chapter.epoch / rate)} ({projected})")
 
 
 def describe(device: torch.device, args) -> str:
-    """What the figures were measured with: device, torch, threads, dtype, timing, batch."""
+    """What the figures were measured with: device, torch, threads, dtypes, timing, batch."""
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
     dtype = str(torch.get_default_dtype()).removeprefix("torch.")
     batch = f"{args.batch} for every chapter" if args.batch else (
         f"the presets' x {args.batch_scale:g}")
     return (f"device: {name} ({device}), {distributed.world_size()} process(es)\n"
-            f"torch {torch.__version__}, {torch.get_num_threads()} CPU thread(s), dtype {dtype}, "
-            f"float32 matmul precision {torch.get_float32_matmul_precision()}\n"
+            f"torch {torch.__version__}, {torch.get_num_threads()} CPU thread(s), parameters "
+            f"{dtype}, float32 matmul precision {torch.get_float32_matmul_precision()}; compute: "
+            "the dtypes the layers output (bf16 under the training's autocast)\n"
             f"timing: {args.warmup} warm-up step(s), then {args.steps} timed step(s), each run "
             f"from a fresh model; batch (global): {batch}")
 
@@ -221,13 +247,13 @@ def run(wanted: dict[str, Chapter], batches: dict[str, int], args,
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
         try:
-            results[name] = seconds_per_step(chapter, batches[name], args.steps, args.warmup,
-                                             device)
+            seconds, dtypes = time_steps(chapter, batches[name], args.steps, args.warmup, device)
         except torch.OutOfMemoryError:  # the next chapter may still fit
             print(f"{name}: out of memory at batch {batches[name]}; try --batch-scale 0.5")
             continue
+        results[name], peak = seconds, peak_gib(device)
         if show:
-            print(row(name, chapter, batches[name], results[name], peak_gib(device)), flush=True)
+            print(row(name, chapter, batches[name], seconds, peak, dtypes), flush=True)
     if show:
         print("epochs: CIFAR-10's 50,000 training images; the paper's 18,000 Moving MNIST "
               "clips; its 100,000 Two Rooms trajectories. Projected: steps timed here, without "

@@ -1,5 +1,6 @@
-"""``benchmarks/full_scale.py`` runs here and ends with the line that scripts (and the GPU
-session, ``benchmarks/gpu_session.sh``) parse; a GPU's minutes are too few to find out there."""
+"""What the GPU session (``benchmarks/gpu_session.sh``) runs works here first: a GPU's minutes
+are too few to find out there. ``benchmarks/full_scale.py`` ends with the line the session
+parses; the image command takes a warm-up short enough for a short run of the full preset."""
 
 from __future__ import annotations
 
@@ -10,6 +11,9 @@ import sys
 from pathlib import Path
 
 import pytest
+
+from ebjepa_tutorial import distributed
+from ebjepa_tutorial.commands import train_image
 
 ROOT = Path(__file__).resolve().parents[1]
 CHAPTERS = ("image", "sigreg", "vit", "video", "world")
@@ -36,3 +40,16 @@ def test_full_scale_benchmark_times_a_step_and_prints_a_parseable_last_line():
             assert math.isfinite(seconds) and seconds > 0, (chapter, seconds)
         else:
             assert math.isnan(seconds), (chapter, seconds)
+
+
+def test_a_short_full_image_run_takes_a_shorter_warmup(monkeypatch, capsys):
+    for name in distributed.TORCHRUN_ENV:
+        monkeypatch.delenv(name, raising=False)
+    ran = []
+    monkeypatch.setattr(train_image, "_train_and_save", lambda args, sizes, config, device:
+                        ran.append(config))
+    train_image.main(["--scale", "full", "--steps", "300", "--warmup-steps", "10", "--out", "x"])
+    assert (ran[0].steps, ran[0].warmup_steps, ran[0].optimizer) == (300, 10, "lars")
+    with pytest.raises(SystemExit):  # the preset's 1,950 warm-up steps do not fit in 300
+        train_image.main(["--scale", "full", "--steps", "300", "--out", "x"])
+    assert "warmup_steps" in capsys.readouterr().err

@@ -35,6 +35,9 @@ def _parser() -> argparse.ArgumentParser:
                         help="the preset. Its batch size is the global batch over all "
                              "processes: global batch = per-rank batch x world size")
     parser.add_argument("--steps", type=int, help="default: the scale's long run")
+    parser.add_argument("--warmup-steps", type=int,
+                        help="steps of linear warm-up (default: the preset's; the full "
+                             "preset's 1,950 need a longer run: its ratio is 1 in 30)")
     parser.add_argument("--out", required=True, help="where to write the encoder (a .pt file)")
     launch.add_flags(parser)
     return parser
@@ -50,7 +53,8 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     sizes = preset("01" if args.loss == "vicreg" else "02", args.scale)
     try:
-        config = replace(sizes.config, steps=args.steps or sizes.long_steps)
+        warmup = sizes.config.warmup_steps if args.warmup_steps is None else args.warmup_steps
+        config = replace(sizes.config, steps=args.steps or sizes.long_steps, warmup_steps=warmup)
     except ValueError as error:
         parser.error(str(error))  # checked before the data is loaded
     device = launch.join(parser, args, config.batch_size, identity(config),
