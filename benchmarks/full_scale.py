@@ -255,6 +255,7 @@ def run(wanted: dict[str, Chapter], batches: dict[str, int], args,
         if show:
             print(row(name, chapter, batches[name], seconds, peak, dtypes), flush=True)
     if show:
+        print("chapters: " + "; ".join(f"{name}: {c.title}" for name, c in wanted.items()))
         print("epochs: CIFAR-10's 50,000 training images; the paper's 18,000 Moving MNIST "
               "clips; its 100,000 Two Rooms trajectories. Projected: steps timed here, without "
               "data loading, evaluation or checkpoints.")
