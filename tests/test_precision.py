@@ -73,3 +73,21 @@ def test_video_training_keeps_variance_and_covariance_in_float32(monkeypatch):
     _, history = video.train_video_jepa(config, clips, progress=False, device="cpu")
     assert set(received) == {torch.float32} and len(received) == 3
     assert all(map(torch.isfinite, map(torch.tensor, history["loss"])))
+
+
+def test_world_training_lowers_only_the_encoder(monkeypatch):
+    from ebjepa_tutorial.envs import generate_trajectories
+    from ebjepa_tutorial.losses import world as world_losses
+    from ebjepa_tutorial.models.world import WORLD_CONFIGS, WorldModel
+
+    monkeypatch.setattr(world_losses, "mixed_precision", cpu_bf16)
+    received = spy(monkeypatch, world_losses, "variance_covariance_loss")
+    data = generate_trajectories(4, 4, seed=0)
+    model = WorldModel(WORLD_CONFIGS["ci"])
+    frames = data.frames()  # (4, 5, 2, 65, 65)
+    model.fit_input_stats(frames)
+    encoded = []
+    model.encoder.register_forward_hook(lambda module, args, out: encoded.append(out.dtype))
+    loss, terms = world_losses.world_model_loss(model, frames, data.actions, steps=2)
+    assert encoded == [torch.bfloat16] and received == [torch.float32]
+    assert loss.dtype == torch.float32 and torch.isfinite(loss)

@@ -34,6 +34,7 @@ import torch
 import torch.nn.functional as F
 
 from .. import distributed
+from ..utils import mixed_precision
 from .sigreg import sigreg
 from .vicreg import covariance_term, variance_term
 
@@ -234,7 +235,9 @@ def world_model_loss(
     if not isinstance(frames, torch.Tensor) or frames.ndim != 5:
         got = tuple(frames.shape) if isinstance(frames, torch.Tensor) else type(frames).__name__
         raise ValueError(f"frames must be (batch, time, 2, 65, 65) trajectories, got {got}")
-    z = model.encode(frames)
+    with mixed_precision(frames.device):  # the encoder, the costly part, in bf16 on a GPU
+        z = model.encode(frames)
+    z = z.float()  # (B, T, D); the predictor, the heads and every statistic in float32
     _check_sequence(z, actions)
     terms = {
         "prediction": multistep_prediction_loss(model.predict, z, actions, steps, detach_targets,
