@@ -1,7 +1,7 @@
 """Chapter 03 benchmark: Moving MNIST generation speed, video JEPA training speed and mAP.
 
     python benchmarks/video_jepa.py [--clips 4000] [--frames 10] [--repeats 5] [--threads 2]
-                                    [--train-steps 100] [--batch 16] [--eval-clips 500]
+                                    [--train-steps 100] [--batch 16] [--eval-clips 500] [--split]
 
 Prints one line per generator repeat, the time of one class-scale training
 step at batch 64 and at ``--batch``, a short training run (``--train-steps``
@@ -11,7 +11,9 @@ then a last line ``clips_per_s=... train_clips_per_s=... map=...`` that
 scripts can parse. ``--train-steps 0`` skips the model part (``nan``). Uses
 the MNIST test digits when they are on disk (``load_mnist("test",
 download=False)``), else random digits with a note: the generator's speed
-does not depend on what the digits look like (the mAP does).
+does not depend on what the digits look like (the mAP does). ``--split``
+first prints where one class-scale step's time goes (encoder, rollout,
+projector and regulariser, backward, optimiser).
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ from ebjepa_tutorial.data.mnist import load_mnist
 from ebjepa_tutorial.data.moving_mnist import generate_moving_mnist, split_digits
 from ebjepa_tutorial.data.paths import DataNotFoundError
 from ebjepa_tutorial.evaluation.detection import detection_report
+from ebjepa_tutorial.losses import variance_and_covariance
+from ebjepa_tutorial.losses.rollout import rollout_loss
 from ebjepa_tutorial.models.video import VideoJEPA
 from ebjepa_tutorial.training.video import VIDEO_CONFIGS, train_video_jepa, video_jepa_loss
 
@@ -66,6 +70,35 @@ def time_step(batch_size: int, repeats: int = 3) -> float:
     return min(times[1:])
 
 
+def step_split(batch_size: int, repeats: int = 5) -> dict[str, float]:
+    """Median seconds of each part of one class-scale training step (forward parts, backward)."""
+    config = replace(VIDEO_CONFIGS["class"], batch_size=batch_size)
+    model = VideoJEPA(config.model)
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
+    frames = torch.randint(0, 256, (batch_size, 10, 1, 64, 64), dtype=torch.uint8)
+    parts = {name: [] for name in ("encoder", "rollout", "projector+regulariser", "backward",
+                                   "optimiser")}
+    for repeat in range(repeats + 1):  # the first step warms up
+        marks = [time.perf_counter()]
+        z = model.encode(frames)
+        marks.append(time.perf_counter())
+        prediction = rollout_loss(model.predictor, z, config.model.context,
+                                  config.rollout_steps, config.tbptt)
+        marks.append(time.perf_counter())
+        variance, covariance = variance_and_covariance(model.project(z))
+        loss = prediction + config.std_coeff * variance + config.cov_coeff * covariance
+        marks.append(time.perf_counter())
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        marks.append(time.perf_counter())
+        optimizer.step()
+        marks.append(time.perf_counter())
+        if repeat:
+            for name, start, end in zip(parts, marks, marks[1:]):
+                parts[name].append(end - start)
+    return {name: statistics.median(times) for name, times in parts.items()}
+
+
 def model_benchmark(train_digits, held_out, steps: int, batch_size: int, eval_clips: int):
     """Train ``steps`` class-scale steps; return (training clips per second, mAP)."""
     for size in (64, batch_size):
@@ -98,8 +131,15 @@ def main() -> None:
     parser.add_argument("--train-steps", type=int, default=100, help="0 skips the model part")
     parser.add_argument("--batch", type=int, default=VIDEO_CONFIGS["class"].batch_size)
     parser.add_argument("--eval-clips", type=int, default=500, help="probe and evaluation clips")
+    parser.add_argument("--split", action="store_true", help="where one training step goes")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    if args.split:
+        parts = step_split(args.batch)
+        total = sum(parts.values())
+        print(f"one class-scale step at batch {args.batch} x 10 frames: {total:.3f} s")
+        for name, seconds in parts.items():
+            print(f"  {name:22s} {seconds:.3f} s  {100 * seconds / total:4.1f}%")
 
     train_digits, held_out = split_digits(load_digits(), n_train=8000)
     time_generator(train_digits, 64, args.frames, seed=0)  # warm-up
