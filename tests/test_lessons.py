@@ -30,3 +30,10 @@ def test_chapter_opens_with_the_paper_and_its_time(path):
     first = markdown_cells(path)[0]
     assert "arXiv:2602.03604" in first
     assert "**Study time:**" in first and "**Compute time**" in first
+
+
+def test_readme_is_a_landing_page():
+    """The README is where a teacher or learner starts: short, with the learner path up front."""
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
+    assert len(text.split()) < 1_500, "move detail to RESULTS.md, TEACHING.md or the docs"
+    assert "## The learner path" in text and "make lab-student" in text
