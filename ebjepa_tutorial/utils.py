@@ -33,6 +33,11 @@ def mixed_precision(device: torch.device | str) -> contextlib.AbstractContextMan
     return contextlib.nullcontext()
 
 
+def at_least_float32(x: torch.Tensor) -> torch.Tensor:
+    """``x`` in float32 if it is in a half precision (bf16 or fp16); float64 stays float64."""
+    return x.float() if x.dtype in (torch.float16, torch.bfloat16) else x
+
+
 def memory_format(device: torch.device | str) -> torch.memory_format:
     """``channels_last`` for convolutions on a CUDA GPU (faster there); the default elsewhere."""
     return torch.channels_last if torch.device(device).type == "cuda" else torch.contiguous_format

@@ -272,10 +272,11 @@ def _match_one_process_with(rank, loss_name):
     local, local_terms = LOSSES[loss_name](*net(*share), True)
     local.backward()  # DDP averages the gradients over the ranks
 
-    mean_total, *mean_terms = distributed.mean_of_floats([local.item(), *local_terms.values()])
+    mean_total, *mean_terms = distributed.mean_of_floats(
+        [float(local), *map(float, local_terms.values())])
     assert mean_total == pytest.approx(total.item(), rel=1e-12)
     for name, value in zip(local_terms, mean_terms):
-        assert value == pytest.approx(terms[name], rel=1e-12), (loss_name, name)
+        assert value == pytest.approx(float(terms[name]), rel=1e-12), (loss_name, name)
     for (name, p), q in zip(model.named_parameters(), reference.parameters()):
         assert torch.allclose(p.grad, q.grad, rtol=1e-10, atol=1e-14), (loss_name, name)
 
@@ -298,11 +299,12 @@ def _chapters_match_one_process(rank):
         local, local_terms = net(*map(distributed.local_rows, inputs))  # this rank's half
         local.backward()  # DDP averages the gradients over the ranks
 
-        mean_total, *mean_terms = distributed.mean_of_floats([local.item(), *local_terms.values()])
+        mean_total, *mean_terms = distributed.mean_of_floats(
+            [float(local), *map(float, local_terms.values())])
         assert mean_total == pytest.approx(total.item(), rel=1e-12), chapter
         assert local_terms.keys() == terms.keys()
         for name, value in zip(local_terms, mean_terms):
-            assert value == pytest.approx(terms[name], rel=1e-12), (chapter, name)
+            assert value == pytest.approx(float(terms[name]), rel=1e-12), (chapter, name)
         for (name, p), q in zip(model.named_parameters(), reference.parameters(), strict=True):
             assert torch.allclose(p.grad, q.grad, rtol=1e-10, atol=1e-14), (chapter, name)
 

@@ -51,8 +51,10 @@ def test_vicreg_loss_weights_the_terms():
     z_a, z_b = torch.randn(16, 4, generator=g), torch.randn(16, 4, generator=g)
     total, terms = losses.vicreg_loss(z_a, z_b, inv_coeff=2.0, std_coeff=3.0, cov_coeff=5.0)
     expected = 2 * terms["invariance"] + 3 * terms["variance"] + 5 * terms["covariance"]
-    assert total.item() == pytest.approx(expected, rel=1e-5)
+    assert total.item() == pytest.approx(float(expected), rel=1e-5)
     assert set(terms) == {"invariance", "variance", "covariance"}
+    # detached tensors: logging them keeps no graph alive and costs no wait for a GPU
+    assert all(v.ndim == 0 and not v.requires_grad for v in terms.values())
 
 
 def test_bad_inputs_give_clear_errors():

@@ -35,6 +35,23 @@ def test_fit_logs_history_and_learns():
     assert history.last("loss") < 1e-3 < history["loss"][0]
 
 
+def test_fit_reads_the_loss_only_on_the_steps_it_logs():
+    """Reading a number waits for a GPU to finish; between logged steps nothing is read."""
+    model, optimizer, _, batch = _problem()
+    reads = []
+
+    class Counted(float):  # a term that records each time the loop reads it
+        def __float__(self):
+            reads.append(1)
+            return float.__float__(self)
+
+    def loss_fn(xy):
+        return torch.nn.functional.mse_loss(model(xy[0]), xy[1]), {"term": Counted(1.0)}
+
+    history = loop.fit(model, optimizer, loss_fn, batch, steps=25, log_every=10, progress=False)
+    assert history["step"] == [0, 10, 20, 24] and len(reads) == 4
+
+
 def test_nan_loss_stops_with_a_clear_error():
     model, optimizer, _, batch = _problem()
 

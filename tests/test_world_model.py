@@ -204,7 +204,7 @@ def test_world_model_loss_combines_terms(data):
     coeffs = wl.WorldLossCoeffs()
     total, terms = wl.world_model_loss(model, frames, trajectories.actions, coeffs, steps=3)
     assert set(terms) == {"prediction", "variance", "covariance", "temporal", "inverse_dynamics"}
-    expected = sum(getattr(coeffs, name) * value for name, value in terms.items())
+    expected = sum(getattr(coeffs, name) * float(value) for name, value in terms.items())
     assert total.item() == pytest.approx(expected, rel=1e-5)
     total.backward()
     assert model.encoder.linear.weight.grad.abs().sum() > 0
@@ -222,8 +222,9 @@ def test_sigreg_joins_the_world_model_loss_when_weighted(data):
     # the statistic of every frame's latent, with the directions the generator draws
     z = model.encode(frames).reshape(-1, model.latent_dim)
     directions = random_directions(model.latent_dim, 256, torch.Generator().manual_seed(7))
-    assert terms["sigreg"] == pytest.approx(sigreg(z, directions=directions).item(), rel=1e-5)
-    expected = sum(getattr(coeffs, name) * value for name, value in terms.items())
+    assert float(terms["sigreg"]) == pytest.approx(sigreg(z, directions=directions).item(),
+                                                 rel=1e-5)
+    expected = sum(getattr(coeffs, name) * float(value) for name, value in terms.items())
     assert total.item() == pytest.approx(expected, rel=1e-5)
     total.backward()
     assert model.encoder.linear.weight.grad.abs().sum() > 0

@@ -42,12 +42,8 @@ from __future__ import annotations
 import torch
 
 from .. import distributed
+from ..utils import at_least_float32
 from .vicreg import _check_embeddings, invariance_term
-
-
-def _at_least_float32(x: torch.Tensor) -> torch.Tensor:
-    # cos(t x) of large arguments loses every digit in half precision (e.g. under autocast).
-    return x.float() if x.dtype in (torch.float16, torch.bfloat16) else x
 
 
 def epps_pulley(
@@ -77,7 +73,7 @@ def epps_pulley(
         )
     if knots < 2:
         raise ValueError(f"the trapezoid rule needs at least 2 knots, got {knots}")
-    x = _at_least_float32(x)
+    x = at_least_float32(x)  # cos(t x) of large arguments loses every digit in half precision
     n = x.shape[0]
     t = torch.linspace(0.0, t_max, knots, device=x.device, dtype=x.dtype)  # (K,)
 
@@ -142,7 +138,7 @@ def sigreg(
         raise ValueError(
             f"directions must be (D, M) with D = {z.shape[1]}, got {tuple(directions.shape)}"
         )
-    z = _at_least_float32(z)
+    z = at_least_float32(z)
     projected = z @ directions.to(z.device, z.dtype)  # (B, M)
     return epps_pulley(projected, knots, t_max, sigma, scale_by_n, across_ranks).mean()
 
@@ -158,13 +154,13 @@ def sigreg_loss(
     sigma: float = 1.0,
     scale_by_n: bool = True,
     across_ranks: bool = False,
-) -> tuple[torch.Tensor, dict[str, float]]:
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Invariance + ``lam`` * SIGReg on two views ``(B, D)``: returns ``(total, terms)``.
 
     Invariance is the mean squared distance between the views
     (:func:`ebjepa_tutorial.losses.invariance_term`, as in VICReg); SIGReg is
     applied to each view with the same random directions and averaged.
-    ``terms`` holds the unweighted terms as floats, like ``losses.vicreg_loss``.
+    ``terms`` holds the unweighted terms as detached 0-d tensors, like ``losses.vicreg_loss``.
     The default ``lam = 0.1`` is the EB-JEPA CIFAR-10 setting for ``scale_by_n=True``.
     ``across_ranks``: SIGReg of the global batch (module docstring); the invariance
     stays a local mean over pairs, which DDP averages over ranks.
@@ -176,4 +172,4 @@ def sigreg_loss(
     options.update(scale_by_n=scale_by_n, across_ranks=across_ranks)
     reg = (sigreg(z_a, **options) + sigreg(z_b, **options)) / 2
     total = inv + lam * reg
-    return total, {"invariance": inv.item(), "sigreg": reg.item()}
+    return total, {"invariance": inv.detach(), "sigreg": reg.detach()}

@@ -114,11 +114,13 @@ def vicreg_loss(
     std_coeff: float = 1.0,
     cov_coeff: float = 1.0,
     across_ranks: bool = False,
-) -> tuple[torch.Tensor, dict[str, float]]:
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """VICReg on two views ``(B, D)``: weighted invariance + variance + covariance.
 
     The variance and covariance terms are applied to each view and averaged.
-    Returns the total and a dict of the unweighted terms (floats, for logging).
+    Returns the total and a dict of the unweighted terms, detached 0-d tensors for logging
+    (``float()`` reads one; reading waits for the GPU, so training loops read them only
+    when they log).
     With ``across_ranks`` (a no-op in a single process), each rank's ``(b, D)``
     views are gathered from all ranks to ``(W b, D)`` for variance and covariance,
     gradients flowing back to each rank's own rows; the invariance term is a mean
@@ -131,4 +133,5 @@ def vicreg_loss(
     var = (variance_term(z_a) + variance_term(z_b)) / 2
     cov = (covariance_term(z_a) + covariance_term(z_b)) / 2
     total = inv_coeff * inv + std_coeff * var + cov_coeff * cov
-    return total, {"invariance": inv.item(), "variance": var.item(), "covariance": cov.item()}
+    return total, {"invariance": inv.detach(), "variance": var.detach(),
+                   "covariance": cov.detach()}

@@ -34,7 +34,7 @@ import torch
 import torch.nn.functional as F
 
 from .. import distributed
-from ..utils import mixed_precision
+from ..utils import at_least_float32, mixed_precision
 from .sigreg import sigreg
 from .vicreg import covariance_term, variance_term
 
@@ -212,7 +212,7 @@ def world_model_loss(
     generator: torch.Generator | None = None,
     stay_probability: float = 0.0,
     across_ranks: bool = False,
-) -> tuple[torch.Tensor, dict[str, float]]:
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The weighted total for a batch of trajectories, and each unweighted term.
 
     ``model``: a :class:`~ebjepa_tutorial.models.world.WorldModel`; ``frames``:
@@ -220,7 +220,7 @@ def world_model_loss(
     rollouts' start frames and ``stay_probability`` its still steps
     (:func:`multistep_prediction_loss`); ``generator`` draws those and SIGReg's random
     directions. Returns
-    ``(total, terms)``: a 0-d tensor to back-propagate and a dict of floats
+    ``(total, terms)``: a 0-d tensor to back-propagate and a dict of detached 0-d tensors
     (``prediction``, ``variance``, ``covariance``, ``temporal``,
     ``inverse_dynamics``, and ``sigreg`` when it is on) for the history.
     ``across_ranks`` (a no-op in one process): the terms of the global batch of all
@@ -237,7 +237,7 @@ def world_model_loss(
         raise ValueError(f"frames must be (batch, time, 2, 65, 65) trajectories, got {got}")
     with mixed_precision(frames.device):  # the encoder, the costly part, in bf16 on a GPU
         z = model.encode(frames)
-    z = z.float()  # (B, T, D); the predictor, the heads and every statistic in float32
+    z = at_least_float32(z)  # (B, T, D); the predictor, heads and statistics in float32
     _check_sequence(z, actions)
     terms = {
         "prediction": multistep_prediction_loss(model.predict, z, actions, steps, detach_targets,
@@ -251,4 +251,4 @@ def world_model_loss(
         terms["sigreg"] = sigreg(z.reshape(-1, z.shape[-1]), generator=generator,
                                  across_ranks=across_ranks)
     total = sum(getattr(coeffs, name) * value for name, value in terms.items())
-    return total, {name: value.item() for name, value in terms.items()}
+    return total, {name: value.detach() for name, value in terms.items()}

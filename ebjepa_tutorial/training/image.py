@@ -36,6 +36,7 @@ from ..losses import sigreg
 from ..models.encoders import ENCODERS, build_encoder
 from ..models.heads import build_projector
 from ..utils import (
+    at_least_float32,
     check_fields,
     is_int_at_least,
     is_non_negative,
@@ -163,7 +164,7 @@ def jepa_loss(config: ImageJEPAConfig, z_a, z_b, generator=None, across_ranks=Fa
                                   num_slices=config.sigreg_slices, generator=generator,
                                   scale_by_n=config.sigreg_scale_by_n, across_ranks=across_ranks)
     invariance = losses.invariance_term(z_a, z_b)
-    return invariance, {"invariance": invariance.item()}
+    return invariance, {"invariance": invariance.detach()}
 
 
 def make_optimizer(model: nn.Module, config: ImageJEPAConfig):
@@ -220,7 +221,8 @@ def train_image_jepa(
         (view_a, view_b), generator = views_and_generator
         with mixed_precision(device):  # bf16 networks on a GPU; the loss in float32
             z_a, z_b = net(view_a, view_b)
-        return jepa_loss(config, z_a.float(), z_b.float(), generator, across_ranks=True)
+        return jepa_loss(config, at_least_float32(z_a), at_least_float32(z_b), generator,
+                         across_ranks=True)
 
     fit(model, optimizer, loss, batch, config.steps, scheduler=scheduler, history=history,
         start_step=start, checkpoint=checkpoint, checkpoint_every=checkpoint_every, log_every=10,

@@ -29,7 +29,7 @@ from tqdm.auto import tqdm
 from .. import distributed
 from .checkpoints import Upgrade, claim, read_run, same_run, save_or_warn
 
-LossFn = Callable[[Any], tuple[torch.Tensor, dict[str, float]]]
+LossFn = Callable[[Any], tuple[torch.Tensor, dict[str, torch.Tensor | float]]]
 
 
 class History(dict):
@@ -70,12 +70,17 @@ def _check_finite(loss: float, terms: dict[str, float], step: int) -> None:
         )
 
 
-def _over_ranks(loss: torch.Tensor, terms: dict[str, float]) -> tuple[float, dict[str, float]]:
+def _number(value: torch.Tensor | float) -> float:
+    return value.item() if isinstance(value, torch.Tensor) else float(value)
+
+
+def _over_ranks(loss: torch.Tensor, terms: dict) -> tuple[float, dict[str, float]]:
     """The loss and terms averaged over ranks (as is in one process): what one device would log.
 
     Every rank gets the same numbers, so a non-finite loss stops all ranks together.
+    Reading them makes the CPU wait for the GPU, so :func:`fit` does it only when it logs.
     """
-    values = distributed.mean_of_floats([loss.item(), *terms.values()])
+    values = distributed.mean_of_floats([loss.item(), *map(_number, terms.values())])
     return values[0], dict(zip(terms, values[1:]))
 
 
@@ -99,7 +104,9 @@ def fit(
     """Train for ``steps`` optimiser steps; return the :class:`History` of logged terms.
 
     ``loss_fn(batch) -> (loss, terms)`` where ``loss`` is a 0-d tensor and
-    ``terms`` a dict of floats to log (the total is logged as ``"loss"``).
+    ``terms`` a dict of 0-d tensors (or floats) to log (the total is logged as ``"loss"``).
+    Every ``log_every`` steps (and at the last) they are read, checked to be finite
+    before that step is taken, and logged; other steps never wait for a GPU.
     ``batch_fn(step)`` returns the batch for optimiser step ``step``.
     With ``checkpoint``, the model, optimiser, scheduler, history and step are
     saved every ``checkpoint_every`` steps and at the end, with ``config`` (a
@@ -115,14 +122,16 @@ def fit(
     started = time.perf_counter() - history.seconds
     for step in bar:
         loss, terms = loss_fn(batch_fn(step))
-        value, terms = _over_ranks(loss, terms)
-        _check_finite(value, terms, step)
+        logged = step % log_every == 0 or step == steps - 1
+        if logged:  # read (the one wait for a GPU) and checked before the step is taken
+            value, terms = _over_ranks(loss, terms)
+            _check_finite(value, terms, step)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
         if scheduler is not None:
             scheduler.step()
-        if step % log_every == 0 or step == steps - 1:
+        if logged:
             history.log(step, loss=value, **terms)
             bar.set_postfix(loss=f"{value:.4f}", refresh=False)
         done = step + 1

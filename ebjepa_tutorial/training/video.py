@@ -34,6 +34,7 @@ from ..losses import variance_and_covariance
 from ..losses.rollout import rollout_loss
 from ..models.video import VIDEO_MODEL_CONFIGS, FrameDecoder, VideoJEPA, VideoModelConfig
 from ..utils import (
+    at_least_float32,
     check_fields,
     get_device,
     is_int_at_least,
@@ -117,13 +118,13 @@ def video_jepa_loss(model: VideoJEPA, frames: torch.Tensor, config: VideoJEPACon
     with mixed_precision(frames.device):  # bf16 networks on a GPU; the statistics in float32
         z = model.encode(frames)
         prediction = rollout_loss(model.predictor, z, model.config.context,
-                                  config.rollout_steps, config.tbptt).float()
+                                  config.rollout_steps, config.tbptt)
         projected = model.project(z)  # (B*T*S*S, D): every location of every frame is a sample
-    variance, covariance = variance_and_covariance(projected.float(), across_ranks=across_ranks)
+    variance, covariance = variance_and_covariance(at_least_float32(projected),
+                                                   across_ranks=across_ranks)
     total = prediction + config.std_coeff * variance + config.cov_coeff * covariance
-    terms = {"prediction": prediction.item(), "variance": variance.item(),
-             "covariance": covariance.item()}
-    return total, terms
+    terms = {"prediction": prediction, "variance": variance, "covariance": covariance}
+    return total, {name: value.detach() for name, value in terms.items()}
 
 
 def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
