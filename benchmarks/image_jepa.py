@@ -1,7 +1,7 @@
 """Image-JEPA benchmark: training speed and linear-probe / kNN accuracy on CIFAR-10.
 
 Run: ``python benchmarks/image_jepa.py [--scale class] [--loss vicreg] [--steps N]
-[--eval-size PX]``. Trains the notebook's configuration at that scale from
+[--eval-size PX] [--split]``. Trains the notebook's configuration at that scale from
 scratch (no checkpoint), then evaluates the frozen encoder on un-augmented
 images at the preset's ``eval_image_size`` (32 px, CIFAR-10's native size, at
 class and full scale, whatever size the training views had; 16 px at ci scale;
@@ -11,23 +11,60 @@ the JPEG copy where ``EBJEPA_DATA`` points at it). The random-init encoder is
 scored the same way for comparison. Last line:
 ``images_per_s=... minutes=... probe_acc=... knn_acc=...``. ``--record`` (class
 scale, no overrides) stores the probe accuracies in ``checkpoints/reference.json``,
-which notebooks 01 and 02 print beside the learner's.
+which notebooks 01 and 02 print beside the learner's. ``--split`` prints where
+one training step's time goes (augmentation, forward, loss, backward,
+optimiser) and stops.
 """
 
 from __future__ import annotations
 
 import argparse
+import statistics
 import sys
 import time
 from dataclasses import replace
 
 import torch
 
+from ebjepa_tutorial import augment
 from ebjepa_tutorial.course import reference
 from ebjepa_tutorial.course.presets import SCALES, image_preset
 from ebjepa_tutorial.data import load_cifar10, random_subset
 from ebjepa_tutorial.evaluation.classify import probe_encoder, protocol
-from ebjepa_tutorial.training.image import ImageJEPA, train_image_jepa
+from ebjepa_tutorial.training.image import (
+    BothViews,
+    ImageJEPA,
+    jepa_loss,
+    make_optimizer,
+    train_image_jepa,
+)
+
+
+def step_split(config, images: torch.Tensor, repeats: int = 5) -> dict[str, float]:
+    """Median seconds of each part of one training step of ``config`` on uint8 ``images``."""
+    model = BothViews(ImageJEPA(config))
+    optimizer = make_optimizer(model, config)
+    pipeline = augment.build_augmentation(augment.AugmentConfig(size=config.image_size))
+    parts = {name: [] for name in ("augmentation", "forward", "loss", "backward", "optimiser")}
+    for repeat in range(repeats + 1):  # the first step warms up
+        generator = torch.Generator().manual_seed(repeat)
+        marks = [time.perf_counter()]
+        index = torch.randint(0, len(images), (config.batch_size,), generator=generator)
+        views = augment.two_views(images[index], pipeline, generator)
+        marks.append(time.perf_counter())
+        z_a, z_b = model(*views)
+        marks.append(time.perf_counter())
+        loss, _ = jepa_loss(config, z_a, z_b, generator)
+        marks.append(time.perf_counter())
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        marks.append(time.perf_counter())
+        optimizer.step()
+        marks.append(time.perf_counter())
+        if repeat:
+            for name, start, end in zip(parts, marks, marks[1:]):
+                parts[name].append(end - start)
+    return {name: statistics.median(times) for name, times in parts.items()}
 
 
 def main() -> None:
@@ -38,6 +75,7 @@ def main() -> None:
     parser.add_argument("--eval-size", type=int, default=None,
                         help="side in px of the images the probe and kNN see (class preset: 32)")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    parser.add_argument("--split", action="store_true", help="where one training step goes")
     parser.add_argument("--record", action="store_true",
                         help="store the result in checkpoints/reference.json (class recipe only)")
     args = parser.parse_args()
@@ -53,6 +91,14 @@ def main() -> None:
     train = random_subset(*load_cifar10("train"), preset.train_images)
     test = random_subset(*load_cifar10("test"), preset.test_images)
     print(f"{args.scale} scale, {config}")
+    if args.split:
+        parts = step_split(config, train[0])
+        total = sum(parts.values())
+        print(f"one step of {config.batch_size} images x 2 views of {config.image_size} px: "
+              f"{total:.3f} s")
+        for name, seconds in parts.items():
+            print(f"  {name:12s} {seconds:.3f} s  {100 * seconds / total:4.1f}%")
+        return
     print(f"evaluation: {protocol(config)}")
 
     random_init = probe_encoder(ImageJEPA(config).encoder, config, train, test)
