@@ -9,6 +9,7 @@ import pytest
 
 NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("[0-9][0-9]_*.ipynb"))
 MAX_WORDS, MAX_CELL_WORDS = 4_500, 400  # a chapter fits a class period's reading; a cell a screen
+MAX_SECTION_WORDS = 1_200
 
 
 def markdown_cells(path: Path) -> list[str]:
@@ -23,6 +24,18 @@ def test_chapter_reads_as_a_lesson_of_bounded_length(path):
     longest = max(range(len(words)), key=words.__getitem__)
     assert words[longest] <= MAX_CELL_WORDS, (
         f"{path.name}: markdown cell {longest} has {words[longest]} words; split or tighten it")
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
+def test_no_section_outgrows_a_sitting(path):
+    """A ``##`` section is read in one go; the course's investigations live in RESULTS.md."""
+    words, section = {}, "before the first section"
+    for text in markdown_cells(path):
+        section = next((line for line in reversed(text.splitlines()) if line.startswith("## ")),
+                       section)
+        words[section] = words.get(section, 0) + len(text.split())
+    longest = max(words, key=words.get)
+    assert words[longest] <= MAX_SECTION_WORDS, f"{path.name}: {longest!r}: {words[longest]} words"
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
