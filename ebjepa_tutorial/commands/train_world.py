@@ -130,7 +130,7 @@ def refit_main(trained: str, out: str, config: RefitConfig) -> None:
     trained model's stored config (``"base"``), and print the wall test before and after.
     Both models are on the best available device (cuda, mps, cpu)."""
     device = get_device()
-    model = load_world_model(trained).to(device)  # it encodes every refit trajectory
+    model = load_world_model(trained, device=device)  # it encodes every refit trajectory
     new, history = refit_predictor(model, config, device=device)
     walls = generate_trajectories(400, seed=778)  # notebook 06's wall test
     with torch.no_grad():

@@ -187,12 +187,14 @@ def train_or_load(config: WorldTrainConfig, name: str,
     return model.eval(), history
 
 
-def load_world_model(path: str | Path, config: WorldConfig | None = None) -> WorldModel:
+def load_world_model(path: str | Path, config: WorldConfig | None = None,
+                     device: torch.device | str | None = None) -> WorldModel:
     """The trained model saved at ``path`` by :func:`main` (or by any ``{"model": state_dict}``).
 
     With ``config``, the checkpoint must have been trained with exactly that
     architecture; a mismatch raises a ``ValueError`` naming each difference.
-    Returns the model in eval mode, on the CPU.
+    Returns the model in eval mode on ``device`` (default: the best available,
+    cuda, mps, cpu).
     """
     state = load_checkpoint(path)
     weights = state.get("model") if isinstance(state, dict) else None
@@ -200,10 +202,11 @@ def load_world_model(path: str | Path, config: WorldConfig | None = None) -> Wor
         raise ValueError(f"{path} holds no world model (expected a file written by "
                          "python -m ebjepa_tutorial.commands.train_world --out PATH)")
     if config is None:
-        return WorldModel.from_state_dict(weights).eval()
-    model = WorldModel(config)
-    model.load_state_dict(weights)
-    return model.eval()
+        model = WorldModel.from_state_dict(weights)
+    else:
+        model = WorldModel(config)
+        model.load_state_dict(weights)
+    return model.to(get_device(device)).eval()
 
 
 # -- a sharper predictor on frozen latents ----------------------------------------------------
