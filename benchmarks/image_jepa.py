@@ -19,7 +19,6 @@ optimiser) and stops.
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
 import time
 from dataclasses import replace
@@ -38,33 +37,31 @@ from ebjepa_tutorial.training.image import (
     make_optimizer,
     train_image_jepa,
 )
+from ebjepa_tutorial.utils import print_parts, time_parts
 
 
-def step_split(config, images: torch.Tensor, repeats: int = 5) -> dict[str, float]:
+def step_split(config, images: torch.Tensor) -> dict[str, float]:
     """Median seconds of each part of one training step of ``config`` on uint8 ``images``."""
     model = BothViews(ImageJEPA(config))
     optimizer = make_optimizer(model, config)
     pipeline = augment.build_augmentation(augment.AugmentConfig(size=config.image_size))
-    parts = {name: [] for name in ("augmentation", "forward", "loss", "backward", "optimiser")}
-    for repeat in range(repeats + 1):  # the first step warms up
+
+    def step(repeat: int):
         generator = torch.Generator().manual_seed(repeat)
-        marks = [time.perf_counter()]
         index = torch.randint(0, len(images), (config.batch_size,), generator=generator)
         views = augment.two_views(images[index], pipeline, generator)
-        marks.append(time.perf_counter())
+        yield "augmentation"
         z_a, z_b = model(*views)
-        marks.append(time.perf_counter())
+        yield "forward"
         loss, _ = jepa_loss(config, z_a, z_b, generator)
-        marks.append(time.perf_counter())
+        yield "loss"
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        marks.append(time.perf_counter())
+        yield "backward"
         optimizer.step()
-        marks.append(time.perf_counter())
-        if repeat:
-            for name, start, end in zip(parts, marks, marks[1:]):
-                parts[name].append(end - start)
-    return {name: statistics.median(times) for name, times in parts.items()}
+        yield "optimiser"
+
+    return time_parts(step)
 
 
 def main() -> None:
@@ -92,12 +89,8 @@ def main() -> None:
     test = random_subset(*load_cifar10("test"), preset.test_images)
     print(f"{args.scale} scale, {config}")
     if args.split:
-        parts = step_split(config, train[0])
-        total = sum(parts.values())
-        print(f"one step of {config.batch_size} images x 2 views of {config.image_size} px: "
-              f"{total:.3f} s")
-        for name, seconds in parts.items():
-            print(f"  {name:12s} {seconds:.3f} s  {100 * seconds / total:4.1f}%")
+        print_parts(f"one step of {config.batch_size} images x 2 views of {config.image_size} "
+                    "px", step_split(config, train[0]))
         return
     print(f"evaluation: {protocol(config)}")
 

@@ -33,6 +33,7 @@ from ebjepa_tutorial.losses import variance_and_covariance
 from ebjepa_tutorial.losses.rollout import rollout_loss
 from ebjepa_tutorial.models.video import VideoJEPA
 from ebjepa_tutorial.training.video import VIDEO_CONFIGS, train_video_jepa, video_jepa_loss
+from ebjepa_tutorial.utils import print_parts, time_parts
 
 
 def load_digits() -> torch.Tensor:
@@ -70,33 +71,29 @@ def time_step(batch_size: int, repeats: int = 3) -> float:
     return min(times[1:])
 
 
-def step_split(batch_size: int, repeats: int = 5) -> dict[str, float]:
+def step_split(batch_size: int) -> dict[str, float]:
     """Median seconds of each part of one class-scale training step (forward parts, backward)."""
     config = replace(VIDEO_CONFIGS["class"], batch_size=batch_size)
     model = VideoJEPA(config.model)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
     frames = torch.randint(0, 256, (batch_size, 10, 1, 64, 64), dtype=torch.uint8)
-    parts = {name: [] for name in ("encoder", "rollout", "projector+regulariser", "backward",
-                                   "optimiser")}
-    for repeat in range(repeats + 1):  # the first step warms up
-        marks = [time.perf_counter()]
+
+    def step(repeat: int):
         z = model.encode(frames)
-        marks.append(time.perf_counter())
+        yield "encoder"
         prediction = rollout_loss(model.predictor, z, config.model.context,
                                   config.rollout_steps, config.tbptt)
-        marks.append(time.perf_counter())
+        yield "rollout"
         variance, covariance = variance_and_covariance(model.project(z))
         loss = prediction + config.std_coeff * variance + config.cov_coeff * covariance
-        marks.append(time.perf_counter())
+        yield "projector+regulariser"
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        marks.append(time.perf_counter())
+        yield "backward"
         optimizer.step()
-        marks.append(time.perf_counter())
-        if repeat:
-            for name, start, end in zip(parts, marks, marks[1:]):
-                parts[name].append(end - start)
-    return {name: statistics.median(times) for name, times in parts.items()}
+        yield "optimiser"
+
+    return time_parts(step)
 
 
 def model_benchmark(train_digits, held_out, steps: int, batch_size: int, eval_clips: int):
@@ -135,11 +132,8 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     if args.split:
-        parts = step_split(args.batch)
-        total = sum(parts.values())
-        print(f"one class-scale step at batch {args.batch} x 10 frames: {total:.3f} s")
-        for name, seconds in parts.items():
-            print(f"  {name:22s} {seconds:.3f} s  {100 * seconds / total:4.1f}%")
+        print_parts(f"one class-scale step at batch {args.batch} x 10 frames",
+                    step_split(args.batch))
 
     train_digits, held_out = split_digits(load_digits(), n_train=8000)
     time_generator(train_digits, 64, args.frames, seed=0)  # warm-up

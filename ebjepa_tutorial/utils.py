@@ -1,10 +1,13 @@
-"""Device choice, precision and seeding, used by every notebook."""
+"""Device choice, precision, seeding and timing, used by every notebook and benchmark."""
 
 from __future__ import annotations
 
 import contextlib
 import math
 import random
+import statistics
+import time
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import torch
@@ -41,6 +44,31 @@ def at_least_float32(x: torch.Tensor) -> torch.Tensor:
 def memory_format(device: torch.device | str) -> torch.memory_format:
     """``channels_last`` for convolutions on a CUDA GPU (faster there); the default elsewhere."""
     return torch.channels_last if torch.device(device).type == "cuda" else torch.contiguous_format
+
+
+def time_parts(step: Callable[[int], Iterator[str]], repeats: int = 5) -> dict[str, float]:
+    """Median seconds of each part of a step: ``{part: seconds}``, in the step's order.
+
+    ``step(repeat)`` is a generator that does one step and yields each part's
+    name as that part ends. It runs ``repeats + 1`` times; the first warms up.
+    """
+    times: dict[str, list[float]] = {}
+    for repeat in range(repeats + 1):
+        start = time.perf_counter()
+        for name in step(repeat):
+            end = time.perf_counter()
+            if repeat:
+                times.setdefault(name, []).append(end - start)
+            start = end
+    return {name: statistics.median(seconds) for name, seconds in times.items()}
+
+
+def print_parts(title: str, parts: dict[str, float]) -> None:
+    """Print :func:`time_parts`' result under ``title``: seconds and share of each part."""
+    total = sum(parts.values())
+    print(f"{title}: {total:.3f} s")
+    for name, seconds in parts.items():
+        print(f"  {name:22s} {seconds:.3f} s  {100 * seconds / total:4.1f}%")
 
 
 def seed_everything(seed: int) -> torch.Generator:
