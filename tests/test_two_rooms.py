@@ -301,6 +301,31 @@ def test_same_seed_same_data():
     assert not torch.equal(a.positions, generate_trajectories(64, seed=8).positions)
 
 
+def test_wall_starts_face_the_wall_away_from_the_door_and_leave_other_data_alone():
+    base = generate_trajectories(2000, seed=3)
+    more = generate_trajectories(2000, seed=3, wall_fraction=0.25)
+    assert torch.equal(base.door, more.door) and torch.equal(base.layouts, more.layouts)
+    moved = (base.positions[:, 0] != more.positions[:, 0]).any(-1)
+    assert moved.sum() == 500 and not (moved & more.door).any()
+    start, layouts = more.positions[moved, 0], more.layouts[moved].float()
+    check_positions(start, more.layouts[moved])
+    gap = (start[:, 0] - layouts[:, 0]).abs() - 2.5  # from the face of the slab
+    assert gap.min() >= 0.5 - 1e-4 and gap.max() <= 4 + 1e-4
+    assert (start[:, 1] - layouts[:, 1]).abs().min() >= 10.5 - 1e-4  # 6 px beyond the door
+    towards = (layouts[:, 0] - start[:, 0]).sign() * more.actions[moved, 0, 0]
+    assert (towards > 0).all()  # the first step heads at the wall
+
+    def stopped_by_the_middle_wall(d):  # the share of steps whose x the middle wall cut short
+        cut = ((d.positions[:, 1:, 0] - d.positions[:, :-1, 0])
+               - clip_actions(d.actions)[..., 0]).abs() > 0.05
+        at_wall = (d.positions[:, 1:, 0] - d.layouts[:, :1]).abs() < 3
+        return (cut & at_wall).float().mean()
+
+    assert stopped_by_the_middle_wall(more) > 3 * stopped_by_the_middle_wall(base)
+    with pytest.raises(ValueError, match="sum <= 1"):
+        generate_trajectories(10, wall_fraction=0.7)
+
+
 # ----------------------------------------------------------------- episodes
 
 

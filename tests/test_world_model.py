@@ -249,6 +249,45 @@ def test_a_sigreg_world_model_trains_and_older_runs_read_as_without_it():
     assert upgrade_identity(before) == identity(WorldTrainConfig())
 
 
+def test_training_windows_are_consecutive_frames_of_one_trajectory_at_any_offset():
+    from ebjepa_tutorial.envs import transition
+    from ebjepa_tutorial.training.world import random_windows
+
+    data = generate_trajectories(40, seed=1)
+    index = torch.arange(40).repeat(5)
+    positions, actions = random_windows(data, index, 9, torch.Generator().manual_seed(0))
+    assert positions.shape == (200, 9, 2) and actions.shape == (200, 8, 2)
+    for t in range(8):  # each window replays through the one transition function
+        assert torch.equal(transition(positions[:, t], actions[:, t], data.layouts[index]),
+                           positions[:, t + 1])
+    # every window is a slice of its own trajectory, and the offsets reach both ends
+    offsets = (data.positions[index, :9] != positions).any(-1).any(-1)
+    assert offsets.any() and not offsets.all()
+    assert (positions[:, -1] == data.positions[index, -1]).all(-1).any()
+
+
+def test_a_windowed_channels_last_run_trains_and_older_runs_read_as_whole_trajectories():
+    from ebjepa_tutorial.training.world import (
+        WorldTrainConfig,
+        identity,
+        train_world_model,
+        upgrade_identity,
+    )
+
+    config = WorldTrainConfig(model=tiny_model().config, n_trajectories=16, batch_size=4,
+                              steps=2, window=9, channels_last=True, wall_fraction=0.25)
+    _, history = train_world_model(config, progress=False, device="cpu")
+    assert len(history["loss"]) == 2 and all(math.isfinite(v) for v in history["loss"])
+    before = identity(WorldTrainConfig())
+    for name in ("window", "channels_last", "wall_fraction"):
+        del before[name]
+    assert upgrade_identity(before) == identity(WorldTrainConfig())
+    with pytest.raises(ValueError, match="rollout_steps"):
+        WorldTrainConfig(window=5)
+    with pytest.raises(ValueError, match="wall_fraction"):
+        WorldTrainConfig(wall_fraction=0.9)
+
+
 # -- the probe ---------------------------------------------------------------------------
 def test_probe_on_an_invertible_map_of_positions_is_exact():
     g = torch.Generator().manual_seed(0)

@@ -31,6 +31,8 @@ import torch
 
 from .two_rooms import (
     DOT_MARGIN,
+    HIGH,
+    LOW,
     WALL_WIDTH,
     as_generator,
     random_layouts,
@@ -93,6 +95,28 @@ def door_starts(layouts: torch.Tensor, generator: torch.Generator):
     return torch.stack([x, y], dim=-1), heading
 
 
+def wall_starts(layouts: torch.Tensor, generator: torch.Generator):
+    """Starts in front of the middle wall, away from the door, heading into it.
+
+    layouts (B, 2) -> positions (B, 2), headings (B,) in radians. The dot starts
+    0.5 to 4 px from the wall's face on a random side, on a row at least 6 px
+    from the door's edge, and heads at the wall within 60 degrees of straight on,
+    so most of these trajectories are stopped by the wall in their first steps.
+    """
+    n = len(layouts)
+    wall_x, door_y = layouts.float().unbind(-1)
+    side = torch.randint(0, 2, (n,), generator=generator).float() * 2 - 1  # -1 left, +1 right
+    gap = 0.5 + 3.5 * torch.rand(n, generator=generator)
+    x = wall_x + side * (WALL_WIDTH / 2 + DOT_MARGIN + gap)
+    # rows beyond the door's edge (door_y +- 4.5) by 6 px, up to the arena's edge
+    above, below = (door_y - 10.5 - LOW).clamp_min(0), (HIGH - door_y - 10.5).clamp_min(0)
+    u = torch.rand(n, generator=generator) * (above + below)
+    y = torch.where(u < above, LOW + u, door_y + 10.5 + (u - above))
+    straight_on = torch.where(side > 0, math.pi, 0.0)  # from the right room, head left
+    heading = straight_on + (torch.rand(n, generator=generator) * 2 - 1) * math.pi / 3
+    return torch.stack([x, y], dim=-1), heading
+
+
 @dataclass
 class Trajectories:
     """N trajectories of T+1 frames.
@@ -133,6 +157,7 @@ def generate_trajectories(
     steps: int = 16,
     seed=0,
     door_fraction: float = 0.35,
+    wall_fraction: float = 0.0,
     kappa: float = 5.0,
     step_mean: float = 1.0,
     step_std: float = 0.4,
@@ -141,12 +166,14 @@ def generate_trajectories(
     """``n`` random-walk trajectories of ``steps`` actions (``steps + 1`` frames).
 
     ``seed``: an int or a torch.Generator. Exactly ``round(door_fraction * n)``
-    trajectories start at the door (chosen at random).
+    trajectories start at the door (chosen at random), and ``round(wall_fraction * n)``
+    of the others in front of the middle wall, heading into it (:func:`wall_starts`).
     """
     if not isinstance(n, int) or n < 1 or not isinstance(steps, int) or steps < 1:
         raise ValueError(f"n and steps must be positive ints, got n={n!r}, steps={steps!r}")
-    if not 0 <= door_fraction <= 1:
-        raise ValueError(f"door_fraction must be in [0, 1], got {door_fraction}")
+    if not (0 <= door_fraction and 0 <= wall_fraction and door_fraction + wall_fraction <= 1):
+        raise ValueError("door_fraction and wall_fraction must be >= 0 with a sum <= 1, got "
+                         f"{door_fraction} and {wall_fraction}")
     generator = as_generator(seed)
     layouts = random_layouts(n, generator)
     door = torch.zeros(n, dtype=torch.bool)
@@ -156,6 +183,11 @@ def generate_trajectories(
     door_start, door_heading = door_starts(layouts, generator)
     start = torch.where(door[:, None], door_start, start)
     heading = torch.where(door, door_heading, heading)
+    if wall_fraction:  # drawn last, so that without it the data is unchanged
+        others = (~door).nonzero().squeeze(1)
+        wall = others[torch.randperm(len(others), generator=generator)[: round(wall_fraction * n)]]
+        wall_start, wall_heading = wall_starts(layouts[wall], generator)
+        start[wall], heading[wall] = wall_start, wall_heading
     turns = sample_von_mises(kappa, (n, steps - 1), generator)
     headings = heading[:, None] + torch.cat([torch.zeros(n, 1), turns.cumsum(dim=1)], dim=1)
     lengths = sample_truncated_normal(step_mean, step_std, *step_range, (n, steps), generator)
