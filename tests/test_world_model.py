@@ -603,8 +603,13 @@ def test_command_line_trains_the_run_of_a_scale(tmp_path, monkeypatch):
                         lambda model: {"probe_px": 1.5, "baseline_px": 20.0})
     train_world.main(["--scale", "ci", "--out", str(tmp_path / "ci.pt")])
     assert seen["config"] == preset("05", "ci").train
-    with pytest.raises(SystemExit):
-        train_world.main(["--refit", "x.pt", "--scale", "ci", "--out", "y.pt"])
+    train_world.main(["--scale", "ci", "--out", str(tmp_path / "ci.pt"), "--window", "9",
+                      "--wall-fraction", "0.25", "--channels-last"])
+    assert seen["config"] == replace(preset("05", "ci").train, window=9, wall_fraction=0.25,
+                                     channels_last=True)
+    for option in (["--scale", "ci"], ["--window", "9"], ["--channels-last"]):
+        with pytest.raises(SystemExit):
+            train_world.main(["--refit", "x.pt", "--out", "y.pt", *option])
     with pytest.raises(SystemExit):  # a usage message, not a traceback
         train_world.main(["--out", "y.pt", "--steps", "0"])
 

@@ -77,20 +77,32 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--prediction-starts", choices=PREDICTION_STARTS,
                         help="roll the prediction loss out from the first frame (default) or "
                              "from every frame with K after it (the paper's Eq. 8)")
+    parser.add_argument("--wall-fraction", type=float,
+                        help="the share of trajectories that start in front of the middle wall, "
+                             "heading into it (default 0, the paper's data)")
+    parser.add_argument("--window", type=int,
+                        help="train on windows of this many frames cut at random offsets "
+                             "(default 0: whole 17-frame trajectories)")
+    parser.add_argument("--channels-last", action="store_true",
+                        help="convolutions in channels_last (faster on CPUs too; changes the sums)")
     parser.add_argument("--seed", type=int,
                         help=f"default {WorldTrainConfig.seed} ({RefitConfig.seed} with --refit)")
     launch.add_flags(parser, sync_bn=False)  # no batch norm in the world model
     args = parser.parse_args(argv)
     given = {name: value for name, value in (("steps", args.steps), ("seed", args.seed),
                                               ("n_trajectories", args.trajectories),
-                                              ("prediction_starts", args.prediction_starts))
+                                              ("prediction_starts", args.prediction_starts),
+                                              ("wall_fraction", args.wall_fraction),
+                                              ("window", args.window),
+                                              ("channels_last", args.channels_last or None))
              if value is not None}
     if args.refit:
+        training_only = ("prediction_starts", "wall_fraction", "window", "channels_last")
         if (args.without or args.no_inverse_dynamics or args.coeff or args.decay_steps
-                or args.scale or args.prediction_starts):
+                or args.scale or any(name in given for name in training_only)):
             parser.error("--refit keeps the trained model's encoder: --scale, --without, "
-                         "--no-inverse-dynamics, --coeff, --decay-steps and "
-                         "--prediction-starts do not apply")
+                         "--no-inverse-dynamics, --coeff, --decay-steps, --prediction-starts, "
+                         "--wall-fraction, --window and --channels-last do not apply")
         if args.ddp or distributed.launched_by_torchrun():
             parser.error("--refit runs in one process (a small MLP on precomputed latents): "
                          "start it with python -m, without torchrun or --ddp")
