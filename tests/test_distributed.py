@@ -456,13 +456,18 @@ def test_torchrun_trains_the_video_command_on_two_processes(tmp_path, monkeypatc
 
 
 @pytest.mark.slow  # two processes train 4 steps, then rank 0 fits and scores the position probe
-def test_torchrun_trains_the_world_command_on_two_processes(tmp_path):
+@pytest.mark.parametrize("flags, changes", [
+    ([], {}),
+    (["--window", "9", "--wall-fraction", "0.25", "--channels-last"],  # each rank renders its
+     {"window": 9, "wall_fraction": 0.25, "channels_last": True}),  # rows of the global windows
+])
+def test_torchrun_trains_the_world_command_on_two_processes(tmp_path, flags, changes):
     out = tmp_path / "world.pt"
-    done = torchrun("train_world", "--scale", "ci", "--steps", "4", "--out", str(out))
+    done = torchrun("train_world", "--scale", "ci", "--steps", "4", "--out", str(out), *flags)
     assert done.returncode == 0, done.stderr[-3000:]
     assert "on 2 process(es)" in done.stdout and done.stdout.count("saved") == 1
     stored = load_checkpoint(out)
-    config = replace(preset("05", "ci").train, steps=4)
+    config = replace(preset("05", "ci").train, steps=4, **changes)
     assert stored["config"] == world.identity(config) and stored["processes"] == 2
     assert stored["history"]["step"] == [0, 3]  # logged every 10 steps and the last
     world.load_world_model(out, config.model)

@@ -181,12 +181,13 @@ def train_world_model(
     def batch(step: int):
         generator = step_generator(config.seed, step)  # then draws still steps and SIGReg's
         index = torch.randint(0, len(data), (config.batch_size,), generator=generator)
-        index = distributed.local_rows(index)  # every rank drew the global batch: keep ours
         if not config.window:
+            index = distributed.local_rows(index)  # every rank drew the global batch: keep ours
             return data.frames(index, out=buffer).to(device), data.actions[index].to(device), generator
-        positions, actions = random_windows(data, index, config.window, generator)
-        frames = render(positions, data.layouts[index], out=buffer)
-        return frames.to(device), actions.to(device), generator
+        # the global batch's windows (positions only: cheap), then this rank's rows rendered
+        windows = (*random_windows(data, index, config.window, generator), data.layouts[index])
+        positions, actions, layouts = (distributed.local_rows(x) for x in windows)
+        return render(positions, layouts, out=buffer).to(device), actions.to(device), generator
 
     fit(model, optimizer, lambda step_batch: net(*step_batch), batch, config.steps,
         scheduler=scheduler, history=history, start_step=start, checkpoint=checkpoint,
