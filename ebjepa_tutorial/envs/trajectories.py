@@ -80,6 +80,17 @@ def sample_truncated_normal(mean, std, low, high, shape, generator) -> torch.Ten
     return (mean + std * torch.special.ndtri(u)).clamp(low, high).float()
 
 
+def in_front_of_the_wall(wall_x: torch.Tensor, generator: torch.Generator):
+    """Columns 0.5 to 4 px in front of the middle wall's face, on a random side.
+
+    wall_x (B,) float -> x (B,), side (B,): -1 left of the wall, +1 right.
+    """
+    n = len(wall_x)
+    side = torch.randint(0, 2, (n,), generator=generator).float() * 2 - 1
+    gap = 0.5 + 3.5 * torch.rand(n, generator=generator)  # px from the wall's face
+    return wall_x + side * (WALL_WIDTH / 2 + DOT_MARGIN + gap), side
+
+
 def door_starts(layouts: torch.Tensor, generator: torch.Generator):
     """Starts in front of the door, aimed at it.
 
@@ -87,9 +98,7 @@ def door_starts(layouts: torch.Tensor, generator: torch.Generator):
     """
     n = len(layouts)
     wall_x, door_y = layouts.float().unbind(-1)
-    side = torch.randint(0, 2, (n,), generator=generator).float() * 2 - 1  # -1 left, +1 right
-    gap = 0.5 + 3.5 * torch.rand(n, generator=generator)  # px from the wall's face
-    x = wall_x + side * (WALL_WIDTH / 2 + DOT_MARGIN + gap)
+    x, _ = in_front_of_the_wall(wall_x, generator)
     y = door_y + 4 * torch.rand(n, generator=generator) - 2
     heading = torch.atan2(door_y - y, wall_x - x)
     return torch.stack([x, y], dim=-1), heading
@@ -105,9 +114,7 @@ def wall_starts(layouts: torch.Tensor, generator: torch.Generator):
     """
     n = len(layouts)
     wall_x, door_y = layouts.float().unbind(-1)
-    side = torch.randint(0, 2, (n,), generator=generator).float() * 2 - 1  # -1 left, +1 right
-    gap = 0.5 + 3.5 * torch.rand(n, generator=generator)
-    x = wall_x + side * (WALL_WIDTH / 2 + DOT_MARGIN + gap)
+    x, side = in_front_of_the_wall(wall_x, generator)
     # rows beyond the door's edge (door_y +- 4.5) by 6 px, up to the arena's edge
     above, below = (door_y - 10.5 - LOW).clamp_min(0), (HIGH - door_y - 10.5).clamp_min(0)
     u = torch.rand(n, generator=generator) * (above + below)
