@@ -43,7 +43,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from types import SimpleNamespace
 
 import torch
@@ -57,7 +57,16 @@ from .envs import (
     clip_actions,
     make_episodes,
 )
-from .envs.two_rooms import HIGH, LOW, render, transition, wall_bounds
+from .envs.two_rooms import (
+    HIGH,
+    LOW,
+    random_layouts,
+    render,
+    sample_positions,
+    transition,
+    wall_bounds,
+    wall_collision,
+)
 from .evaluation.metrics import wilson_interval
 from .utils import check_fields, is_int_at_least, is_positive
 
@@ -86,6 +95,10 @@ class PlannerConfig:
     # White noise averages out over a plan and does not explore far enough around the wall.
     noise_period: int = 8
     action_bound: float = MAX_STEP  # sampled steps are clipped to the longest in the data, px
+    # Arrived: while the current state is within stop_px of the goal as the model sees it
+    # (arrival_distance), the agent stands still and plans nothing. 0: plan at every re-plan
+    # until the step budget ends, as the paper's agent does.
+    stop_px: float = 0.0
 
     def __post_init__(self):
         if self.method not in METHODS or self.cost not in COSTS:
@@ -104,6 +117,9 @@ class PlannerConfig:
         if self.min_std > self.max_std:
             raise ValueError(f"min_std ({self.min_std}) cannot exceed max_std ({self.max_std}): "
                              "they are the range the updated spread is clamped to")
+        if not (math.isfinite(self.stop_px) and self.stop_px >= 0):
+            raise ValueError(f"stop_px must be a finite number >= 0 (0: never stop), got "
+                             f"{self.stop_px!r}")
         if not isinstance(self.update_std, bool):
             raise ValueError(f"update_std must be True or False, got {self.update_std!r}")
 
@@ -380,6 +396,26 @@ def episode_generators(seeds: Sequence[int]) -> tuple[Episodes, list[torch.Gener
 
 
 @torch.no_grad()
+def arrival_distance(model, px: float, n: int = 512, seed: int = 0) -> float:
+    """The latent distance that means "within ``px`` of the goal" to ``model``.
+
+    The median of ``||Enc(o') - Enc(o)||`` over ``n`` random frames ``o`` (fresh
+    layouts, dots anywhere on the floor) and ``o'``, the same frame with the dot
+    moved ``px`` in a random direction (a wall may cut the move short). Rendering
+    positions here calibrates the model once; an agent that stops below this
+    distance still decides from its observation and the goal image alone.
+    """
+    generator = torch.Generator().manual_seed(seed)
+    layouts = random_layouts(n, generator)
+    here = sample_positions(layouts, generator)
+    angle = 2 * math.pi * torch.rand(n, generator=generator)
+    there = wall_collision(here, px * torch.stack([angle.cos(), angle.sin()], dim=-1), layouts)
+    device = next(model.parameters()).device
+    z_here, z_there = (model.encode(render(p, layouts).to(device)) for p in (here, there))
+    return (z_there - z_here).norm(dim=-1).median().item()
+
+
+@torch.no_grad()
 def run_episodes(model, seeds: Sequence[int], config: PlannerConfig = PlannerConfig(),
                  steps: int = EPISODE_STEPS, radius: float = SUCCESS_RADIUS,
                  batch: int | None = None, world: str = "learned") -> EpisodeResults:
@@ -391,17 +427,30 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig = PlannerCon
     count reproduce the paths exactly (other batches: see the module docstring
     on rounding). ``world`` says what the planner imagines with:
     ``"learned"``, the world model (the real task); ``"true"`` and
-    ``"true_xy"``, the diagnoses of :class:`TrueDynamics`.
+    ``"true_xy"``, the diagnoses of :class:`TrueDynamics`. With ``config.stop_px``
+    the model's :func:`arrival_distance` is calibrated once, its CPU time counted.
     """
     if world not in WORLDS:
         raise ValueError(f"world must be one of {WORLDS}, got {world!r}")
+    if config.stop_px and world != "learned":
+        raise ValueError("stop_px calibrates the learned world's latent distance; "
+                         f"use stop_px=0 with world={world!r}")
     seeds = list(seeds)
     batch = batch or len(seeds)
-    if batch < len(seeds):
-        return EpisodeResults.concat([
-            run_episodes(model, seeds[i:i + batch], config, steps, radius, world=world)
-            for i in range(0, len(seeds), batch)])
     model.eval()
+    cpu, wall = time.process_time(), time.perf_counter()
+    arrived = arrival_distance(model, config.stop_px) if config.stop_px else None
+    cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
+    result = EpisodeResults.concat([
+        _run_batch(model, seeds[i:i + batch], config, steps, radius, world, arrived)
+        for i in range(0, len(seeds), batch)])
+    return replace(result, cpu_seconds=result.cpu_seconds + cpu,
+                   wall_seconds=result.wall_seconds + wall)
+
+
+def _run_batch(model, seeds: list[int], config: PlannerConfig, steps: int, radius: float,
+               world: str, arrived: float | None) -> EpisodeResults:
+    """:func:`run_episodes` for one batch, all at once; ``arrived``: the stopping distance."""
     device = next(model.parameters()).device
     episodes, generators = episode_generators(seeds)
     env = TwoRoomsEnv(device)
@@ -414,15 +463,22 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig = PlannerCon
         z_goal = imagine.embed(env.goals)
     paths = [env.positions.cpu()]
     first = torch.full((len(seeds),), -1, dtype=torch.long)
-    mean = None
+    mean = z_goal.new_zeros(len(seeds), config.horizon, model.config.action_dim)
+    everyone = torch.arange(len(seeds), device=mean.device)
     while env.steps_taken < steps:
         start = model.encode(observation) if world == "learned" else env.positions
-        result = plan(imagine, start, z_goal, config, generators, mean)
-        for action in result.mean[:, : min(config.execute, steps - env.steps_taken)].unbind(1):
+        moving = everyone
+        if arrived is not None:  # the arrived episodes stand still (zero actions), unplanned
+            under_way = (start - z_goal).norm(dim=-1) >= arrived  # (B,)
+            mean, moving = torch.where(under_way[:, None, None], mean, 0.0), everyone[under_way]
+        if len(moving):
+            mean[moving] = plan(imagine, start[moving], z_goal[moving], config,
+                                [generators[i] for i in moving.tolist()], mean[moving]).mean
+        for action in mean[:, : min(config.execute, steps - env.steps_taken)].unbind(1):
             observation = env.step(action)
             paths.append(env.positions.cpu())
             first[(first < 0) & env.success(radius).cpu()] = env.steps_taken
-        mean = shift_plan(result.mean, config.execute)
+        mean = shift_plan(mean, config.execute)
     return EpisodeResults(seeds, episodes, torch.stack(paths, dim=1),
                           env.success(radius).cpu(), first,
                           time.process_time() - cpu, time.perf_counter() - wall)

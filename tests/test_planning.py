@@ -199,7 +199,8 @@ def test_wilson_interval_by_hand():
 @pytest.mark.parametrize("kwargs, words", [
     (dict(horizon=0), "horizon"), (dict(samples=0), "samples"), (dict(elites=300), "elites"),
     (dict(method="adam"), "method"), (dict(execute=100), "execute"),
-    (dict(temperature=0.0), "temperature"),
+    (dict(temperature=0.0), "temperature"), (dict(stop_px=-1.0), "stop_px"),
+    (dict(stop_px=float("nan")), "stop_px"),
 ])
 def test_bad_planner_configs_name_the_problem(kwargs, words):
     with pytest.raises(ValueError, match=words):
@@ -403,3 +404,36 @@ def test_plans_and_energy_maps_are_computed_on_the_models_device():
     assert energy.device.type == "cpu" and (energy[energy.isfinite()] == 0).all()
     rings = planning.energy_by_distance(model, episodes, spacing=8.0)
     assert rings.device.type == "cpu"
+
+
+def test_the_arrival_distance_of_a_position_latent_is_the_distance_moved():
+    model = LinearLatentModel()  # its latent is the dot's centre in px
+    for px in (0.5, 2.0, 3.0):  # walls shorten a few moves; the median is the free move
+        assert planning.arrival_distance(model, px) == pytest.approx(px, abs=1e-3)
+
+
+def test_an_arrived_agent_stands_still_and_plans_no_more(monkeypatch):
+    planned = []
+
+    def counting_plan(imagine, z0, *args, **kwargs):
+        planned.append(len(z0))
+        return planning_plan(imagine, z0, *args, **kwargs)
+
+    planning_plan = planning.plan
+    monkeypatch.setattr(planning, "plan", counting_plan)
+    model, seeds = LinearLatentModel(), range(6)
+    config = PlannerConfig(horizon=16, samples=64, elites=8, iterations=3, execute=4, stop_px=2.0)
+    result = planning.run_episodes(model, seeds, config, steps=120, world="learned")
+    arrived = planning.arrival_distance(model, 2.0)
+    at_replans = result.paths[:, ::config.execute][:, :-1]  # (B, re-plans, 2)
+    layouts = result.episodes.layouts
+    here = torch.stack([model.encode(render(p, layouts)) for p in at_replans.unbind(1)], 1)
+    goal = model.encode(result.episodes.goal_images())
+    stands = (here - goal[:, None]).norm(dim=-1) < arrived  # (B, re-plans)
+    assert stands.any(), "no episode arrived: the test shows nothing"
+    moves = (result.paths[:, 1:] - result.paths[:, :-1]).norm(dim=-1).view(len(seeds), -1, 4)
+    assert (moves[stands] == 0).all()  # the four steps after each arrived re-plan
+    assert sum(planned) == (~stands).sum()  # only the episodes under way were planned
+    assert result.success[stands.any(1)].all()  # 2 px from the goal is inside the 4.5 px radius
+    with pytest.raises(ValueError, match="stop_px"):
+        planning.run_episodes(model, [0], config, world="true_xy")
