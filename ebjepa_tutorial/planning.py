@@ -85,6 +85,9 @@ class PlannerConfig:
     samples: int = 200  # N, action sequences per iteration
     elites: int = 20  # Q, the best of them that move the plan
     iterations: int = 6  # J, refinements per re-plan
+    # refinements of every re-plan after an episode's first, which starts from the previous
+    # plan (warm) rather than from standing still; 0: J as well, as the paper
+    warm_iterations: int = 0
     temperature: float = 0.05  # tau, MPPI's softness (latent-distance units)
     init_std: float = 1.5  # spread of the sampled actions at the start of a re-plan, px
     update_std: bool = True  # False: keep init_std for every iteration (move the mean only)
@@ -107,6 +110,9 @@ class PlannerConfig:
         check_fields(self, {name: (is_int_at_least(1), "an int >= 1") for name in
                             ("horizon", "samples", "elites", "iterations", "execute",
                              "noise_period")})
+        if not is_int_at_least(0)(self.warm_iterations):
+            raise ValueError(f"warm_iterations must be an int >= 0 (0: iterations), got "
+                             f"{self.warm_iterations!r}")
         if self.elites > self.samples:
             raise ValueError(f"elites (Q={self.elites}) cannot exceed samples (N={self.samples})")
         if self.execute > self.horizon:
@@ -465,6 +471,7 @@ def _run_batch(model, seeds: list[int], config: PlannerConfig, steps: int, radiu
     first = torch.full((len(seeds),), -1, dtype=torch.long)
     mean = z_goal.new_zeros(len(seeds), config.horizon, model.config.action_dim)
     everyone = torch.arange(len(seeds), device=mean.device)
+    replanning = config  # the first plan of each episode starts cold, with J iterations
     while env.steps_taken < steps:
         start = model.encode(observation) if world == "learned" else env.positions
         moving = everyone
@@ -472,8 +479,9 @@ def _run_batch(model, seeds: list[int], config: PlannerConfig, steps: int, radiu
             under_way = (start - z_goal).norm(dim=-1) >= arrived  # (B,)
             mean, moving = torch.where(under_way[:, None, None], mean, 0.0), everyone[under_way]
         if len(moving):
-            mean[moving] = plan(imagine, start[moving], z_goal[moving], config,
+            mean[moving] = plan(imagine, start[moving], z_goal[moving], replanning,
                                 [generators[i] for i in moving.tolist()], mean[moving]).mean
+        replanning = replace(config, iterations=config.warm_iterations or config.iterations)
         for action in mean[:, : min(config.execute, steps - env.steps_taken)].unbind(1):
             observation = env.step(action)
             paths.append(env.positions.cpu())

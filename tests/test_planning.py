@@ -1,6 +1,7 @@
 """MPPI and CEM: the update against its formula, optima of known costs, goals in known dynamics."""
 
 import math
+from dataclasses import replace
 from types import SimpleNamespace
 
 import pytest
@@ -200,7 +201,7 @@ def test_wilson_interval_by_hand():
     (dict(horizon=0), "horizon"), (dict(samples=0), "samples"), (dict(elites=300), "elites"),
     (dict(method="adam"), "method"), (dict(execute=100), "execute"),
     (dict(temperature=0.0), "temperature"), (dict(stop_px=-1.0), "stop_px"),
-    (dict(stop_px=float("nan")), "stop_px"),
+    (dict(stop_px=float("nan")), "stop_px"), (dict(warm_iterations=-1), "warm_iterations"),
 ])
 def test_bad_planner_configs_name_the_problem(kwargs, words):
     with pytest.raises(ValueError, match=words):
@@ -437,3 +438,21 @@ def test_an_arrived_agent_stands_still_and_plans_no_more(monkeypatch):
     assert result.success[stands.any(1)].all()  # 2 px from the goal is inside the 4.5 px radius
     with pytest.raises(ValueError, match="stop_px"):
         planning.run_episodes(model, [0], config, world="true_xy")
+
+
+def test_warm_replans_refine_the_plan_warm_iterations_times(monkeypatch):
+    iterations = []
+
+    def recording_plan(imagine, z0, z_goal, config, *args, **kwargs):
+        iterations.append(config.iterations)
+        return planning_plan(imagine, z0, z_goal, config, *args, **kwargs)
+
+    planning_plan = planning.plan
+    monkeypatch.setattr(planning, "plan", recording_plan)
+    config = PlannerConfig(horizon=8, samples=16, elites=4, iterations=5, warm_iterations=2)
+    planning.run_episodes(LinearLatentModel(), [3, 4], config, steps=12)
+    assert iterations == [5, 2, 2]  # the cold first plan, then one per re-plan
+    iterations.clear()
+    planning.run_episodes(LinearLatentModel(), [3, 4], replace(config, warm_iterations=0),
+                          steps=12)
+    assert iterations == [5, 5, 5]
