@@ -359,3 +359,50 @@ def test_environment_steps_and_scores():
         env.step(torch.zeros(4, 2))
     with pytest.raises(RuntimeError, match="reset"):
         TwoRoomsEnv().observe()
+
+
+# ----------------------------------------------------------------- pinned numbers
+
+
+def test_two_rooms_draws_are_pinned():
+    """Numbers computed by the Two Rooms code before it learned W walls (commit fe26d95).
+
+    Rooms in a row share this code; Two Rooms' data, episodes and layouts must not
+    move by a single draw. Starts, layouts and episodes use only the generator and
+    + - * /, so they are pinned exactly; the walk's end also runs through cos, sin
+    and the inverse normal CDF, whose last bit may differ between CPUs, so it is
+    pinned to 1e-4 px (a changed draw moves it by pixels).
+    """
+    data = generate_trajectories(6, seed=0, wall_fraction=0.25)
+    assert data.layouts.tolist() == [[39, 17], [34, 38], [28, 47], [30, 28], [33, 36], [24, 21]]
+    assert data.door.tolist() == [True, False, False, False, False, True]
+    starts = torch.tensor([
+        [42.85280227661133, 18.17264175415039], [10.51764965057373, 27.083908081054688],
+        [31.537099838256836, 30.549461364746094], [44.67007827758789, 59.61702346801758],
+        [29.154022216796875, 50.543209075927734], [18.145858764648438, 21.793764114379883]])
+    assert torch.equal(data.positions[:, 0], starts)
+    ends = torch.tensor([
+        [29.856271743774414, 20.346826553344727], [22.2994327545166, 33.158103942871094],
+        [31.39856719970703, 45.271331787109375], [56.326934814453125, 62.5],
+        [28.75626564025879, 43.88933563232422], [31.277339935302734, 22.447824478149414]])
+    torch.testing.assert_close(data.positions[:, -1], ends, rtol=0, atol=1e-4)
+
+    episodes = make_episodes(4, seed=1)
+    assert episodes.layouts.tolist() == [[40, 53], [34, 38], [44, 21], [38, 51]]
+    assert torch.equal(episodes.starts, torch.tensor([
+        [56.15228271484375, 36.42079162597656], [10.654484748840332, 31.878158569335938],
+        [20.041824340820312, 58.662086486816406], [50.50969696044922, 41.49129867553711]]))
+    assert torch.equal(episodes.goals, torch.tensor([
+        [12.796688079833984, 22.226320266723633], [41.648502349853516, 33.46038818359375],
+        [53.15907287597656, 50.1818962097168], [11.167207717895508, 48.5778694152832]]))
+    assert torch.equal(TwoRoomsEnv().reset(n=4, seed=1), render(episodes.starts, episodes.layouts))
+
+    g = torch.Generator().manual_seed(5)
+    layouts = random_layouts(4, g)
+    assert layouts.tolist() == [[31, 36], [34, 35], [37, 47], [30, 48]]
+    assert torch.equal(sample_positions(layouts, g), torch.tensor([
+        [3.3628196716308594, 5.917143821716309], [62.174346923828125, 41.71967697143555],
+        [40.459999084472656, 45.115352630615234], [38.115989685058594, 36.83898162841797]]))
+    assert torch.equal(sample_positions(layouts, g, torch.tensor([0, 1, 1, 0])), torch.tensor([
+        [27.985027313232422, 42.355655670166016], [53.40412521362305, 17.449859619140625],
+        [40.80257797241211, 3.983628273010254], [25.42290496826172, 49.387184143066406]]))
