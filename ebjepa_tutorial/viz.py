@@ -373,10 +373,13 @@ def plot_energy_shapes(profiles: dict[str, torch.Tensor], edges, ax=None, title:
 
 
 def draw_two_rooms(ax, layout: torch.Tensor, goal=None, start=None):
-    """The walls of ``layout`` ``(2,)`` on ``ax`` (pixel coordinates), goal and start marked."""
+    """The walls of ``layout`` ``(2W,)`` on ``ax`` (pixel coordinates), goal and start marked.
+
+    ``(2,)`` is Two Rooms; ``(4,)``, Three Rooms, shows both walls.
+    """
     from .envs.two_rooms import wall_images
 
-    walls = wall_images(layout.view(1, 2))[0].float()
+    walls = wall_images(layout.view(1, -1))[0].float()
     ax.imshow(two_rooms_rgb(torch.stack([torch.zeros_like(walls), walls])), origin="upper")
     if goal is not None:
         ax.add_patch(plt.Circle(tuple(goal.tolist()), 4.5, fill=False, color="green", lw=1.5))

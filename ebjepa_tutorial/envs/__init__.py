@@ -1,11 +1,23 @@
 """Environments: the Two Rooms world, its offline data, its evaluation episodes.
 
+The same code runs rooms in a row: a layout (B, 2W) holds W walls; W=2 is
+Three Rooms (``random_layouts(n, g, walls=2)``, ``make_episodes(n, seed, walls=2)``,
+``generate_trajectories(n, walls=2)``).
+
 - ``two_rooms``: geometry, :func:`transition` (the one rule of motion), rendering
 - ``trajectories``: the paper's random-walk data policy, generated in batches
 - ``episodes``: evaluation tasks and :class:`TwoRoomsEnv`, the batch a planner acts in
 """
 
-from .episodes import EPISODE_STEPS, SUCCESS_RADIUS, Episodes, TwoRoomsEnv, make_episodes
+from .episodes import (
+    EPISODE_STEPS,
+    SUCCESS_RADIUS,
+    THREE_ROOMS_EPISODE_STEPS,
+    Episodes,
+    TwoRoomsEnv,
+    make_episodes,
+    step_budget,
+)
 from .trajectories import Trajectories, generate_trajectories, sample_von_mises
 from .two_rooms import (
     IMAGE_SIZE,
@@ -25,6 +37,7 @@ __all__ = [
     "IMAGE_SIZE",
     "MAX_STEP",
     "SUCCESS_RADIUS",
+    "THREE_ROOMS_EPISODE_STEPS",
     "Episodes",
     "Trajectories",
     "TwoRoomsEnv",
@@ -37,6 +50,7 @@ __all__ = [
     "sample_positions",
     "sample_von_mises",
     "step",
+    "step_budget",
     "transition",
     "wall_collision",
 ]

@@ -5,6 +5,22 @@ goal shown as an image (the rendered goal state). It succeeds when the dot
 ends within ``SUCCESS_RADIUS`` = 4.5 px of the goal within ``EPISODE_STEPS`` =
 200 steps. Every episode batch comes from a seed; use many seeds (not the
 reference code's single seed 0) and report a confidence interval.
+
+Three Rooms (``walls=2``): start and goal in the two outer rooms, so every
+path crosses the middle room and both doors; same success radius, a budget of
+``THREE_ROOMS_EPISODE_STEPS`` = 300 steps. The rule: keep Two Rooms' margin
+over a good path. A good path runs in straight segments from the start to the
+first door's mouth, through the doorway along its centre row, on to the next
+door, and to the goal (every segment stays inside one convex room or doorway,
+so :func:`transition` lets it pass); its steps are its length / ``MAX_STEP``.
+
+- Two Rooms: a good path takes 30.1 steps at the median of 200,000 tasks
+  (99th percentile 53.9), 69.9 steps (125.9 px) at worst; 200 is 2.86x the worst.
+- Three Rooms: 42.4 steps at the median (99th percentile 70.2), 94.8 steps
+  (170.7 px) at worst; 2.86 x 94.8 = 271, rounded up to 300 (3.16x the worst).
+
+The worst cases are exact: start and goal in the arena's far corners, doors at
+opposite ends of their range, every wall position tried.
 """
 
 from __future__ import annotations
@@ -23,15 +39,17 @@ from .two_rooms import (
     room_of,
     sample_positions,
     transition,
+    wall_count,
 )
 
 SUCCESS_RADIUS = 4.5
 EPISODE_STEPS = 200
+THREE_ROOMS_EPISODE_STEPS = 300  # Two Rooms' margin over the worst good path; module docstring
 
 
 @dataclass
 class Episodes:
-    """B evaluation tasks: layouts (B, 2) long, starts (B, 2) and goals (B, 2) float32."""
+    """B evaluation tasks: layouts (B, 2W) long, starts (B, 2) and goals (B, 2) float32."""
 
     layouts: torch.Tensor
     starts: torch.Tensor
@@ -58,23 +76,34 @@ class Episodes:
                           for name in ("layouts", "starts", "goals")))
 
 
-def make_episodes(n: int, seed=0) -> Episodes:
-    """``n`` tasks with start and goal in opposite rooms, uniform over each room's floor.
+def make_episodes(n: int, seed=0, walls: int = 1) -> Episodes:
+    """``n`` tasks with start and goal in the two outer rooms, uniform over each room's floor.
 
-    ``seed``: an int or a ``torch.Generator``; the same seed gives the same tasks.
+    ``walls``: 1 for Two Rooms (the rooms are opposite), 2 for Three Rooms (the
+    path crosses the middle room and both doors). Which outer room holds the
+    start is drawn per task. ``seed``: an int or a ``torch.Generator``; the same
+    seed gives the same tasks.
     """
     generator = as_generator(seed)
     if not isinstance(n, int) or n < 1:
         raise ValueError(f"n must be a positive int (number of episodes), got {n!r}")
-    layouts = random_layouts(n, generator)
-    start_rooms = torch.randint(0, 2, (n,), generator=generator)
+    layouts = random_layouts(n, generator, walls)
+    start_rooms = torch.randint(0, 2, (n,), generator=generator) * walls  # 0 or the last room
     starts = sample_positions(layouts, generator, start_rooms)
-    goals = sample_positions(layouts, generator, 1 - start_rooms)
+    goals = sample_positions(layouts, generator, walls - start_rooms)
     return Episodes(layouts, starts, goals)
 
 
+def step_budget(layouts: torch.Tensor) -> int:
+    """The steps an episode of these layouts (B, 2W) may take: 200 with one wall, 300 with two."""
+    budgets, walls = {1: EPISODE_STEPS, 2: THREE_ROOMS_EPISODE_STEPS}, wall_count(layouts)
+    if walls not in budgets:
+        raise ValueError(f"no step budget is set for {walls} walls, only for 1 and 2")
+    return budgets[walls]
+
+
 class TwoRoomsEnv:
-    """A batch of Two Rooms worlds that a planner acts in, all stepped at once.
+    """A batch of Two (or Three) Rooms worlds that a planner acts in, all stepped at once.
 
     >>> env = TwoRoomsEnv()
     >>> obs = env.reset(n=100, seed=1)          # (100, 2, 65, 65)
@@ -82,9 +111,10 @@ class TwoRoomsEnv:
     >>> obs = env.step(torch.zeros(100, 2))      # actions (B, 2), clipped to MAX_STEP
     >>> env.success()                           # (100,) bool
 
-    State: ``positions`` (B, 2), ``goals`` (B, 2), ``layouts`` (B, 2),
+    State: ``positions`` (B, 2), ``goals`` (B, 2), ``layouts`` (B, 2W),
     ``steps_taken`` (int). Steps use :func:`transition`, the same function
-    that made the training data.
+    that made the training data. ``reset(n, seed, walls=2)`` runs Three Rooms;
+    ``step_budget`` is the steps its episodes allow (the caller stops there).
     """
 
     def __init__(self, device: str | torch.device = "cpu"):
@@ -93,9 +123,13 @@ class TwoRoomsEnv:
         self.positions: torch.Tensor | None = None
         self.steps_taken = 0
 
-    def reset(self, n: int = 1, seed=0, episodes: Episodes | None = None) -> torch.Tensor:
-        """Start ``n`` new episodes from ``seed`` (or the given ones); returns observations."""
-        episodes = make_episodes(n, seed) if episodes is None else episodes
+    def reset(self, n: int = 1, seed=0, episodes: Episodes | None = None,
+              walls: int = 1) -> torch.Tensor:
+        """Start ``n`` new episodes of ``walls`` walls from ``seed`` (or the given ones).
+
+        Returns the observations (B, 2, 65, 65).
+        """
+        episodes = make_episodes(n, seed, walls) if episodes is None else episodes
         check_layouts(episodes.layouts)
         check_positions(episodes.starts, episodes.layouts)
         self.episodes = episodes.to(self.device)
@@ -115,6 +149,11 @@ class TwoRoomsEnv:
     @property
     def goals(self) -> torch.Tensor:
         return self._require_reset().goals
+
+    @property
+    def step_budget(self) -> int:
+        """Steps these episodes allow: ``EPISODE_STEPS`` or ``THREE_ROOMS_EPISODE_STEPS``."""
+        return step_budget(self.layouts)
 
     def observe(self) -> torch.Tensor:
         """Current images: (B, 2, 65, 65) float32."""
@@ -141,5 +180,5 @@ class TwoRoomsEnv:
         return self.distance_to_goal() <= radius
 
     def rooms(self) -> torch.Tensor:
-        """Room of each dot, 0 left / 1 right: (B,) long."""
+        """Room of each dot, 0 (leftmost) .. W: (B,) long."""
         return room_of(self.positions, self.layouts)

@@ -18,6 +18,10 @@ start uniformly on the free floor with a uniform heading and rarely change
 rooms, so the data holds crossings without being made of them (notebook 04
 counts them). Each trajectory gets a fresh layout.
 
+Rooms in a row (``walls=2``, Three Rooms): the same policy and starts, a door
+or wall start picking one of the walls at random per trajectory. With
+``walls=1`` no such pick is drawn, so Two Rooms data stay bit for bit as they were.
+
 Trajectories are stored compactly (positions, actions, layouts); render the
 frames on demand, in batches, with :meth:`Trajectories.frames`.
 """
@@ -40,6 +44,7 @@ from .two_rooms import (
     room_of,
     sample_positions,
     transition,
+    wall_count,
 )
 
 
@@ -91,13 +96,27 @@ def in_front_of_the_wall(wall_x: torch.Tensor, generator: torch.Generator):
     return wall_x + side * (WALL_WIDTH / 2 + DOT_MARGIN + gap), side
 
 
-def door_starts(layouts: torch.Tensor, generator: torch.Generator):
-    """Starts in front of the door, aimed at it.
+def one_wall_each(layouts: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    """One wall per row, uniform over its W walls: layouts (B, 2W) -> (B, 2) (wall_x, door_y).
 
-    layouts (B, 2) -> positions (B, 2), headings (B,) in radians.
+    With one wall, the layouts themselves and nothing drawn, so that Two Rooms
+    data keep their random stream.
+    """
+    walls = wall_count(layouts)
+    if walls == 1:
+        return layouts
+    pick = torch.randint(0, walls, (len(layouts),), generator=generator)
+    rows = torch.arange(len(layouts))
+    return layouts.reshape(len(layouts), walls, 2)[rows, pick]
+
+
+def door_starts(layouts: torch.Tensor, generator: torch.Generator):
+    """Starts in front of a door (one of the walls' at random), aimed at it.
+
+    layouts (B, 2W) -> positions (B, 2), headings (B,) in radians.
     """
     n = len(layouts)
-    wall_x, door_y = layouts.float().unbind(-1)
+    wall_x, door_y = one_wall_each(layouts, generator).float().unbind(-1)
     x, _ = in_front_of_the_wall(wall_x, generator)
     y = door_y + 4 * torch.rand(n, generator=generator) - 2
     heading = torch.atan2(door_y - y, wall_x - x)
@@ -105,15 +124,15 @@ def door_starts(layouts: torch.Tensor, generator: torch.Generator):
 
 
 def wall_starts(layouts: torch.Tensor, generator: torch.Generator):
-    """Starts in front of the middle wall, away from the door, heading into it.
+    """Starts in front of a wall (one at random), away from its door, heading into it.
 
-    layouts (B, 2) -> positions (B, 2), headings (B,) in radians. The dot starts
+    layouts (B, 2W) -> positions (B, 2), headings (B,) in radians. The dot starts
     0.5 to 4 px from the wall's face on a random side, on a row at least 6 px
     from the door's edge, and heads at the wall within 60 degrees of straight on,
     so most of these trajectories are stopped by the wall in their first steps.
     """
     n = len(layouts)
-    wall_x, door_y = layouts.float().unbind(-1)
+    wall_x, door_y = one_wall_each(layouts, generator).float().unbind(-1)
     x, side = in_front_of_the_wall(wall_x, generator)
     # rows beyond the door's edge (door_y +- 4.5) by 6 px, up to the arena's edge
     above, below = (door_y - 10.5 - LOW).clamp_min(0), (HIGH - door_y - 10.5).clamp_min(0)
@@ -129,8 +148,8 @@ class Trajectories:
     """N trajectories of T+1 frames.
 
     positions (N, T+1, 2) float32, actions (N, T, 2) float32 (action t moves
-    frame t to frame t+1), layouts (N, 2) long, door (N,) bool: built to go
-    through the door.
+    frame t to frame t+1), layouts (N, 2W) long (W walls), door (N,) bool: built
+    to go through a door.
     """
 
     positions: torch.Tensor
@@ -149,7 +168,7 @@ class Trajectories:
         return render(self.positions[index], self.layouts[index], out=out)
 
     def changes_room(self) -> torch.Tensor:
-        """Whether the last frame is in the other room than the first: (N,) bool."""
+        """Whether the last frame is in another room than the first: (N,) bool."""
         rooms = room_of(self.positions[:, [0, -1]], self.layouts)
         return rooms[:, 0] != rooms[:, 1]
 
@@ -169,12 +188,15 @@ def generate_trajectories(
     step_mean: float = 1.0,
     step_std: float = 0.4,
     step_range: tuple[float, float] = (0.2, 1.8),
+    walls: int = 1,
 ) -> Trajectories:
     """``n`` random-walk trajectories of ``steps`` actions (``steps + 1`` frames).
 
     ``seed``: an int or a torch.Generator. Exactly ``round(door_fraction * n)``
     trajectories start at the door (chosen at random), and ``round(wall_fraction * n)``
     of the others in front of the middle wall, heading into it (:func:`wall_starts`).
+    ``walls``: 1 for Two Rooms, 2 for Three Rooms (a door or wall start then
+    faces one of the two walls, picked at random per trajectory).
     """
     if not isinstance(n, int) or n < 1 or not isinstance(steps, int) or steps < 1:
         raise ValueError(f"n and steps must be positive ints, got n={n!r}, steps={steps!r}")
@@ -182,7 +204,7 @@ def generate_trajectories(
         raise ValueError("door_fraction and wall_fraction must be >= 0 with a sum <= 1, got "
                          f"{door_fraction} and {wall_fraction}")
     generator = as_generator(seed)
-    layouts = random_layouts(n, generator)
+    layouts = random_layouts(n, generator, walls)
     door = torch.zeros(n, dtype=torch.bool)
     door[torch.randperm(n, generator=generator)[: round(door_fraction * n)]] = True
     start = sample_positions(layouts, generator)

@@ -2,7 +2,9 @@
 
 A batch of B worlds, each a 65x65 arena cut in two by a vertical wall with a
 door, after the Two Rooms environment of PLDM (Sobal et al., 2025) that the
-EB-JEPA paper plans in.
+EB-JEPA paper plans in. The same code runs rooms in a row: W walls, each with
+its own door, make W+1 rooms (W=2: Three Rooms, a harder world for a later
+chapter).
 
 Coordinates. A position is ``(x, y)`` in pixels, float32: ``x`` is the column
 and ``y`` the row of the image (``y`` grows downwards). Pixel ``(row i, column
@@ -27,6 +29,23 @@ pixel's edge, so the centre never sits on a wall pixel:
 - outside the wall's slab ``wall_x-2.5 < x < wall_x+2.5``, except in the
   doorway, ``door_y-3.5 <= y <= door_y+3.5`` (the 9 px door less the margin).
 
+Rooms in a row. A layout of W walls is ``(B, 2W)``: ``(wall_x_0, door_y_0,
+wall_x_1, door_y_1, ...)``, walls sorted left to right, each wall and door
+exactly as above; ``(B, 2)`` is Two Rooms. A room's free floor is the span of x
+its dot centre may take: ``wall_x - 4`` px left of the first wall (from x=1.5 to
+the slab), ``60 - wall_x`` right of the last, and ``gap - 5`` between two walls
+``gap`` px apart. Three Rooms (W=2) draws ``wall_x_0`` in 14..25 and ``wall_x_1``
+in 39..50, mirror images about the arena's centre column 32, doors in 10..54
+independently:
+
+- between the walls at least ``MIN_WALL_GAP`` = 39 - 25 = 14 px, so the middle
+  room's floor is 9..31 px wide (``MIN_FLOOR`` = 9: the dot, std 1.3 px, fits
+  with room to turn, and every step of at most 1.8 px meets at most one wall);
+- the outer rooms' floors are 10..21 px wide (Two Rooms: 16..40).
+
+:func:`check_layouts` accepts for W >= 2 any walls in 14..50, sorted, at least
+14 px apart; :func:`random_layouts` draws only the ranges above.
+
 The rule of motion is :func:`wall_collision`; :func:`transition` adds the
 action bound and is the ONE transition function that both the offline data
 (``trajectories.py``) and the evaluation environment (``episodes.py``) use.
@@ -47,38 +66,95 @@ DOT_MARGIN = 1.0  # gap kept between the dot centre and any wall pixel, px
 MAX_STEP = 1.8  # action bound: the longest step of the data policy, px
 LOW = BORDER - 0.5 + DOT_MARGIN  # 1.5, smallest x or y of the dot centre
 HIGH = IMAGE_SIZE - BORDER - 0.5 - DOT_MARGIN  # 62.5, largest
+MIN_FLOOR = 9  # narrowest floor between two walls, px of dot-centre x
+MIN_WALL_GAP = WALL_WIDTH + 2 * int(DOT_MARGIN) + MIN_FLOOR  # 14 px between wall centres
+THREE_ROOMS_WALL_X_RANGES = ((14, 25), (39, 50))  # inclusive, wall 0 and wall 1
+WALL_X_RANGES = {1: (WALL_X_RANGE,), 2: THREE_ROOMS_WALL_X_RANGES}  # by number of walls
+WALLS_X_LIMITS = (14, 50)  # any wall, W >= 2: the outer rooms keep >= 10 px of floor
 
 
-def wall_bounds(layouts: torch.Tensor, dtype=torch.float32):
-    """Where the dot centre is blocked. layouts (B, 2) -> four (B,) tensors.
+def wall_count(layouts: torch.Tensor) -> int:
+    """How many walls a layout batch holds: (B, 2W) -> W."""
+    return layouts.shape[-1] // 2
 
-    ``x_lo < x < x_hi`` is the wall's slab; inside it the centre must keep
-    ``y_lo <= y <= y_hi`` (the doorway).
-    """
-    wall_x, door_y = layouts.to(dtype).unbind(-1)
+
+def _all_wall_bounds(layouts: torch.Tensor, dtype=torch.float32):
+    """:func:`wall_bounds` of every wall: layouts (B, 2W) -> four (B, W) tensors."""
+    walls = layouts.to(dtype).reshape(len(layouts), -1, 2)
+    wall_x, door_y = walls[..., 0], walls[..., 1]
     half_wall = WALL_WIDTH / 2 + DOT_MARGIN  # 2.5
     half_door = DOOR_HEIGHT / 2 - DOT_MARGIN  # 3.5
     return wall_x - half_wall, wall_x + half_wall, door_y - half_door, door_y + half_door
 
 
+def wall_bounds(layouts: torch.Tensor, dtype=torch.float32, wall: int | None = None):
+    """Where the dot centre is blocked by one wall. layouts (B, 2W) -> four (B,) tensors.
+
+    ``x_lo < x < x_hi`` is the wall's slab; inside it the centre must keep
+    ``y_lo <= y <= y_hi`` (the doorway). ``wall``: which wall, 0..W-1 from the
+    left; it may be left out only for Two Rooms' (B, 2). For all walls at once
+    use :func:`in_wall`.
+    """
+    walls = wall_count(layouts)
+    if wall is None and walls != 1:
+        raise ValueError(f"layouts hold {walls} walls; pass wall=0..{walls - 1} for one wall's "
+                         "bounds, or use in_wall(positions, layouts) to test all of them")
+    return tuple(b[:, wall or 0] for b in _all_wall_bounds(layouts, dtype))
+
+
+def in_wall(positions: torch.Tensor, layouts: torch.Tensor) -> torch.Tensor:
+    """Whether each dot centre is inside any wall (its slab, outside the doorway).
+
+    positions (B, 2), layouts (B, 2W) -> (B,) bool; the border is not tested.
+    """
+    x, y = positions[:, None, 0], positions[:, None, 1]
+    x_lo, x_hi, y_lo, y_hi = _all_wall_bounds(layouts.to(positions.device), positions.dtype)
+    return ((x > x_lo) & (x < x_hi) & ((y < y_lo) | (y > y_hi))).any(-1)
+
+
 def wall_collision(positions: torch.Tensor, moves: torch.Tensor, layouts: torch.Tensor):
     """Move each dot by its displacement, stopping at walls.
 
-    positions (B, 2) allowed dot centres, moves (B, 2), layouts (B, 2) -> (B, 2).
+    positions (B, 2) allowed dot centres, moves (B, 2), layouts (B, 2W) -> (B, 2).
 
     1. Border: each coordinate of ``positions + moves`` is clamped to the arena
        (the dot slides along the border).
-    2. Middle wall: follow the segment to that target. If it enters the slab
-       outside the doorway, x stops at the wall's face and y still moves. If it
-       is in the doorway and would leave the door's span inside the slab (hit
-       the door's side), y stops at the span's edge and x still moves.
+    2. Each wall in turn, in the order the move meets them (left to right for a
+       move to the right): :func:`stop_at_wall` cuts the segment from the start
+       to the target, and what it returns is the next wall's target.
     The blocked coordinate is clamped, the other one moves freely: a move
     never gets longer, and a move that touches no wall is unchanged.
+
+    Exact (the one-wall rule at the one wall the move meets) for every move
+    whose x-extent is at most the floor between two neighbouring walls (gap - 5
+    px, >= 9 px in Three Rooms), so for every step of :func:`transition` (at
+    most ``MAX_STEP`` = 1.8 px), and for any move with one wall. A longer move
+    that meets two walls is approximated (the second wall judges the straight
+    line from the start to what the first left), but still never ends inside
+    a wall or outside the arena.
     """
     target = (positions + moves).clamp(LOW, HIGH)
+    walls = layouts.reshape(len(layouts), -1, 2)  # (B, W, 2)
+    n = walls.shape[1]
+    leftward = (target[:, 0] < positions[:, 0])[:, None]
+    for k in range(n):
+        wall = torch.where(leftward, walls[:, n - 1 - k], walls[:, k])  # (B, 2)
+        target = stop_at_wall(positions, target, wall)
+    return target
+
+
+def stop_at_wall(positions: torch.Tensor, target: torch.Tensor, wall: torch.Tensor):
+    """The one-wall rule: the segment start -> target, cut by one wall.
+
+    positions (B, 2) allowed dot centres, target (B, 2) in the arena, wall (B, 2)
+    ``(wall_x, door_y)`` -> (B, 2). If the segment enters the slab outside the
+    doorway, x stops at the wall's face and y still moves. If it is in the
+    doorway and would leave the door's span inside the slab (hit the door's
+    side), y stops at the span's edge and x still moves.
+    """
     x0, y0 = positions.unbind(-1)
     x1, y1 = target.unbind(-1)
-    x_lo, x_hi, y_lo, y_hi = wall_bounds(layouts, positions.dtype)
+    x_lo, x_hi, y_lo, y_hi = wall_bounds(wall, positions.dtype)
     # times t in [0, 1] at which x0 + t * (x1 - x0) is inside the slab
     dx = x1 - x0
     still = dx == 0
@@ -128,7 +204,7 @@ def _step_of_length(actions: torch.Tensor, length: float) -> torch.Tensor:
 def transition(positions: torch.Tensor, actions: torch.Tensor, layouts: torch.Tensor):
     """THE transition of Two Rooms: clip the action to ``MAX_STEP``, then move.
 
-    positions (B, 2), actions (B, 2), layouts (B, 2) -> next positions (B, 2).
+    positions (B, 2), actions (B, 2), layouts (B, 2W) -> next positions (B, 2).
     No input checks (the data generator calls it in a loop); see :func:`step`.
     """
     return wall_collision(positions, clip_actions(actions), layouts)
@@ -143,24 +219,26 @@ def step(positions: torch.Tensor, actions: torch.Tensor, layouts: torch.Tensor):
 
 
 def room_of(positions: torch.Tensor, layouts: torch.Tensor) -> torch.Tensor:
-    """Which room each dot is in, 0 left, 1 right (a dot in the doorway counts by x > wall_x).
+    """Which room each dot is in: how many walls lie left of it, 0..W (0 is the leftmost room).
 
-    positions (B, 2) or (B, T, 2), layouts (B, 2) -> long (B,) or (B, T).
+    positions (B, 2) or (B, T, 2), layouts (B, 2W) -> long (B,) or (B, T). A dot
+    in a doorway counts by x > wall_x.
     """
-    wall_x = layouts[:, 0].to(positions.dtype)
-    wall_x = wall_x.view(-1, *([1] * (positions.dim() - 2)))
-    return (positions[..., 0] > wall_x).long()
+    wall_x = layouts.reshape(len(layouts), -1, 2)[..., 0].to(positions.dtype)  # (B, W)
+    wall_x = wall_x.reshape(len(layouts), *([1] * (positions.dim() - 2)), -1)
+    return (positions[..., 0:1] > wall_x).sum(-1)
 
 
 def wall_images(layouts: torch.Tensor) -> torch.Tensor:
-    """The wall channel: layouts (B, 2) -> (B, 65, 65) float32, 1 on walls."""
+    """The wall channel: layouts (B, 2W) -> (B, 65, 65) float32, 1 on walls (border or any wall)."""
     idx = torch.arange(IMAGE_SIZE, device=layouts.device)
     edge = (idx < BORDER) | (idx >= IMAGE_SIZE - BORDER)
     border = edge[:, None] | edge[None, :]  # (H, W)
-    wall_x, door_y = layouts.long().unbind(-1)
-    wall_cols = (idx[None, :] - wall_x[:, None]).abs() <= WALL_WIDTH // 2  # (B, W)
-    door_rows = (idx[None, :] - door_y[:, None]).abs() <= DOOR_HEIGHT // 2  # (B, H)
-    middle = wall_cols[:, None, :] & ~door_rows[:, :, None]
+    walls = layouts.long().reshape(len(layouts), -1, 2)
+    wall_x, door_y = walls[..., 0], walls[..., 1]  # (B, n) each, n walls
+    wall_cols = (idx - wall_x[..., None]).abs() <= WALL_WIDTH // 2  # (B, n, W)
+    door_rows = (idx - door_y[..., None]).abs() <= DOOR_HEIGHT // 2  # (B, n, H)
+    middle = (wall_cols[:, :, None, :] & ~door_rows[:, :, :, None]).any(1)  # (B, H, W)
     return (border | middle).float()
 
 
@@ -168,7 +246,7 @@ def render(positions: torch.Tensor, layouts: torch.Tensor, out: torch.Tensor | N
     """Images of dots and walls, float32 in [0, 1].
 
     positions (B, 2) -> (B, 2, 65, 65), or (B, T, 2) -> (B, T, 2, 65, 65);
-    layouts (B, 2). Channel 0: the dot, ``exp(-d^2 / (2 * 1.3^2))`` with ``d``
+    layouts (B, 2W). Channel 0: the dot, ``exp(-d^2 / (2 * 1.3^2))`` with ``d``
     the distance from pixel centre to dot centre. Channel 1: the walls.
     ``out``: an optional float32 tensor of the result's shape to write into;
     reusing one buffer per batch is about 3x faster than fresh memory.
@@ -202,47 +280,102 @@ def as_generator(seed) -> torch.Generator:
     return torch.Generator().manual_seed(seed)
 
 
-def random_layouts(n: int, generator: torch.Generator) -> torch.Tensor:
-    """``n`` fresh layouts, uniform over wall_x in 20..44 and door_y in 10..54: (n, 2) long."""
-    wall_x = torch.randint(WALL_X_RANGE[0], WALL_X_RANGE[1] + 1, (n,), generator=generator)
-    door_y = torch.randint(DOOR_Y_RANGE[0], DOOR_Y_RANGE[1] + 1, (n,), generator=generator)
-    return torch.stack([wall_x, door_y], dim=-1)
+def random_layouts(n: int, generator: torch.Generator, walls: int = 1) -> torch.Tensor:
+    """``n`` fresh layouts of ``walls`` walls: (n, 2 * walls) long.
+
+    Each wall's column is uniform over its range (Two Rooms: 20..44; Three
+    Rooms: 14..25 and 39..50, see the module docstring), each door's row over
+    10..54, all independent; drawn wall by wall, column then door.
+    """
+    if walls not in WALL_X_RANGES:
+        raise ValueError(f"walls must be one of {sorted(WALL_X_RANGES)} (Two or Three Rooms), "
+                         f"got {walls!r}")
+    columns, (door_lo, door_hi) = [], DOOR_Y_RANGE
+    for lo, hi in WALL_X_RANGES[walls]:
+        columns.append(torch.randint(lo, hi + 1, (n,), generator=generator))
+        columns.append(torch.randint(door_lo, door_hi + 1, (n,), generator=generator))
+    return torch.stack(columns, dim=-1)
+
+
+def room_floors(layouts: torch.Tensor):
+    """Each room's span of dot-centre x: layouts (B, 2W) -> left (B, W+1), width (B, W+1)."""
+    x_lo, x_hi, _, _ = _all_wall_bounds(layouts)
+    left = torch.cat([torch.full_like(x_hi[:, :1], LOW), x_hi], dim=1)
+    right = torch.cat([x_lo, torch.full_like(x_lo[:, :1], HIGH)], dim=1)
+    return left, right - left
 
 
 def sample_positions(layouts: torch.Tensor, generator: torch.Generator, rooms=None):
-    """Dot centres uniform over the free floor: layouts (B, 2) -> (B, 2) float32.
+    """Dot centres uniform over the free floor: layouts (B, 2W) -> (B, 2) float32.
 
-    ``rooms`` (B,) of 0 (left) / 1 (right) picks the room; None draws uniformly
-    over both rooms (by area). Never in the doorway.
+    ``rooms`` (B,) of 0..W (0 the leftmost room) picks the room; None draws
+    uniformly over all rooms (by area). Never in a doorway.
     """
-    x_lo, x_hi, _, _ = wall_bounds(layouts.cpu())
-    width_left, width_right = x_lo - LOW, HIGH - x_hi
+    left, width = room_floors(layouts.cpu())
     u = torch.rand(len(layouts), generator=generator)
     y = LOW + (HIGH - LOW) * torch.rand(len(layouts), generator=generator)
     if rooms is None:
-        u = u * (width_left + width_right)
-        x = torch.where(u < width_left, LOW + u, x_hi + (u - width_left))
+        ends = width.cumsum(dim=1)  # right end of each room on the floor laid end to end
+        u = u * ends[:, -1]
+        room = (u[:, None] >= ends[:, :-1]).sum(dim=1)
+        before = torch.cat([torch.zeros_like(ends[:, :1]), ends[:, :-1]], dim=1)
+        x = _pick(left, room) + (u - _pick(before, room))
     else:
-        right = torch.as_tensor(rooms).cpu().bool()
-        x = torch.where(right, x_hi + u * width_right, LOW + u * width_left)
+        room = torch.as_tensor(rooms).cpu().long()
+        walls = wall_count(layouts)
+        if room.shape != (len(layouts),) or ((room < 0) | (room > walls)).any():
+            raise ValueError(f"rooms must be {len(layouts)} room numbers in 0..{walls}, got "
+                             f"{room.tolist() if room.numel() <= 8 else tuple(room.shape)}")
+        x = _pick(left, room) + u * _pick(width, room)
     return torch.stack([x, y], dim=-1).to(layouts.device)
 
 
+def _pick(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """values (B, K), index (B,) -> values[b, index[b]]: (B,)."""
+    return values.gather(1, index[:, None]).squeeze(1)
+
+
 def check_layouts(layouts) -> None:
-    """Raise a clear error unless ``layouts`` is a (B, 2) tensor of allowed (wall_x, door_y)."""
+    """Raise a clear error unless ``layouts`` is a (B, 2W) tensor of allowed walls and doors.
+
+    Two Rooms (W=1): wall_x in 20..44. W >= 2: every wall_x in 14..50, walls
+    sorted left to right and at least ``MIN_WALL_GAP`` = 14 px apart. Doors: 10..54.
+    """
     if not isinstance(layouts, torch.Tensor):
-        raise TypeError(f"layouts must be a torch tensor (B, 2), got {type(layouts).__name__}")
-    if layouts.dim() != 2 or layouts.shape[1] != 2:
+        raise TypeError(f"layouts must be a torch tensor (B, 2W), got {type(layouts).__name__}")
+    if layouts.dim() != 2 or layouts.shape[1] == 0 or layouts.shape[1] % 2:
         raise ValueError(
-            f"layouts must have shape (B, 2) = (wall_x, door_y), got {tuple(layouts.shape)}"
+            "layouts must have shape (B, 2W) = (wall_x, door_y) for each of W walls, e.g. "
+            f"(B, 2) for Two Rooms, (B, 4) for Three Rooms; got {tuple(layouts.shape)}"
         )
     if layouts.is_floating_point() and not torch.equal(layouts, layouts.round()):
         raise ValueError("layouts must hold whole pixel numbers; use random_layouts(n, generator)")
-    for column, name, (lo, hi) in ((0, "wall_x", WALL_X_RANGE), (1, "door_y", DOOR_Y_RANGE)):
-        values = layouts[:, column]
-        if len(values) and (values.min() < lo or values.max() > hi):
-            bad = values[(values < lo) | (values > hi)][0].item()
-            raise ValueError(f"{name}={bad} is outside the allowed range {lo}..{hi}")
+    walls = wall_count(layouts)
+    x_range = WALL_X_RANGE if walls == 1 else WALLS_X_LIMITS
+    for column in range(2 * walls):
+        name = ("wall_x", "door_y")[column % 2]
+        if walls > 1:
+            name = f"wall {column // 2}: {name}"
+        _check_range(layouts[:, column], name, DOOR_Y_RANGE if column % 2 else x_range)
+    for k in range(walls - 1):
+        gap = layouts[:, 2 * k + 2] - layouts[:, 2 * k]
+        if len(gap) and gap.min() < MIN_WALL_GAP:
+            i = int((gap < MIN_WALL_GAP).nonzero()[0])
+            row, gap_i = layouts[i].tolist(), gap[i].item()
+            if gap_i <= 0:
+                raise ValueError(f"layout {i} = {row}: walls must be sorted left to right, but "
+                                 f"wall {k + 1} (wall_x={row[2 * k + 2]}) is not right of wall "
+                                 f"{k} (wall_x={row[2 * k]})")
+            raise ValueError(f"layout {i} = {row}: walls {k} and {k + 1} are {gap_i:g} px apart; "
+                             f"a dot needs at least {MIN_WALL_GAP} px between them")
+
+
+def _check_range(values: torch.Tensor, name: str, allowed: tuple[int, int]) -> None:
+    """Raise ``"{name}=v is outside the allowed range lo..hi"`` for the first bad value."""
+    lo, hi = allowed
+    if len(values) and (values.min() < lo or values.max() > hi):
+        bad = values[(values < lo) | (values > hi)][0].item()
+        raise ValueError(f"{name}={bad} is outside the allowed range {lo}..{hi}")
 
 
 def check_positions(positions, layouts: torch.Tensor) -> None:
@@ -251,10 +384,9 @@ def check_positions(positions, layouts: torch.Tensor) -> None:
         shape = tuple(positions.shape) if isinstance(positions, torch.Tensor) else type(positions)
         raise ValueError(f"positions must be a tensor of shape ({len(layouts)}, 2), got {shape}")
     x, y = positions.unbind(-1)
-    x_lo, x_hi, y_lo, y_hi = wall_bounds(layouts.to(positions.device), positions.dtype)
     outside = ~torch.isfinite(positions).all(-1) | (x < LOW) | (x > HIGH) | (y < LOW) | (y > HIGH)
-    in_wall = (x > x_lo) & (x < x_hi) & ((y < y_lo) | (y > y_hi))
-    problems = ((outside, f"outside the arena [{LOW}, {HIGH}]"), (in_wall, "inside the wall"))
+    problems = ((outside, f"outside the arena [{LOW}, {HIGH}]"),
+                (in_wall(positions, layouts), "inside the wall"))
     for mask, where in problems:
         if mask.any():
             i = int(mask.nonzero()[0])
