@@ -193,6 +193,17 @@ def mean_of_floats(values: list[float]) -> list[float]:
     return (packed / world_size()).tolist()
 
 
+def average_gradients(parameters) -> None:
+    """Average each parameter's ``.grad`` over the ranks, in place (what DDP does in backward),
+    for updates made outside DDP's wrapper. A no-op in one process."""
+    if world_size() == 1:
+        return
+    for p in parameters:
+        if p.grad is not None:
+            dist.all_reduce(p.grad)
+            p.grad /= world_size()
+
+
 class _GatherRows(torch.autograd.Function):
     """All-gather along dim 0: ``(b, D) -> (W b, D)``, rank r's rows at ``r b .. (r+1) b``."""
 

@@ -458,8 +458,10 @@ def test_torchrun_trains_the_video_command_on_two_processes(tmp_path, monkeypatc
 @pytest.mark.slow  # two processes train 4 steps, then rank 0 fits and scores the position probe
 @pytest.mark.parametrize("flags, changes", [
     ([], {}),
-    (["--window", "9", "--wall-fraction", "0.25", "--channels-last"],  # each rank renders its
-     {"window": 9, "wall_fraction": 0.25, "channels_last": True}),  # rows of the global windows
+    (["--window", "9", "--wall-fraction", "0.25", "--channels-last", "--replay-steps", "2",
+      "--stay-probability", "0.15"],  # each rank renders its rows of the global windows, and
+     {"window": 9, "wall_fraction": 0.25, "channels_last": True,  # replays the global buffer
+      "replay_steps": 2, "stay_probability": 0.15}),
 ])
 def test_torchrun_trains_the_world_command_on_two_processes(tmp_path, flags, changes):
     out = tmp_path / "world.pt"

@@ -1,5 +1,6 @@
 """World model (notebooks 04-05): shapes, loss terms by hand, the position probe, bad input."""
 
+import io
 import math
 from dataclasses import asdict, replace
 
@@ -286,6 +287,71 @@ def test_a_windowed_channels_last_run_trains_and_older_runs_read_as_whole_trajec
         WorldTrainConfig(window=5)
     with pytest.raises(ValueError, match="wall_fraction"):
         WorldTrainConfig(wall_fraction=0.9)
+
+
+def _replay(capacity=8, steps=3, lr=1e-3):
+    config = world.WorldTrainConfig(model=TINY, batch_size=4, rollout_steps=2, replay_steps=steps,
+                                    replay_batch=8, replay_capacity=capacity, replay_lr=lr)
+    return world.LatentReplay(tiny_model(), config, frames=3, device="cpu")
+
+
+def test_the_replay_buffer_keeps_the_last_windows():
+    replay = _replay(capacity=8)
+    for value in (1.0, 2.0, 3.0):  # three batches of 4 windows into room for 8
+        replay.add(torch.full((4, 3, 8), value), torch.full((4, 2, 2), value))
+    assert replay.filled == 8 and replay.head == 4
+    assert sorted(replay.latents[:, 0, 0].tolist()) == [2.0] * 4 + [3.0] * 4
+    assert torch.equal(replay.latents[:, 0, 0], replay.actions[:, 0, 0])  # stored as pairs
+
+
+def test_replay_fits_the_predictor_on_stored_latents_and_leaves_the_encoder_alone():
+    torch.manual_seed(0)
+    replay, mixing = _replay(capacity=8, steps=5, lr=1e-2), torch.randn(2, 8)
+    actions = torch.randn(8, 2, 2)
+    z = torch.cat([torch.randn(8, 1, 8), torch.zeros(8, 2, 8)], dim=1)
+    for t in range(2):  # a world whose next latent is z + a M, learnable by the predictor
+        z[:, t + 1] = z[:, t] + actions[:, t] @ mixing
+    replay.add(z, actions)
+    encoder = [p.clone() for p in replay.model.encoder.parameters()]
+
+    def error():
+        return wl.multistep_prediction_loss(replay.model.predict, z, actions, 2).item()
+
+    before = error()
+    for step in range(40):
+        replay(step)
+    assert error() < before / 4
+    assert all(torch.equal(a, b) for a, b in zip(encoder, replay.model.encoder.parameters()))
+
+
+def test_a_replay_restored_from_its_state_continues_exactly():
+    first, second = _replay(), _replay()
+    first.add(torch.randn(4, 3, 8), torch.randn(4, 2, 2))
+    first(0)
+    saved = io.BytesIO()  # as a checkpoint file, read back safely (tensors and numbers only)
+    torch.save({"model": first.model.state_dict(), "replay": first.state_dict()}, saved)
+    state = torch.load(io.BytesIO(saved.getvalue()), weights_only=True)
+    second.model.load_state_dict(state["model"])
+    second.load_state_dict(state["replay"])
+    first(1), second(1)
+    assert all(torch.equal(a, b) for a, b in zip(first.model.predictor.parameters(),
+                                                  second.model.predictor.parameters()))
+
+
+def test_a_replay_run_trains_and_older_runs_read_as_without_replay():
+    config = world.WorldTrainConfig(model=replace(TINY, predictor="mlp"), n_trajectories=16,
+                                    batch_size=4, steps=2, window=9, replay_steps=2,
+                                    replay_batch=8, replay_capacity=8, stay_probability=0.2)
+    _, history = world.train_world_model(config, progress=False, device="cpu")
+    assert len(history["loss"]) == 2 and all(math.isfinite(v) for v in history["loss"])
+    before = world.identity(world.WorldTrainConfig())
+    for name in ("replay_steps", "replay_batch", "replay_capacity", "replay_lr"):
+        del before[name]
+    assert world.upgrade_identity(before) == world.identity(world.WorldTrainConfig())
+    with pytest.raises(ValueError, match="replay_capacity"):
+        world.WorldTrainConfig(batch_size=64, replay_capacity=32)
+    with pytest.raises(ValueError, match="replay_steps"):
+        world.WorldTrainConfig(replay_steps=-1)
 
 
 # -- the probe ---------------------------------------------------------------------------

@@ -26,6 +26,7 @@ from ..course.presets import SCALES, preset
 from ..envs import generate_trajectories
 from ..evaluation.position import middle_wall_test, probe_report
 from ..losses.world import PREDICTION_STARTS
+from ..models.world import PREDICTORS
 from ..training.checkpoints import load_checkpoint, save_checkpoint, stored_identity
 from ..training.world import (
     ABLATABLE_TERMS,
@@ -85,6 +86,14 @@ def main(argv: list[str] | None = None) -> None:
                              "(default 0: whole 17-frame trajectories)")
     parser.add_argument("--channels-last", action="store_true",
                         help="convolutions in channels_last (faster on CPUs too; changes the sums)")
+    parser.add_argument("--predictor", choices=PREDICTORS,
+                        help="the one-step predictor (default: the scale's, a GRU)")
+    parser.add_argument("--stay-probability", type=float,
+                        help="the share of imagined steps that are still (zero action); "
+                             "default 0")
+    parser.add_argument("--replay-steps", type=int,
+                        help="predictor-only updates on replayed latents after each step "
+                             "(default 0: none)")
     parser.add_argument("--seed", type=int,
                         help=f"default {WorldTrainConfig.seed} ({RefitConfig.seed} with --refit)")
     launch.add_flags(parser, sync_bn=False)  # no batch norm in the world model
@@ -94,15 +103,19 @@ def main(argv: list[str] | None = None) -> None:
                                               ("prediction_starts", args.prediction_starts),
                                               ("wall_fraction", args.wall_fraction),
                                               ("window", args.window),
-                                              ("channels_last", args.channels_last or None))
+                                              ("channels_last", args.channels_last or None),
+                                              ("stay_probability", args.stay_probability),
+                                              ("replay_steps", args.replay_steps))
              if value is not None}
     if args.refit:
-        training_only = ("prediction_starts", "wall_fraction", "window", "channels_last")
+        training_only = ("prediction_starts", "wall_fraction", "window", "channels_last",
+                         "stay_probability", "replay_steps")
         if (args.without or args.no_inverse_dynamics or args.coeff or args.decay_steps
-                or args.scale or any(name in given for name in training_only)):
+                or args.scale or args.predictor or any(name in given for name in training_only)):
             parser.error("--refit keeps the trained model's encoder: --scale, --without, "
                          "--no-inverse-dynamics, --coeff, --decay-steps, --prediction-starts, "
-                         "--wall-fraction, --window and --channels-last do not apply")
+                         "--wall-fraction, --window, --channels-last, --predictor, "
+                         "--stay-probability and --replay-steps do not apply")
         if args.ddp or distributed.launched_by_torchrun():
             parser.error("--refit runs in one process (a small MLP on precomputed latents): "
                          "start it with python -m, without torchrun or --ddp")
@@ -110,6 +123,8 @@ def main(argv: list[str] | None = None) -> None:
     without = args.without + (["inverse_dynamics"] if args.no_inverse_dynamics else [])
     try:
         base = preset("05", args.scale or "class").train
+        if args.predictor:
+            base = replace(base, model=replace(base.model, predictor=args.predictor))
         config = with_coeffs(replace(base, decay_steps=args.decay_steps, **given), args.coeff)
     except ValueError as error:
         parser.error(str(error))  # a usage message, not a traceback

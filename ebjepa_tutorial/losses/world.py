@@ -201,6 +201,23 @@ def inverse_dynamics_loss(
     return F.mse_loss(predict_actions(z[:, :-1], z[:, 1:]), actions)
 
 
+def encode_for_loss(model, frames: torch.Tensor) -> torch.Tensor:
+    """The latents the loss is computed on: frames ``(B, T, 2, 65, 65)`` -> ``(B, T, D)``
+    float32 (the encoder, the costly part, in bf16 on a GPU)."""
+    if not bool(model.input_stats_fitted):
+        raise RuntimeError(
+            "the model's input statistics are not set: call model.fit_input_stats(frames) "
+            "on a few hundred training trajectories first (without it the faint dot channel "
+            "is drowned by the walls and the latent tends to ignore the agent)"
+        )
+    if not isinstance(frames, torch.Tensor) or frames.ndim != 5:
+        got = tuple(frames.shape) if isinstance(frames, torch.Tensor) else type(frames).__name__
+        raise ValueError(f"frames must be (batch, time, 2, 65, 65) trajectories, got {got}")
+    with mixed_precision(frames.device):
+        z = model.encode(frames)
+    return at_least_float32(z)
+
+
 def world_model_loss(
     model,
     frames: torch.Tensor,
@@ -225,19 +242,25 @@ def world_model_loss(
     ``inverse_dynamics``, and ``sigreg`` when it is on) for the history.
     ``across_ranks`` (a no-op in one process): the terms of the global batch of all
     ranks, every rank drawing from an identically seeded ``generator`` (module docstring).
+    It is :func:`latent_loss` on :func:`encode_for_loss`.
     """
-    if not bool(model.input_stats_fitted):
-        raise RuntimeError(
-            "the model's input statistics are not set: call model.fit_input_stats(frames) "
-            "on a few hundred training trajectories first (without it the faint dot channel "
-            "is drowned by the walls and the latent tends to ignore the agent)"
-        )
-    if not isinstance(frames, torch.Tensor) or frames.ndim != 5:
-        got = tuple(frames.shape) if isinstance(frames, torch.Tensor) else type(frames).__name__
-        raise ValueError(f"frames must be (batch, time, 2, 65, 65) trajectories, got {got}")
-    with mixed_precision(frames.device):  # the encoder, the costly part, in bf16 on a GPU
-        z = model.encode(frames)
-    z = at_least_float32(z)  # (B, T, D); the predictor, heads and statistics in float32
+    return latent_loss(model, encode_for_loss(model, frames), actions, coeffs, steps,
+                       detach_targets, starts, generator, stay_probability, across_ranks)
+
+
+def latent_loss(
+    model,
+    z: torch.Tensor,
+    actions: torch.Tensor,
+    coeffs: WorldLossCoeffs = WorldLossCoeffs(),
+    steps: int = 8,
+    detach_targets: bool = False,
+    starts: str = "first",
+    generator: torch.Generator | None = None,
+    stay_probability: float = 0.0,
+    across_ranks: bool = False,
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """:func:`world_model_loss` on latents already encoded, ``z (B, T, D)``."""
     _check_sequence(z, actions)
     terms = {
         "prediction": multistep_prediction_loss(model.predict, z, actions, steps, detach_targets,

@@ -100,6 +100,7 @@ def fit(
     desc: str = "training",
     progress: bool = True,
     config: dict[str, Any] | None = None,
+    after_step: Any = None,
 ) -> History:
     """Train for ``steps`` optimiser steps; return the :class:`History` of logged terms.
 
@@ -111,6 +112,9 @@ def fit(
     With ``checkpoint``, the model, optimiser, scheduler, history and step are
     saved every ``checkpoint_every`` steps and at the end, with ``config`` (a
     plain dict describing the run) so that :func:`resume` recognises its own runs.
+    ``after_step``: an object called with the step number after each optimiser
+    step (e.g. extra updates of part of the model); its ``state_dict()`` is saved
+    in the checkpoint and given back to it by :func:`resume`.
     In a process group, ``model`` is the bare module (its state dict is saved,
     by rank 0 alone) and ``loss_fn`` calls its DDP wrapper.
     """
@@ -131,6 +135,8 @@ def fit(
         optimizer.step()
         if scheduler is not None:
             scheduler.step()
+        if after_step is not None:
+            after_step(step)
         if logged:
             history.log(step, loss=value, **terms)
             bar.set_postfix(loss=f"{value:.4f}", refresh=False)
@@ -147,6 +153,7 @@ def fit(
                 step=done,
                 config=config,
                 seconds=history.seconds,
+                **({} if after_step is None else {"after_step": after_step.state_dict()}),
             )
             checkpoint = checkpoint if saved else None  # warned once; train on without
     return history
@@ -159,8 +166,11 @@ def resume(
     scheduler: Any = None,
     config: dict[str, Any] | None = None,
     upgrade: Upgrade | None = None,
+    after_step: Any = None,
 ) -> tuple[int, History]:
     """Restore the state saved by :func:`fit`; return ``(step, history)`` to continue from.
+
+    ``after_step``: the object given to :func:`fit`, whose saved state is loaded too.
 
     Returns ``(0, History())`` when there is no checkpoint of the run ``config``
     (its identity) yet. A file at ``path`` from another run is kept under
@@ -176,6 +186,8 @@ def resume(
     optimizer.load_state_dict(state["optimizer"])
     if scheduler is not None and state.get("scheduler") is not None:
         scheduler.load_state_dict(state["scheduler"])
+    if after_step is not None:
+        after_step.load_state_dict(state["after_step"])
     return state["step"], _history(state)
 
 

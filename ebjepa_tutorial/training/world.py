@@ -32,9 +32,10 @@ from ..envs.trajectories import Trajectories
 from ..losses.world import (
     PREDICTION_STARTS,
     WorldLossCoeffs,
+    encode_for_loss,
+    latent_loss,
     multistep_prediction_loss,
     with_still_steps,
-    world_model_loss,
 )
 from ..models.world import WORLD_CONFIGS, WorldConfig, WorldModel, encode_trajectories
 from ..utils import check_fields, get_device, is_int_at_least, is_non_negative, is_positive
@@ -77,6 +78,13 @@ class WorldTrainConfig:
     # the last decay_steps steps lower the learning rate linearly towards 0 (0: constant, as
     # every shipped run: annealing did not plan better, see the results page)
     decay_steps: int = 0
+    # Latent replay (LatentReplay): after each step, replay_steps extra updates of the
+    # predictor and action encoder alone, each on replay_batch windows drawn from the
+    # detached latents of the last replay_capacity training windows. 0: none, as the paper.
+    replay_steps: int = 0
+    replay_batch: int = 1024
+    replay_capacity: int = 6400
+    replay_lr: float = 1e-3  # Adam, its own optimiser
     seed: int = 0
 
     def __post_init__(self):
@@ -91,12 +99,18 @@ class WorldTrainConfig:
             "stay_probability": (lambda p: is_non_negative(p) and p < 1, "a number in [0, 1)"),
             "window": (lambda w: w == 0 or is_int_at_least(2)(w) and w <= TRAJECTORY_ACTIONS + 1,
                        f"0 (whole trajectories) or an int in 2..{TRAJECTORY_ACTIONS + 1}"),
+            "replay_steps": (is_int_at_least(0), "an int >= 0"),
+            "replay_batch": (is_int_at_least(1), "an int >= 1"),
+            "replay_lr": (is_positive, "a number > 0"),
             "wall_fraction": (lambda p: is_non_negative(p) and p <= 0.65,
                               "a number in [0, 0.65] (35% of trajectories start at the door)"),
         })
         if self.window and self.window < self.rollout_steps + 1:
             raise ValueError(f"window must hold rollout_steps + 1 = {self.rollout_steps + 1} "
                              f"frames, got {self.window}")
+        if self.replay_capacity < self.batch_size:
+            raise ValueError(f"replay_capacity must hold at least one batch "
+                             f"({self.batch_size} windows), got {self.replay_capacity}")
         if not 0 <= self.decay_steps <= self.steps:
             raise ValueError(f"decay_steps must be in 0..steps={self.steps}, "
                              f"got {self.decay_steps}")
@@ -118,6 +132,71 @@ def random_windows(data: Trajectories, index: torch.Tensor, window: int,
                             generator=generator) + torch.arange(window)  # (B, window)
     rows = index[:, None]
     return data.positions[rows, offsets], data.actions[rows, offsets[:, :-1]]
+
+
+class LatentReplay:
+    """Extra predictor updates on the latents of recent batches: a replay buffer.
+
+    Why: a joint step spends most of its time in the encoder and gives the
+    predictor one update on ``batch_size`` windows. Updates of the predictor
+    alone on stored latents cost little, so after each joint step this makes
+    ``replay_steps`` more, each on ``replay_batch`` windows drawn from the last
+    ``replay_capacity`` windows' latents, detached (only the predictor and the
+    action encoder learn here, with their own Adam), with the run's rollout loss
+    and still steps. Older latents come from a slightly older encoder; a buffer
+    of about a hundred steps keeps them close to today's.
+
+    :meth:`add` stores a batch's latents ``(B, T, D)`` and actions ``(B, T-1, A)``;
+    under torchrun every rank's are gathered, so all ranks hold the same buffer and
+    draw the same global replay batch, each updating on its rows with the gradients
+    averaged. Calling the object with ``step`` makes that step's updates.
+    """
+
+    STREAM = 2**40  # the replay's generators: seeded apart from the batches' (step_generator)
+
+    def __init__(self, model: WorldModel, config: WorldTrainConfig, frames: int, device):
+        distributed.per_rank_batch(config.replay_batch)  # refuse an uneven split early
+        self.model, self.config = model, config
+        self.parameters = [*model.predictor.parameters(), *model.action_encoder.parameters()]
+        self.optimizer = torch.optim.Adam(self.parameters, lr=config.replay_lr)
+        capacity, actions = config.replay_capacity, model.config.action_dim
+        self.latents = torch.zeros(capacity, frames, model.latent_dim, device=device)
+        self.actions = torch.zeros(capacity, frames - 1, actions, device=device)
+        self.filled, self.head = 0, 0
+
+    def add(self, z: torch.Tensor, actions: torch.Tensor) -> None:
+        shapes = self.latents.shape[1:], self.actions.shape[1:]
+        z, actions = distributed.gather_rows(z.detach().flatten(1), actions.flatten(1))
+        z, actions = z.view(-1, *shapes[0]), actions.view(-1, *shapes[1])  # the global batch's
+        rows = (self.head + torch.arange(len(z), device=z.device)) % len(self.latents)
+        self.latents[rows], self.actions[rows] = z, actions
+        self.head = (self.head + len(z)) % len(self.latents)
+        self.filled = min(self.filled + len(z), len(self.latents))
+
+    def __call__(self, step: int) -> None:
+        config = self.config
+        generator = torch.Generator().manual_seed(self.STREAM + config.seed * 1_000_003 + step)
+        for _ in range(config.replay_steps):
+            pick = torch.randint(0, self.filled, (config.replay_batch,), generator=generator)
+            pick = distributed.local_rows(pick).to(self.latents.device)
+            loss = multistep_prediction_loss(
+                self.model.predict, self.latents[pick], self.actions[pick], config.rollout_steps,
+                starts=config.prediction_starts, stay_probability=config.stay_probability,
+                generator=generator, across_ranks=True)
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            distributed.average_gradients(self.parameters)
+            self.optimizer.step()
+
+    def state_dict(self) -> dict:
+        return {"latents": self.latents, "actions": self.actions, "filled": self.filled,
+                "head": self.head, "optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.latents.copy_(state["latents"])
+        self.actions.copy_(state["actions"])
+        self.filled, self.head = int(state["filled"]), int(state["head"])
+        self.optimizer.load_state_dict(state["optimizer"])
 
 
 def new_model(config: WorldTrainConfig, data: Trajectories) -> WorldModel:
@@ -164,17 +243,21 @@ def train_world_model(
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr,
                                   weight_decay=config.weight_decay)
     scheduler = learning_rate_decay(optimizer, config)
+    frames = config.window or data.positions.shape[1]
+    replay = LatentReplay(model, config, frames, device) if config.replay_steps else None
     start, history = (0, History())
     if checkpoint is not None:
         start, history = resume(checkpoint, model, optimizer, scheduler, identity(config),
-                                upgrade_identity)
-    frames = config.window or data.positions.shape[1]
+                                upgrade_identity, after_step=replay)
     buffer = torch.empty(per_rank, frames, 2, 65, 65)
 
     def loss(module, frames, actions, generator):  # the whole model in one forward (DDP)
-        return world_model_loss(module, frames, actions, config.coeffs, config.rollout_steps,
-                                starts=config.prediction_starts, generator=generator,
-                                stay_probability=config.stay_probability, across_ranks=True)
+        z = encode_for_loss(module, frames)
+        if replay is not None:
+            replay.add(z, actions)
+        return latent_loss(module, z, actions, config.coeffs, config.rollout_steps,
+                           starts=config.prediction_starts, generator=generator,
+                           stay_probability=config.stay_probability, across_ranks=True)
 
     net = distributed.data_parallel(distributed.Forward(model, loss), device)
 
@@ -192,7 +275,7 @@ def train_world_model(
     fit(model, optimizer, lambda step_batch: net(*step_batch), batch, config.steps,
         scheduler=scheduler, history=history, start_step=start, checkpoint=checkpoint,
         checkpoint_every=250, log_every=10, desc="world model", progress=progress,
-        config=identity(config))
+        config=identity(config), after_step=replay)
     model.eval()
     return model, history
 
@@ -419,14 +502,18 @@ def identity(config: WorldTrainConfig) -> dict:
     return run_identity(config)
 
 
+REPLAY_OFF = {name: getattr(WorldTrainConfig, name) for name in
+              ("replay_steps", "replay_batch", "replay_capacity", "replay_lr")}
+
+
 def upgrade_identity(stored: dict) -> dict:
     """An older identity in today's form: version-1 runs left ``decay_steps`` out when
     it was 0, and the predictor's fields out for the GRU; runs from before
-    ``prediction_starts``, ``wall_fraction``, ``window``, ``channels_last`` and the
-    ``sigreg`` weight existed rolled out from the first frame of whole trajectories of
-    the paper's data, in the default memory layout, without SIGReg."""
+    ``prediction_starts``, ``wall_fraction``, ``window``, ``channels_last``, the replay
+    and the ``sigreg`` weight existed rolled out from the first frame of whole trajectories of
+    the paper's data, in the default memory layout, without SIGReg or replay."""
     stored = {"prediction_starts": "first", "stay_probability": 0.0, "wall_fraction": 0.0,
-              "window": 0, "channels_last": False, **stored,
+              "window": 0, "channels_last": False, **REPLAY_OFF, **stored,
               "coeffs": {"sigreg": 0.0, **stored["coeffs"]}}
     if "schema" in stored:
         return stored
