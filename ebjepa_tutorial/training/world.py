@@ -266,7 +266,8 @@ def train_world_model(
         index = torch.randint(0, len(data), (config.batch_size,), generator=generator)
         if not config.window:
             index = distributed.local_rows(index)  # every rank drew the global batch: keep ours
-            return data.frames(index, out=buffer).to(device), data.actions[index].to(device), generator
+            frames = data.frames(index, out=buffer)
+            return frames.to(device), data.actions[index].to(device), generator
         # the global batch's windows (positions only: cheap), then this rank's rows rendered
         windows = (*random_windows(data, index, config.window, generator), data.layouts[index])
         positions, actions, layouts = (distributed.local_rows(x) for x in windows)
