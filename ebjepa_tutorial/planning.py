@@ -40,6 +40,7 @@ an episode gives the same path alone and in any batch.
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from collections.abc import Sequence
@@ -85,9 +86,9 @@ class PlannerConfig:
     samples: int = 200  # N, action sequences per iteration
     elites: int = 20  # Q, the best of them that move the plan
     iterations: int = 6  # J, refinements per re-plan
-    # refinements of every re-plan after an episode's first, which starts from the previous
-    # plan (warm) rather than from standing still; 0: J as well, as the paper
-    warm_iterations: int = 0
+    # refinements (at most J) of every re-plan after an episode's first, which starts from
+    # the previous plan rather than from standing still; 0: J, as the paper's agent
+    warm_iterations: int = 3
     temperature: float = 0.05  # tau, MPPI's softness (latent-distance units)
     init_std: float = 1.5  # spread of the sampled actions at the start of a re-plan, px
     update_std: bool = True  # False: keep init_std for every iteration (move the mean only)
@@ -101,7 +102,7 @@ class PlannerConfig:
     # Arrived: while the current state is within stop_px of the goal as the model sees it
     # (arrival_distance), the agent stands still and plans nothing. 0: plan at every re-plan
     # until the step budget ends, as the paper's agent does.
-    stop_px: float = 0.0
+    stop_px: float = 2.0
 
     def __post_init__(self):
         if self.method not in METHODS or self.cost not in COSTS:
@@ -438,14 +439,13 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig = PlannerCon
     """
     if world not in WORLDS:
         raise ValueError(f"world must be one of {WORLDS}, got {world!r}")
-    if config.stop_px and world != "learned":
-        raise ValueError("stop_px calibrates the learned world's latent distance; "
-                         f"use stop_px=0 with world={world!r}")
     seeds = list(seeds)
     batch = batch or len(seeds)
     model.eval()
     cpu, wall = time.process_time(), time.perf_counter()
-    arrived = arrival_distance(model, config.stop_px) if config.stop_px else None
+    arrived = None  # the energy below which the agent stands still: pixels for "true_xy"
+    if config.stop_px:
+        arrived = config.stop_px if world == "true_xy" else arrival_distance(model, config.stop_px)
     cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
     result = EpisodeResults.concat([
         _run_batch(model, seeds[i:i + batch], config, steps, radius, world, arrived)
@@ -476,12 +476,15 @@ def _run_batch(model, seeds: list[int], config: PlannerConfig, steps: int, radiu
         start = model.encode(observation) if world == "learned" else env.positions
         moving = everyone
         if arrived is not None:  # the arrived episodes stand still (zero actions), unplanned
-            under_way = (start - z_goal).norm(dim=-1) >= arrived  # (B,)
+            here = start if world == "learned" else imagine.embed(start)
+            under_way = (here - z_goal).norm(dim=-1) >= arrived  # (B,)
             mean, moving = torch.where(under_way[:, None, None], mean, 0.0), everyone[under_way]
         if len(moving):
-            mean[moving] = plan(imagine, start[moving], z_goal[moving], replanning,
+            part = imagine if world == "learned" else imagine.rows(moving)
+            mean[moving] = plan(part, start[moving], z_goal[moving], replanning,
                                 [generators[i] for i in moving.tolist()], mean[moving]).mean
-        replanning = replace(config, iterations=config.warm_iterations or config.iterations)
+        warm = min(config.warm_iterations or config.iterations, config.iterations)
+        replanning = replace(config, iterations=warm)
         for action in mean[:, : min(config.execute, steps - env.steps_taken)].unbind(1):
             observation = env.step(action)
             paths.append(env.positions.cpu())
@@ -529,6 +532,12 @@ class TrueDynamics:
                 torch.cat([model.encode(render(chunk, layout.expand(len(chunk), 2)))
                            for chunk in grid.split(1024)])
                 for layout in layouts.view(-1, 1, 2)])  # (B, G*G, D)
+
+    def rows(self, index: torch.Tensor) -> TrueDynamics:
+        """The same stand-in for the episodes ``index`` alone (the ones still planning)."""
+        part = copy.copy(self)
+        part.layouts, part.tables = self.layouts[index], self.tables[index]
+        return part
 
     def embed(self, positions: torch.Tensor, episode: torch.Tensor | None = None):
         """The table's latents at ``positions`` ``(R, 2)`` of episodes ``episode`` ``(R,)``."""

@@ -436,8 +436,10 @@ def test_an_arrived_agent_stands_still_and_plans_no_more(monkeypatch):
     assert (moves[stands] == 0).all()  # the four steps after each arrived re-plan
     assert sum(planned) == (~stands).sum()  # only the episodes under way were planned
     assert result.success[stands.any(1)].all()  # 2 px from the goal is inside the 4.5 px radius
-    with pytest.raises(ValueError, match="stop_px"):
-        planning.run_episodes(model, [0], config, world="true_xy")
+    xy = planning.run_episodes(model, seeds, config, steps=120, world="true_xy")
+    last = (xy.paths[:, -1] - xy.episodes.goals).norm(dim=-1)  # arrived: stood about 2 px away
+    arrived_xy = xy.first_arrival >= 0
+    assert arrived_xy.any() and (last[arrived_xy] < 3.0).all()  # 2 px on a 1-px grid
 
 
 def test_warm_replans_refine_the_plan_warm_iterations_times(monkeypatch):
@@ -456,3 +458,7 @@ def test_warm_replans_refine_the_plan_warm_iterations_times(monkeypatch):
     planning.run_episodes(LinearLatentModel(), [3, 4], replace(config, warm_iterations=0),
                           steps=12)
     assert iterations == [5, 5, 5]
+    iterations.clear()
+    planning.run_episodes(LinearLatentModel(), [3, 4], replace(config, warm_iterations=9),
+                          steps=12)
+    assert iterations == [5, 5, 5]  # never more than J

@@ -203,7 +203,8 @@ PRESETS: dict[str, dict[str, object]] = {
                                 refit_base=replace(_WORLD_CLASS_LONG, steps=20_000)),
         # the reference code's planner on 500 episodes: 100 for the headline rate, 50 in 8 rows
         "full": PlanningPreset(_WORLD_FULL, PlannerConfig(horizon=90, iterations=20, execute=1,
-                                                             noise_period=1),
+                                                             noise_period=1, warm_iterations=0,
+                                                             stop_px=0.0),
                                n_episodes=100, n_compare=50, episode_batch=100),
     },
 }
