@@ -50,7 +50,6 @@ from types import SimpleNamespace
 import torch
 
 from .envs import (
-    EPISODE_STEPS,
     MAX_STEP,
     SUCCESS_RADIUS,
     Episodes,
@@ -61,11 +60,11 @@ from .envs import (
 from .envs.two_rooms import (
     HIGH,
     LOW,
+    in_wall,
     random_layouts,
     render,
     sample_positions,
     transition,
-    wall_bounds,
     wall_collision,
 )
 from .evaluation.metrics import wilson_interval
@@ -394,26 +393,32 @@ class EpisodeResults:
                 f"{self.cpu_seconds_per_episode:.2f} s CPU per episode")
 
 
-def episode_generators(seeds: Sequence[int]) -> tuple[Episodes, list[torch.Generator]]:
-    """The task of each seed and the generator its planner continues with."""
+def episode_generators(seeds: Sequence[int],
+                       walls: int = 1) -> tuple[Episodes, list[torch.Generator]]:
+    """The task of each seed and the generator its planner continues with.
+
+    ``walls``: 1 for Two Rooms, 2 for Three Rooms (layouts ``(B, 2 * walls)``,
+    start and goal in the outer rooms; see :func:`~ebjepa_tutorial.envs.make_episodes`).
+    """
     if len(seeds) < 1:
         raise ValueError("need at least one episode seed")
     generators = [torch.Generator().manual_seed(int(seed)) for seed in seeds]
-    return Episodes.concat([make_episodes(1, g) for g in generators]), generators
+    return Episodes.concat([make_episodes(1, g, walls) for g in generators]), generators
 
 
 @torch.no_grad()
-def arrival_distance(model, px: float, n: int = 512, seed: int = 0) -> float:
+def arrival_distance(model, px: float, n: int = 512, seed: int = 0, walls: int = 1) -> float:
     """The latent distance that means "within ``px`` of the goal" to ``model``.
 
     The median of ``||Enc(o') - Enc(o)||`` over ``n`` random frames ``o`` (fresh
-    layouts, dots anywhere on the floor) and ``o'``, the same frame with the dot
-    moved ``px`` in a random direction (a wall may cut the move short). Rendering
-    positions here calibrates the model once; an agent that stops below this
-    distance still decides from its observation and the goal image alone.
+    layouts of ``walls`` walls, dots anywhere on the floor) and ``o'``, the same
+    frame with the dot moved ``px`` in a random direction (a wall may cut the
+    move short). Rendering positions here calibrates the model once, on frames
+    of the world it plans in; an agent that stops below this distance still
+    decides from its observation and the goal image alone.
     """
     generator = torch.Generator().manual_seed(seed)
-    layouts = random_layouts(n, generator)
+    layouts = random_layouts(n, generator, walls)
     here = sample_positions(layouts, generator)
     angle = 2 * math.pi * torch.rand(n, generator=generator)
     there = wall_collision(here, px * torch.stack([angle.cos(), angle.sin()], dim=-1), layouts)
@@ -424,12 +429,16 @@ def arrival_distance(model, px: float, n: int = 512, seed: int = 0) -> float:
 
 @torch.no_grad()
 def run_episodes(model, seeds: Sequence[int], config: PlannerConfig = PlannerConfig(),
-                 steps: int = EPISODE_STEPS, radius: float = SUCCESS_RADIUS,
-                 batch: int | None = None, world: str = "learned") -> EpisodeResults:
+                 steps: int | None = None, radius: float = SUCCESS_RADIUS,
+                 batch: int | None = None, world: str = "learned",
+                 walls: int = 1) -> EpisodeResults:
     """Plan and act in one episode per seed; the agent re-plans every ``m`` steps.
 
-    Episode ``seed`` draws its layout, start and goal (opposite rooms) and then
-    its planner's noise from ``torch.Generator().manual_seed(seed)``. ``batch``
+    Episode ``seed`` draws its layout, start and goal (the two outer rooms) and
+    then its planner's noise from ``torch.Generator().manual_seed(seed)``.
+    ``walls``: 1 for Two Rooms, 2 for Three Rooms. ``steps``: the episode's
+    length; None gives the world's step budget (200 steps with one wall, 300
+    with two: :func:`~ebjepa_tutorial.envs.step_budget`). ``batch``
     episodes run at once (default: all of them); the same batches and thread
     count reproduce the paths exactly (other batches: see the module docstring
     on rounding). ``world`` says what the planner imagines with:
@@ -445,23 +454,25 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig = PlannerCon
     cpu, wall = time.process_time(), time.perf_counter()
     arrived = None  # the energy below which the agent stands still: pixels for "true_xy"
     if config.stop_px:
-        arrived = config.stop_px if world == "true_xy" else arrival_distance(model, config.stop_px)
+        arrived = (config.stop_px if world == "true_xy"
+                   else arrival_distance(model, config.stop_px, walls=walls))
     cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
     result = EpisodeResults.concat([
-        _run_batch(model, seeds[i:i + batch], config, steps, radius, world, arrived)
+        _run_batch(model, seeds[i:i + batch], config, steps, radius, world, arrived, walls)
         for i in range(0, len(seeds), batch)])
     return replace(result, cpu_seconds=result.cpu_seconds + cpu,
                    wall_seconds=result.wall_seconds + wall)
 
 
-def _run_batch(model, seeds: list[int], config: PlannerConfig, steps: int, radius: float,
-               world: str, arrived: float | None) -> EpisodeResults:
+def _run_batch(model, seeds: list[int], config: PlannerConfig, steps: int | None,
+               radius: float, world: str, arrived: float | None, walls: int) -> EpisodeResults:
     """:func:`run_episodes` for one batch, all at once; ``arrived``: the stopping distance."""
     device = next(model.parameters()).device
-    episodes, generators = episode_generators(seeds)
+    episodes, generators = episode_generators(seeds, walls)
     env = TwoRoomsEnv(device)
     cpu, wall = time.process_time(), time.perf_counter()
     observation = env.reset(episodes=episodes)
+    steps = env.step_budget if steps is None else steps
     if world == "learned":
         imagine, z_goal = model, model.encode(env.goal_images())
     else:
@@ -507,7 +518,7 @@ def dot_grid(spacing: float = 1.0, device=None) -> tuple[torch.Tensor, torch.Ten
 
 # -- diagnosis: is it the predictor or the energy that fails? ------------------------------
 class TrueDynamics:
-    """A stand-in world model that imagines with the TRUE motion of Two Rooms (a diagnosis).
+    """A stand-in world model that imagines with the TRUE motion of its world (a diagnosis).
 
     Its "latent" of a plan is found without the predictor: the dot moves by
     :func:`~ebjepa_tutorial.envs.two_rooms.transition` in its episode's layout
@@ -515,9 +526,9 @@ class TrueDynamics:
     encodings of the dot at every point of a grid (``spacing`` px, nearest
     point). ``model=None`` scores positions directly: the energy is then the
     Euclidean distance in pixels, the best a distance can do without knowing
-    about walls. ``layouts``: ``(B, 2)``, one per episode; rows of a rollout
-    batch belong to the episodes in order, ``N`` each (as :func:`planning_cost`
-    repeats them).
+    about walls. ``layouts``: ``(B, 2W)``, one per episode (any number W of
+    walls: Two Rooms, Three Rooms); rows of a rollout batch belong to the
+    episodes in order, ``N`` each (as :func:`planning_cost` repeats them).
     """
 
     def __init__(self, layouts: torch.Tensor, model=None, spacing: float = 1.0):
@@ -529,9 +540,9 @@ class TrueDynamics:
             self.tables = grid.expand(len(layouts), -1, -1)
         else:
             self.tables = torch.stack([
-                torch.cat([model.encode(render(chunk, layout.expand(len(chunk), 2)))
+                torch.cat([model.encode(render(chunk, layout.expand(len(chunk), -1)))
                            for chunk in grid.split(1024)])
-                for layout in layouts.view(-1, 1, 2)])  # (B, G*G, D)
+                for layout in layouts[:, None]])  # (B, G*G, D)
 
     def rows(self, index: torch.Tensor) -> TrueDynamics:
         """The same stand-in for the episodes ``index`` alone (the ones still planning)."""
@@ -562,19 +573,18 @@ class TrueDynamics:
 def energy_map(model, layout: torch.Tensor, goal: torch.Tensor, spacing: float = 1.0):
     """The planner's view of one layout: ``||Enc(o_x) - Enc(o_goal)||`` for every dot position x.
 
-    ``layout``: ``(2,)`` long; ``goal``: ``(2,)`` px. Returns ``(coords (G,),
-    energy (G, G))`` with ``energy[i, j]`` at ``(x=coords[j], y=coords[i])``
-    (image orientation), NaN where the dot cannot be (walls). Frames are rendered
-    on the CPU and encoded on the model's device; the map is on the CPU.
+    ``layout``: ``(2W,)`` long, W walls (``(2,)`` for Two Rooms); ``goal``: ``(2,)``
+    px. Returns ``(coords (G,), energy (G, G))`` with ``energy[i, j]`` at
+    ``(x=coords[j], y=coords[i])`` (image orientation), NaN where the dot cannot
+    be (inside any wall). Frames are rendered on the CPU and encoded on the
+    model's device; the map is on the CPU.
     """
     device = next(model.parameters()).device
     layout, goal = layout.cpu(), goal.cpu()
     coords, positions = dot_grid(spacing)
-    layouts = layout.view(1, 2).expand(len(positions), 2)
-    x_lo, x_hi, y_lo, y_hi = wall_bounds(layouts)
-    x, y = positions.unbind(1)
-    free = ~((x > x_lo) & (x < x_hi) & ((y < y_lo) | (y > y_hi)))
-    z_goal = model.encode(render(goal.view(1, 2), layout.view(1, 2)).to(device))
+    layouts = layout.view(1, -1).expand(len(positions), -1)
+    free = ~in_wall(positions, layouts)
+    z_goal = model.encode(render(goal.view(1, 2), layout.view(1, -1)).to(device))
     energy = torch.full((len(positions),), math.nan)
     for chunk in free.nonzero().squeeze(1).split(1024):
         z = model.encode(render(positions[chunk], layouts[chunk]).to(device))

@@ -11,10 +11,11 @@ example one that only encodes the walls) lands there.
 - :func:`probe_error_px`: mean ``||probe(z) - position||`` in pixels.
 - :func:`encode_trajectories`: latents and positions of every frame of a set
   of trajectories, in batches, without gradients.
-- :func:`middle_wall_test`: does the *predictor* know the middle wall? One step
-  at a time, on the steps of real trajectories that the wall stopped.
+- :func:`middle_wall_test`: does the *predictor* know the walls (Two Rooms'
+  middle wall, or both walls of Three Rooms)? One step at a time, on the steps
+  of real trajectories that a wall stopped.
 - :func:`wall_test_by_door_distance`: the same, split by how far along the
-  wall from the door each stopped step was.
+  wall from its door each stopped step was.
 """
 
 from __future__ import annotations
@@ -114,15 +115,15 @@ def mean_baseline_px(train_positions: torch.Tensor, test_positions: torch.Tensor
 
 
 def _wall_steps(trajectories, min_stop: float):
-    """Steps the middle wall cut short by more than ``min_stop`` px (those whose action would
-    leave the arena skipped) and free steps of at least ``min_stop`` px: two ``(B, T)`` masks."""
+    """Steps a wall cut short by more than ``min_stop`` px (those whose action would leave
+    the arena skipped) and free steps of at least ``min_stop`` px: two ``(B, T)`` masks."""
     positions, actions = trajectories.positions, trajectories.actions
     intended = positions[:, :-1] + actions
     shortfall = (positions[:, 1:] - intended).norm(dim=-1)  # how much a wall took away
     inside = ((intended >= LOW) & (intended <= HIGH)).all(dim=-1)
     stopped = (shortfall > min_stop) & inside
     if not stopped.any():
-        raise ValueError(f"the middle wall stopped no step of these {len(positions)} "
+        raise ValueError(f"the walls stopped no step of these {len(positions)} "
                          "trajectories by more than min_stop; use more of them")
     return stopped, (shortfall < 1e-4) & (actions.norm(dim=-1) >= min_stop)
 
@@ -147,10 +148,11 @@ def _nearer(model, trajectories, steps, max_steps: int | None, through_wall: boo
 
 @torch.no_grad()
 def middle_wall_test(model, trajectories, min_stop: float = 0.8, max_steps: int = 1000) -> dict:
-    """Does the predictor stop the dot at the middle wall, and move it elsewhere? Step by step.
+    """Does the predictor stop the dot at a wall, and move it elsewhere? Step by step.
 
-    Stopped steps: every step of ``trajectories`` in which the middle wall cut
-    the move short by more than ``min_stop`` px (steps whose action would
+    Stopped steps: every step of ``trajectories`` in which a wall (Two Rooms'
+    middle wall; either wall of Three Rooms, layouts ``(B, 4)``) cut the move
+    short by more than ``min_stop`` px (steps whose action would
     leave the arena are skipped: the outer frame may be what stopped them).
     For each, the one-step prediction ``Pred(Enc(o_t), a_t)`` is compared with
     the real next latent ``Enc(o_{t+1})`` and with ``Enc`` of the frame where
@@ -183,18 +185,33 @@ def wall_test_by_door_distance(model, trajectories, edges=(0, 8, 12, 16, 24, 65)
     Every wall-stopped step is put in a bin by ``|y_t - door_y|``, its
     distance along the wall from the door's centre (the door is open within
     4.5 px of it, the dot passes within 3.5 px; nearer than that, its sides
-    are what stops the dot). Returns one dict per bin ``[lo, hi)`` of
-    ``edges``: ``lo``, ``hi``, ``stopped`` (NaN for an empty bin) and ``n``.
+    are what stops the dot). With several walls, ``door_y`` is the door of
+    the wall that stopped the step (:func:`stopping_doors`). Returns one dict
+    per bin ``[lo, hi)`` of ``edges``: ``lo``, ``hi``, ``stopped`` (NaN for an
+    empty bin) and ``n``.
     """
     flags, b, t = _nearer(model, trajectories, _wall_steps(trajectories, min_stop)[0], None,
                           through_wall=True)
-    along = (trajectories.positions[b, t, 1] - trajectories.layouts[b, 1]).abs()
+    here = trajectories.positions[b, t]
+    along = (here[:, 1] - stopping_doors(here, trajectories.layouts[b])).abs()
     bins = []
     for lo, hi in zip(edges[:-1], edges[1:]):
         inside = (along >= lo) & (along < hi)
         bins.append({"lo": lo, "hi": hi, "n": int(inside.sum()),
                      "stopped": flags[inside].float().mean().item()})
     return bins
+
+
+def stopping_doors(positions: torch.Tensor, layouts: torch.Tensor) -> torch.Tensor:
+    """The door row of the wall nearest in x to each dot: positions (n, 2), layouts (n, 2W) -> (n,).
+
+    For the start of a wall-stopped step this is the wall that stopped it: a
+    step (at most 1.8 px) that meets a wall starts within 4.3 px of its centre
+    column, and walls stand at least 14 px apart.
+    """
+    walls = layouts.reshape(len(layouts), -1, 2).to(positions.dtype)  # (n, W, 2)
+    nearest = (walls[..., 0] - positions[:, None, 0]).abs().argmin(dim=1)  # (n,)
+    return walls[torch.arange(len(walls)), nearest, 1]
 
 
 def probe_report(model: WorldModel, n_fit: int = 1000, n_test: int = 300, seed: int = 12345,
