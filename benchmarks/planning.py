@@ -77,7 +77,16 @@ def main() -> None:
         reference.record(key, result.success_rate, threads=args.threads,
                          command=" ".join(["python", *sys.argv]),
                          protocol=f"{args.checkpoint}; {len(seeds)} episodes, seeds "
-                                  f"{seeds[0]}-{seeds[-1]}; 200 steps; success within 4.5 px")
+                                  f"{seeds[0]}-{seeds[-1]}; 200 steps; success within 4.5 px; "
+                                  f"{agent(config)}")
+
+
+def agent(config: PlannerConfig) -> str:
+    """The planner in a few words, for the record's protocol."""
+    warm = min(config.warm_iterations or config.iterations, config.iterations)
+    stop = f"stands still within {config.stop_px:g} px" if config.stop_px else "never stops"
+    return (f"{config.method.upper()} H{config.horizon} N{config.samples} "
+            f"J{config.iterations} ({warm} warm), re-plan every {config.execute}, {stop}")
 
 
 if __name__ == "__main__":
