@@ -218,34 +218,15 @@ def encode_for_loss(model, frames: torch.Tensor) -> torch.Tensor:
     return at_least_float32(z)
 
 
-def world_model_loss(
-    model,
-    frames: torch.Tensor,
-    actions: torch.Tensor,
-    coeffs: WorldLossCoeffs = WorldLossCoeffs(),
-    steps: int = 8,
-    detach_targets: bool = False,
-    starts: str = "first",
-    generator: torch.Generator | None = None,
-    stay_probability: float = 0.0,
-    across_ranks: bool = False,
-) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+def world_model_loss(model, frames: torch.Tensor, actions: torch.Tensor, *args, **kwargs):
     """The weighted total for a batch of trajectories, and each unweighted term.
 
     ``model``: a :class:`~ebjepa_tutorial.models.world.WorldModel`; ``frames``:
-    ``(B, T, 2, 65, 65)``; ``actions``: ``(B, T-1, 2)``; ``steps``: K; ``starts``: the
-    rollouts' start frames and ``stay_probability`` its still steps
-    (:func:`multistep_prediction_loss`); ``generator`` draws those and SIGReg's random
-    directions. Returns
-    ``(total, terms)``: a 0-d tensor to back-propagate and a dict of detached 0-d tensors
-    (``prediction``, ``variance``, ``covariance``, ``temporal``,
-    ``inverse_dynamics``, and ``sigreg`` when it is on) for the history.
-    ``across_ranks`` (a no-op in one process): the terms of the global batch of all
-    ranks, every rank drawing from an identically seeded ``generator`` (module docstring).
-    It is :func:`latent_loss` on :func:`encode_for_loss`.
+    ``(B, T, 2, 65, 65)``; ``actions``: ``(B, T-1, 2)``; the options (``coeffs``,
+    ``steps`` K, ...) are :func:`latent_loss`'s, which this calls on
+    :func:`encode_for_loss`'s latents.
     """
-    return latent_loss(model, encode_for_loss(model, frames), actions, coeffs, steps,
-                       detach_targets, starts, generator, stay_probability, across_ranks)
+    return latent_loss(model, encode_for_loss(model, frames), actions, *args, **kwargs)
 
 
 def latent_loss(
@@ -260,7 +241,17 @@ def latent_loss(
     stay_probability: float = 0.0,
     across_ranks: bool = False,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """:func:`world_model_loss` on latents already encoded, ``z (B, T, D)``."""
+    """:func:`world_model_loss` on latents already encoded, ``z (B, T, D)``.
+
+    ``actions``: ``(B, T-1, 2)``; ``steps``: K; ``starts``: the rollouts' start frames
+    and ``stay_probability`` its still steps (:func:`multistep_prediction_loss`);
+    ``generator`` draws those and SIGReg's random directions. Returns ``(total,
+    terms)``: a 0-d tensor to back-propagate and a dict of detached 0-d tensors
+    (``prediction``, ``variance``, ``covariance``, ``temporal``,
+    ``inverse_dynamics``, and ``sigreg`` when it is on) for the history.
+    ``across_ranks`` (a no-op in one process): the terms of the global batch of all
+    ranks, every rank drawing from an identically seeded ``generator`` (module docstring).
+    """
     _check_sequence(z, actions)
     terms = {
         "prediction": multistep_prediction_loss(model.predict, z, actions, steps, detach_targets,
