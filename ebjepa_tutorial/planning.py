@@ -483,6 +483,8 @@ def _run_batch(model, seeds: list[int], config: PlannerConfig, steps: int | None
     mean = z_goal.new_zeros(len(seeds), config.horizon, model.config.action_dim)
     everyone = torch.arange(len(seeds), device=mean.device)
     replanning = config  # the first plan of each episode starts cold, with J iterations
+    warm = replace(config, iterations=min(config.warm_iterations or config.iterations,
+                                          config.iterations))
     while env.steps_taken < steps:
         start = model.encode(observation) if world == "learned" else env.positions
         moving = everyone
@@ -494,8 +496,7 @@ def _run_batch(model, seeds: list[int], config: PlannerConfig, steps: int | None
             part = imagine if world == "learned" else imagine.rows(moving)
             mean[moving] = plan(part, start[moving], z_goal[moving], replanning,
                                 [generators[i] for i in moving.tolist()], mean[moving]).mean
-        warm = min(config.warm_iterations or config.iterations, config.iterations)
-        replanning = replace(config, iterations=warm)
+        replanning = warm
         for action in mean[:, : min(config.execute, steps - env.steps_taken)].unbind(1):
             observation = env.step(action)
             paths.append(env.positions.cpu())
