@@ -45,6 +45,7 @@ from .two_rooms import (
     sample_positions,
     transition,
     wall_count,
+    walls_of,
 )
 
 
@@ -107,7 +108,7 @@ def one_wall_each(layouts: torch.Tensor, generator: torch.Generator) -> torch.Te
         return layouts
     pick = torch.randint(0, walls, (len(layouts),), generator=generator)
     rows = torch.arange(len(layouts))
-    return layouts.reshape(len(layouts), walls, 2)[rows, pick]
+    return walls_of(layouts)[rows, pick]
 
 
 def door_starts(layouts: torch.Tensor, generator: torch.Generator):

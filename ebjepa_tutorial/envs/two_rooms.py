@@ -78,9 +78,14 @@ def wall_count(layouts: torch.Tensor) -> int:
     return layouts.shape[-1] // 2
 
 
+def walls_of(layouts: torch.Tensor) -> torch.Tensor:
+    """One ``(wall_x, door_y)`` row per wall, left to right: layouts (B, 2W) -> (B, W, 2)."""
+    return layouts.reshape(len(layouts), -1, 2)
+
+
 def _all_wall_bounds(layouts: torch.Tensor, dtype=torch.float32):
     """:func:`wall_bounds` of every wall: layouts (B, 2W) -> four (B, W) tensors."""
-    walls = layouts.to(dtype).reshape(len(layouts), -1, 2)
+    walls = walls_of(layouts.to(dtype))
     wall_x, door_y = walls[..., 0], walls[..., 1]
     half_wall = WALL_WIDTH / 2 + DOT_MARGIN  # 2.5
     half_door = DOOR_HEIGHT / 2 - DOT_MARGIN  # 3.5
@@ -134,7 +139,7 @@ def wall_collision(positions: torch.Tensor, moves: torch.Tensor, layouts: torch.
     a wall or outside the arena.
     """
     target = (positions + moves).clamp(LOW, HIGH)
-    walls = layouts.reshape(len(layouts), -1, 2)  # (B, W, 2)
+    walls = walls_of(layouts)  # (B, W, 2)
     n = walls.shape[1]
     leftward = (target[:, 0] < positions[:, 0])[:, None]
     for k in range(n):
@@ -224,7 +229,7 @@ def room_of(positions: torch.Tensor, layouts: torch.Tensor) -> torch.Tensor:
     positions (B, 2) or (B, T, 2), layouts (B, 2W) -> long (B,) or (B, T). A dot
     in a doorway counts by x > wall_x.
     """
-    wall_x = layouts.reshape(len(layouts), -1, 2)[..., 0].to(positions.dtype)  # (B, W)
+    wall_x = walls_of(layouts)[..., 0].to(positions.dtype)  # (B, W)
     wall_x = wall_x.reshape(len(layouts), *([1] * (positions.dim() - 2)), -1)
     return (positions[..., 0:1] > wall_x).sum(-1)
 
@@ -234,7 +239,7 @@ def wall_images(layouts: torch.Tensor) -> torch.Tensor:
     idx = torch.arange(IMAGE_SIZE, device=layouts.device)
     edge = (idx < BORDER) | (idx >= IMAGE_SIZE - BORDER)
     border = edge[:, None] | edge[None, :]  # (H, W)
-    walls = layouts.long().reshape(len(layouts), -1, 2)
+    walls = walls_of(layouts.long())
     wall_x, door_y = walls[..., 0], walls[..., 1]  # (B, n) each, n walls
     wall_cols = (idx - wall_x[..., None]).abs() <= WALL_WIDTH // 2  # (B, n, W)
     door_rows = (idx - door_y[..., None]).abs() <= DOOR_HEIGHT // 2  # (B, n, H)

@@ -24,7 +24,7 @@ import torch
 from torch import nn
 
 from ..envs import generate_trajectories
-from ..envs.two_rooms import HIGH, LOW, render
+from ..envs.two_rooms import HIGH, LOW, render, walls_of
 from ..models.world import WorldModel, encode_trajectories
 
 
@@ -209,7 +209,7 @@ def stopping_doors(positions: torch.Tensor, layouts: torch.Tensor) -> torch.Tens
     step (at most 1.8 px) that meets a wall starts within 4.3 px of its centre
     column, and walls stand at least 14 px apart.
     """
-    walls = layouts.reshape(len(layouts), -1, 2).to(positions.dtype)  # (n, W, 2)
+    walls = walls_of(layouts).to(positions.dtype)  # (n, W, 2)
     nearest = (walls[..., 0] - positions[:, None, 0]).abs().argmin(dim=1)  # (n,)
     return walls[torch.arange(len(walls)), nearest, 1]
 
