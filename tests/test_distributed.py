@@ -42,9 +42,9 @@ WORLD = 2
 TINY = image.ImageJEPAConfig(widths=(4, 4, 8, 8), projector=(16, 16), batch_size=8, steps=4,
                              warmup_steps=1, image_size=16)
 VIDEO_TINY = video.VideoJEPAConfig(
-    model=VideoModelConfig(encoder_width=4, latent_channels=4, strides=(2, 2, 2),
+    model=VideoModelConfig(encoder_width=4, stem_stride=1, latent_channels=4, strides=(2, 2, 2),
                            predictor_width=4, predictor_levels=1, projector_dim=8),
-    n_frames=4, rollout_steps=2, batch_size=4)
+    n_frames=4, rollout_steps=2, batch_size=4, channels_last=False)
 WORLD_TINY = WorldConfig(widths=(4, 8), blocks=1, input_size=17, latent_dim=8,
                          action_embed_dim=8, idm_hidden=16)
 # every term on, SIGReg included, rollouts from every frame, with still steps: each draws

@@ -12,6 +12,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
+import torch
 
 from ebjepa_tutorial.course import presets
 from ebjepa_tutorial.course.presets import preset
@@ -81,6 +82,8 @@ def test_video_jepas_match_notebook_03():
         expected = video.identity(config, train_digits)
         assert expected["train_digits"] == fingerprint
         assert stored_config(video.run_name("class", config), None) == expected
+        weights = load_checkpoint(SHIPPED / f"{video.run_name('class', config)}.pt")["model"]
+        assert {w.dtype for w in weights.values() if w.is_floating_point()} == {torch.float16}
 
 
 @pytest.mark.parametrize("notebook, loss", [("01", "vicreg"), ("02", "sigreg")])

@@ -25,6 +25,7 @@ from ebjepa_tutorial.models.video import (
     VideoJEPA,
     VideoModelConfig,
 )
+from ebjepa_tutorial.training.checkpoints import load_checkpoint
 from ebjepa_tutorial.training.video import (
     VIDEO_CONFIGS,
     ablation_configs,
@@ -32,6 +33,7 @@ from ebjepa_tutorial.training.video import (
     run_name,
     train_or_load,
     train_video_jepa,
+    video_jepa_loss,
 )
 
 CI = VIDEO_CONFIGS["ci"]
@@ -55,7 +57,7 @@ def test_shapes(scale):
     config = VIDEO_MODEL_CONFIGS[scale]
     model = VideoJEPA(config).eval()
     c, s = config.latent_channels, config.latent_side
-    assert s == {"ci": 8, "class": 16, "full": 64}[scale]
+    assert s == {"ci": 8, "class": 8, "full": 64}[scale]
     with torch.no_grad():
         z = model.encode(torch.randint(0, 256, (2, 3, 1, 64, 64), dtype=torch.uint8))
         assert z.shape == (2, 3, c, s, s)
@@ -63,6 +65,34 @@ def test_shapes(scale):
         assert model.project(z).shape == (2 * 3 * s * s, config.projector_dim)
         assert DetectionHead(c)(z[:, 0]).shape == (2, 8, 8)
         assert FrameDecoder(c, s)(z[:, 0]).shape == (2, 1, 64, 64)
+
+
+def test_stem_stride_halves_the_frame_before_the_blocks():
+    config = VideoModelConfig(stem_stride=2, strides=(1, 2, 2), predictor_levels=2)
+    assert config.latent_side == 8
+    encoder = VideoJEPA(config).encoder
+    assert encoder.stem[0].stride == (2, 2)
+    assert encoder(torch.zeros(3, 1, 64, 64)).shape == (3, config.latent_channels, 8, 8)
+    with pytest.raises(ValueError, match="stem_stride"):
+        VideoModelConfig(stem_stride=0)
+
+
+def test_channels_last_changes_the_layout_not_the_gradients():
+    # the class run's shapes, against float64: oneDNN's channels_last backward errs on
+    # some strided 1x1 convolutions at 64x64 (the old class encoder's: 8e-4 of the
+    # largest gradient) and crashes on others (the ci encoder's)
+    config = replace(VIDEO_CONFIGS["class"], rollout_steps=2)
+    frames = torch.randint(0, 256, (2, 6, 1, 64, 64), dtype=torch.uint8).double() / 255
+
+    def gradients(layout, dtype):
+        torch.manual_seed(0)
+        model = VideoJEPA(config.model).to(dtype=dtype, memory_format=layout)
+        video_jepa_loss(model, frames.to(dtype), config)[0].backward()
+        return torch.cat([p.grad.flatten().double() for p in model.parameters()])
+
+    exact = gradients(torch.contiguous_format, torch.float64)
+    error = (gradients(torch.channels_last, torch.float32) - exact).abs().max()
+    assert error < 1e-4 * exact.abs().max()
 
 
 def test_residual_predictor_starts_as_copy_of_last_latent():
@@ -200,6 +230,11 @@ def test_training_resumes_and_evaluation_runs(digits, tmp_path):
     for name in ("ap", "ap_encoded", "ap_copy"):
         assert report[name].shape == (7,) and ((report[name] >= 0) & (report[name] <= 1)).all()
     assert report["map"] == pytest.approx(float(report["ap"].mean()))
+    cosine = tmp_path / "cosine.pt"  # the rate falls to 0 at the last step
+    train_video_jepa(replace(config, cosine=True), clips, checkpoint=cosine, progress=False)
+    state = load_checkpoint(cosine)
+    assert state["scheduler"]["last_epoch"] == config.steps
+    assert state["optimizer"]["param_groups"][0]["lr"] == pytest.approx(0.0, abs=1e-12)
     decoder = fit_decoder(model, clips, steps=2, batch_size=4)
     with torch.no_grad():
         z = model.encode(clips[:2])[:, 0]
@@ -265,10 +300,17 @@ def test_command_line_trains_and_reports(digits, tmp_path, monkeypatch, capsys):
                         lambda split: (stand_in, torch.zeros(len(stand_in), dtype=torch.long)))
     monkeypatch.setattr("ebjepa_tutorial.course.presets.PRESETS", {"03": {"ci": replace(
         video_jepa_preset(), n_train_digits=120, n_probe=8, n_eval=8, probe_steps=5)}})
-    train_video.main(["--scale", "ci", "--K", "1"])
+    monkeypatch.setattr("ebjepa_tutorial.training.checkpoints.SHIPPED_DIR", tmp_path / "ship")
+    train_video.main(["--scale", "ci", "--K", "1", "--ship"])
     out = capsys.readouterr().out
     assert "video_jepa_ci_K1_seed0" in out and (tmp_path / "checkpoints").is_dir()
     assert "random init: mAP" in out and "K=1 seed=0: mAP" in out
+    shipped = load_checkpoint(tmp_path / "ship" / "video_jepa_ci_K1_seed0.pt")
+    assert {v.dtype for v in shipped["model"].values() if v.is_floating_point()} == {
+        torch.float16}
+    (tmp_path / "checkpoints" / "video_jepa_ci_K1_seed0.pt").unlink()  # the shipped copy loads
+    train_video.main(["--scale", "ci", "--K", "1"])
+    assert "Loaded a trained model from " + str(tmp_path / "ship") in capsys.readouterr().out
 
 
 def video_jepa_preset():

@@ -23,7 +23,7 @@ from .. import distributed
 from ..course.presets import SCALES, preset
 from ..data import load_cifar10, random_subset
 from ..evaluation.classify import probe_encoder, protocol
-from ..training.checkpoints import save_checkpoint
+from ..training.checkpoints import float16_state, save_checkpoint
 from ..training.image import identity, train_image_jepa
 from . import launch
 
@@ -75,9 +75,7 @@ def _train_and_save(args, sizes, config, device) -> None:
         return
     minutes = history.seconds / 60
     scores = probe_encoder(model.encoder, config, train, test)
-    half = {k: (v.half() if v.is_floating_point() else v).cpu()  # float16 halves the file;
-            for k, v in model.encoder.state_dict().items()}  # the probe barely moves
-    save_checkpoint(args.out, model=half, history=dict(history),
+    save_checkpoint(args.out, model=float16_state(model.encoder), history=dict(history),
                     config=identity(config, encoder_only=True), minutes=round(minutes, 1),
                     threads=torch.get_num_threads(), processes=distributed.world_size(),
                     **scores)

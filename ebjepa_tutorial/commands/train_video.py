@@ -1,6 +1,6 @@
 """Train (or load) and evaluate notebook 03's video JEPAs at a scale, printing AP per horizon.
 
-    python -m ebjepa_tutorial.commands.train_video --scale class [--K 4] [--seed 0]
+    python -m ebjepa_tutorial.commands.train_video --scale class [--K 4] [--seed 0] [--ship]
 
 On several devices, one process each (DistributedDataParallel; nccl on GPUs, gloo on CPUs):
 
@@ -25,6 +25,7 @@ from ..data.mnist import load_mnist
 from ..data.moving_mnist import split_digits
 from ..evaluation.detection import detection_report, evaluation_clips
 from ..models.video import VideoJEPA
+from ..training.checkpoints import checkpoint_paths, float16_state, save_checkpoint
 from ..training.video import ablation_configs, identity, run_name, train_or_load
 from . import launch
 
@@ -36,6 +37,9 @@ def _parser() -> argparse.ArgumentParser:
                              "processes: global batch = per-rank batch x world size")
     parser.add_argument("--K", type=int, action="append", help="only these K (repeatable)")
     parser.add_argument("--seed", type=int, action="append", help="only these seeds (repeatable)")
+    parser.add_argument("--ship", action="store_true",
+                        help="also write each run, in float16, where the course ships its "
+                             "checkpoints (checkpoints/<name>.pt)")
     launch.add_flags(parser)
     return parser
 
@@ -44,11 +48,11 @@ def main(argv: list[str] | None = None) -> None:
     """Train (or load) and evaluate notebook 03's runs at a scale, printing AP per horizon.
 
     ``python -m ebjepa_tutorial.commands.train_video --scale class`` trains the K ablation
-    (K 1, 2, 4 times three seeds, about ten minutes each on 2 CPU cores) into
+    (K 1, 2, 4 times three seeds, 6-10 minutes each on a CPU) into
     ``data/cache/checkpoints/``, where the notebook finds them; an interrupted
-    run resumes. Same digits, clips and probe protocol as the notebook. Under torchrun
-    every process trains each run (global batch = per-rank batch x world size); rank 0
-    saves and evaluates.
+    run resumes; ``--ship`` also writes float16 copies to ``checkpoints/``. Same digits,
+    clips and probe protocol as the notebook. Under torchrun every process trains each run
+    (global batch = per-rank batch x world size); rank 0 saves and evaluates.
     """
     parser = _parser()
     args = parser.parse_args(argv)
@@ -81,8 +85,14 @@ def _train_and_report(args, cfg, configs, device) -> None:
     runs = [("random init", VideoJEPA(cfg.train.model).eval())]
     for config in configs:
         start, name = time.perf_counter(), run_name(args.scale, config)
-        model, _ = train_or_load(config, name, train_digits, device=device,
-                                 sync_batchnorm=args.sync_bn)
+        model, history = train_or_load(config, name, train_digits, device=device,
+                                       sync_batchnorm=args.sync_bn)
+        if args.ship and distributed.is_main():
+            shipped = checkpoint_paths(name)[1]
+            save_checkpoint(shipped, model=float16_state(model), history=dict(history),
+                            config=identity(config, train_digits),
+                            seconds=getattr(history, "seconds", 0.0))
+            _say(f"{name}: wrote {shipped} (float16)")
         _say(f"{name}: ready in {time.perf_counter() - start:.0f} s on "
              f"{distributed.world_size()} process(es)")
         runs.append((f"K={config.rollout_steps} seed={config.seed}", model))

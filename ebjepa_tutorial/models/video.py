@@ -17,9 +17,10 @@ Shapes (``S`` = latent side, ``C`` = latent channels):
 
 ``full`` keeps the paper's sizes: a ResNet-5 at full resolution (S = 64,
 encoder width 32, 16 latent channels), a ResUNet of width 32 over a context
-of 2 frames, a 16-64-64 projector. ``class`` strides the encoder down to a
-16x16 latent (16 times fewer locations) and halves the widths, so a class
-trains it on a CPU.
+of 2 frames, a 16-64-64 projector. ``class`` halves the frame in the stem
+and strides the blocks down to an 8x8 latent of 32 channels, one latent cell
+per cell of the detection grid (64 times fewer locations than the paper's),
+with a ResUNet of width 32 over two levels, so a class trains it on a CPU.
 
 One departure at ``ci`` and ``class``: the predictor is residual, ``zhat =
 z_last + UNet(window)`` with the UNet's last layer zero at initialisation, so
@@ -47,24 +48,26 @@ class VideoModelConfig:
     """Sizes of a :class:`VideoJEPA`. The default is the class-scale model."""
 
     encoder_width: int = 16  # h: channels of the stem and first block (the paper: 32)
-    latent_channels: int = 16  # C (the paper: 16)
-    strides: tuple[int, int, int] = (2, 2, 1)  # of the three blocks: 64 / (2*2*1) = 16x16 latent
-    predictor_width: int = 16  # ResUNet width h, levels h, 2h, 4h, 8h (the paper: 32)
-    predictor_levels: int = 3  # times the ResUNet halves the map (S must divide by 2**levels)
+    stem_stride: int = 2  # of the stem conv: 2 halves the frame before any block (the paper: 1)
+    latent_channels: int = 32  # C (the paper: 16)
+    strides: tuple[int, int, int] = (1, 2, 2)  # of the blocks: S = 64 / (2*1*2*2) = 8
+    predictor_width: int = 32  # ResUNet width h, levels h, 2h, 4h, ... (the paper: 32)
+    predictor_levels: int = 2  # times the ResUNet halves the map (S must divide by 2**levels)
     context: int = 2  # latent frames the predictor sees
     projector_dim: int = 64  # hidden and output width of the projector (the paper: 4 C)
     residual: bool = True  # predict a change to the last latent (the paper: False)
 
     def __post_init__(self):
         object.__setattr__(self, "strides", tuple(int(s) for s in self.strides))
-        if len(self.strides) != 3 or min(self.strides) < 1:
-            raise ValueError(f"strides must be three positive ints, got {self.strides}")
-        down = math.prod(self.strides)
+        if len(self.strides) != 3 or min(self.strides) < 1 or self.stem_stride < 1:
+            raise ValueError(f"strides must be three positive ints and stem_stride a positive "
+                             f"int, got {self.strides} and {self.stem_stride}")
+        down = self.stem_stride * math.prod(self.strides)
         if FRAME_SIZE % down or (FRAME_SIZE // down) % 2**self.predictor_levels:
             raise ValueError(
-                f"the latent side 64 / prod(strides) = {FRAME_SIZE / down:g} must be a whole "
-                f"number that 2**predictor_levels = {2**self.predictor_levels} divides; change "
-                "strides or predictor_levels"
+                f"the latent side 64 / (stem_stride * prod(strides)) = {FRAME_SIZE / down:g} "
+                f"must be a whole number that 2**predictor_levels = {2**self.predictor_levels} "
+                "divides; change the strides or predictor_levels"
             )
         if self.context < 1 or self.latent_channels < 2:
             raise ValueError("context must be >= 1 and latent_channels >= 2")
@@ -72,15 +75,15 @@ class VideoModelConfig:
     @property
     def latent_side(self) -> int:
         """S, the side of the latent map."""
-        return FRAME_SIZE // math.prod(self.strides)
+        return FRAME_SIZE // (self.stem_stride * math.prod(self.strides))
 
 
 VIDEO_MODEL_CONFIGS = {
-    "ci": VideoModelConfig(encoder_width=8, latent_channels=8, strides=(2, 2, 2),
-                           predictor_width=8, predictor_levels=2, projector_dim=32),
+    "ci": VideoModelConfig(encoder_width=8, stem_stride=1, latent_channels=8, strides=(2, 2, 2),
+                           predictor_width=8, projector_dim=32),
     "class": VideoModelConfig(),
-    "full": VideoModelConfig(encoder_width=32, strides=(1, 1, 1), predictor_width=32,
-                             residual=False),
+    "full": VideoModelConfig(encoder_width=32, stem_stride=1, latent_channels=16,
+                             strides=(1, 1, 1), predictor_levels=3, residual=False),
 }
 
 
@@ -115,7 +118,8 @@ class FrameEncoder(nn.Module):
     def __init__(self, config: VideoModelConfig, in_channels: int = 1):
         super().__init__()
         h, (s1, s2, s3) = config.encoder_width, config.strides
-        self.stem = nn.Sequential(nn.Conv2d(in_channels, h, 3, padding=1, bias=False),
+        self.stem = nn.Sequential(nn.Conv2d(in_channels, h, 3, config.stem_stride, padding=1,
+                                            bias=False),
                                   nn.BatchNorm2d(h), nn.ReLU(inplace=True))
         self.blocks = nn.Sequential(
             ResidualBlock(h, h, s1),
