@@ -1,48 +1,58 @@
-"""Chapter 03 benchmark: Moving MNIST generation speed, video JEPA training speed and mAP.
+"""Chapter 03 benchmark: Moving MNIST generation speed, then notebook 03's class run and its AP.
 
-    python benchmarks/video_jepa.py [--clips 4000] [--frames 10] [--repeats 5] [--threads 2]
-                                    [--train-steps 100] [--batch 16] [--eval-clips 500] [--split]
+    python benchmarks/video_jepa.py [--rollout-steps 4] [--seed 0] [--steps N] [--threads 2]
+                                    [--clips 4000] [--frames 10] [--repeats 5] [--split]
 
-Prints one line per generator repeat, the time of one class-scale training
-step at batch 64 and at ``--batch``, a short training run (``--train-steps``
-of the class config at ``--batch``) and its detection mAP over horizons 1-7
-on clips of held-out digits (with the random-init model's mAP beside it),
-then a last line ``clips_per_s=... train_clips_per_s=... map=...`` that
-scripts can parse. ``--train-steps 0`` skips the model part (``nan``). Uses
-the MNIST test digits when they are on disk (``load_mnist("test",
-download=False)``), else random digits with a note: the generator's speed
-does not depend on what the digits look like (the mAP does). ``--split``
-first prints where one class-scale step's time goes (encoder, rollout,
-projector and regulariser, backward, optimiser).
+Prints one line per generator repeat; then trains the class-scale run exactly
+as notebook 03 does (``preset("03", "class")``: its clips, config and
+evaluation protocol), with ``--rollout-steps K`` and ``--seed S`` choosing the
+variant, and prints its AP per horizon beside the random-init model's. The
+last line is ``clips_per_s=... train_clips_per_s=... map=... ap3=...`` (ap3:
+AP three steps ahead) for scripts. ``--steps`` shortens the run (a quick
+check; the figures are then not the class run's); ``--steps 0`` skips the
+model part (``nan``). ``--record`` stores the main run's mAP (K = 4, seed 0)
+in ``checkpoints/reference.json``, which notebook 03 prints beside yours.
+``--split`` first prints where one class-scale step's time goes (encoder,
+rollout, projector and regulariser, backward, optimiser).
+Needs the MNIST test digits on disk (``load_mnist("test", download=False)``);
+without them only the generator is timed, on random digits.
 """
 
 from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
 from dataclasses import replace
 
 import torch
 
+from ebjepa_tutorial.course import reference
+from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.data.mnist import load_mnist
 from ebjepa_tutorial.data.moving_mnist import generate_moving_mnist, split_digits
 from ebjepa_tutorial.data.paths import DataNotFoundError
-from ebjepa_tutorial.evaluation.detection import detection_report
+from ebjepa_tutorial.evaluation.detection import detection_report, evaluation_clips
 from ebjepa_tutorial.losses import variance_and_covariance
 from ebjepa_tutorial.losses.rollout import rollout_loss
 from ebjepa_tutorial.models.video import VideoJEPA
-from ebjepa_tutorial.training.video import VIDEO_CONFIGS, train_video_jepa, video_jepa_loss
+from ebjepa_tutorial.training.video import (
+    VIDEO_CONFIGS,
+    make_clips,
+    train_video_jepa,
+)
 from ebjepa_tutorial.utils import print_parts, time_parts
 
 
-def load_digits() -> torch.Tensor:
-    """The 10,000 MNIST test digits (N, 1, 28, 28) uint8, or random stand-ins if absent."""
+def load_digits() -> torch.Tensor | None:
+    """The 10,000 MNIST test digits (N, 1, 28, 28) uint8, or None (with a note) if absent."""
     try:
         return load_mnist("test", download=False)[0]
     except DataNotFoundError:
-        print("MNIST not found (see data/README.md); timing with random digits instead")
-        return torch.randint(0, 256, (10_000, 1, 28, 28), dtype=torch.uint8)
+        print("MNIST not found (see data/README.md): timing the generator on random digits "
+              "(its speed does not depend on them) and skipping the model")
+        return None
 
 
 def time_generator(digits: torch.Tensor, clips: int, frames: int, seed: int) -> float:
@@ -54,29 +64,14 @@ def time_generator(digits: torch.Tensor, clips: int, frames: int, seed: int) -> 
     return clips / elapsed
 
 
-def time_step(batch_size: int, repeats: int = 3) -> float:
-    """Seconds of one class-scale training step on ``batch_size`` clips of 10 frames (best of)."""
-    config = replace(VIDEO_CONFIGS["class"], batch_size=batch_size)
-    model = VideoJEPA(config.model)
-    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
-    frames = torch.randint(0, 256, (batch_size, 10, 1, 64, 64), dtype=torch.uint8)
-    times = []
-    for _ in range(repeats + 1):  # the first call warms up
-        start = time.perf_counter()
-        loss, _ = video_jepa_loss(model, frames, config)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-        times.append(time.perf_counter() - start)
-    return min(times[1:])
-
-
-def step_split(batch_size: int) -> dict[str, float]:
+def step_split() -> dict[str, float]:
     """Median seconds of each part of one class-scale training step (forward parts, backward)."""
-    config = replace(VIDEO_CONFIGS["class"], batch_size=batch_size)
-    model = VideoJEPA(config.model)
+    config = VIDEO_CONFIGS["class"]
+    layout = torch.channels_last if config.channels_last else torch.contiguous_format
+    model = VideoJEPA(config.model).to(memory_format=layout)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
-    frames = torch.randint(0, 256, (batch_size, 10, 1, 64, 64), dtype=torch.uint8)
+    frames = torch.randint(0, 256, (config.batch_size, config.n_frames, 1, 64, 64),
+                           dtype=torch.uint8)
 
     def step(repeat: int):
         z = model.encode(frames)
@@ -96,27 +91,31 @@ def step_split(batch_size: int) -> dict[str, float]:
     return time_parts(step)
 
 
-def model_benchmark(train_digits, held_out, steps: int, batch_size: int, eval_clips: int):
-    """Train ``steps`` class-scale steps; return (training clips per second, mAP)."""
-    for size in (64, batch_size):
-        print(f"one class-scale step at batch {size} x 10 frames: {time_step(size):.2f} s")
-    config = replace(VIDEO_CONFIGS["class"], steps=steps, batch_size=batch_size)
-    clips = generate_moving_mnist(train_digits, 2000, 10, seed=1).clips
+def model_benchmark(train_digits, held_out, rollout_steps: int, seed: int, steps: int | None):
+    """Train notebook 03's class run (K, seed); return (training clips per second, report)."""
+    cfg = preset("03", "class")
+    config = replace(cfg.train, rollout_steps=rollout_steps, seed=seed,
+                     steps=steps or cfg.train.steps)
+    clips = make_clips(config, train_digits)
     start = time.perf_counter()
     model, history = train_video_jepa(config, clips, progress=False)
-    rate = steps * batch_size / (time.perf_counter() - start)
-    probe_data = generate_moving_mnist(train_digits, eval_clips, 10, seed=2)
-    eval_data = generate_moving_mnist(held_out, eval_clips, 10, seed=3)
-    report = detection_report(model, probe_data, eval_data)
+    seconds = time.perf_counter() - start
+    probe_data, eval_data = evaluation_clips(train_digits, held_out, cfg.n_probe, cfg.n_eval,
+                                             config.n_frames)
+    report = detection_report(model, probe_data, eval_data, cfg.horizons, cfg.probe_steps)
     torch.manual_seed(config.seed)
-    baseline = detection_report(VideoJEPA(config.model).eval(), probe_data, eval_data)
-    print(f"{steps} steps at batch {batch_size}: {rate:.1f} clips/s, prediction loss "
+    baseline = detection_report(VideoJEPA(config.model).eval(), probe_data, eval_data,
+                                cfg.horizons, cfg.probe_steps)
+    print(f"K = {rollout_steps}, seed {seed}: {config.steps} steps of {config.batch_size} clips "
+          f"in {seconds / 60:.1f} min on {torch.get_num_threads()} thread(s), prediction loss "
           f"{history['prediction'][0]:.3f} -> {history['prediction'][-1]:.3f}")
+    print(f"protocol: detection probe fitted on {cfg.n_probe} clips of training digits, AP on "
+          f"{cfg.n_eval} clips of {len(held_out)} held-out digits, horizons 1..{cfg.horizons}")
     for name, r in (("trained", report), ("random init", baseline)):
         aps = " ".join(f"{ap:.3f}" for ap in r["ap"].tolist())
         print(f"{name}: AP per horizon {aps}; mAP {r['map']:.3f} (true encodings "
               f"{r['map_encoded']:.3f}, copy last frame {r['map_copy']:.3f})")
-    return rate, report["map"]
+    return config.steps * config.batch_size / seconds, report
 
 
 def main() -> None:
@@ -125,17 +124,30 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=10, help="frames per clip")
     parser.add_argument("--repeats", type=int, default=5, help="timed calls; the median is kept")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
-    parser.add_argument("--train-steps", type=int, default=100, help="0 skips the model part")
-    parser.add_argument("--batch", type=int, default=VIDEO_CONFIGS["class"].batch_size)
-    parser.add_argument("--eval-clips", type=int, default=500, help="probe and evaluation clips")
+    parser.add_argument("--rollout-steps", type=int, default=VIDEO_CONFIGS["class"].rollout_steps,
+                        help="K of the class run")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the class run")
+    parser.add_argument("--steps", type=int, default=None,
+                        help="train this many steps instead of the class run's; 0 skips it")
     parser.add_argument("--split", action="store_true", help="where one training step goes")
+    parser.add_argument("--record", action="store_true",
+                        help="store the mAP in checkpoints/reference.json (the class run only)")
     args = parser.parse_args()
+    main_run = VIDEO_CONFIGS["class"]
+    if args.record and (args.steps, args.rollout_steps, args.seed) != (
+            None, main_run.rollout_steps, main_run.seed):
+        parser.error("--record stores notebook 03's main run: drop --steps, --rollout-steps "
+                     "and --seed")
     torch.set_num_threads(args.threads)
     if args.split:
-        print_parts(f"one class-scale step at batch {args.batch} x 10 frames",
-                    step_split(args.batch))
+        config = VIDEO_CONFIGS["class"]
+        print_parts(f"one class-scale step at batch {config.batch_size} x {config.n_frames} "
+                    "frames", step_split())
 
-    train_digits, held_out = split_digits(load_digits(), n_train=8000)
+    digits = load_digits()
+    train_digits, held_out = split_digits(
+        torch.randint(0, 256, (10_000, 1, 28, 28), dtype=torch.uint8) if digits is None
+        else digits, n_train=preset("03", "class").n_train_digits)
     time_generator(train_digits, 64, args.frames, seed=0)  # warm-up
     rates = []
     for repeat in range(args.repeats):
@@ -145,12 +157,20 @@ def main() -> None:
             f"generator repeat {repeat}: {args.clips} clips x {args.frames} frames, "
             f"{rate:,.0f} clips/s"
         )
-    train_rate, mean_ap = float("nan"), float("nan")
-    if args.train_steps > 0:
-        train_rate, mean_ap = model_benchmark(train_digits, held_out, args.train_steps,
-                                              args.batch, args.eval_clips)
+    train_rate, mean_ap, ap3 = float("nan"), float("nan"), float("nan")
+    if digits is not None and args.steps != 0:
+        train_rate, report = model_benchmark(train_digits, held_out, args.rollout_steps,
+                                             args.seed, args.steps)
+        mean_ap, ap3 = report["map"], float(report["ap"][2])
+        if args.record:
+            cfg = preset("03", "class")
+            reference.record("video_map", mean_ap, command=" ".join(["python", *sys.argv]),
+                             threads=args.threads,
+                             protocol=f"K = {args.rollout_steps}, seed {args.seed}; detection "
+                             f"probe fitted on {cfg.n_probe} clips of training digits, AP on "
+                             f"{cfg.n_eval} clips of held-out digits, horizons 1..{cfg.horizons}")
     print(f"clips_per_s={statistics.median(rates):.0f} train_clips_per_s={train_rate:.1f} "
-          f"map={mean_ap:.3f}")
+          f"map={mean_ap:.3f} ap3={ap3:.3f}")
 
 
 if __name__ == "__main__":

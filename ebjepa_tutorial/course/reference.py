@@ -49,7 +49,7 @@ METRICS = {
     "sigreg_random_init_probe_acc": Metric("random-init probe accuracy", "{:.1%}",
                                            benchmark=_IMAGE),
     "video_map": Metric("detection mAP over horizons 1-7", "{:.3f}", 0.607,
-                        "K = 4, trained on a GPU"),
+                        "K = 4, trained on a GPU", "benchmarks/video_jepa.py"),
     "world_probe_px": Metric("position probe error", "{:.2f} px",
                              benchmark="benchmarks/two_rooms.py"),
     "planning_success_class": Metric("planning success", "{:.0%}", 0.97, _MPPI,
