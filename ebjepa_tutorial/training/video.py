@@ -59,8 +59,8 @@ class VideoJEPAConfig:
     lr: float = 3e-3  # Adam's base rate (the paper: 1e-3, constant)
     cosine: bool = True  # decay the rate to 0 by a half cosine (the paper: constant)
     # convolutions in channels_last: faster on CPUs too. PyTorch's CPU backward in
-    # this layout crashes or errs on some strided 1x1 convolutions at 64x64 (the ci
-    # encoder's); tests check the class encoder's gradients against the default's
+    # this layout crashes on some strided 1x1 convolutions at 64x64 (the ci encoder's);
+    # a test checks each class-encoder convolution against the default layout
     channels_last: bool = True
     std_coeff: float = 10.0  # the paper's weights
     cov_coeff: float = 100.0
