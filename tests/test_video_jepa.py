@@ -85,18 +85,20 @@ def test_channels_last_gives_the_class_encoders_convolutions_the_same_gradients(
     convs = {name: m for name, m in encoder.named_modules() if isinstance(m, torch.nn.Conv2d)}
     shapes = {}
 
-    def remember(name):  # a forward hook that notes the input's shape, returns None
-        return lambda module, args, out: shapes.setdefault(name, args[0].shape) and None
+    def remember(name):  # a forward hook that notes the input's shape
+        def hook(module, args, out):
+            shapes[name] = args[0].shape
+        return hook
 
-    for name, conv in convs.items():
-        conv.register_forward_hook(remember(name))
+    hooks = [conv.register_forward_hook(remember(name)) for name, conv in convs.items()]
     encoder(torch.rand(4, 1, 64, 64))
+    for hook in hooks:
+        hook.remove()
     for name, conv in convs.items():
         x = torch.randn(shapes[name])
         grads = []
         for layout in (torch.contiguous_format, torch.channels_last):
             layer = copy.deepcopy(conv).to(memory_format=layout)
-            layer._forward_hooks.clear()
             xi = x.clone(memory_format=layout).requires_grad_()
             out = layer(xi)
             out.backward(torch.linspace(-1, 1, out.numel()).view_as(out))
