@@ -91,9 +91,9 @@ def step_split() -> dict[str, float]:
     return time_parts(step)
 
 
-def model_benchmark(train_digits, held_out, rollout_steps: int, seed: int, steps: int | None):
-    """Train notebook 03's class run (K, seed); return (training clips per second, report)."""
-    cfg = preset("03", "class")
+def model_benchmark(cfg, train_digits, held_out, rollout_steps: int, seed: int,
+                    steps: int | None):
+    """Train notebook 03's class run (``cfg``, K, seed); return (training clips/s, report)."""
     config = replace(cfg.train, rollout_steps=rollout_steps, seed=seed,
                      steps=steps or cfg.train.steps)
     clips = make_clips(config, train_digits)
@@ -133,21 +133,20 @@ def main() -> None:
     parser.add_argument("--record", action="store_true",
                         help="store the mAP in checkpoints/reference.json (the class run only)")
     args = parser.parse_args()
-    main_run = VIDEO_CONFIGS["class"]
+    cfg = preset("03", "class")
     if args.record and (args.steps, args.rollout_steps, args.seed) != (
-            None, main_run.rollout_steps, main_run.seed):
+            None, cfg.train.rollout_steps, cfg.train.seed):
         parser.error("--record stores notebook 03's main run: drop --steps, --rollout-steps "
                      "and --seed")
     torch.set_num_threads(args.threads)
     if args.split:
-        config = VIDEO_CONFIGS["class"]
-        print_parts(f"one class-scale step at batch {config.batch_size} x {config.n_frames} "
-                    "frames", step_split())
+        print_parts(f"one class-scale step at batch {cfg.train.batch_size} x "
+                    f"{cfg.train.n_frames} frames", step_split())
 
     digits = load_digits()
     train_digits, held_out = split_digits(
         torch.randint(0, 256, (10_000, 1, 28, 28), dtype=torch.uint8) if digits is None
-        else digits, n_train=preset("03", "class").n_train_digits)
+        else digits, n_train=cfg.n_train_digits)
     time_generator(train_digits, 64, args.frames, seed=0)  # warm-up
     rates = []
     for repeat in range(args.repeats):
@@ -159,11 +158,10 @@ def main() -> None:
         )
     train_rate, mean_ap, ap3 = float("nan"), float("nan"), float("nan")
     if digits is not None and args.steps != 0:
-        train_rate, report = model_benchmark(train_digits, held_out, args.rollout_steps,
+        train_rate, report = model_benchmark(cfg, train_digits, held_out, args.rollout_steps,
                                              args.seed, args.steps)
         mean_ap, ap3 = report["map"], float(report["ap"][2])
         if args.record:
-            cfg = preset("03", "class")
             reference.record("video_map", mean_ap, command=" ".join(["python", *sys.argv]),
                              threads=args.threads,
                              protocol=f"K = {args.rollout_steps}, seed {args.seed}; detection "
