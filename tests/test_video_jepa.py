@@ -26,6 +26,7 @@ from ebjepa_tutorial.models.video import (
     VideoJEPA,
     VideoModelConfig,
 )
+from ebjepa_tutorial.training import video as video_training
 from ebjepa_tutorial.training.checkpoints import load_checkpoint
 from ebjepa_tutorial.training.video import (
     VIDEO_CONFIGS,
@@ -250,6 +251,24 @@ def test_training_resumes_and_evaluation_runs(digits, tmp_path):
     with torch.no_grad():
         z = model.encode(clips[:2])[:, 0]
         assert torch.sigmoid(decoder(z)).shape == (2, 1, 64, 64)
+
+
+def test_the_curriculum_trains_one_step_first_then_k_steps(digits, monkeypatch):
+    class_ = VIDEO_CONFIGS["class"]  # 1,600 steps, the first half at K = 1
+    assert [class_.rollout_steps_at(s) for s in (0, 799, 800, 1599)] == [1, 1, 4, 4]
+    paper = replace(class_, one_step_fraction=0.0)
+    assert {paper.rollout_steps_at(s) for s in (0, 1599)} == {4}
+    seen = []  # K of every loss the training loop computes
+
+    def recording(predictor, z, context, steps, tbptt):
+        seen.append(steps)
+        return rollout_loss(predictor, z, context, steps, tbptt)
+
+    monkeypatch.setattr(video_training, "rollout_loss", recording)
+    clips = generate_moving_mnist(digits, 8, 10, seed=1).clips
+    config = replace(CI, steps=5, batch_size=2, rollout_steps=3, one_step_fraction=0.4)
+    train_video_jepa(config, clips, progress=False)
+    assert seen == [1, 1, 3, 3, 3]
 
 
 def test_train_or_load_trains_once_then_loads(digits, tmp_path, monkeypatch, capsys):

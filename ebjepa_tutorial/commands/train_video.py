@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> None:
     """Train (or load) and evaluate notebook 03's runs at a scale, printing AP per horizon.
 
     ``python -m ebjepa_tutorial.commands.train_video --scale class`` trains the K ablation
-    (K 1, 2, 4 times three seeds, 6-10 minutes each on a CPU) into
+    (K 1, 2, 4, 8 times three seeds, 4-10 minutes each on a CPU) into
     ``data/cache/checkpoints/``, where the notebook finds them; an interrupted
     run resumes; ``--ship`` also writes float16 copies to ``checkpoints/``. Same digits,
     clips and probe protocol as the notebook. Under torchrun every process trains each run

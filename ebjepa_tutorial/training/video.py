@@ -6,6 +6,10 @@ each frame is one sample), so that the latent cannot collapse:
 
     L = (1/K) sum_k mean ||zhat_k - z_{s+1+k}||^2 + std v(P(Z)) + cov c(P(Z))
 
+The class run is a curriculum: its first half trains K = 1 (the encoder learns
+what to predict), its second half the K-step rollout (the predictor learns to
+build on its own guesses); the paper trains K steps throughout.
+
 Evaluation lives in :mod:`ebjepa_tutorial.evaluation.detection`; the command
 that trains notebook 03's runs ahead of a class is
 ``python -m ebjepa_tutorial.commands.train_video --scale class``.
@@ -65,6 +69,10 @@ class VideoJEPAConfig:
     std_coeff: float = 10.0  # the paper's weights
     cov_coeff: float = 100.0
     rollout_steps: int = 4  # K
+    # a curriculum: this fraction of the steps trains one-step prediction (K = 1), the
+    # rest the K-step rollout (the paper: 0, K steps throughout). Runs of one seed that
+    # differ only in K are then the same run until the switch
+    one_step_fraction: float = 0.5
     tbptt: int | None = None  # truncated back-propagation through time (None: full)
     seed: int = 0
 
@@ -79,9 +87,14 @@ class VideoJEPAConfig:
                          f"an int >= context + rollout_steps = {frames}"),
             "lr": (is_positive, "a number > 0"),
             "std_coeff": (is_non_negative, "a number >= 0"),
+            "one_step_fraction": (lambda f: is_non_negative(f) and f < 1, "a number in [0, 1)"),
             "cov_coeff": (is_non_negative, "a number >= 0"),
             "tbptt": (lambda m: m is None or is_int_at_least(1)(m), "None or an int >= 1"),
         })
+
+    def rollout_steps_at(self, step: int) -> int:
+        """K at optimiser step ``step``: 1 during the first ``one_step_fraction`` of the run."""
+        return 1 if step < self.one_step_fraction * self.steps else self.rollout_steps
 
 
 VIDEO_CONFIGS = {
@@ -91,7 +104,7 @@ VIDEO_CONFIGS = {
     # the paper: 18,000 clips of 10 frames, batch 64, 50 epochs at a constant 1e-3
     "full": VideoJEPAConfig(model=VIDEO_MODEL_CONFIGS["full"], n_clips=18_000, batch_size=64,
                             steps=50 * 18_000 // 64, lr=1e-3, cosine=False,
-                            channels_last=False),
+                            channels_last=False, one_step_fraction=0.0),
 }
 
 
@@ -117,8 +130,11 @@ def check_clips(clips: torch.Tensor, min_frames: int) -> None:
 
 
 def video_jepa_loss(model: VideoJEPA, frames: torch.Tensor, config: VideoJEPAConfig,
-                    across_ranks: bool = False):
+                    across_ranks: bool = False, rollout_steps: int | None = None):
     """Total loss of a batch of clips ``(B, T, 1, 64, 64)`` and its unweighted terms.
+
+    ``rollout_steps``: K for this batch (default ``config.rollout_steps``; training
+    passes :meth:`VideoJEPAConfig.rollout_steps_at` of the step).
 
     ``across_ranks`` (a no-op in one process): the variance and covariance of the global
     batch of all ranks (:func:`~ebjepa_tutorial.losses.variance_and_covariance`).
@@ -126,7 +142,7 @@ def video_jepa_loss(model: VideoJEPA, frames: torch.Tensor, config: VideoJEPACon
     with mixed_precision(frames.device):  # bf16 networks on a GPU; the statistics in float32
         z = model.encode(frames)
         prediction = rollout_loss(model.predictor, z, model.config.context,
-                                  config.rollout_steps, config.tbptt)
+                                  rollout_steps or config.rollout_steps, config.tbptt)
         projected = model.project(z)  # (B*T*S*S, D): every location of every frame is a sample
     variance, covariance = variance_and_covariance(at_least_float32(projected),
                                                    across_ranks=across_ranks)
@@ -159,8 +175,8 @@ def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
     layout = torch.channels_last if config.channels_last else torch.contiguous_format
     model = VideoJEPA(config.model).to(device, memory_format=layout)
 
-    def loss(module: VideoJEPA, frames: torch.Tensor):  # the whole model in one forward (DDP)
-        return video_jepa_loss(module, frames, config, across_ranks=True)
+    def loss(module: VideoJEPA, frames: torch.Tensor, k: int):  # one forward (DDP)
+        return video_jepa_loss(module, frames, config, across_ranks=True, rollout_steps=k)
 
     net = distributed.data_parallel(distributed.Forward(model, loss), device, sync_batchnorm)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
@@ -169,15 +185,19 @@ def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
     if checkpoint is not None:
         start, history = resume(checkpoint, model, optimizer, scheduler, identity(config))
 
-    def batch(step: int) -> torch.Tensor:
+    def batch(step: int) -> tuple[torch.Tensor, int]:  # the step's clips and its K
         generator = step_generator(config.seed, step)
         index = torch.randint(0, len(clips), (config.batch_size,), generator=generator)
-        return clips[distributed.local_rows(index)]  # every rank drew the global batch
+        # every rank drew the global batch and keeps its own rows
+        return clips[distributed.local_rows(index)], config.rollout_steps_at(step)
 
-    fit(model, optimizer, lambda frames: net(frames.to(device)),
-        batch, config.steps, scheduler=scheduler, history=history, start_step=start,
-        checkpoint=checkpoint, checkpoint_every=100, log_every=10, desc="video JEPA",
-        progress=progress, config=identity(config))
+    def step_loss(clips_and_k: tuple[torch.Tensor, int]):
+        frames, k = clips_and_k
+        return net(frames.to(device), k)
+
+    fit(model, optimizer, step_loss, batch, config.steps, scheduler=scheduler, history=history,
+        start_step=start, checkpoint=checkpoint, checkpoint_every=100, log_every=10,
+        desc="video JEPA", progress=progress, config=identity(config))
     return model.eval(), history
 
 
