@@ -87,8 +87,8 @@ class VideoJEPAConfig:
                          f"an int >= context + rollout_steps = {frames}"),
             "lr": (is_positive, "a number > 0"),
             "std_coeff": (is_non_negative, "a number >= 0"),
-            "one_step_fraction": (lambda f: is_non_negative(f) and f < 1, "a number in [0, 1)"),
             "cov_coeff": (is_non_negative, "a number >= 0"),
+            "one_step_fraction": (lambda f: is_non_negative(f) and f < 1, "a number in [0, 1)"),
             "tbptt": (lambda m: m is None or is_int_at_least(1)(m), "None or an int >= 1"),
         })
 
