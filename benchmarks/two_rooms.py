@@ -4,11 +4,12 @@ Run: ``python benchmarks/two_rooms.py [--n 4096] [--batch 256] [--threads 2] [--
 [--prediction-starts first|all] [--out PATH] [--record]``.
 Prints trajectories per second (17 frames, 16 actions) for the states alone
 and with every 65x65x2 frame rendered (float32, in batches into one reused
-buffer, as a training loop would); then trains the class-scale world model
-from scratch for ``--steps`` steps (default: the class preset, ~10 minutes on
-2 cores; ``--steps 0`` skips it) and reports training trajectories per second
-the linear position probe's error on held-out trajectories (pixels), by
-notebook 05's protocol, and notebook 06's one-step wall test. ``--out PATH``
+buffer, as a training loop would); then trains notebook 05's class run (the
+course's recipe) from scratch for ``--steps`` steps (default: the preset's,
+under 10 minutes on 2 cores; ``--steps 0`` skips it) and reports training
+trajectories per second, the linear position probe's error on held-out
+trajectories (pixels) by notebook 05's protocol, and notebook 06's one-step
+wall test. ``--out PATH``
 saves the model for ``benchmarks/planning.py --checkpoint PATH``.
 Last line: ``traj_per_s=... train_traj_per_s=... probe_px=...``.
 ``--record`` (class preset's steps) stores the probe error in
@@ -21,6 +22,7 @@ import argparse
 import statistics
 import sys
 import time
+from dataclasses import replace
 
 import torch
 
@@ -30,7 +32,9 @@ from ebjepa_tutorial.envs import generate_trajectories
 from ebjepa_tutorial.evaluation.position import middle_wall_test, probe_report
 from ebjepa_tutorial.losses.world import PREDICTION_STARTS
 from ebjepa_tutorial.training.checkpoints import save_checkpoint
-from ebjepa_tutorial.training.world import WorldTrainConfig, identity, train_world_model
+from ebjepa_tutorial.training.world import identity, train_world_model
+
+CLASS_RUN = preset("05", "class")  # notebook 05's run, and its probe: fit seed 101, test 102
 
 
 def _median_seconds(fn, repeats: int) -> float:
@@ -66,16 +70,16 @@ def main() -> None:
     parser.add_argument("--n", type=int, default=4096, help="trajectories per measurement")
     parser.add_argument("--batch", type=int, default=256, help="trajectories rendered at once")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
-    parser.add_argument("--steps", type=int, default=WorldTrainConfig.steps,
+    parser.add_argument("--steps", type=int, default=CLASS_RUN.train.steps,
                         help="world-model training steps (0: data generation only)")
     parser.add_argument("--prediction-starts", choices=PREDICTION_STARTS,
-                        default=WorldTrainConfig.prediction_starts,
+                        default=CLASS_RUN.train.prediction_starts,
                         help="the prediction loss's rollout start frames")
     parser.add_argument("--out", help="save the trained model here (for planning.py --checkpoint)")
     parser.add_argument("--record", action="store_true",
                         help="store the probe error in checkpoints/reference.json")
     args = parser.parse_args()
-    class_recipe = (WorldTrainConfig.steps, WorldTrainConfig.prediction_starts)
+    class_recipe = (CLASS_RUN.train.steps, CLASS_RUN.train.prediction_starts)
     if args.record and (args.steps, args.prediction_starts) != class_recipe:
         parser.error("--record stores the class recipe's figure: drop --steps and "
                      "--prediction-starts")
@@ -88,14 +92,13 @@ def main() -> None:
     if args.steps == 0:
         print(f"traj_per_s={speed['traj_per_s']:.0f}")
         return
-    config = WorldTrainConfig(steps=args.steps, prediction_starts=args.prediction_starts)
+    config = replace(CLASS_RUN.train, steps=args.steps, prediction_starts=args.prediction_starts)
     start = time.perf_counter()
     model, history = train_world_model(config, device="cpu")
     seconds = time.perf_counter() - start
     train_speed = config.steps * config.batch_size / seconds
-    chapter = preset("05", "class")  # notebook 05's probe: fit seed 101, test seed 102
-    report = probe_report(model, n_fit=chapter.n_probe, n_test=chapter.n_test, seed=101,
-                          test_steps=chapter.horizon)
+    report = probe_report(model, n_fit=CLASS_RUN.n_probe, n_test=CLASS_RUN.n_test, seed=101,
+                          test_steps=CLASS_RUN.horizon)
     walls = middle_wall_test(model, generate_trajectories(400, seed=778))  # notebook 06's
     print(f"world model, {config.steps} steps of {config.batch_size} trajectories "
           f"(prediction from {config.prediction_starts} start frames) in {seconds / 60:.1f} min: "
@@ -113,9 +116,9 @@ def main() -> None:
     if args.record:
         reference.record("world_probe_px", report["probe_px"], threads=args.threads,
                          command=" ".join(["python", *sys.argv]),
-                         protocol=f"{config.steps} steps; linear probe fitted on {chapter.n_probe} "
-                                  f"trajectories, scored on {chapter.n_test} held-out ones of "
-                                  f"{chapter.horizon} steps")
+                         protocol=f"{config.steps} steps; linear probe fitted on "
+                                  f"{CLASS_RUN.n_probe} trajectories, scored on "
+                                  f"{CLASS_RUN.n_test} held-out ones of {CLASS_RUN.horizon} steps")
 
 
 if __name__ == "__main__":

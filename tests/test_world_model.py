@@ -654,6 +654,22 @@ def test_refit_command_saves_the_base_config_and_refuses_training_options(tmp_pa
     assert "do not apply" in capsys.readouterr().err
 
 
+def test_the_two_recipes_differ_only_in_how_they_train():
+    from ebjepa_tutorial.course.presets import preset
+
+    course_recipe, paper_recipe = world.course_recipe, world.paper_recipe
+    paper = world.WorldTrainConfig()
+    course = course_recipe(paper)
+    assert paper_recipe(course) == paper and course_recipe(course) == course
+    assert (course.coeffs, course.rollout_steps, course.lr) == (paper.coeffs, 8, paper.lr)
+    assert (course.window, course.replay_steps, course.model.predictor) == (9, 3, "mlp")
+    assert (paper.window, paper.replay_steps, paper.model.predictor) == (0, 0, "gru")
+    # notebook 05 trains the course's way; chapter 06's long runs and `full`, the paper's
+    assert preset("05", "class").train == course_recipe(replace(paper, steps=2000))
+    assert paper_recipe(preset("06", "class").long_world) == preset("06", "class").long_world
+    assert paper_recipe(preset("05", "full").train) == preset("05", "full").train
+
+
 def test_command_line_trains_the_run_of_a_scale(tmp_path, monkeypatch):
     from ebjepa_tutorial.commands import train_world
     from ebjepa_tutorial.course.presets import preset
@@ -669,11 +685,14 @@ def test_command_line_trains_the_run_of_a_scale(tmp_path, monkeypatch):
                         lambda model: {"probe_px": 1.5, "baseline_px": 20.0})
     train_world.main(["--scale", "ci", "--out", str(tmp_path / "ci.pt")])
     assert seen["config"] == preset("05", "ci").train
-    train_world.main(["--scale", "ci", "--out", str(tmp_path / "ci.pt"), "--window", "9",
-                      "--wall-fraction", "0.25", "--channels-last"])
-    assert seen["config"] == replace(preset("05", "ci").train, window=9, wall_fraction=0.25,
-                                     channels_last=True)
-    for option in (["--scale", "ci"], ["--window", "9"], ["--channels-last"]):
+    train_world.main(["--scale", "ci", "--out", str(tmp_path / "ci.pt"), "--paper-recipe",
+                      "--window", "9", "--wall-fraction", "0.25"])
+    assert seen["config"] == replace(world.paper_recipe(preset("05", "ci").train), window=9,
+                                     wall_fraction=0.25)
+    long_run = ["--paper-recipe", "--steps", "10000", "--trajectories", "100000"]
+    train_world.main(["--out", str(tmp_path / "long.pt"), *long_run])  # checkpoints/README.md
+    assert seen["config"] == preset("06", "class").long_world
+    for option in (["--scale", "ci"], ["--window", "9"], ["--channels-last"], ["--paper-recipe"]):
         with pytest.raises(SystemExit):
             train_world.main(["--refit", "x.pt", "--out", "y.pt", *option])
     with pytest.raises(SystemExit):  # a usage message, not a traceback

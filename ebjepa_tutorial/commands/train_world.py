@@ -1,6 +1,7 @@
 """Train the Two Rooms world model of a scale and save it, or refit a trained model's predictor.
 
     python -m ebjepa_tutorial.commands.train_world --out FILE.pt [--steps N] [--without TERM]
+    python -m ebjepa_tutorial.commands.train_world --paper-recipe --steps 10000 --out FILE.pt
     python -m ebjepa_tutorial.commands.train_world --refit TRAINED.pt --out FILE.pt
 
 On several devices, one process each (DistributedDataParallel; nccl on GPUs, gloo on CPUs):
@@ -35,6 +36,7 @@ from ..training.world import (
     ablation_config,
     identity,
     load_world_model,
+    paper_recipe,
     refit_identity,
     refit_predictor,
     train_world_model,
@@ -60,12 +62,16 @@ def main(argv: list[str] | None = None) -> None:
                              "per-rank batch x world size")
     parser.add_argument("--refit", metavar="TRAINED.pt",
                         help="fit a new MLP predictor on this trained model's frozen latents")
+    parser.add_argument("--paper-recipe", action="store_true",
+                        help="train the scale's model the paper's way (whole trajectories, GRU "
+                             "predictor, no replay; chapter 06's long runs) instead of the "
+                             "course's (training.world.course_recipe)")
     parser.add_argument("--steps", type=int,
-                        help=f"default: the scale's ({WorldTrainConfig.steps} at class; "
-                             f"{RefitConfig.steps} with --refit)")
+                        help=f"default: the scale's ({preset('05', 'class').train.steps} at "
+                             f"class; {RefitConfig.steps} with --refit)")
     parser.add_argument("--trajectories", type=int,
                         help=f"size of the offline data set (the paper: 100,000); default "
-                             f"{WorldTrainConfig.n_trajectories} "
+                             f"{preset('05', 'class').train.n_trajectories} at class "
                              f"({RefitConfig.n_trajectories} with --refit)")
     parser.add_argument("--decay-steps", type=int, default=0,
                         help="lower the learning rate linearly to 0 over the last N steps")
@@ -80,20 +86,19 @@ def main(argv: list[str] | None = None) -> None:
                              "from every frame with K after it (the paper's Eq. 8)")
     parser.add_argument("--wall-fraction", type=float,
                         help="the share of trajectories that start in front of the middle wall, "
-                             "heading into it (default 0, the paper's data)")
+                             "heading into it (0: the paper's data)")
     parser.add_argument("--window", type=int,
                         help="train on windows of this many frames cut at random offsets "
-                             "(default 0: whole 17-frame trajectories)")
+                             "(0: whole 17-frame trajectories)")
     parser.add_argument("--channels-last", action="store_true",
                         help="convolutions in channels_last (faster on CPUs too; changes the sums)")
     parser.add_argument("--predictor", choices=PREDICTORS,
-                        help="the one-step predictor (default: the scale's, a GRU)")
+                        help="the one-step predictor (default: the recipe's)")
     parser.add_argument("--stay-probability", type=float,
-                        help="the share of imagined steps that are still (zero action); "
-                             "default 0")
+                        help="the share of imagined steps that are still (zero action)")
     parser.add_argument("--replay-steps", type=int,
                         help="predictor-only updates on replayed latents after each step "
-                             "(default 0: none)")
+                             "(0: none)")
     parser.add_argument("--seed", type=int,
                         help=f"default {WorldTrainConfig.seed} ({RefitConfig.seed} with --refit)")
     launch.add_flags(parser, sync_bn=False)  # no batch norm in the world model
@@ -111,11 +116,12 @@ def main(argv: list[str] | None = None) -> None:
         training_only = ("prediction_starts", "wall_fraction", "window", "channels_last",
                          "stay_probability", "replay_steps")
         if (args.without or args.no_inverse_dynamics or args.coeff or args.decay_steps
-                or args.scale or args.predictor or any(name in given for name in training_only)):
-            parser.error("--refit keeps the trained model's encoder: --scale, --without, "
-                         "--no-inverse-dynamics, --coeff, --decay-steps, --prediction-starts, "
-                         "--wall-fraction, --window, --channels-last, --predictor, "
-                         "--stay-probability and --replay-steps do not apply")
+                or args.scale or args.predictor or args.paper_recipe
+                or any(name in given for name in training_only)):
+            parser.error("--refit keeps the trained model's encoder: --scale, --paper-recipe, "
+                         "--without, --no-inverse-dynamics, --coeff, --decay-steps, "
+                         "--prediction-starts, --wall-fraction, --window, --channels-last, "
+                         "--predictor, --stay-probability and --replay-steps do not apply")
         if args.ddp or distributed.launched_by_torchrun():
             parser.error("--refit runs in one process (a small MLP on precomputed latents): "
                          "start it with python -m, without torchrun or --ddp")
@@ -123,6 +129,8 @@ def main(argv: list[str] | None = None) -> None:
     without = args.without + (["inverse_dynamics"] if args.no_inverse_dynamics else [])
     try:
         base = preset("05", args.scale or "class").train
+        if args.paper_recipe:
+            base = paper_recipe(base)
         if args.predictor:
             base = replace(base, model=replace(base.model, predictor=args.predictor))
         config = with_coeffs(replace(base, decay_steps=args.decay_steps, **given), args.coeff)

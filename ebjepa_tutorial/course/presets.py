@@ -19,7 +19,13 @@ from ..models.world import WORLD_CONFIGS
 from ..planning import PlannerConfig
 from ..training.image import ImageJEPAConfig
 from ..training.video import VIDEO_CONFIGS, VideoJEPAConfig
-from ..training.world import ABLATABLE_TERMS, RefitConfig, WorldTrainConfig
+from ..training.world import (
+    ABLATABLE_TERMS,
+    RefitConfig,
+    WorldTrainConfig,
+    course_recipe,
+    paper_recipe,
+)
 
 SCALES = ("ci", "class", "full")
 DEFAULT_SCALE = "class"
@@ -125,8 +131,11 @@ class WorldModelPreset:
     n_positions: int = 32
 
 
-_WORLD_CI = WorldTrainConfig(model=WORLD_CONFIGS["ci"], n_trajectories=500, batch_size=16,
-                             steps=10)  # ci runs every cell; notebook 06 trains eleven of these
+# ci runs every cell; notebook 06 trains eleven of these
+_WORLD_CI = course_recipe(WorldTrainConfig(model=WORLD_CONFIGS["ci"], n_trajectories=500,
+                                           batch_size=16, steps=10))
+# the class run: the course's recipe, trained live in under 10 minutes on 2 cores (shipped)
+_WORLD_CLASS = course_recipe(WorldTrainConfig(steps=2000))
 _WORLD_FULL = WorldTrainConfig(  # the paper: batch 384, 12 epochs of 100,000 trajectories
     model=WORLD_CONFIGS["full"], n_trajectories=100_000, batch_size=384,
     steps=12 * 100_000 // 384,
@@ -147,7 +156,8 @@ class PlanningPreset:
     episode_steps: int = 200  # the paper's step budget
     first_seed: int = 10_000
     n_wall_test: int = 400  # fresh data-policy trajectories for the one-step wall test
-    # the same model trained longer on more data (class: shipped); None: `world` is already long
+    # the paper's recipe trained longer on more data (class: shipped); None: `world` is already
+    # the paper's long run
     long_world: WorldTrainConfig | None = None
     # loss terms whose ablation is also trained like `long_world` (class: shipped)
     long_ablations: tuple[str, ...] = ()
@@ -158,9 +168,9 @@ class PlanningPreset:
     refit: RefitConfig = RefitConfig()  # class: past the class budget, so shipped
 
 
-# class: 10x the steps on the paper's 100,000 trajectories, constant rate (checkpoints/README.md);
-# a run of this length is past the class budget, so it is shipped
-_WORLD_CLASS_LONG = WorldTrainConfig(n_trajectories=100_000, steps=10_000)
+# class: the paper's recipe for 10,000 steps on its 100,000 trajectories, constant rate
+# (checkpoints/README.md); a run of this length is past the class budget, so it is shipped
+_WORLD_CLASS_LONG = paper_recipe(replace(_WORLD_CLASS, n_trajectories=100_000, steps=10_000))
 _PLANNER_CI = PlannerConfig(horizon=8, samples=32, elites=4, iterations=2, execute=4)
 
 
@@ -187,18 +197,19 @@ PRESETS: dict[str, dict[str, object]] = {
     "05": {
         "ci": WorldModelPreset(_WORLD_CI, n_probe=100, n_test=32, horizon=16, n_layouts=16,
                                n_positions=16),
-        "class": WorldModelPreset(WorldTrainConfig()),  # exactly the CLI's run (shipped)
+        "class": WorldModelPreset(_WORLD_CLASS),  # exactly the CLI's run (shipped)
         "full": WorldModelPreset(_WORLD_FULL, n_probe=5000, n_test=1000, horizon=48),
     },
     "06": {
         "ci": PlanningPreset(_WORLD_CI, _PLANNER_CI, n_episodes=4, n_compare=2, episode_steps=40,
-                             n_wall_test=100, long_world=replace(_WORLD_CI, steps=20),
+                             n_wall_test=100,
+                             long_world=paper_recipe(replace(_WORLD_CI, steps=20)),
                              long_ablations=ABLATABLE_TERMS, n_long_ablation=2,
                              refit=RefitConfig(hidden=32, n_trajectories=200, steps=100,
                                                batch_size=128)),
         # the shipped checkpoints, with episode counts sized to fit a class period
         # (benchmarks/planning.py plays 100 per model for the results page)
-        "class": PlanningPreset(WorldTrainConfig(), PlannerConfig(), n_episodes=40, n_compare=10,
+        "class": PlanningPreset(_WORLD_CLASS, PlannerConfig(), n_episodes=40, n_compare=10,
                                 long_world=_WORLD_CLASS_LONG, long_ablations=ABLATABLE_TERMS,
                                 refit_base=replace(_WORLD_CLASS_LONG, steps=20_000)),
         # the reference code's planner on 500 episodes: 100 for the headline rate, 50 in 8 rows

@@ -2,12 +2,17 @@
 
 Data: offline trajectories of the paper's data policy, generated once as
 positions and actions (cheap) and rendered to frames batch by batch. Each
-training batch is ``batch_size`` random trajectories of ``17`` frames.
+training batch is ``batch_size`` random trajectories of ``17`` frames, or
+windows cut from them.
+
+Two recipes train the same loss: the paper's (:class:`WorldTrainConfig`'s
+defaults, :func:`paper_recipe`) and the course's (:func:`course_recipe`, the
+class preset), which learns more per CPU-minute.
 
 Shipped checkpoint: ``python -m ebjepa_tutorial.commands.train_world --out PATH``
-trains the class-scale model and writes it (see :func:`main`). With
-``--refit TRAINED.pt`` it instead fits a new MLP predictor on that model's
-frozen latents (:func:`refit_predictor`).
+trains the class-scale model and writes it. With ``--refit TRAINED.pt`` it
+instead fits a new MLP predictor on that model's frozen latents
+(:func:`refit_predictor`).
 
 Several processes (``torchrun``, see :mod:`ebjepa_tutorial.distributed`):
 :func:`train_world_model` trains with DistributedDataParallel; ``batch_size`` is
@@ -49,7 +54,8 @@ _ROLLOUT_RULE = (lambda k: is_int_at_least(1)(k) and k <= TRAJECTORY_ACTIONS,
 
 @dataclass(frozen=True)
 class WorldTrainConfig:
-    """One training run of the world model. Defaults: the class scale."""
+    """One training run of the world model. Defaults: the paper's recipe with the class
+    model (:func:`course_recipe` gives the class preset)."""
 
     model: WorldConfig = field(default_factory=lambda: WORLD_CONFIGS["class"])
     coeffs: WorldLossCoeffs = field(default_factory=WorldLossCoeffs)  # the paper's weights
@@ -65,7 +71,7 @@ class WorldTrainConfig:
     # convolution weights and inputs in channels_last: about 1.45x faster on a CPU too,
     # but it changes the order of floating-point sums, so it is part of the run
     channels_last: bool = False
-    steps: int = 1000  # sized for a class period on a laptop CPU
+    steps: int = 1000  # the class preset trains 2,000 of the course's cheaper steps
     lr: float = 1e-3  # AdamW, as in the paper
     weight_decay: float = 1e-5
     rollout_steps: int = 8  # K, the prediction horizon of the loss
@@ -114,6 +120,29 @@ class WorldTrainConfig:
         if not 0 <= self.decay_steps <= self.steps:
             raise ValueError(f"decay_steps must be in 0..steps={self.steps}, "
                              f"got {self.decay_steps}")
+
+
+# How the course's class recipe trains differently from the paper's, to learn more per
+# CPU-minute (notebook 05, section 4; RESULTS.md, chapter 05): half-length windows, a quarter
+# of the trajectories heading into the middle wall, 15% still steps, 3 replayed predictor
+# updates per step, channels_last, and an MLP predictor. The loss, its weights, K and the
+# sizes stay the paper's; WorldTrainConfig's defaults of these fields are the paper's values.
+COURSE_RECIPE = {"window": 9, "wall_fraction": 0.25, "stay_probability": 0.15,
+                 "replay_steps": 3, "channels_last": True}
+COURSE_PREDICTOR = "mlp"
+
+
+def course_recipe(config: WorldTrainConfig) -> WorldTrainConfig:
+    """``config`` trained the course's way (the ``class`` and ``ci`` presets)."""
+    return replace(config, **COURSE_RECIPE,
+                   model=replace(config.model, predictor=COURSE_PREDICTOR))
+
+
+def paper_recipe(config: WorldTrainConfig) -> WorldTrainConfig:
+    """``config`` trained the paper's way: whole 17-frame trajectories of the data policy, a
+    GRU predictor, no still steps, no replay (chapter 06's longer runs, the ``full`` preset)."""
+    return replace(config, **{name: getattr(WorldTrainConfig, name) for name in COURSE_RECIPE},
+                   model=replace(config.model, predictor=WorldConfig.predictor))
 
 
 def make_data(config: WorldTrainConfig) -> Trajectories:
