@@ -168,7 +168,7 @@ def mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
 
 
 class WorldModel(nn.Module):
-    """Encoder, action encoder, predictor (GRU or MLP) and inverse-dynamics head of one world model."""
+    """Encoder, action encoder, predictor (GRU or MLP) and inverse-dynamics head."""
 
     def __init__(self, config: WorldConfig | None = None):
         super().__init__()
