@@ -135,7 +135,7 @@ class WorldModelPreset:
 _WORLD_CI = course_recipe(WorldTrainConfig(model=WORLD_CONFIGS["ci"], n_trajectories=500,
                                            batch_size=16, steps=10))
 # the class run: the course's recipe, trained live in under 10 minutes on 2 cores (shipped)
-_WORLD_CLASS = course_recipe(WorldTrainConfig(steps=2000))
+_WORLD_CLASS = course_recipe(WorldTrainConfig(steps=2800))
 _WORLD_FULL = WorldTrainConfig(  # the paper: batch 384, 12 epochs of 100,000 trajectories
     model=WORLD_CONFIGS["full"], n_trajectories=100_000, batch_size=384,
     steps=12 * 100_000 // 384,
