@@ -289,6 +289,31 @@ def test_a_windowed_channels_last_run_trains_and_older_runs_read_as_whole_trajec
         WorldTrainConfig(wall_fraction=0.9)
 
 
+def test_a_three_rooms_run_trains_on_three_rooms_data_and_older_runs_read_as_two_rooms():
+    from ebjepa_tutorial.envs import room_of
+    from ebjepa_tutorial.training.world import (
+        WorldTrainConfig,
+        identity,
+        make_data,
+        train_world_model,
+        upgrade_identity,
+    )
+
+    config = WorldTrainConfig(model=tiny_model().config, n_trajectories=16, batch_size=4,
+                              steps=2, window=9, wall_fraction=0.25, walls=2)
+    data = make_data(config)
+    assert data.layouts.shape == (16, 4)  # two walls: (wall_x, door_y) each
+    assert (room_of(data.positions[:, 0], data.layouts) == 1).any()  # some start in the middle
+    _, history = train_world_model(config, progress=False, device="cpu")
+    assert len(history["loss"]) == 2 and all(math.isfinite(v) for v in history["loss"])
+    before = identity(WorldTrainConfig())
+    del before["walls"]
+    assert upgrade_identity(before) == identity(WorldTrainConfig())
+    assert upgrade_identity(before) != identity(WorldTrainConfig(walls=2))
+    with pytest.raises(ValueError, match="walls"):
+        WorldTrainConfig(walls=3)
+
+
 def _replay(capacity=8, steps=3, lr=1e-3):
     config = world.WorldTrainConfig(model=TINY, batch_size=4, rollout_steps=2, replay_steps=steps,
                                     replay_batch=8, replay_capacity=capacity, replay_lr=lr)
@@ -519,7 +544,7 @@ def test_command_line_sets_steps_data_size_and_decay(tmp_path, monkeypatch, caps
 
     monkeypatch.setattr(train_world, "train_world_model", fake_train)
     monkeypatch.setattr(train_world, "probe_report",
-                        lambda model: {"probe_px": 1.5, "baseline_px": 20.0})
+                        lambda model, walls=1: {"probe_px": 1.5, "baseline_px": 20.0})
     out = tmp_path / "long.pt"
     out.with_suffix(".partial").write_bytes(b"")  # what a real run leaves until it ends
     train_world.main(["--out", str(out), "--steps", "3000", "--trajectories", "100000",
@@ -682,7 +707,7 @@ def test_command_line_trains_the_run_of_a_scale(tmp_path, monkeypatch):
 
     monkeypatch.setattr(train_world, "train_world_model", fake_train)
     monkeypatch.setattr(train_world, "probe_report",
-                        lambda model: {"probe_px": 1.5, "baseline_px": 20.0})
+                        lambda model, walls=1: {"probe_px": 1.5, "baseline_px": 20.0})
     train_world.main(["--scale", "ci", "--out", str(tmp_path / "ci.pt")])
     assert seen["config"] == preset("05", "ci").train
     train_world.main(["--scale", "ci", "--out", str(tmp_path / "ci.pt"), "--paper-recipe",
@@ -692,7 +717,10 @@ def test_command_line_trains_the_run_of_a_scale(tmp_path, monkeypatch):
     long_run = ["--paper-recipe", "--steps", "10000", "--trajectories", "100000"]
     train_world.main(["--out", str(tmp_path / "long.pt"), *long_run])  # checkpoints/README.md
     assert seen["config"] == preset("06", "class").long_world
-    for option in (["--scale", "ci"], ["--window", "9"], ["--channels-last"], ["--paper-recipe"]):
+    train_world.main(["--out", str(tmp_path / "three.pt"), "--walls", "2"])  # checkpoints/README
+    assert seen["config"] == replace(preset("05", "class").train, walls=2)
+    for option in (["--scale", "ci"], ["--window", "9"], ["--channels-last"], ["--paper-recipe"],
+                   ["--walls", "2"]):
         with pytest.raises(SystemExit):
             train_world.main(["--refit", "x.pt", "--out", "y.pt", *option])
     with pytest.raises(SystemExit):  # a usage message, not a traceback

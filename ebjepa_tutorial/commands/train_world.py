@@ -99,6 +99,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--replay-steps", type=int,
                         help="predictor-only updates on replayed latents after each step "
                              "(0: none)")
+    parser.add_argument("--walls", type=int, choices=(1, 2),
+                        help="1: Two Rooms (default); 2: Three Rooms in a row (chapter 07)")
     parser.add_argument("--seed", type=int,
                         help=f"default {WorldTrainConfig.seed} ({RefitConfig.seed} with --refit)")
     launch.add_flags(parser, sync_bn=False)  # no batch norm in the world model
@@ -110,18 +112,20 @@ def main(argv: list[str] | None = None) -> None:
                                               ("window", args.window),
                                               ("channels_last", args.channels_last or None),
                                               ("stay_probability", args.stay_probability),
-                                              ("replay_steps", args.replay_steps))
+                                              ("replay_steps", args.replay_steps),
+                                              ("walls", args.walls))
              if value is not None}
     if args.refit:
         training_only = ("prediction_starts", "wall_fraction", "window", "channels_last",
-                         "stay_probability", "replay_steps")
+                         "stay_probability", "replay_steps", "walls")
         if (args.without or args.no_inverse_dynamics or args.coeff or args.decay_steps
                 or args.scale or args.predictor or args.paper_recipe
                 or any(name in given for name in training_only)):
             parser.error("--refit keeps the trained model's encoder: --scale, --paper-recipe, "
                          "--without, --no-inverse-dynamics, --coeff, --decay-steps, "
                          "--prediction-starts, --wall-fraction, --window, --channels-last, "
-                         "--predictor, --stay-probability and --replay-steps do not apply")
+                         "--predictor, --stay-probability, --replay-steps and --walls do not "
+                         "apply")
         if args.ddp or distributed.launched_by_torchrun():
             parser.error("--refit runs in one process (a small MLP on precomputed latents): "
                          "start it with python -m, without torchrun or --ddp")
@@ -151,7 +155,7 @@ def _train_and_save(out: str, config: WorldTrainConfig, device) -> None:
     model, history = train_world_model(config, checkpoint=partial, device=device)
     if not distributed.is_main():
         return
-    report = probe_report(model)
+    report = probe_report(model, walls=config.walls)
     save_checkpoint(out, model=model.state_dict(), history=dict(history),
                     config=identity(config), probe_px=report["probe_px"],
                     processes=distributed.world_size())

@@ -215,18 +215,20 @@ def stopping_doors(positions: torch.Tensor, layouts: torch.Tensor) -> torch.Tens
 
 
 def probe_report(model: WorldModel, n_fit: int = 1000, n_test: int = 300, seed: int = 12345,
-                 test_steps: int = 16):
+                 test_steps: int = 16, walls: int = 1):
     """Position-probe error (px) of frozen latents on held-out trajectories, with baselines.
 
     A linear probe is fitted on every frame of ``n_fit`` fresh 17-frame
     trajectories (seed ``seed``) and scored on every frame of ``n_test``
     others of ``test_steps`` actions (seed ``seed + 1``); no seed is one the
-    training used. The baseline always answers the mean position. The model
-    encodes on its device; the latents, and so the probe, are on the CPU (a
-    ``(D, D)`` solve is instant, and what a probe reads is plotted).
+    training used. ``walls``: 1 for Two Rooms, 2 for Three Rooms. The baseline
+    always answers the mean position. The model encodes on its device; the
+    latents, and so the probe, are on the CPU (a ``(D, D)`` solve is instant,
+    and what a probe reads is plotted).
     """
-    fit_trajectories = generate_trajectories(n_fit, seed=seed)
-    test_trajectories = generate_trajectories(n_test, steps=test_steps, seed=seed + 1)
+    fit_trajectories = generate_trajectories(n_fit, seed=seed, walls=walls)
+    test_trajectories = generate_trajectories(n_test, steps=test_steps, seed=seed + 1,
+                                              walls=walls)
     z_fit, xy_fit = encode_trajectories(model, fit_trajectories)
     z_test, xy_test = encode_trajectories(model, test_trajectories)
     probe = fit_position_probe(z_fit, xy_fit)
