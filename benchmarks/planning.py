@@ -7,7 +7,8 @@ Protocol: one episode per seed ``first_seed .. first_seed + episodes - 1``
 (layout, start and goal in opposite rooms, and the planner's noise all come
 from that seed); success when the dot ends within 4.5 px of the goal after
 200 steps. ``--walls 2`` plays Three Rooms instead (start and goal in the
-outer rooms, 300 steps) with a model trained there. Episodes run ``--batch`` at a time. Prints the success rate with
+outer rooms, 300 steps; ``--steps`` sets another length) with a model
+trained there. Episodes run ``--batch`` at a time. Prints the success rate with
 its Wilson 95% interval, the mean first-arrival step (episodes that
 arrived), and process CPU seconds per episode (all threads counted). Last
 line: ``success=... ci_low=... ci_high=... s_per_episode=...``. ``--record``
@@ -54,6 +55,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     parser.add_argument("--walls", type=int, choices=(1, 2), default=1,
                         help="1: Two Rooms; 2: Three Rooms (a model trained with --walls 2)")
+    parser.add_argument("--steps", type=int, default=None,
+                        help="episode length (default: the world's budget, 200 or 300)")
     for field in dataclasses.fields(PlannerConfig):  # --method, --cost, --horizon, ...
         kind = _yes_no if isinstance(field.default, bool) else type(field.default)
         parser.add_argument(f"--{field.name.replace('_', '-')}", type=kind, default=field.default)
@@ -65,12 +68,13 @@ def main() -> None:
                               for f in dataclasses.fields(PlannerConfig)})
     key = RECORDED.get(Path(args.checkpoint).name)
     if args.record and (key is None or config != PlannerConfig() or args.first_seed != 10_000
-                        or args.walls != 1):
+                        or args.walls != 1 or args.steps is not None):
         parser.error(f"--record stores the chapter's planner (no planner options, first seed "
                      f"10000) with one of {sorted(RECORDED)}")
     model = load_world_model(args.checkpoint)
     seeds = list(range(args.first_seed, args.first_seed + args.episodes))
-    result = run_episodes(model, seeds, config, batch=args.batch, walls=args.walls)
+    result = run_episodes(model, seeds, config, steps=args.steps, batch=args.batch,
+                          walls=args.walls)
     low, high = result.interval()
     print(f"{args.checkpoint}, {config}")
     print(f"{result.summary()}; {result.wall_seconds / len(seeds):.2f} s wall per episode "
