@@ -70,7 +70,7 @@ def main() -> None:
     if args.record and (key is None or config != PlannerConfig() or args.first_seed != 10_000
                         or args.walls != 1 or args.steps is not None):
         parser.error(f"--record stores the chapter's planner (no planner options, first seed "
-                     f"10000) with one of {sorted(RECORDED)}")
+                     f"10000, Two Rooms at its 200 steps) with one of {sorted(RECORDED)}")
     model = load_world_model(args.checkpoint)
     seeds = list(range(args.first_seed, args.first_seed + args.episodes))
     result = run_episodes(model, seeds, config, steps=args.steps, batch=args.batch,
