@@ -27,6 +27,7 @@ from pathlib import Path
 import torch
 
 from ebjepa_tutorial.course import reference
+from ebjepa_tutorial.envs.two_rooms import WALL_X_RANGES
 from ebjepa_tutorial.planning import PlannerConfig, run_episodes
 from ebjepa_tutorial.training.world import load_world_model
 
@@ -53,7 +54,7 @@ def main() -> None:
                         help="episodes planned at once (small batches stay in a CPU cache)")
     parser.add_argument("--first-seed", type=int, default=10_000)
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
-    parser.add_argument("--walls", type=int, choices=(1, 2), default=1,
+    parser.add_argument("--walls", type=int, choices=sorted(WALL_X_RANGES), default=1,
                         help="1: Two Rooms; 2: Three Rooms (a model trained with --walls 2)")
     parser.add_argument("--steps", type=int, default=None,
                         help="episode length (default: the world's budget, 200 or 300)")

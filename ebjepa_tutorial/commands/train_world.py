@@ -25,6 +25,7 @@ import torch
 from .. import distributed
 from ..course.presets import SCALES, preset
 from ..envs import generate_trajectories
+from ..envs.two_rooms import WALL_X_RANGES
 from ..evaluation.position import middle_wall_test, probe_report
 from ..losses.world import PREDICTION_STARTS
 from ..models.world import PREDICTORS
@@ -99,7 +100,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--replay-steps", type=int,
                         help="predictor-only updates on replayed latents after each step "
                              "(0: none)")
-    parser.add_argument("--walls", type=int, choices=(1, 2),
+    parser.add_argument("--walls", type=int, choices=sorted(WALL_X_RANGES),
                         help="1: Two Rooms (default); 2: Three Rooms in a row (chapter 07)")
     parser.add_argument("--seed", type=int,
                         help=f"default {WorldTrainConfig.seed} ({RefitConfig.seed} with --refit)")

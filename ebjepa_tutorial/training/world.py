@@ -34,6 +34,7 @@ import torch
 from .. import distributed
 from ..envs import generate_trajectories, render
 from ..envs.trajectories import Trajectories
+from ..envs.two_rooms import WALL_X_RANGES
 from ..losses.world import (
     PREDICTION_STARTS,
     WorldLossCoeffs,
@@ -97,7 +98,8 @@ class WorldTrainConfig:
     def __post_init__(self):
         check_fields(self, {
             "n_trajectories": (is_int_at_least(1), "an int >= 1"),
-            "walls": (lambda w: w in (1, 2), "1 (Two Rooms) or 2 (Three Rooms)"),
+            "walls": (lambda w: w in WALL_X_RANGES, f"one of {sorted(WALL_X_RANGES)} (Two or "
+                                                    "Three Rooms)"),
             "batch_size": (is_int_at_least(2), "an int >= 2 (a batch of one has no variance)"),
             "steps": (is_int_at_least(1), "an int >= 1"),
             "lr": (is_positive, "a number > 0"),
