@@ -719,12 +719,15 @@ def test_command_line_trains_the_run_of_a_scale(tmp_path, monkeypatch):
     assert seen["config"] == preset("06", "class").long_world
     train_world.main(["--out", str(tmp_path / "three.pt"), "--walls", "2"])  # checkpoints/README
     assert seen["config"] == replace(preset("05", "class").train, walls=2)
+    train_world.main(["--out", str(tmp_path / "wide.pt"), "--predictor-hidden", "256"])
+    assert seen["config"].model == replace(preset("05", "class").train.model, predictor_hidden=256)
     for option in (["--scale", "ci"], ["--window", "9"], ["--channels-last"], ["--paper-recipe"],
-                   ["--walls", "2"]):
+                   ["--walls", "2"], ["--predictor-hidden", "256"]):
         with pytest.raises(SystemExit):
             train_world.main(["--refit", "x.pt", "--out", "y.pt", *option])
-    with pytest.raises(SystemExit):  # a usage message, not a traceback
-        train_world.main(["--out", "y.pt", "--steps", "0"])
+    for wrong in (["--steps", "0"], ["--predictor-hidden", "0"]):
+        with pytest.raises(SystemExit):  # a usage message, not a traceback
+            train_world.main(["--out", "y.pt", *wrong])
 
 
 def test_identities_saved_before_versions_are_upgraded():

@@ -28,7 +28,7 @@ from ..envs import generate_trajectories
 from ..envs.two_rooms import WALL_X_RANGES
 from ..evaluation.position import middle_wall_test, probe_report
 from ..losses.world import PREDICTION_STARTS
-from ..models.world import PREDICTORS
+from ..models.world import PREDICTORS, WorldConfig
 from ..training.checkpoints import load_checkpoint, save_checkpoint, stored_identity
 from ..training.world import (
     ABLATABLE_TERMS,
@@ -95,6 +95,9 @@ def main(argv: list[str] | None = None) -> None:
                         help="convolutions in channels_last (faster on CPUs too; changes the sums)")
     parser.add_argument("--predictor", choices=PREDICTORS,
                         help="the one-step predictor (default: the recipe's)")
+    parser.add_argument("--predictor-hidden", type=int,
+                        help="width of the MLP predictor's two hidden layers (default "
+                             f"{WorldConfig.predictor_hidden})")
     parser.add_argument("--stay-probability", type=float,
                         help="the share of imagined steps that are still (zero action)")
     parser.add_argument("--replay-steps", type=int,
@@ -120,13 +123,14 @@ def main(argv: list[str] | None = None) -> None:
         training_only = ("prediction_starts", "wall_fraction", "window", "channels_last",
                          "stay_probability", "replay_steps", "walls")
         if (args.without or args.no_inverse_dynamics or args.coeff or args.decay_steps
-                or args.scale or args.predictor or args.paper_recipe
+                or args.scale or args.predictor or args.predictor_hidden is not None
+                or args.paper_recipe
                 or any(name in given for name in training_only)):
             parser.error("--refit keeps the trained model's encoder: --scale, --paper-recipe, "
                          "--without, --no-inverse-dynamics, --coeff, --decay-steps, "
                          "--prediction-starts, --wall-fraction, --window, --channels-last, "
-                         "--predictor, --stay-probability, --replay-steps and --walls do not "
-                         "apply")
+                         "--predictor, --predictor-hidden, --stay-probability, --replay-steps "
+                         "and --walls do not apply")
         if args.ddp or distributed.launched_by_torchrun():
             parser.error("--refit runs in one process (a small MLP on precomputed latents): "
                          "start it with python -m, without torchrun or --ddp")
@@ -138,6 +142,8 @@ def main(argv: list[str] | None = None) -> None:
             base = paper_recipe(base)
         if args.predictor:
             base = replace(base, model=replace(base.model, predictor=args.predictor))
+        if args.predictor_hidden is not None:
+            base = replace(base, model=replace(base.model, predictor_hidden=args.predictor_hidden))
         config = with_coeffs(replace(base, decay_steps=args.decay_steps, **given), args.coeff)
     except ValueError as error:
         parser.error(str(error))  # a usage message, not a traceback
