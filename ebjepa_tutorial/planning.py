@@ -8,6 +8,9 @@ and the encoded goal,
 
     S(a_1..a_H) = sum_{k=1..H} || zhat_k - z_goal ||       (cost="sum", the paper's)
     S(a_1..a_H) =               || zhat_H - z_goal ||       (cost="last", its ablation)
+    S(a_1..a_H) = sum_k ||a_k|| + d(zhat_H, z_goal)         (cost="learned", notebook 07)
+
+where ``d`` is a learned cost-to-go (``models.cost.WithLearnedCost``).
 
 MPPI (the paper's Algorithm 1) then keeps the ``Q`` cheapest sequences
 (the elites), weights them by ``exp(-(S_i - S_min) / tau)``, moves the mean
@@ -71,7 +74,7 @@ from .evaluation.metrics import wilson_interval
 from .utils import check_fields, is_int_at_least, is_positive
 
 METHODS = ("mppi", "cem")
-COSTS = ("sum", "last")
+COSTS = ("sum", "last", "learned")
 WORLDS = ("learned", "true", "true_xy")  # what run_episodes imagines with
 
 
@@ -80,7 +83,9 @@ class PlannerConfig:
     """One planner. The defaults are the class-scale MPPI of notebook 06."""
 
     method: str = "mppi"  # "mppi" (weighted elites) or "cem" (plain mean of elites)
-    cost: str = "sum"  # "sum": distance summed over the horizon; "last": final step only
+    # "sum": distance summed over the horizon; "last": final step only; "learned": px spent
+    # plus a learned cost-to-go after the last step (needs models.cost.WithLearnedCost)
+    cost: str = "sum"
     horizon: int = 64  # H, imagined steps per plan
     samples: int = 200  # N, action sequences per iteration
     elites: int = 20  # Q, the best of them that move the plan
@@ -179,10 +184,14 @@ def planning_cost(model, z0: torch.Tensor, z_goal: torch.Tensor, actions: torch.
 
     ``model.rollout`` imagines the ``H`` latents of each of the ``B x N`` plans in
     one batch; the cost is the Euclidean latent distance to the goal, summed over
-    the horizon (``"sum"``) or at the last step (``"last"``).
+    the horizon (``"sum"``) or at the last step (``"last"``); or (``"learned"``)
+    the plan's length in px plus ``model.cost_to_go`` from its last latent.
     """
     if cost not in COSTS:
         raise ValueError(f"cost must be one of {COSTS}, got {cost!r}")
+    if cost == "learned" and not hasattr(model, "cost_to_go"):
+        raise ValueError("cost='learned' needs a model with a cost-to-go head: "
+                         "models.cost.WithLearnedCost(world_model, head)")
     check_start_and_goal(z0, z_goal)
     if actions.ndim != 4 or len(actions) != len(z0):
         raise ValueError(f"actions must be plans of shape ({len(z0)}, N, H, A), one batch of N "
@@ -193,6 +202,8 @@ def planning_cost(model, z0: torch.Tensor, z_goal: torch.Tensor, actions: torch.
         raise ValueError(f"z_goal has latents of size {z_goal.shape[1]} but the model imagines "
                          f"latents of size {z.shape[-1]}: z_goal {tuple(z_goal.shape)}, z0 "
                          f"{tuple(z0.shape)}; encode the goal with the planning model")
+    if cost == "learned":
+        return actions.norm(dim=-1).sum(dim=-1) + model.cost_to_go(z[:, :, -1], z_goal[:, None])
     distance = (z - z_goal[:, None, None]).norm(dim=-1)  # (B, N, H)
     return distance.sum(dim=-1) if cost == "sum" else distance[..., -1]
 
