@@ -120,17 +120,19 @@ def main(argv: list[str] | None = None) -> None:
                                               ("walls", args.walls))
              if value is not None}
     if args.refit:
-        training_only = ("prediction_starts", "wall_fraction", "window", "channels_last",
-                         "stay_probability", "replay_steps", "walls")
-        if (args.without or args.no_inverse_dynamics or args.coeff or args.decay_steps
-                or args.scale or args.predictor or args.predictor_hidden is not None
-                or args.paper_recipe
-                or any(name in given for name in training_only)):
-            parser.error("--refit keeps the trained model's encoder: --scale, --paper-recipe, "
-                         "--without, --no-inverse-dynamics, --coeff, --decay-steps, "
-                         "--prediction-starts, --wall-fraction, --window, --channels-last, "
-                         "--predictor, --predictor-hidden, --stay-probability, --replay-steps "
-                         "and --walls do not apply")
+        training_only = {"--scale": args.scale, "--paper-recipe": args.paper_recipe,
+                         "--without": args.without,
+                         "--no-inverse-dynamics": args.no_inverse_dynamics,
+                         "--coeff": args.coeff, "--decay-steps": args.decay_steps,
+                         "--predictor": args.predictor,
+                         "--predictor-hidden": args.predictor_hidden is not None,
+                         **{"--" + name.replace("_", "-"): name in given for name in
+                            ("prediction_starts", "wall_fraction", "window", "channels_last",
+                             "stay_probability", "replay_steps", "walls")}}
+        refused = [flag for flag, value in training_only.items() if value]
+        if refused:
+            parser.error(f"--refit keeps the trained model's encoder, so {', '.join(refused)} "
+                         "cannot apply: they choose how a new model trains")
         if args.ddp or distributed.launched_by_torchrun():
             parser.error("--refit runs in one process (a small MLP on precomputed latents): "
                          "start it with python -m, without torchrun or --ddp")
