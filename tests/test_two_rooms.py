@@ -21,7 +21,14 @@ from ebjepa_tutorial.envs import (
     wall_collision,
 )
 from ebjepa_tutorial.envs.trajectories import sample_truncated_normal
-from ebjepa_tutorial.envs.two_rooms import HIGH, LOW, check_positions, wall_bounds, wall_images
+from ebjepa_tutorial.envs.two_rooms import (
+    HIGH,
+    LOW,
+    check_positions,
+    shortest_path_length,
+    wall_bounds,
+    wall_images,
+)
 
 # ----------------------------------------------------------------- geometry
 
@@ -406,3 +413,33 @@ def test_two_rooms_draws_are_pinned():
     assert torch.equal(sample_positions(layouts, g, torch.tensor([0, 1, 1, 0])), torch.tensor([
         [27.985027313232422, 42.355655670166016], [53.40412521362305, 17.449859619140625],
         [40.80257797241211, 3.983628273010254], [25.42290496826172, 49.387184143066406]]))
+
+
+def test_shortest_path_lengths_by_hand():
+    one = torch.tensor([[32, 20]])  # wall faces at x = 29.5 and 34.5, doorway rows 16.5-23.5
+    pairs = {((10, 10), (20, 30)): 500 ** 0.5,  # one room: straight
+             ((10, 20), (50, 20)): 40.0,  # straight through the doorway, either way
+             ((50, 20), (10, 20)): 40.0,
+             # round the wall: to the doorway's lower corner, across, on to the goal
+             ((10, 50), (50, 50)): math.hypot(19.5, 26.5) + 5 + math.hypot(15.5, 26.5)}
+    for (start, goal), length in pairs.items():
+        found = shortest_path_length(torch.tensor([start], dtype=torch.float32),
+                                     torch.tensor([goal], dtype=torch.float32), one)
+        assert found.item() == pytest.approx(length, abs=1e-3), (start, goal)
+    three = torch.tensor([[20, 10, 45, 54]])  # doorways at rows 6.5-13.5 and 50.5-57.5
+    corners = torch.tensor([[5.0, 30.0], [17.5, 13.5], [22.5, 13.5], [42.5, 50.5],
+                            [47.5, 50.5], [60.0, 30.0]])
+    found = shortest_path_length(corners[:1], corners[-1:], three)
+    assert found.item() == pytest.approx((corners[1:] - corners[:-1]).norm(dim=1).sum().item())
+
+
+def test_a_shortest_path_is_never_shorter_than_the_straight_line():
+    generator = torch.Generator().manual_seed(3)
+    for walls in (1, 2):
+        layouts = random_layouts(500, generator, walls)
+        starts, goals = sample_positions(layouts, generator), sample_positions(layouts, generator)
+        length = shortest_path_length(starts, goals, layouts)
+        straight = (starts - goals).norm(dim=1)
+        assert (length >= straight - 1e-4).all()
+        same = room_of(starts, layouts) == room_of(goals, layouts)
+        assert torch.allclose(length[same], straight[same], atol=1e-4)
