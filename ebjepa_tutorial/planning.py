@@ -147,6 +147,32 @@ _POSITIVE_FIELDS = {
 }
 
 
+@dataclass(frozen=True)
+class TwoLevel:
+    """A coarse model that picks subgoals for the flat planner (notebook 07).
+
+    At every re-plan ``config`` (MPPI over macro-actions of ``coarse.stride``
+    steps, warm-started like the flat plan) plans from the current latent to the
+    goal; the latent it imagines ``lookahead`` coarse steps ahead is the subgoal
+    that the flat planner then plans towards over its short horizon.
+    """
+
+    coarse: torch.nn.Module  # models.hierarchy.CoarseModel: rollout(z0, macro) -> latents
+    config: PlannerConfig
+    lookahead: int = 1
+
+    def __post_init__(self):
+        if not 1 <= self.lookahead <= self.config.horizon:
+            raise ValueError(f"lookahead must be in 1..{self.config.horizon} coarse steps (the "
+                             f"coarse plan's horizon), got {self.lookahead}")
+
+    def subgoals(self, z0: torch.Tensor, z_goal: torch.Tensor, config: PlannerConfig,
+                 generators: Sequence[torch.Generator], mean: torch.Tensor):
+        """``(subgoal latents (B, D), the coarse mean plan (B, H', 2))``."""
+        coarse = plan(self.coarse, z0, z_goal, config, generators, mean).mean
+        return self.coarse.rollout(z0, coarse[:, : self.lookahead])[:, -1], coarse
+
+
 # -- the energy ------------------------------------------------------------------------------
 def check_start_and_goal(z0, z_goal) -> None:
     """Raise a clear error unless ``z0`` is ``(B, D)`` and ``z_goal`` is ``(B, D')``.
@@ -442,7 +468,7 @@ def arrival_distance(model, px: float, n: int = 512, seed: int = 0, walls: int =
 def run_episodes(model, seeds: Sequence[int], config: PlannerConfig = PlannerConfig(),
                  steps: int | None = None, radius: float = SUCCESS_RADIUS,
                  batch: int | None = None, world: str = "learned",
-                 walls: int = 1) -> EpisodeResults:
+                 walls: int = 1, two_level: TwoLevel | None = None) -> EpisodeResults:
     """Plan and act in one episode per seed; the agent re-plans every ``m`` steps.
 
     Episode ``seed`` draws its layout, start and goal (the two outer rooms) and
@@ -456,9 +482,16 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig = PlannerCon
     ``"learned"``, the world model (the real task); ``"true"`` and
     ``"true_xy"``, the diagnoses of :class:`TrueDynamics`. With ``config.stop_px``
     the model's :func:`arrival_distance` is calibrated once, its CPU time counted.
+    ``two_level``: plan towards its subgoals instead of the goal (a learned world only;
+    it re-plans once per coarse step, so ``config.execute`` must be its stride).
     """
     if world not in WORLDS:
         raise ValueError(f"world must be one of {WORLDS}, got {world!r}")
+    if two_level is not None and (world != "learned"
+                                  or config.execute != two_level.coarse.stride):
+        raise ValueError(f"a two-level planner needs world='learned' and execute equal to its "
+                         f"stride ({two_level.coarse.stride}); got world={world!r}, "
+                         f"execute={config.execute}")
     seeds = list(seeds)
     batch = batch or len(seeds)
     model.eval()
@@ -469,14 +502,16 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig = PlannerCon
                    else arrival_distance(model, config.stop_px, walls=walls))
     cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
     result = EpisodeResults.concat([
-        _run_batch(model, seeds[i:i + batch], config, steps, radius, world, arrived, walls)
+        _run_batch(model, seeds[i:i + batch], config, steps, radius, world, arrived, walls,
+                   two_level)
         for i in range(0, len(seeds), batch)])
     return replace(result, cpu_seconds=result.cpu_seconds + cpu,
                    wall_seconds=result.wall_seconds + wall)
 
 
 def _run_batch(model, seeds: list[int], config: PlannerConfig, steps: int | None,
-               radius: float, world: str, arrived: float | None, walls: int) -> EpisodeResults:
+               radius: float, world: str, arrived: float | None, walls: int,
+               two_level: TwoLevel | None = None) -> EpisodeResults:
     """:func:`run_episodes` for one batch, all at once; ``arrived``: the stopping distance."""
     device = next(model.parameters()).device
     episodes, generators = episode_generators(seeds, walls)
@@ -496,6 +531,10 @@ def _run_batch(model, seeds: list[int], config: PlannerConfig, steps: int | None
     replanning = config  # the first plan of each episode starts cold, with J iterations
     warm = replace(config, iterations=min(config.warm_iterations or config.iterations,
                                           config.iterations))
+    if two_level is not None:  # the coarse plan: cold once, then warm, as the flat one
+        high, coarse = two_level.config, z_goal.new_zeros(len(seeds), two_level.config.horizon, 2)
+        high_warm = replace(high, iterations=min(high.warm_iterations or high.iterations,
+                                                 high.iterations))
     while env.steps_taken < steps:
         start = model.encode(observation) if world == "learned" else env.positions
         moving = everyone
@@ -505,9 +544,16 @@ def _run_batch(model, seeds: list[int], config: PlannerConfig, steps: int | None
             mean, moving = torch.where(under_way[:, None, None], mean, 0.0), everyone[under_way]
         if len(moving):
             part = imagine if world == "learned" else imagine.rows(moving)
-            mean[moving] = plan(part, start[moving], z_goal[moving], replanning,
-                                [generators[i] for i in moving.tolist()], mean[moving]).mean
+            mine = [generators[i] for i in moving.tolist()]
+            target = z_goal[moving]
+            if two_level is not None:
+                target, coarse[moving] = two_level.subgoals(start[moving], target, high, mine,
+                                                            coarse[moving])
+            mean[moving] = plan(part, start[moving], target, replanning, mine,
+                                mean[moving]).mean
         replanning = warm
+        if two_level is not None:
+            high, coarse = high_warm, shift_plan(coarse, 1)
         for action in mean[:, : min(config.execute, steps - env.steps_taken)].unbind(1):
             observation = env.step(action)
             paths.append(env.positions.cpu())

@@ -1,0 +1,70 @@
+"""Fit a coarse model (``models.hierarchy``) on a frozen world model's latents (notebook 07)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..envs import generate_trajectories
+from ..losses.world import multistep_prediction_loss
+from ..models.hierarchy import CoarseModel, macro_actions
+from ..models.world import WorldModel, encode_trajectories
+from ..utils import check_fields, is_int_at_least, is_positive
+from .loop import History, fit, step_generator
+
+
+@dataclass(frozen=True)
+class CoarseConfig:
+    """How the coarse model is fitted. The defaults are notebook 07's class run."""
+
+    stride: int = 4  # S, environment steps per coarse step
+    n_trajectories: int = 20_000  # fresh data-policy trajectories of 16 steps: 4 coarse steps
+    steps: int = 3000
+    batch_size: int = 1024
+    lr: float = 1e-3
+    hidden: int = 256
+    walls: int = 1
+    seed: int = 11
+
+    def __post_init__(self):
+        check_fields(self, {name: (is_int_at_least(1), "an int >= 1") for name in
+                            ("stride", "n_trajectories", "steps", "batch_size", "hidden")})
+        check_fields(self, {"lr": (is_positive, "a number > 0")})
+
+
+def fit_coarse_model(model: WorldModel, config: CoarseConfig = CoarseConfig(),
+                     progress: bool = True) -> tuple[CoarseModel, History]:
+    """A :class:`CoarseModel` fitted on ``model``'s frozen latents; ``(coarse, history)``."""
+    data = generate_trajectories(config.n_trajectories, seed=config.seed, walls=config.walls)
+    with torch.no_grad():
+        latents = encode_trajectories(model, data, batch_size=200)[0]
+    latents = latents.view(len(data), -1, model.latent_dim)
+    return fit_coarse_on(latents, data.actions, config, progress)
+
+
+def fit_coarse_on(latents: torch.Tensor, actions: torch.Tensor, config: CoarseConfig,
+                  progress: bool = True) -> tuple[CoarseModel, History]:
+    """Fit on trajectories of latents ``(N, T+1, D)`` and actions ``(N, T, 2)``: the rollout
+    error of every coarse step, from the first frame, under the summed actions."""
+    coarse_z = latents[:, :: config.stride]  # (N, T // S + 1, D)
+    macro = macro_actions(actions, config.stride)  # (N, T // S, 2)
+    if macro.shape[1] < 1:
+        raise ValueError(f"trajectories of {actions.shape[1]} steps hold no coarse step of "
+                         f"{config.stride}")
+    torch.manual_seed(config.seed)
+    coarse = CoarseModel(latents.shape[-1], config.stride, config.hidden)
+    optimizer = torch.optim.Adam(coarse.parameters(), lr=config.lr)
+
+    def batch(step: int):
+        index = torch.randint(0, len(latents), (config.batch_size,),
+                              generator=step_generator(config.seed, step))
+        return coarse_z[index], macro[index]
+
+    def loss(pair):
+        z, u = pair
+        return multistep_prediction_loss(coarse.predict, z, u, u.shape[1]), {}
+
+    history = fit(coarse, optimizer, loss, batch, config.steps, log_every=50,
+                  desc="coarse model", progress=progress)
+    return coarse.eval(), history

@@ -1,0 +1,76 @@
+"""The coarse model and the two-level planner of notebook 07."""
+
+from types import SimpleNamespace
+
+import pytest
+import torch
+from torch import nn
+
+from ebjepa_tutorial.envs import MAX_STEP, clip_actions
+from ebjepa_tutorial.models.hierarchy import CoarseModel, macro_actions
+from ebjepa_tutorial.planning import PlannerConfig, TwoLevel, plan, run_episodes, shift_plan
+from ebjepa_tutorial.training.hierarchy import CoarseConfig, fit_coarse_on
+
+
+class Drift(nn.Module):
+    """Latent = position; ``stride`` steps of the rollout move by the summed actions."""
+
+    def __init__(self, stride: int = 1):
+        super().__init__()
+        self.config, self.stride = SimpleNamespace(action_dim=2), stride
+        self.unused = nn.Parameter(torch.zeros(()))
+
+    def rollout(self, z0, actions):
+        return z0[:, None] + actions.cumsum(dim=1)
+
+
+LOW = PlannerConfig(horizon=8, samples=64, elites=8, iterations=4, warm_iterations=2,
+                    execute=4, stop_px=0)
+HIGH = PlannerConfig(horizon=8, samples=64, elites=8, iterations=4, warm_iterations=2,
+                     execute=1, action_bound=4 * MAX_STEP, init_std=6.0, max_std=8.0,
+                     noise_period=2, stop_px=0)
+
+
+def test_macro_actions_sum_each_stride():
+    actions = torch.arange(12.0).view(1, 6, 2)
+    assert macro_actions(actions, 3).tolist() == [[[6.0, 9.0], [24.0, 27.0]]]
+    assert macro_actions(actions, 4).shape == (1, 1, 2)  # the last 2 steps make no macro
+
+
+def test_two_levels_reach_a_far_goal_under_a_known_linear_model():
+    """Start at the origin, goal 30 px away: beyond the low level's 8 steps x 1.8 px."""
+    two = TwoLevel(Drift(stride=4), HIGH, lookahead=2)
+    z, goal = torch.zeros(1, 2), torch.tensor([[30.0, -12.0]])
+    generators = [torch.Generator().manual_seed(0)]
+    low_mean, high_mean = torch.zeros(1, 8, 2), torch.zeros(1, 8, 2)
+    for _ in range(12):
+        subgoal, high_mean = two.subgoals(z, goal, HIGH, generators, high_mean)
+        assert (subgoal - z).norm() <= 2 * 4 * MAX_STEP + 1e-4  # two coarse steps at most
+        low_mean = plan(Drift(), z, subgoal, LOW, generators, low_mean).mean
+        z = z + clip_actions(low_mean[:, :4]).sum(dim=1)  # the world: free motion
+        low_mean, high_mean = shift_plan(low_mean, 4), shift_plan(high_mean, 1)
+    assert (z - goal).norm() < 3.0, z
+
+
+def test_a_coarse_model_learns_a_linear_world_from_trajectories():
+    g = torch.Generator().manual_seed(0)
+    actions = torch.randn(300, 16, 2, generator=g)
+    # latent = position / 10, so a coarse step adds its macro-action / 10
+    latents = torch.cat([torch.zeros(300, 1, 2), actions.cumsum(dim=1)], dim=1) / 10
+    coarse, history = fit_coarse_on(latents, actions, CoarseConfig(steps=300, batch_size=64,
+                                                                   hidden=32, lr=3e-3),
+                                    progress=False)
+    assert history["loss"][-1] < 0.1 * history["loss"][0]
+    with torch.no_grad():
+        step = coarse.predict(torch.zeros(1, 2), torch.tensor([[4.0, -2.0]]))
+    assert torch.allclose(step, torch.tensor([[0.4, -0.2]]), atol=0.1)
+
+
+def test_settings_a_two_level_planner_cannot_use_are_refused():
+    with pytest.raises(ValueError, match="lookahead"):
+        TwoLevel(Drift(4), HIGH, lookahead=9)
+    with pytest.raises(ValueError, match="execute equal to its stride"):
+        run_episodes(Drift(), [10600], PlannerConfig(execute=2), two_level=TwoLevel(
+            CoarseModel(2, stride=4), HIGH))
+    with pytest.raises(ValueError, match="stride"):
+        CoarseModel(2, stride=0)
