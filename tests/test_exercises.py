@@ -22,6 +22,8 @@ CHECKERS = {
     "epps_pulley_1d": exercises.check_epps_pulley,
     "rollout_loss": exercises.check_rollout_loss,
     "mppi_update": exercises.check_mppi_update,
+    "cost_to_go_targets": exercises.check_cost_to_go_targets,
+    "expectile_loss": exercises.check_expectile_loss,
 }
 
 
@@ -336,6 +338,21 @@ def test_checker_names_each_mistake_it_knows(checker):
     for words, wrong in checker.mistakes:  # each known slip is caught, and named as itself
         with pytest.raises(exercises.ExerciseError, match="Likely cause: " + re.escape(words)):
             checker(wrong)
+
+
+def test_chapter_07_checkers_accept_a_learner_s_own_right_answers(capsys):
+    def cost_to_go_targets(step_cost, next_to_go, offset, spent):
+        target = step_cost + next_to_go
+        target = torch.where(offset > 0, target.clamp(max=spent), target)
+        return target * (offset != 0)
+
+    def expectile_loss(estimate, target, tau):
+        error = target - estimate
+        return (torch.abs(tau - (error < 0).float()) * error**2).mean()
+
+    assert exercises.check_cost_to_go_targets(cost_to_go_targets) is cost_to_go_targets
+    assert exercises.check_expectile_loss(expectile_loss) is expectile_loss
+    assert capsys.readouterr().out.count("Correct") == 2
 
 
 def test_an_unknown_mistake_is_not_given_a_cause():

@@ -10,6 +10,7 @@ the lesson depends on a gradient, the gradient is compared too. One module per
 chapter's exercises.
 """
 
+from .beyond import check_cost_to_go_targets, check_expectile_loss
 from .common import Case, ExerciseError, compare
 from .planning import check_mppi_update
 from .sigreg import check_epps_pulley
@@ -26,8 +27,10 @@ from .world_model import check_inverse_dynamics, check_temporal_similarity
 __all__ = [
     "Case",
     "ExerciseError",
+    "check_cost_to_go_targets",
     "check_covariance_term",
     "check_epps_pulley",
+    "check_expectile_loss",
     "check_inverse_dynamics",
     "check_mppi_update",
     "check_rollout_loss",
