@@ -117,3 +117,19 @@ def test_a_head_for_other_latents_is_refused():
 def test_cost_config_refuses_settings_that_cannot_fit(field, value):
     with pytest.raises(ValueError, match=field):
         CostConfig(**{field: value})
+
+
+def test_a_fitted_head_is_saved_once_and_loaded_after(tmp_path, monkeypatch):
+    from ebjepa_tutorial.training import cost
+    from ebjepa_tutorial.training.world import WorldTrainConfig, identity, make_data, new_model
+
+    monkeypatch.setattr(cost, "checkpoint_paths",
+                        lambda name: (tmp_path / f"{name}.pt", tmp_path / "none.pt"))
+    world = WorldTrainConfig(n_trajectories=8, steps=1)
+    model = new_model(world, make_data(world)).eval()
+    config = CostConfig(n_trajectories=4, steps=3, batch_size=16, hidden=8)
+    first = cost.cost_head_or_load(model, identity(world), config, "head")
+    assert (tmp_path / "head.pt").exists()
+    again = cost.cost_head_or_load(model, identity(world), config, "head")
+    for a, b in zip(first.parameters(), again.parameters()):
+        assert torch.equal(a, b)

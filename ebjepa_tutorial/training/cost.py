@@ -21,7 +21,8 @@ from ..losses.cost import cost_to_go_targets, expectile_loss
 from ..models.cost import CostToGo
 from ..models.world import WorldModel, encode_trajectories
 from ..utils import check_fields, is_int_at_least, is_positive
-from .loop import History, fit, step_generator
+from .checkpoints import checkpoint_paths, run_identity
+from .loop import History, fit, load_or_train, step_generator
 
 
 @dataclass(frozen=True)
@@ -116,3 +117,20 @@ def fit_cost_to_go(latents: torch.Tensor, actions: torch.Tensor, config: CostCon
     history = fit(head, optimizer, loss, batch, config.steps, log_every=50,
                   desc="cost-to-go", progress=progress, after_step=target)
     return head.eval(), history
+
+
+def cost_head_or_load(model: WorldModel, base: dict, config: CostConfig,
+                      name: str) -> CostToGo:
+    """The head of ``config`` on ``model`` (trained by the run whose identity is ``base``):
+    loaded from ``checkpoints/<name>.pt`` or the cache if it was saved, else fitted and
+    saved to the cache. In eval mode, on the CPU."""
+    head = CostToGo(model.latent_dim, config.hidden)
+    cache_path, shipped = checkpoint_paths(name)
+
+    def fit_here() -> History:
+        fitted, history = fit_cost_head(model, config)
+        head.load_state_dict(fitted.state_dict())
+        return history
+
+    load_or_train(cache_path, head, fit_here, run_identity(config, base=base), shipped)
+    return head.eval()

@@ -11,7 +11,8 @@ from ..losses.world import multistep_prediction_loss
 from ..models.hierarchy import CoarseModel, macro_actions
 from ..models.world import WorldModel, encode_trajectories
 from ..utils import check_fields, is_int_at_least, is_positive
-from .loop import History, fit, step_generator
+from .checkpoints import checkpoint_paths, run_identity
+from .loop import History, fit, load_or_train, step_generator
 
 
 @dataclass(frozen=True)
@@ -68,3 +69,20 @@ def fit_coarse_on(latents: torch.Tensor, actions: torch.Tensor, config: CoarseCo
     history = fit(coarse, optimizer, loss, batch, config.steps, log_every=50,
                   desc="coarse model", progress=progress)
     return coarse.eval(), history
+
+
+def coarse_or_load(model: WorldModel, base: dict, config: CoarseConfig,
+                   name: str) -> CoarseModel:
+    """The coarse model of ``config`` on ``model`` (trained by the run whose identity is
+    ``base``): loaded from ``checkpoints/<name>.pt`` or the cache if it was saved, else
+    fitted and saved to the cache. In eval mode, on the CPU."""
+    coarse = CoarseModel(model.latent_dim, config.stride, config.hidden)
+    cache_path, shipped = checkpoint_paths(name)
+
+    def fit_here() -> History:
+        fitted, history = fit_coarse_model(model, config)
+        coarse.load_state_dict(fitted.state_dict())
+        return history
+
+    load_or_train(cache_path, coarse, fit_here, run_identity(config, base=base), shipped)
+    return coarse.eval()
