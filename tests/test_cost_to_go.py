@@ -41,7 +41,7 @@ def test_goals_come_from_the_same_trajectory_later_or_from_anywhere():
                           dim=-1).float()
     actions = torch.tensor([2.0, 0.0]).expand(n, frames - 1, 2)
     z, z_next, goal, step_cost, offset, spent = sample_goals(
-        latents, actions, 500, 0.5, torch.Generator().manual_seed(0))
+        latents, actions, 500, 0.5, torch.Generator().manual_seed(0), group=3)
     assert (z_next == z + torch.tensor([0.0, 1.0])).all()  # the next frame
     assert (step_cost == 2).all()
     own = offset >= 0
@@ -49,6 +49,9 @@ def test_goals_come_from_the_same_trajectory_later_or_from_anywhere():
     assert (goal[own, 0] == z[own, 0]).all() and (goal[own, 1] == z[own, 1] + offset[own]).all()
     assert (spent[own] == 2 * offset[own]).all()
     assert set(offset[own].tolist()) == set(range(frames))  # the goal itself up to the last frame
+    # the others: any frame of a trajectory in the same group of 3 (which share a layout)
+    assert (goal[~own, 0] // 3 == z[~own, 0] // 3).all()
+    assert len(set(goal[~own, 0].tolist())) == n and set(goal[~own, 1].tolist()) == set(range(5))
 
 
 def test_on_a_line_the_head_learns_the_distance_not_the_random_walks():
@@ -113,7 +116,8 @@ def test_a_head_for_other_latents_is_refused():
 
 
 @pytest.mark.parametrize("field, value", [("tau", 0.0), ("target_momentum", 1.0),
-                                          ("hindsight", 1.5), ("steps", 0)])
+                                          ("hindsight", 1.5), ("steps", 0),
+                                          ("layouts", 30_000), ("layouts", 3)])
 def test_cost_config_refuses_settings_that_cannot_fit(field, value):
     with pytest.raises(ValueError, match=field):
         CostConfig(**{field: value})

@@ -25,6 +25,7 @@ from ebjepa_tutorial.envs.two_rooms import (
     HIGH,
     LOW,
     check_positions,
+    in_wall,
     shortest_path_length,
     wall_bounds,
     wall_images,
@@ -443,3 +444,15 @@ def test_a_shortest_path_is_never_shorter_than_the_straight_line():
         assert (length >= straight - 1e-4).all()
         same = room_of(starts, layouts) == room_of(goals, layouts)
         assert torch.allclose(length[same], straight[same], atol=1e-4)
+
+
+def test_trajectories_can_share_given_layouts():
+    layouts = random_layouts(2, torch.Generator().manual_seed(0)).repeat_interleave(3, dim=0)
+    data = generate_trajectories(6, seed=1, layouts=layouts)
+    assert torch.equal(data.layouts, layouts)
+    assert not in_wall(data.positions.flatten(0, 1),
+                       layouts.repeat_interleave(17, dim=0)).any()
+    with pytest.raises(ValueError, match="one layout per trajectory"):
+        generate_trajectories(5, layouts=layouts)
+    with pytest.raises(ValueError):
+        generate_trajectories(1, layouts=torch.tensor([[99, 30]]))

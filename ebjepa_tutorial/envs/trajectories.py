@@ -39,6 +39,7 @@ from .two_rooms import (
     LOW,
     WALL_WIDTH,
     as_generator,
+    check_layouts,
     random_layouts,
     render,
     room_of,
@@ -190,6 +191,7 @@ def generate_trajectories(
     step_std: float = 0.4,
     step_range: tuple[float, float] = (0.2, 1.8),
     walls: int = 1,
+    layouts: torch.Tensor | None = None,
 ) -> Trajectories:
     """``n`` random-walk trajectories of ``steps`` actions (``steps + 1`` frames).
 
@@ -197,7 +199,8 @@ def generate_trajectories(
     trajectories start at the door (chosen at random), and ``round(wall_fraction * n)``
     of the others in front of the middle wall, heading into it (:func:`wall_starts`).
     ``walls``: 1 for Two Rooms, 2 for Three Rooms (a door or wall start then
-    faces one of the two walls, picked at random per trajectory).
+    faces one of the two walls, picked at random per trajectory). ``layouts``: one
+    layout per trajectory ``(n, 2W)`` instead of fresh random ones (then ``walls`` is theirs).
     """
     if not isinstance(n, int) or n < 1 or not isinstance(steps, int) or steps < 1:
         raise ValueError(f"n and steps must be positive ints, got n={n!r}, steps={steps!r}")
@@ -205,7 +208,13 @@ def generate_trajectories(
         raise ValueError("door_fraction and wall_fraction must be >= 0 with a sum <= 1, got "
                          f"{door_fraction} and {wall_fraction}")
     generator = as_generator(seed)
-    layouts = random_layouts(n, generator, walls)
+    if layouts is None:
+        layouts = random_layouts(n, generator, walls)
+    elif layouts.shape[0] != n:
+        raise ValueError(f"layouts must hold one layout per trajectory, ({n}, 2W); got "
+                         f"{tuple(layouts.shape)}")
+    else:
+        check_layouts(layouts)
     door = torch.zeros(n, dtype=torch.bool)
     door[torch.randperm(n, generator=generator)[: round(door_fraction * n)]] = True
     start = sample_positions(layouts, generator)

@@ -5,8 +5,10 @@ trajectories into latents once, and the head (``models.cost.CostToGo``) is
 fitted on them by temporal differences with hindsight goals
 (``losses.cost``). Half the goals (``hindsight``) are frames later in the same
 trajectory, whose distance the data itself bounds; the rest are frames of
-other trajectories, anywhere in any layout, which the head can only learn by
-chaining estimates: the long way round the wall is learned from short pieces.
+other trajectories in the same layout (a distance between two layouts means
+nothing), which the head can only learn by chaining estimates: the long way
+round the wall is learned from short pieces. So the trajectories come in
+groups that share a layout.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..envs import generate_trajectories
+from ..envs import generate_trajectories, random_layouts
 from ..losses.cost import cost_to_go_targets, expectile_loss
 from ..models.cost import CostToGo
 from ..models.world import WorldModel, encode_trajectories
@@ -30,6 +32,7 @@ class CostConfig:
     """How a cost-to-go head is fitted. The defaults are notebook 07's class run."""
 
     n_trajectories: int = 20_000  # fresh data-policy trajectories, encoded once
+    layouts: int = 500  # distinct layouts, each shared by n_trajectories / layouts of them
     steps: int = 4000  # Adam steps
     batch_size: int = 1024
     lr: float = 1e-3
@@ -42,7 +45,11 @@ class CostConfig:
 
     def __post_init__(self):
         check_fields(self, {name: (is_int_at_least(1), "an int >= 1") for name in
-                            ("n_trajectories", "steps", "batch_size", "hidden")})
+                            ("n_trajectories", "layouts", "steps", "batch_size",
+                             "hidden")})
+        if self.n_trajectories % self.layouts:
+            raise ValueError(f"n_trajectories ({self.n_trajectories}) must be a multiple of "
+                             f"layouts ({self.layouts}): each layout has as many trajectories")
         check_fields(self, {"lr": (is_positive, "a number > 0")})
         for name in ("tau", "target_momentum", "hindsight"):
             if not 0 < getattr(self, name) < 1:
@@ -50,8 +57,11 @@ class CostConfig:
 
 
 def sample_goals(latents: torch.Tensor, actions: torch.Tensor, batch: int, hindsight: float,
-                 generator: torch.Generator):
+                 generator: torch.Generator, group: int = 1):
     """One batch of transitions with goals, from latents ``(N, T+1, D)`` and actions ``(N, T, A)``.
+
+    Trajectories ``k * group .. (k + 1) * group - 1`` share a layout; a goal that is not
+    later on its own trajectory is a frame of one of its group's.
 
     Returns ``z (B, D)``, ``z_next (B, D)``, ``goal (B, D)``, ``step_cost (B,)`` (the
     action's length, px), ``offset (B,)`` and ``spent (B,)`` (see
@@ -62,7 +72,7 @@ def sample_goals(latents: torch.Tensor, actions: torch.Tensor, batch: int, hinds
     t = torch.randint(0, frames - 1, (batch,), generator=generator)
     later = (torch.rand(batch, generator=generator) * (frames - t)).long()  # 0..T-t
     own = torch.rand(batch, generator=generator) < hindsight
-    other_i = torch.randint(0, n, (batch,), generator=generator)
+    other_i = i // group * group + torch.randint(0, group, (batch,), generator=generator)
     other_t = torch.randint(0, frames, (batch,), generator=generator)
     goal = torch.where(own[:, None], latents[i, t + later],
                        latents[other_i, other_t])
@@ -89,16 +99,22 @@ class TargetCopy:
 def fit_cost_head(model: WorldModel, config: CostConfig = CostConfig(),
                   progress: bool = True) -> tuple[CostToGo, History]:
     """A :class:`CostToGo` fitted on ``model``'s frozen latents; returns ``(head, history)``."""
-    data = generate_trajectories(config.n_trajectories, seed=config.seed, walls=config.walls)
+    generator = torch.Generator().manual_seed(config.seed)
+    group = config.n_trajectories // config.layouts
+    layouts = random_layouts(config.layouts, generator, config.walls)
+    data = generate_trajectories(config.n_trajectories, seed=generator,
+                                 layouts=layouts.repeat_interleave(group, dim=0))
     with torch.no_grad():
         latents = encode_trajectories(model, data, batch_size=200)[0]
     latents = latents.view(len(data), -1, model.latent_dim)
-    return fit_cost_to_go(latents, data.actions, config, progress)
+    return fit_cost_to_go(latents, data.actions, config, progress, group)
 
 
 def fit_cost_to_go(latents: torch.Tensor, actions: torch.Tensor, config: CostConfig,
-                   progress: bool = True) -> tuple[CostToGo, History]:
-    """Fit a head on trajectories of latents ``(N, T+1, D)`` and their actions ``(N, T, A)``."""
+                   progress: bool = True, group: int = 1) -> tuple[CostToGo, History]:
+    """Fit a head on trajectories of latents ``(N, T+1, D)`` and their actions ``(N, T, A)``,
+    in groups of ``group`` consecutive trajectories that share a layout (:func:`sample_goals`).
+    """
     torch.manual_seed(config.seed)
     head = CostToGo(latents.shape[-1], config.hidden)
     target = TargetCopy(head, config.target_momentum)
@@ -106,7 +122,8 @@ def fit_cost_to_go(latents: torch.Tensor, actions: torch.Tensor, config: CostCon
 
     def batch(step: int):
         generator = step_generator(config.seed, step)
-        return sample_goals(latents, actions, config.batch_size, config.hindsight, generator)
+        return sample_goals(latents, actions, config.batch_size, config.hindsight, generator,
+                            group)
 
     def loss(pairs):
         z, z_next, goal, step_cost, offset, spent = pairs
