@@ -54,6 +54,7 @@ def test_goals_come_from_the_same_trajectory_later_or_from_anywhere():
     assert len(set(goal[~own, 0].tolist())) == n and set(goal[~own, 1].tolist()) == set(range(5))
 
 
+@pytest.mark.slow  # 1,000 Adam steps: seconds
 def test_on_a_line_the_head_learns_the_distance_not_the_random_walks():
     """Random walks on [0, 20] with steps up to 1.5 px either way: the shortest way is
     |x - g|, while the data's walks take far longer. The low expectile finds the former."""
@@ -65,7 +66,7 @@ def test_on_a_line_the_head_learns_the_distance_not_the_random_walks():
     line = torch.stack([x / 10, torch.zeros_like(x)], dim=-1)  # (N, T+1, 2) latents
     actions = torch.stack([moves, torch.zeros_like(moves)], dim=-1)
     config = CostConfig(steps=1000, batch_size=256, hidden=64, lr=3e-3, target_momentum=0.95)
-    head, history = fit_cost_to_go(line, actions, config, progress=False)
+    head, history = fit_cost_to_go(line, actions, config, progress=False, group=n)  # one world
     at = torch.tensor([[0.5, 0.0], [1.0, 0.0], [1.5, 0.0]])  # x = 5, 10, 15
     with torch.no_grad():
         near, far = head(at[1], at[0]), head(at[2], at[0])
@@ -131,7 +132,7 @@ def test_a_fitted_head_is_saved_once_and_loaded_after(tmp_path, monkeypatch):
                         lambda name: (tmp_path / f"{name}.pt", tmp_path / "none.pt"))
     world = WorldTrainConfig(n_trajectories=8, steps=1)
     model = new_model(world, make_data(world)).eval()
-    config = CostConfig(n_trajectories=4, steps=3, batch_size=16, hidden=8)
+    config = CostConfig(n_trajectories=4, layouts=2, steps=3, batch_size=16, hidden=8)
     first = cost.cost_head_or_load(model, identity(world), config, "head")
     assert (tmp_path / "head.pt").exists()
     again = cost.cost_head_or_load(model, identity(world), config, "head")
