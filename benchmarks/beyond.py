@@ -38,13 +38,14 @@ SHORT = PlannerConfig(horizon=16, samples=100, elites=10)
 LEARNED = dataclasses.replace(SHORT, cost="learned", temperature=1.0)
 # the two-level planner (chosen on seeds 10,600-10,699): a lower level of 8 steps aiming at
 # the coarse plan's latent 2 coarse steps (8 steps) ahead; the coarse plan looks 16 coarse
-# steps (64 steps) ahead in Two Rooms, 24 (96 steps) in Three Rooms
+# steps (64 steps) ahead in Two Rooms, and 24 (96 steps) with more samples in Three Rooms
 LOW = PlannerConfig(horizon=8, samples=50, elites=5, warm_iterations=2)
 STRIDE = CoarseConfig.stride
 HIGH = PlannerConfig(horizon=16, samples=50, elites=5, warm_iterations=2, execute=1,
                      noise_period=2, action_bound=STRIDE * MAX_STEP, init_std=STRIDE * 1.5,
                      max_std=STRIDE * 2.0, stop_px=0)
-HIGH_HORIZON = {1: 16, 2: 24}
+HIGHS = {1: HIGH, 2: dataclasses.replace(HIGH, horizon=24, samples=100, elites=10,
+                                         warm_iterations=3)}
 NEW = ("learned_cost", "two_level")
 
 
@@ -55,8 +56,7 @@ def planners(model, base: dict, walls: int, name: str) -> dict:
     return {"flat": (model, PlannerConfig(), None),
             "short": (model, SHORT, None),
             "learned_cost": (WithLearnedCost(model, head), LEARNED, None),
-            "two_level": (model, LOW, TwoLevel(
-                coarse, dataclasses.replace(HIGH, horizon=HIGH_HORIZON[walls]), lookahead=2))}
+            "two_level": (model, LOW, TwoLevel(coarse, HIGHS[walls], lookahead=2))}
 
 
 def main() -> None:
