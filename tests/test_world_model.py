@@ -719,13 +719,15 @@ def test_command_line_trains_the_run_of_a_scale(tmp_path, monkeypatch):
     assert seen["config"] == preset("06", "class").long_world
     train_world.main(["--out", str(tmp_path / "three.pt"), "--walls", "2"])  # checkpoints/README
     assert seen["config"] == replace(preset("05", "class").train, walls=2)
+    train_world.main(["--out", str(tmp_path / "clip.pt"), "--grad-clip", "1"])
+    assert seen["config"] == replace(preset("05", "class").train, grad_clip=1.0)
     train_world.main(["--out", str(tmp_path / "wide.pt"), "--predictor-hidden", "256"])
     assert seen["config"].model == replace(preset("05", "class").train.model, predictor_hidden=256)
     for option in (["--scale", "ci"], ["--window", "9"], ["--channels-last"], ["--paper-recipe"],
-                   ["--walls", "2"], ["--predictor-hidden", "256"]):
+                   ["--walls", "2"], ["--predictor-hidden", "256"], ["--grad-clip", "1"]):
         with pytest.raises(SystemExit):
             train_world.main(["--refit", "x.pt", "--out", "y.pt", *option])
-    for wrong in (["--steps", "0"], ["--predictor-hidden", "0"]):
+    for wrong in (["--steps", "0"], ["--predictor-hidden", "0"], ["--grad-clip", "-1"]):
         with pytest.raises(SystemExit):  # a usage message, not a traceback
             train_world.main(["--out", "y.pt", *wrong])
 
@@ -850,3 +852,28 @@ def test_probes_and_wall_tests_hand_the_model_its_inputs_on_its_device():
     assert devices_of(on_meta) == {"meta"}
     assert devices_of(fit_position_probe(latents.to("meta"), positions, hidden=4, steps=2)) == {
         "meta"}
+
+
+def test_a_clipped_update_moves_the_weights_by_at_most_the_clip():
+    from ebjepa_tutorial.training.loop import fit
+
+    layer = torch.nn.Linear(3, 1, bias=False)
+    torch.nn.init.zeros_(layer.weight)
+    sgd = torch.optim.SGD(layer.parameters(), lr=1.0)  # a step of lr x gradient
+
+    def loss(x):  # gradient 1000 x (4, 4, 4): norm about 6,900
+        return 1000 * layer(x).sum(), {}
+
+    fit(layer, sgd, loss, lambda step: torch.ones(4, 3), 1, progress=False, clip_grad_norm=0.5)
+    assert layer.weight.norm().item() == pytest.approx(0.5)
+    assert torch.allclose(layer.weight, torch.full((1, 3), -0.5 / 3 ** 0.5))
+
+
+def test_a_clipped_replay_run_trains_and_older_runs_read_as_unclipped():
+    config = replace(world.course_recipe(world.WorldTrainConfig(
+        model=WORLD_CONFIGS["ci"], n_trajectories=16, batch_size=4, steps=2,
+        replay_batch=8, replay_capacity=8)), grad_clip=0.1)
+    _, history = world.train_world_model(config, progress=False, device="cpu")
+    assert len(history["loss"]) == 2
+    stored = {key: value for key, value in world.identity(config).items() if key != "grad_clip"}
+    assert world.upgrade_identity(stored)["grad_clip"] == 0.0

@@ -103,6 +103,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--replay-steps", type=int,
                         help="predictor-only updates on replayed latents after each step "
                              "(0: none)")
+    parser.add_argument("--grad-clip", type=float,
+                        help="scale each update's gradient down to at most this norm (0: none)")
     parser.add_argument("--walls", type=int, choices=sorted(WALL_X_RANGES),
                         help="1: Two Rooms (default); 2: Three Rooms in a row (chapter 07)")
     parser.add_argument("--seed", type=int,
@@ -117,6 +119,7 @@ def main(argv: list[str] | None = None) -> None:
                                               ("channels_last", args.channels_last or None),
                                               ("stay_probability", args.stay_probability),
                                               ("replay_steps", args.replay_steps),
+                                              ("grad_clip", args.grad_clip),
                                               ("walls", args.walls))
              if value is not None}
     if args.refit:
@@ -128,7 +131,7 @@ def main(argv: list[str] | None = None) -> None:
                          "--predictor-hidden": args.predictor_hidden is not None,
                          **{"--" + name.replace("_", "-"): name in given for name in
                             ("prediction_starts", "wall_fraction", "window", "channels_last",
-                             "stay_probability", "replay_steps", "walls")}}
+                             "stay_probability", "replay_steps", "walls", "grad_clip")}}
         refused = [flag for flag, value in training_only.items() if value]
         if refused:
             parser.error(f"--refit keeps the trained model's encoder, so {', '.join(refused)} "

@@ -101,6 +101,7 @@ def fit(
     progress: bool = True,
     config: dict[str, Any] | None = None,
     after_step: Any = None,
+    clip_grad_norm: float = 0.0,
 ) -> History:
     """Train for ``steps`` optimiser steps; return the :class:`History` of logged terms.
 
@@ -115,6 +116,7 @@ def fit(
     ``after_step``: an object called with the step number after each optimiser
     step (e.g. extra updates of part of the model); its ``state_dict()`` is saved
     in the checkpoint and given back to it by :func:`resume`.
+    ``clip_grad_norm > 0`` scales each step's gradient down to at most that global norm.
     In a process group, ``model`` is the bare module (its state dict is saved,
     by rank 0 alone) and ``loss_fn`` calls its DDP wrapper.
     """
@@ -132,6 +134,8 @@ def fit(
             _check_finite(value, terms, step)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        if clip_grad_norm:
+            torch.nn.utils.clip_grad_norm_(model.parameters(), clip_grad_norm)
         optimizer.step()
         if scheduler is not None:
             scheduler.step()

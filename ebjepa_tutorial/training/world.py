@@ -93,6 +93,9 @@ class WorldTrainConfig:
     replay_batch: int = 1024
     replay_capacity: int = 6400
     replay_lr: float = 1e-3  # Adam, its own optimiser
+    # every update (joint and replayed) scales its gradient down to at most this global
+    # norm; 0: none, as the paper
+    grad_clip: float = 0.0
     seed: int = 0
 
     def __post_init__(self):
@@ -112,6 +115,7 @@ class WorldTrainConfig:
             "replay_steps": (is_int_at_least(0), "an int >= 0"),
             "replay_batch": (is_int_at_least(1), "an int >= 1"),
             "replay_lr": (is_positive, "a number > 0"),
+            "grad_clip": (is_non_negative, "a number >= 0 (0: no clipping)"),
             "wall_fraction": (lambda p: is_non_negative(p) and p <= 0.65,
                               "a number in [0, 0.65] (35% of trajectories start at the door)"),
         })
@@ -219,6 +223,8 @@ class LatentReplay:
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             distributed.average_gradients(self.parameters)
+            if config.grad_clip:
+                torch.nn.utils.clip_grad_norm_(self.parameters, config.grad_clip)
             self.optimizer.step()
 
     def state_dict(self) -> dict:
@@ -309,7 +315,7 @@ def train_world_model(
     fit(model, optimizer, lambda step_batch: net(*step_batch), batch, config.steps,
         scheduler=scheduler, history=history, start_step=start, checkpoint=checkpoint,
         checkpoint_every=250, log_every=10, desc="world model", progress=progress,
-        config=identity(config), after_step=replay)
+        config=identity(config), after_step=replay, clip_grad_norm=config.grad_clip)
     model.eval()
     return model, history
 
@@ -546,8 +552,8 @@ def upgrade_identity(stored: dict) -> dict:
     ``prediction_starts``, ``wall_fraction``, ``window``, ``channels_last``, the replay
     and the ``sigreg`` weight existed rolled out from the first frame of whole trajectories of
     the paper's data, in the default memory layout, without SIGReg or replay; runs from
-    before ``walls`` were Two Rooms."""
-    stored = {"walls": 1, "prediction_starts": "first", "stay_probability": 0.0,
+    before ``walls`` were Two Rooms, and from before ``grad_clip`` unclipped."""
+    stored = {"walls": 1, "grad_clip": 0.0, "prediction_starts": "first", "stay_probability": 0.0,
               "wall_fraction": 0.0, "window": 0, "channels_last": False, **REPLAY_OFF, **stored,
               "coeffs": {"sigreg": 0.0, **stored["coeffs"]}}
     if "schema" in stored:
