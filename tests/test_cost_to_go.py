@@ -125,10 +125,10 @@ def test_cost_config_refuses_settings_that_cannot_fit(field, value):
 
 
 def test_a_fitted_head_is_saved_once_and_loaded_after(tmp_path, monkeypatch):
-    from ebjepa_tutorial.training import cost
+    from ebjepa_tutorial.training import cost, loop
     from ebjepa_tutorial.training.world import WorldTrainConfig, identity, make_data, new_model
 
-    monkeypatch.setattr(cost, "checkpoint_paths",
+    monkeypatch.setattr(loop, "checkpoint_paths",
                         lambda name: (tmp_path / f"{name}.pt", tmp_path / "none.pt"))
     world = WorldTrainConfig(n_trajectories=8, steps=1)
     model = new_model(world, make_data(world)).eval()

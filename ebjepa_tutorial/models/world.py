@@ -332,3 +332,9 @@ def encode_trajectories(model, trajectories, batch_size: int = 64):
         frames = trajectories.frames(slice(start, start + batch_size)).to(device)
         chunks.append(model.encode(frames).flatten(0, 1).cpu())
     return torch.cat(chunks), trajectories.positions.reshape(-1, 2)
+
+
+def trajectory_latents(model, trajectories, batch_size: int = 200) -> torch.Tensor:
+    """Every frame's latent, trajectory by trajectory: ``(N, T+1, D)``, without gradients."""
+    latents = encode_trajectories(model, trajectories, batch_size)[0]
+    return latents.view(len(trajectories), -1, latents.shape[-1])

@@ -21,10 +21,10 @@ import torch
 from ..envs import generate_trajectories, random_layouts
 from ..losses.cost import cost_to_go_targets, expectile_loss
 from ..models.cost import CostToGo
-from ..models.world import WorldModel, encode_trajectories
+from ..models.world import WorldModel, trajectory_latents
 from ..utils import check_fields, is_int_at_least, is_positive
-from .checkpoints import checkpoint_paths, run_identity
-from .loop import History, fit, load_or_train, step_generator
+from .checkpoints import run_identity
+from .loop import History, fit, load_or_fit, step_generator
 
 
 @dataclass(frozen=True)
@@ -104,10 +104,8 @@ def fit_cost_head(model: WorldModel, config: CostConfig = CostConfig(),
     layouts = random_layouts(config.layouts, generator, config.walls)
     data = generate_trajectories(config.n_trajectories, seed=generator,
                                  layouts=layouts.repeat_interleave(group, dim=0))
-    with torch.no_grad():
-        latents = encode_trajectories(model, data, batch_size=200)[0]
-    latents = latents.view(len(data), -1, model.latent_dim)
-    return fit_cost_to_go(latents, data.actions, config, progress, group)
+    return fit_cost_to_go(trajectory_latents(model, data), data.actions, config, progress,
+                          group)
 
 
 def fit_cost_to_go(latents: torch.Tensor, actions: torch.Tensor, config: CostConfig,
@@ -141,13 +139,5 @@ def cost_head_or_load(model: WorldModel, base: dict, config: CostConfig,
     """The head of ``config`` on ``model`` (trained by the run whose identity is ``base``):
     loaded from ``checkpoints/<name>.pt`` or the cache if it was saved, else fitted and
     saved to the cache. In eval mode, on the CPU."""
-    head = CostToGo(model.latent_dim, config.hidden)
-    cache_path, shipped = checkpoint_paths(name)
-
-    def fit_here() -> History:
-        fitted, history = fit_cost_head(model, config)
-        head.load_state_dict(fitted.state_dict())
-        return history
-
-    load_or_train(cache_path, head, fit_here, run_identity(config, base=base), shipped)
-    return head.eval()
+    return load_or_fit(name, CostToGo(model.latent_dim, config.hidden),
+                       lambda: fit_cost_head(model, config), run_identity(config, base=base))

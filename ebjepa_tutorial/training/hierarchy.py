@@ -9,10 +9,10 @@ import torch
 from ..envs import generate_trajectories
 from ..losses.world import multistep_prediction_loss
 from ..models.hierarchy import CoarseModel, macro_actions
-from ..models.world import WorldModel, encode_trajectories
+from ..models.world import WorldModel, trajectory_latents
 from ..utils import check_fields, is_int_at_least, is_positive
-from .checkpoints import checkpoint_paths, run_identity
-from .loop import History, fit, load_or_train, step_generator
+from .checkpoints import run_identity
+from .loop import History, fit, load_or_fit, step_generator
 
 
 @dataclass(frozen=True)
@@ -38,10 +38,7 @@ def fit_coarse_model(model: WorldModel, config: CoarseConfig = CoarseConfig(),
                      progress: bool = True) -> tuple[CoarseModel, History]:
     """A :class:`CoarseModel` fitted on ``model``'s frozen latents; ``(coarse, history)``."""
     data = generate_trajectories(config.n_trajectories, seed=config.seed, walls=config.walls)
-    with torch.no_grad():
-        latents = encode_trajectories(model, data, batch_size=200)[0]
-    latents = latents.view(len(data), -1, model.latent_dim)
-    return fit_coarse_on(latents, data.actions, config, progress)
+    return fit_coarse_on(trajectory_latents(model, data), data.actions, config, progress)
 
 
 def fit_coarse_on(latents: torch.Tensor, actions: torch.Tensor, config: CoarseConfig,
@@ -76,13 +73,5 @@ def coarse_or_load(model: WorldModel, base: dict, config: CoarseConfig,
     """The coarse model of ``config`` on ``model`` (trained by the run whose identity is
     ``base``): loaded from ``checkpoints/<name>.pt`` or the cache if it was saved, else
     fitted and saved to the cache. In eval mode, on the CPU."""
-    coarse = CoarseModel(model.latent_dim, config.stride, config.hidden)
-    cache_path, shipped = checkpoint_paths(name)
-
-    def fit_here() -> History:
-        fitted, history = fit_coarse_model(model, config)
-        coarse.load_state_dict(fitted.state_dict())
-        return history
-
-    load_or_train(cache_path, coarse, fit_here, run_identity(config, base=base), shipped)
-    return coarse.eval()
+    return load_or_fit(name, CoarseModel(model.latent_dim, config.stride, config.hidden),
+                       lambda: fit_coarse_model(model, config), run_identity(config, base=base))

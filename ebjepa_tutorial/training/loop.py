@@ -27,7 +27,7 @@ import torch
 from tqdm.auto import tqdm
 
 from .. import distributed
-from .checkpoints import Upgrade, claim, read_run, same_run, save_or_warn
+from .checkpoints import Upgrade, checkpoint_paths, claim, read_run, same_run, save_or_warn
 
 LossFn = Callable[[Any], tuple[torch.Tensor, dict[str, torch.Tensor | float]]]
 
@@ -255,3 +255,19 @@ def _saved_run(path: Path, config, device, shipped, upgrade) -> tuple[dict, Path
         print(f"{shipped} was trained with another configuration; not using it.")
     state = claim(path, config, device, upgrade)
     return None if state is None else (state, path)
+
+
+def load_or_fit(name: str, module: torch.nn.Module, fit_module: Callable[[], tuple],
+                config: dict[str, Any], upgrade: Upgrade | None = None) -> torch.nn.Module:
+    """``module`` loaded from ``checkpoints/<name>.pt`` or the cache if the run ``config`` (its
+    identity) was saved, else ``fit_module() -> (fitted, history)`` copied into it and saved to
+    the cache (:func:`load_or_train`). Returns ``module`` in eval mode."""
+    cache_path, shipped = checkpoint_paths(name)
+
+    def train() -> History:
+        fitted, history = fit_module()
+        module.load_state_dict(fitted.state_dict())
+        return history
+
+    load_or_train(cache_path, module, train, config, shipped, upgrade=upgrade)
+    return module.eval()

@@ -43,10 +43,10 @@ from ..losses.world import (
     multistep_prediction_loss,
     with_still_steps,
 )
-from ..models.world import WORLD_CONFIGS, WorldConfig, WorldModel, encode_trajectories
+from ..models.world import WORLD_CONFIGS, WorldConfig, WorldModel, trajectory_latents
 from ..utils import check_fields, get_device, is_int_at_least, is_non_negative, is_positive
 from .checkpoints import IDENTITY_SCHEMA, checkpoint_paths, load_checkpoint, run_identity
-from .loop import History, fit, load_or_train, resume, step_generator
+from .loop import History, fit, load_or_fit, load_or_train, resume, step_generator
 
 TRAJECTORY_ACTIONS = 16  # per training trajectory (17 frames, the paper's clips)
 _ROLLOUT_RULE = (lambda k: is_int_at_least(1)(k) and k <= TRAJECTORY_ACTIONS,
@@ -441,9 +441,8 @@ def refit_predictor(model: WorldModel, config: RefitConfig = RefitConfig(),
     """
     device = get_device(device)
     data = generate_trajectories(config.n_trajectories, seed=config.seed)
-    latents = encode_trajectories(model, data, batch_size=200)[0].view(len(data), -1,
-                                                                       model.latent_dim)
-    latents, actions = latents.to(device), data.actions.to(device)  # (N, T+1, D), (N, T, 2)
+    # (N, T+1, D) and (N, T, 2)
+    latents, actions = trajectory_latents(model, data).to(device), data.actions.to(device)
     torch.manual_seed(config.seed)
     new = refitted_model(model, config).to(device)
     new.load_state_dict({name: value for name, value in model.state_dict().items()
@@ -494,17 +493,9 @@ def refit_or_load(model: WorldModel, base: WorldTrainConfig, config: RefitConfig
     refitted and saved to the cache. Returns the new model in eval mode, on ``device``
     (default: the best available)."""
     device = get_device(device)
-    refitted = refitted_model(model, config).to(device)
-    cache_path, shipped = checkpoint_paths(name)
-
-    def refit() -> History:
-        new, history = refit_predictor(model, config, device=device)
-        refitted.load_state_dict(new.state_dict())
-        return history
-
-    load_or_train(cache_path, refitted, refit, refit_identity(config, identity(base)), shipped,
-                  upgrade=upgrade_refit_identity)
-    return refitted.eval()
+    return load_or_fit(name, refitted_model(model, config).to(device),
+                       lambda: refit_predictor(model, config, device=device),
+                       refit_identity(config, identity(base)), upgrade=upgrade_refit_identity)
 
 
 ABLATABLE_TERMS = ("variance", "covariance", "temporal", "inverse_dynamics")
