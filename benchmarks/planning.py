@@ -92,7 +92,7 @@ def main() -> None:
 
 def agent(config: PlannerConfig) -> str:
     """The planner in a few words, for the record's protocol."""
-    warm = min(config.warm_iterations or config.iterations, config.iterations)
+    warm = config.warm().iterations
     stop = f"stands still within {config.stop_px:g} px" if config.stop_px else "never stops"
     return (f"{config.method.upper()} H{config.horizon} N{config.samples} "
             f"J{config.iterations} ({warm} warm), re-plan every {config.execute}, {stop}")

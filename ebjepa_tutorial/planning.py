@@ -134,6 +134,11 @@ class PlannerConfig:
         if not isinstance(self.update_std, bool):
             raise ValueError(f"update_std must be True or False, got {self.update_std!r}")
 
+    def warm(self) -> PlannerConfig:
+        """This planner for the re-plans after an episode's first: warm_iterations (at most J)."""
+        return replace(self, iterations=min(self.warm_iterations or self.iterations,
+                                            self.iterations))
+
 
 # Each must be > 0: a zero spread samples N copies of the mean (and with
 # update_std=False never explores), a zero bound clips every step to nothing
@@ -529,12 +534,8 @@ def _run_batch(model, seeds: list[int], config: PlannerConfig, steps: int | None
     mean = z_goal.new_zeros(len(seeds), config.horizon, model.config.action_dim)
     everyone = torch.arange(len(seeds), device=mean.device)
     replanning = config  # the first plan of each episode starts cold, with J iterations
-    warm = replace(config, iterations=min(config.warm_iterations or config.iterations,
-                                          config.iterations))
     if two_level is not None:  # the coarse plan: cold once, then warm, as the flat one
         high, coarse = two_level.config, z_goal.new_zeros(len(seeds), two_level.config.horizon, 2)
-        high_warm = replace(high, iterations=min(high.warm_iterations or high.iterations,
-                                                 high.iterations))
     while env.steps_taken < steps:
         start = model.encode(observation) if world == "learned" else env.positions
         moving = everyone
@@ -551,9 +552,9 @@ def _run_batch(model, seeds: list[int], config: PlannerConfig, steps: int | None
                                                             coarse[moving])
             mean[moving] = plan(part, start[moving], target, replanning, mine,
                                 mean[moving]).mean
-        replanning = warm
+        replanning = config.warm()
         if two_level is not None:
-            high, coarse = high_warm, shift_plan(coarse, 1)
+            high, coarse = two_level.config.warm(), shift_plan(coarse, 1)
         for action in mean[:, : min(config.execute, steps - env.steps_taken)].unbind(1):
             observation = env.step(action)
             paths.append(env.positions.cpu())
