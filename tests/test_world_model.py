@@ -576,6 +576,21 @@ def test_learning_rate_decays_linearly_over_the_last_steps():
             WorldTrainConfig(steps=6, decay_steps=bad)
 
 
+def test_the_replay_follows_the_joint_steps_schedule():
+    # a replay at a constant rate kept the predictor's updates at full size through the
+    # decay; each step's replayed updates now use that step's share of replay_lr
+    config = world.WorldTrainConfig(model=TINY, batch_size=4, rollout_steps=2, replay_steps=1,
+                                    replay_batch=8, replay_capacity=8, replay_lr=0.2,
+                                    steps=6, decay_steps=4)
+    replay = world.LatentReplay(tiny_model(), config, frames=3, device="cpu")
+    replay.add(torch.randn(8, 3, 8), torch.randn(8, 2, 2))
+    rates = []
+    for step in range(config.steps):
+        replay(step)
+        rates.append(replay.optimizer.param_groups[0]["lr"])
+    assert rates == pytest.approx([0.2, 0.2, 0.2, 0.15, 0.1, 0.05])  # 0.2 x (6 - s) / 4, capped
+
+
 def test_a_decayed_run_trains_and_saves_its_schedule(tmp_path):
     from ebjepa_tutorial.models.world import WORLD_CONFIGS
     from ebjepa_tutorial.training.world import WorldTrainConfig, train_world_model

@@ -92,7 +92,7 @@ class WorldTrainConfig:
     replay_steps: int = 0
     replay_batch: int = 1024
     replay_capacity: int = 6400
-    replay_lr: float = 1e-3  # Adam, its own optimiser
+    replay_lr: float = 1e-3  # Adam, its own optimiser, on the joint step's schedule
     # every update (joint and replayed) scales its gradient down to at most this global
     # norm; 0: none, as the paper
     grad_clip: float = 0.0
@@ -213,6 +213,8 @@ class LatentReplay:
     def __call__(self, step: int) -> None:
         config = self.config
         generator = torch.Generator().manual_seed(self.STREAM + config.seed * 1_000_003 + step)
+        for group in self.optimizer.param_groups:  # the joint step's schedule: a constant
+            group["lr"] = config.replay_lr * decay_factor(config, step)  # rate undid the decay
         for _ in range(config.replay_steps):
             pick = torch.randint(0, self.filled, (config.replay_batch,), generator=generator)
             pick = distributed.local_rows(pick).to(self.latents.device)
@@ -245,15 +247,18 @@ def new_model(config: WorldTrainConfig, data: Trajectories) -> WorldModel:
     return model.fit_input_stats(data.frames(slice(0, 256)))
 
 
+def decay_factor(config: WorldTrainConfig, step: int) -> float:
+    """The share of the base rate that step ``step`` uses: 1, then a linear decay over the
+    last ``decay_steps`` steps, ``min(1, (steps - step) / decay_steps)``, so the last step
+    uses ``1 / decay_steps`` of it."""
+    return min(1.0, (config.steps - step) / config.decay_steps) if config.decay_steps else 1.0
+
+
 def learning_rate_decay(optimizer, config: WorldTrainConfig):
-    """The schedule of ``config``: the base rate, then a linear decay over the last
-    ``decay_steps`` steps (step ``s`` uses ``min(1, (steps - s) / decay_steps)`` times the
-    base rate, so the last step uses ``1 / decay_steps`` of it). ``None`` when there is none.
-    """
+    """The schedule of ``config`` (:func:`decay_factor`); ``None`` when there is none."""
     if config.decay_steps == 0:
         return None
-    return torch.optim.lr_scheduler.LambdaLR(
-        optimizer, lambda step: min(1.0, (config.steps - step) / config.decay_steps))
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: decay_factor(config, step))
 
 
 def train_world_model(
