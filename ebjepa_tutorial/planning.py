@@ -8,9 +8,10 @@ and the encoded goal,
 
     S(a_1..a_H) = sum_{k=1..H} || zhat_k - z_goal ||       (cost="sum", the paper's)
     S(a_1..a_H) =               || zhat_H - z_goal ||       (cost="last", its ablation)
-    S(a_1..a_H) = sum_k ||a_k|| + d(zhat_H, z_goal)         (cost="learned", notebook 07)
+    S(a_1..a_H) =               d(zhat_H, z_goal)           (cost="learned", notebook 07)
 
-where ``d`` is a learned cost-to-go (``models.cost.WithLearnedCost``).
+where ``d`` is a learned cost-to-go (``models.cost.WithLearnedCost``): "last"
+with a distance that knows the walls.
 
 MPPI (the paper's Algorithm 1) then keeps the ``Q`` cheapest sequences
 (the elites), weights them by ``exp(-(S_i - S_min) / tau)``, moves the mean
@@ -83,8 +84,8 @@ class PlannerConfig:
     """One planner. The defaults are the class-scale MPPI of notebook 06."""
 
     method: str = "mppi"  # "mppi" (weighted elites) or "cem" (plain mean of elites)
-    # "sum": distance summed over the horizon; "last": final step only; "learned": px spent
-    # plus a learned cost-to-go after the last step (needs models.cost.WithLearnedCost)
+    # "sum": distance summed over the horizon; "last": final step only; "learned": a learned
+    # cost-to-go from the last step (needs models.cost.WithLearnedCost)
     cost: str = "sum"
     horizon: int = 64  # H, imagined steps per plan
     samples: int = 200  # N, action sequences per iteration
@@ -216,7 +217,9 @@ def planning_cost(model, z0: torch.Tensor, z_goal: torch.Tensor, actions: torch.
     ``model.rollout`` imagines the ``H`` latents of each of the ``B x N`` plans in
     one batch; the cost is the Euclidean latent distance to the goal, summed over
     the horizon (``"sum"``) or at the last step (``"last"``); or (``"learned"``)
-    the plan's length in px plus ``model.cost_to_go`` from its last latent.
+    ``model.cost_to_go`` from the last latent. The px the plan spends are not added:
+    the head is fitted low (a small expectile), so with them standing still would
+    look cheapest.
     """
     if cost not in COSTS:
         raise ValueError(f"cost must be one of {COSTS}, got {cost!r}")
@@ -234,7 +237,7 @@ def planning_cost(model, z0: torch.Tensor, z_goal: torch.Tensor, actions: torch.
                          f"latents of size {z.shape[-1]}: z_goal {tuple(z_goal.shape)}, z0 "
                          f"{tuple(z0.shape)}; encode the goal with the planning model")
     if cost == "learned":
-        return actions.norm(dim=-1).sum(dim=-1) + model.cost_to_go(z[:, :, -1], z_goal[:, None])
+        return model.cost_to_go(z[:, :, -1], z_goal[:, None])
     distance = (z - z_goal[:, None, None]).norm(dim=-1)  # (B, N, H)
     return distance.sum(dim=-1) if cost == "sum" else distance[..., -1]
 
@@ -628,9 +631,16 @@ class TrueDynamics:
 
 
 # -- pictures --------------------------------------------------------------------------------
+def latent_distance(z: torch.Tensor, z_goal: torch.Tensor) -> torch.Tensor:
+    """``||z - z_goal||`` over the last dimension: chapter 06's energy of one state."""
+    return (z - z_goal).norm(dim=-1)
+
+
 @torch.no_grad()
-def energy_map(model, layout: torch.Tensor, goal: torch.Tensor, spacing: float = 1.0):
-    """The planner's view of one layout: ``||Enc(o_x) - Enc(o_goal)||`` for every dot position x.
+def energy_map(model, layout: torch.Tensor, goal: torch.Tensor, spacing: float = 1.0,
+               distance=latent_distance):
+    """The planner's view of one layout: ``distance(Enc(o_x), Enc(o_goal))`` for every dot
+    position x (default: the latent distance; notebook 07 passes a cost-to-go head).
 
     ``layout``: ``(2W,)`` long, W walls (``(2,)`` for Two Rooms); ``goal``: ``(2,)``
     px. Returns ``(coords (G,), energy (G, G))`` with ``energy[i, j]`` at
@@ -647,7 +657,7 @@ def energy_map(model, layout: torch.Tensor, goal: torch.Tensor, spacing: float =
     energy = torch.full((len(positions),), math.nan)
     for chunk in free.nonzero().squeeze(1).split(1024):
         z = model.encode(render(positions[chunk], layouts[chunk]).to(device))
-        energy[chunk] = (z - z_goal).norm(dim=1).cpu()
+        energy[chunk] = distance(z, z_goal).cpu()
     return coords, energy.view(len(coords), len(coords))
 
 

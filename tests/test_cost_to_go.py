@@ -1,5 +1,6 @@
 """The learned cost-to-go of notebook 07: its loss, its targets, its fit and its use in planning."""
 
+from dataclasses import replace
 from types import SimpleNamespace
 
 import pytest
@@ -98,14 +99,14 @@ class Euclid(CostToGo):
         return (z - goal).norm(dim=-1)
 
 
-def test_the_learned_cost_is_the_plan_length_plus_the_cost_to_go():
+def test_the_learned_cost_is_the_cost_to_go_from_the_last_imagined_step():
     model = WithLearnedCost(Drift(), Euclid(2))
     z0, goal = torch.zeros(1, 2), torch.tensor([[10.0, 0.0]])
-    plans = torch.tensor([[[[1.0, 0.0]] * 3,  # 3 px towards the goal, 7 left: 10
-                           [[0.0, 1.0]] * 3]])  # 3 px sideways: 3 + sqrt(100 + 9)
+    plans = torch.tensor([[[[1.0, 0.0]] * 3,  # 3 px towards the goal: 7 left
+                           [[0.0, 1.0]] * 3,  # 3 px sideways: sqrt(100 + 9) left
+                           [[0.0, 0.0]] * 3]])  # standing still: 10 left
     cost = planning_cost(model, z0, goal, plans, "learned")
-    assert cost[0, 0] == pytest.approx(10.0)
-    assert cost[0, 1] == pytest.approx(3 + 109 ** 0.5)
+    assert cost[0].tolist() == pytest.approx([7.0, 109 ** 0.5, 10.0])
     with pytest.raises(ValueError, match="WithLearnedCost"):
         planning_cost(Drift(), z0, goal, plans, "learned")
     assert PlannerConfig(cost="learned").cost == "learned"
@@ -138,3 +139,43 @@ def test_a_fitted_head_is_saved_once_and_loaded_after(tmp_path, monkeypatch):
     again = cost.cost_head_or_load(model, identity(world), config, "head")
     for a, b in zip(first.parameters(), again.parameters()):
         assert torch.equal(a, b)
+
+
+def test_calibration_sets_the_straight_distance_against_the_way_round_the_walls():
+    from test_planning import LinearLatentModel
+
+    from ebjepa_tutorial.evaluation.cost import correlation, cost_calibration
+
+    # the latent is the dot's centre and the head the straight distance: both read the
+    # straight line, which the shortest way equals within a room and exceeds across walls
+    anywhere = cost_calibration(LinearLatentModel(), Euclid(2), n=64, walls=2, seed=3)
+    across = cost_calibration(LinearLatentModel(), Euclid(2), n=64, walls=2, seed=3,
+                              rooms=(0, 2))
+    assert torch.allclose(anywhere["head"], anywhere["latent"])
+    for pairs in (anywhere, across):
+        assert (pairs["shortest"] >= pairs["latent"] - 0.1).all()  # never under the line
+    assert (across["shortest"] > across["latent"] + 0.5).float().mean() > 0.5  # detours
+    assert correlation(anywhere["shortest"], anywhere["latent"]) > 0.8
+    assert correlation(torch.arange(5.0), -torch.arange(5.0)) == pytest.approx(-1.0)
+
+
+@pytest.mark.slow  # trains a ci world model, then fits both
+def test_the_fit_command_writes_files_that_the_notebook_then_loads(tmp_path, monkeypatch, capsys):
+    from ebjepa_tutorial.commands import fit_beyond
+    from ebjepa_tutorial.course.presets import preset
+    from ebjepa_tutorial.training.cost import cost_head_or_load
+    from ebjepa_tutorial.training.hierarchy import coarse_or_load
+    from ebjepa_tutorial.training.runs import train_or_load
+    from ebjepa_tutorial.training.world import identity
+
+    monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))  # the world model trains here too
+    fit_beyond.main(["--world", "three_rooms", "--scale", "ci",
+                     "--out-dir", str(tmp_path / "checkpoints")])
+    cfg, (walls, config, name) = preset("07", "ci"), fit_beyond.world_run("three_rooms", "ci")
+    assert walls == 2 and config == cfg.three_rooms
+    model, _ = train_or_load(config, name, device="cpu")
+    capsys.readouterr()
+    cost_head_or_load(model, identity(config), replace(cfg.cost, walls=2),
+                      "cost_head_three_rooms_ci")
+    coarse_or_load(model, identity(config), replace(cfg.coarse, walls=2), "coarse_three_rooms_ci")
+    assert capsys.readouterr().out.count("Loaded a trained model") == 2  # nothing refitted

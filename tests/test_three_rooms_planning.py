@@ -184,3 +184,16 @@ def test_the_wall_test_on_three_room_trajectories():
     bins = wall_test_by_door_distance(WallsReader(reach=12), trajectories, edges)
     assert sum(b["n"] for b in bins) == walled["n_stopped"] and all(b["n"] >= 10 for b in bins)
     assert [b["stopped"] for b in bins] == [0.0, 0.0, 1.0, 1.0]
+
+
+def test_an_energy_map_can_show_another_distance_such_as_a_cost_head():
+    goal, model = torch.tensor([55.0, 30.0]), LinearLatentModel()
+    _, straight = planning.energy_map(model, LAYOUT[0], goal, spacing=4.0)
+    _, manhattan = planning.energy_map(model, LAYOUT[0], goal, spacing=4.0,
+                                       distance=lambda z, g: (z - g).abs().sum(dim=-1))
+    free = straight.isfinite()
+    assert torch.equal(manhattan.isfinite(), free)
+    # the latent is the dot, so |dx| + |dy| lies between ||d|| and sqrt(2) ||d||
+    assert (manhattan[free] >= straight[free] - 1e-4).all()
+    assert (manhattan[free] <= 2**0.5 * straight[free] + 1e-4).all()
+    assert (manhattan[free] > straight[free] + 1).any()

@@ -5,9 +5,9 @@ The planning energy of chapter 06 is the straight latent distance
 points at the wall, not at the door. A cost-to-go head ``d(z, g)`` is trained
 instead to estimate the length, in pixels of travel, of the shortest path from
 the state encoded by ``z`` to the one encoded by ``g`` (``training.cost``).
-Planned with it, the cost of a plan is what it spends plus what is left:
+Planned with it, the cost of a plan is what is left after it:
 
-    S(a_1..a_H) = sum_k ||a_k|| + d(zhat_H, z_goal)
+    S(a_1..a_H) = d(zhat_H, z_goal)
 
 so a short horizon suffices: the head, not the imagined path, sees the door.
 """
