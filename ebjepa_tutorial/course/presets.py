@@ -14,9 +14,12 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, replace
 
+from ..envs import MAX_STEP
 from ..evaluation.sweeps import FACTORS, Run, projector_runs, sensitivity_runs, shorten
 from ..models.world import WORLD_CONFIGS
 from ..planning import PlannerConfig
+from ..training.cost import CostConfig
+from ..training.hierarchy import CoarseConfig
 from ..training.image import ImageJEPAConfig
 from ..training.video import VIDEO_CONFIGS, VideoJEPAConfig
 from ..training.world import (
@@ -174,6 +177,50 @@ _WORLD_CLASS_LONG = paper_recipe(replace(_WORLD_CLASS, n_trajectories=100_000, s
 _PLANNER_CI = PlannerConfig(horizon=8, samples=32, elites=4, iterations=2, execute=4)
 
 
+@dataclass(frozen=True)
+class BeyondPreset:
+    """Notebook 07: two worlds, a cost head and a coarse model fitted on each world model's
+    frozen latents, and four planners compared on each world."""
+
+    two_rooms: WorldTrainConfig  # chapter 05's run
+    three_rooms: WorldTrainConfig  # the same recipe on Three Rooms in a row
+    cost: CostConfig  # the head's fit (its `walls` is set per world)
+    coarse: CoarseConfig  # the coarse model's fit (likewise)
+    flat: PlannerConfig  # chapter 06's planner
+    short: PlannerConfig  # the same at a short horizon, latent distance
+    learned: PlannerConfig  # the same short horizon, the learned cost
+    low: PlannerConfig  # the two-level planner's lower level: a few steps to the subgoal
+    high: tuple[PlannerConfig, PlannerConfig]  # its coarse level, in Two and Three Rooms
+    lookahead: int = 2  # the subgoal: the coarse plan's latent this many coarse steps ahead
+    n_episodes: int = 20  # per planner and world
+    first_seed: int = 10_000
+    episode_batch: int = 10
+    episode_steps: int | None = None  # None: each world's step budget (200 and 300 steps)
+
+
+# Chosen on seeds 10,600-10,699 (RESULTS.md, "07 · Beyond the paper"). The coarse level
+# plans macro-actions of `stride` steps: their bound and spread scale with the stride.
+_STRIDE = CoarseConfig.stride
+_SHORT = PlannerConfig(horizon=16, samples=100, elites=10)
+_HIGH = PlannerConfig(horizon=16, samples=50, elites=5, warm_iterations=2, execute=1,
+                      noise_period=2, action_bound=_STRIDE * MAX_STEP, init_std=_STRIDE * 1.5,
+                      max_std=_STRIDE * 2.0, stop_px=0)
+_BEYOND_CLASS = BeyondPreset(
+    _WORLD_CLASS, replace(_WORLD_CLASS, walls=2), CostConfig(), CoarseConfig(),
+    flat=PlannerConfig(), short=_SHORT,
+    learned=replace(_SHORT, cost="learned", temperature=1.0),  # the head's costs are px
+    low=PlannerConfig(horizon=8, samples=50, elites=5, warm_iterations=2, execute=_STRIDE),
+    high=(_HIGH, replace(_HIGH, horizon=24, samples=100, elites=10, warm_iterations=3)))
+_TINY = PlannerConfig(horizon=4, samples=16, elites=2, iterations=2, execute=4)
+_BEYOND_CI = replace(
+    _BEYOND_CLASS, two_rooms=_WORLD_CI, three_rooms=replace(_WORLD_CI, walls=2),
+    cost=CostConfig(n_trajectories=200, layouts=10, steps=30, batch_size=64, hidden=32),
+    coarse=CoarseConfig(n_trajectories=200, steps=30, batch_size=64, hidden=32),
+    flat=_PLANNER_CI, short=_TINY, learned=replace(_TINY, cost="learned", temperature=1.0),
+    low=_TINY, high=(replace(_HIGH, horizon=4, samples=16, elites=2),) * 2,
+    n_episodes=2, episode_batch=2, episode_steps=24)
+
+
 PRESETS: dict[str, dict[str, object]] = {
     "00": {
         "ci": CollapsePreset(n_points=256, steps=60),
@@ -217,6 +264,13 @@ PRESETS: dict[str, dict[str, object]] = {
                                                              noise_period=1, warm_iterations=0,
                                                              stop_px=0.0),
                                n_episodes=100, n_compare=50, episode_batch=100),
+    },
+    "07": {
+        "ci": _BEYOND_CI,
+        "class": _BEYOND_CLASS,  # the world models, heads and coarse models are shipped
+        "full": replace(_BEYOND_CLASS, two_rooms=_WORLD_FULL,
+                        three_rooms=replace(_WORLD_FULL, walls=2), n_episodes=200,
+                        episode_batch=100),
     },
 }
 

@@ -58,6 +58,11 @@ METRICS = {
                                        "benchmarks/planning.py"),
 }
 
+BEYOND_PLANNERS = ("flat", "short", "learned_cost", "two_level")  # notebook 07's comparison
+METRICS |= {f"beyond_{world}_{planner}": Metric("planning success", "{:.0%}",
+                                                benchmark="benchmarks/beyond.py")
+            for world in ("two_rooms", "three_rooms") for planner in BEYOND_PLANNERS}
+
 
 def load(path: Path = REFERENCE_FILE) -> dict:
     """The recorded figures, ``{key: {"value", "command", "threads", "date", "protocol"}}``."""

@@ -4,10 +4,12 @@
 - ``optim``: LARS and the warm-up-then-cosine schedule
 - ``checkpoints``: safe files, run identities, where runs are cached and shipped
 - ``toy`` (chapter 00), ``image`` (01-02), ``video`` (03), ``world`` (05, with the refit)
+- ``cost`` and ``hierarchy`` (07): a cost head and a coarse model on frozen latents
 - ``runs``: :func:`train_or_load`, the one entry the notebooks call
 """
 
-from . import checkpoints, image, loop, optim, toy, video, world
+from . import checkpoints, cost, hierarchy, image, loop, optim, toy, video, world
 from .runs import train_or_load
 
-__all__ = ["checkpoints", "image", "loop", "optim", "toy", "train_or_load", "video", "world"]
+__all__ = ["checkpoints", "cost", "hierarchy", "image", "loop", "optim", "toy", "train_or_load",
+           "video", "world"]

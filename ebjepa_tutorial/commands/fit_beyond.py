@@ -1,0 +1,58 @@
+"""Fit chapter 07's cost head and coarse model on a world model's frozen latents, and save them.
+
+    python -m ebjepa_tutorial.commands.fit_beyond --world two_rooms --out-dir checkpoints
+    python -m ebjepa_tutorial.commands.fit_beyond --world three_rooms --out-dir checkpoints
+
+The world model is notebook 07's at ``--scale`` (shipped, cached, or trained first); the
+fits are ``preset("07").cost`` and ``.coarse`` for that world. Writes
+``cost_head_<world>_<scale>.pt`` and ``coarse_<world>_<scale>.pt`` (each with the identity
+of its fit and of the world model, which notebook 07 checks before it loads a file).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import replace
+from pathlib import Path
+
+from ..course.presets import SCALES, preset
+from ..training.checkpoints import run_identity, save_checkpoint
+from ..training.cost import fit_cost_head
+from ..training.hierarchy import fit_coarse_model
+from ..training.runs import train_or_load
+from ..training.world import identity
+
+WORLDS = {"two_rooms": 1, "three_rooms": 2}
+
+
+def world_run(world: str, scale: str):
+    """``(walls, world model config, its file name)`` of notebook 07's ``world`` at ``scale``."""
+    cfg, walls = preset("07", scale), WORLDS[world]
+    name = f"world_model_{scale}" if walls == 1 else f"world_model_{world}_{scale}"
+    return walls, cfg.two_rooms if walls == 1 else cfg.three_rooms, name
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--world", choices=sorted(WORLDS), required=True)
+    parser.add_argument("--scale", choices=SCALES, default="class")
+    parser.add_argument("--out-dir", required=True, help="folder for the two files")
+    args = parser.parse_args(argv)
+    cfg = preset("07", args.scale)
+    walls, config, name = world_run(args.world, args.scale)
+    model, _ = train_or_load(config, name, device="cpu")
+    fits = {"cost_head": (fit_cost_head, replace(cfg.cost, walls=walls)),
+            "coarse": (fit_coarse_model, replace(cfg.coarse, walls=walls))}
+    for kind, (fit, fit_config) in fits.items():
+        start = time.perf_counter()
+        fitted, history = fit(model, fit_config)
+        path = Path(args.out_dir) / f"{kind}_{args.world}_{args.scale}.pt"
+        save_checkpoint(path, model=fitted.state_dict(), history=dict(history),
+                        config=run_identity(fit_config, base=identity(config)),
+                        seconds=time.perf_counter() - start)
+        print(f"saved {path} ({time.perf_counter() - start:.0f} s)")
+
+
+if __name__ == "__main__":
+    main()
