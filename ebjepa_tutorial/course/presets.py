@@ -192,7 +192,7 @@ class BeyondPreset:
     low: PlannerConfig  # the two-level planner's lower level: a few steps to the subgoal
     high: tuple[PlannerConfig, PlannerConfig]  # its coarse level, in Two and Three Rooms
     lookahead: int = 2  # the subgoal: the coarse plan's latent this many coarse steps ahead
-    n_episodes: int = 20  # per planner and world
+    n_episodes: int = 40  # per planner and world
     first_seed: int = 10_000
     episode_batch: int = 10
     episode_steps: int | None = None  # None: each world's step budget (200 and 300 steps)
