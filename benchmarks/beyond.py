@@ -22,11 +22,10 @@ the last world played:
 from __future__ import annotations
 
 import argparse
-import dataclasses
 
 import torch
 
-from ebjepa_tutorial.commands.fit_beyond import world_run
+from ebjepa_tutorial.commands import fit_beyond
 from ebjepa_tutorial.course import reference
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.models.cost import WithLearnedCost
@@ -36,19 +35,18 @@ from ebjepa_tutorial.training.hierarchy import coarse_or_load
 from ebjepa_tutorial.training.runs import train_or_load
 from ebjepa_tutorial.training.world import identity
 
-WORLDS = {1: "two_rooms", 2: "three_rooms"}
+WORLDS = {walls: world for world, walls in fit_beyond.WORLDS.items()}  # 1: "two_rooms", ...
 NEW = ("learned_cost", "two_level")
 
 
 def planners(walls: int) -> dict:
     """Each planner of the comparison: ``name: (model to plan with, PlannerConfig, two_level)``."""
     cfg, world = preset("07", "class"), WORLDS[walls]
-    _, config, name = world_run(world, "class")
+    _, config, name = fit_beyond.world_run(world, "class")
     model, _ = train_or_load(config, name, device="cpu")
-    head = cost_head_or_load(model, identity(config),
-                             dataclasses.replace(cfg.cost, walls=walls), f"cost_head_{world}_class")
-    coarse = coarse_or_load(model, identity(config), dataclasses.replace(cfg.coarse, walls=walls),
-                            f"coarse_{world}_class")
+    cost, coarse = fit_beyond.fit_configs(world, "class")
+    head = cost_head_or_load(model, identity(config), cost, f"cost_head_{world}_class")
+    coarse = coarse_or_load(model, identity(config), coarse, f"coarse_{world}_class")
     return {"flat": (model, cfg.flat, None), "short": (model, cfg.short, None),
             "learned_cost": (WithLearnedCost(model, head), cfg.learned, None),
             "two_level": (model, cfg.low, TwoLevel(coarse, cfg.high[walls - 1], cfg.lookahead))}

@@ -33,25 +33,30 @@ def world_run(world: str, scale: str):
     return walls, cfg.two_rooms if walls == 1 else cfg.three_rooms, name
 
 
+def fit_configs(world: str, scale: str):
+    """``(CostConfig, CoarseConfig)``: notebook 07's fits for ``world`` at ``scale``."""
+    cfg, walls = preset("07", scale), WORLDS[world]
+    return replace(cfg.cost, walls=walls), replace(cfg.coarse, walls=walls)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--world", choices=sorted(WORLDS), required=True)
     parser.add_argument("--scale", choices=SCALES, default="class")
     parser.add_argument("--out-dir", required=True, help="folder for the two files")
     args = parser.parse_args(argv)
-    cfg = preset("07", args.scale)
-    walls, config, name = world_run(args.world, args.scale)
+    _, config, name = world_run(args.world, args.scale)
     model, _ = train_or_load(config, name, device="cpu")
-    fits = {"cost_head": (fit_cost_head, replace(cfg.cost, walls=walls)),
-            "coarse": (fit_coarse_model, replace(cfg.coarse, walls=walls))}
-    for kind, (fit, fit_config) in fits.items():
+    cost, coarse = fit_configs(args.world, args.scale)
+    for kind, fit, fit_config in (("cost_head", fit_cost_head, cost),
+                                  ("coarse", fit_coarse_model, coarse)):
         start = time.perf_counter()
         fitted, history = fit(model, fit_config)
+        seconds = time.perf_counter() - start
         path = Path(args.out_dir) / f"{kind}_{args.world}_{args.scale}.pt"
         save_checkpoint(path, model=fitted.state_dict(), history=dict(history),
-                        config=run_identity(fit_config, base=identity(config)),
-                        seconds=time.perf_counter() - start)
-        print(f"saved {path} ({time.perf_counter() - start:.0f} s)")
+                        config=run_identity(fit_config, base=identity(config)), seconds=seconds)
+        print(f"saved {path} ({seconds:.0f} s)")
 
 
 if __name__ == "__main__":
