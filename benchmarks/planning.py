@@ -1,6 +1,6 @@
 """Planning benchmark: success rate of a planner with a world-model checkpoint in Two Rooms.
 
-Run: ``python benchmarks/planning.py [--checkpoint checkpoints/world_model_class_long20k_mlp.pt]
+Run: ``python benchmarks/planning.py [--checkpoint checkpoints/world_model_class_course_long.pt]
 [--method mppi|cem] [--cost sum|last] [--episodes 100] [--batch 10] [--threads 2]``.
 
 Protocol: one episode per seed ``first_seed .. first_seed + episodes - 1``
@@ -12,7 +12,7 @@ trained there. Episodes run ``--batch`` at a time. Prints the success rate with
 its Wilson 95% interval, the mean first-arrival step (episodes that
 arrived), and process CPU seconds per episode (all threads counted). Last
 line: ``success=... ci_low=... ci_high=... s_per_episode=...``. ``--record``
-(chapter 05's model or the shipped one, the chapter's planner, first seed 10,000)
+(one of the three models of ``RECORDED``, the chapter's planner, first seed 10,000)
 stores the success rate in ``checkpoints/reference.json``, which notebook 06
 prints beside the learner's.
 """
@@ -33,7 +33,8 @@ from ebjepa_tutorial.training.world import load_world_model
 
 # the checkpoints whose success rates notebook 06 prints beside the learner's
 RECORDED = {"world_model_class.pt": "planning_success_class",
-            "world_model_class_long20k_mlp.pt": "planning_success_shipped"}
+            "world_model_class_course_long.pt": "planning_success_shipped",
+            "world_model_class_long20k_mlp.pt": "planning_success_refit"}
 
 
 def _yes_no(text: str) -> bool:
@@ -44,11 +45,11 @@ def _yes_no(text: str) -> bool:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--checkpoint", default="checkpoints/world_model_class_long20k_mlp.pt",
-                        help="world model (default: the paper's amount of training with its "
-                             "predictor refitted as an MLP; its GRU original: "
-                             "world_model_class_long20k.pt; half as long: "
-                             "world_model_class_long.pt; chapter 05's: world_model_class.pt)")
+    parser.add_argument("--checkpoint", default="checkpoints/world_model_class_course_long.pt",
+                        help="world model (default: chapter 05's recipe trained longer in one "
+                             "stage; chapter 05's: world_model_class.pt; the paper's recipe "
+                             "trained as long as the paper with its predictor refitted: "
+                             "world_model_class_long20k_mlp.pt)")
     parser.add_argument("--episodes", type=int, default=100)
     parser.add_argument("--batch", type=int, default=10,
                         help="episodes planned at once (small batches stay in a CPU cache)")

@@ -63,6 +63,14 @@ def test_refitted_model_matches_notebook_06():
     assert stored == world.refit_identity(cfg.refit, world.identity(cfg.refit_base))
 
 
+def test_course_long_model_matches_notebook_06():
+    # chapter 05's recipe trained longer in one stage: benchmarks/planning.py's default model
+    cfg = preset("06", "class")
+    assert cfg.course_long.model.predictor == cfg.world.model.predictor == "mlp"
+    assert cfg.course_long.steps > cfg.world.steps and cfg.course_long.grad_clip > 0
+    assert stored_config("world_model_class_course_long") == world.identity(cfg.course_long)
+
+
 @pytest.mark.parametrize("term", preset("06", "class").long_ablations)
 def test_long_ablations_match_notebook_06(term):
     config = world.ablation_config(preset("06", "class").long_world, term)
