@@ -25,35 +25,36 @@ from dataclasses import replace
 
 import torch
 
-from ebjepa_tutorial import augment
 from ebjepa_tutorial.course import reference
 from ebjepa_tutorial.course.presets import SCALES, image_preset
 from ebjepa_tutorial.data import load_cifar10, random_subset
 from ebjepa_tutorial.evaluation.classify import probe_encoder, protocol
 from ebjepa_tutorial.training.image import (
-    BothViews,
+    AllViews,
     ImageJEPA,
     jepa_loss,
     make_optimizer,
+    make_views,
     train_image_jepa,
+    view_pipelines,
 )
 from ebjepa_tutorial.utils import print_parts, time_parts
 
 
 def step_split(config, images: torch.Tensor) -> dict[str, float]:
     """Median seconds of each part of one training step of ``config`` on uint8 ``images``."""
-    model = BothViews(ImageJEPA(config))
+    model = AllViews(ImageJEPA(config))
     optimizer = make_optimizer(model, config)
-    pipeline = augment.build_augmentation(augment.AugmentConfig(size=config.image_size))
+    pipelines = view_pipelines(config)
 
     def step(repeat: int):
         generator = torch.Generator().manual_seed(repeat)
         index = torch.randint(0, len(images), (config.batch_size,), generator=generator)
-        views = augment.two_views(images[index], pipeline, generator)
+        views = make_views(config, images[index], generator, pipelines)
         yield "augmentation"
-        z_a, z_b = model(*views)
+        z_a, z_b, *local = model(*views)
         yield "forward"
-        loss, _ = jepa_loss(config, z_a, z_b, generator)
+        loss, _ = jepa_loss(config, z_a, z_b, generator, local=local)
         yield "loss"
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -89,8 +90,10 @@ def main() -> None:
     test = random_subset(*load_cifar10("test"), preset.test_images)
     print(f"{args.scale} scale, {config}")
     if args.split:
+        local = (f" + {config.local_views} of {config.local_size} px" if config.local_views
+                 else "")
         print_parts(f"one step of {config.batch_size} images x 2 views of {config.image_size} "
-                    "px", step_split(config, train[0]))
+                    f"px{local}", step_split(config, train[0]))
         return
     print(f"evaluation: {protocol(config)}")
 

@@ -85,15 +85,17 @@ def _images(n=32, seed=0):
 def _loss_and_grads(loss_fn, across_ranks):
     z_a = torch.randn(16, 8, generator=torch.Generator().manual_seed(0), requires_grad=True)
     z_b = torch.randn(16, 8, generator=torch.Generator().manual_seed(1), requires_grad=True)
-    total, terms = loss_fn(z_a, z_b, across_ranks)
+    total, terms = loss_fn(z_a, z_b, across=across_ranks)
     total.backward()
     return total, terms, z_a.grad, z_b.grad
 
 
 LOSSES = {
-    "vicreg": lambda z_a, z_b, across: vicreg_loss(z_a, z_b, 1.0, 2.0, 160.0, across_ranks=across),
-    "sigreg": lambda z_a, z_b, across: sigreg_loss(
-        z_a, z_b, num_slices=32, generator=torch.Generator().manual_seed(3), across_ranks=across),
+    "vicreg": lambda z_a, z_b, *local, across: vicreg_loss(z_a, z_b, 1.0, 2.0, 160.0,
+                                                           across_ranks=across, local=local),
+    "sigreg": lambda z_a, z_b, *local, across: sigreg_loss(
+        z_a, z_b, num_slices=32, generator=torch.Generator().manual_seed(3), across_ranks=across,
+        local=local),
 }
 
 
@@ -255,21 +257,22 @@ class Mlp(nn.Module):
 
 def _match_one_process(rank):
     for loss_name in LOSSES:
-        _match_one_process_with(rank, loss_name)
+        for n_views in (2, 4):  # two views, and multi-crop's two global and two local ones
+            _match_one_process_with(rank, loss_name, n_views)
 
 
-def _match_one_process_with(rank, loss_name):
+def _match_one_process_with(rank, loss_name, n_views):
     torch.manual_seed(0)  # the same weights and data on both ranks
     torch.set_default_dtype(torch.float64)  # so that "equal" can mean 1e-12, not 1e-6
     model = Mlp()
-    views = torch.randn(2, 16, 5)  # (2 views, global batch 16, 5 inputs)
+    views = torch.randn(n_views, 16, 5)  # (views, global batch 16, 5 inputs)
     reference = copy.deepcopy(model)
-    total, terms = LOSSES[loss_name](*image.BothViews(reference)(*views), False)
+    total, terms = LOSSES[loss_name](*image.AllViews(reference)(*views), across=False)
     total.backward()
 
-    net = distributed.data_parallel(image.BothViews(model), "cpu")
-    share = views[:, rank * 8:(rank + 1) * 8]  # (2, 8, 5): this rank's half of the batch
-    local, local_terms = LOSSES[loss_name](*net(*share), True)
+    net = distributed.data_parallel(image.AllViews(model), "cpu")
+    share = views[:, rank * 8:(rank + 1) * 8]  # (views, 8, 5): this rank's half of the batch
+    local, local_terms = LOSSES[loss_name](*net(*share), across=True)
     local.backward()  # DDP averages the gradients over the ranks
 
     mean_total, *mean_terms = distributed.mean_of_floats(
@@ -282,7 +285,7 @@ def _match_one_process_with(rank, loss_name):
 
 
 @pytest.mark.slow
-def test_two_ranks_give_the_terms_and_gradients_of_one_process():  # VICReg and SIGReg
+def test_two_ranks_give_the_terms_and_gradients_of_one_process():  # VICReg, SIGReg, multi-crop
     spawn(_match_one_process)
 
 

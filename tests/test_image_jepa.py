@@ -81,6 +81,35 @@ def test_each_loss_logs_its_terms(loss, terms):
     assert set(logged) == terms and torch.isfinite(total)
 
 
+def test_multi_crop_makes_two_global_and_smaller_local_views():
+    config = dataclasses.replace(TINY, local_views=3, local_size=8)
+    views = image.make_views(config, _images(5), torch.Generator().manual_seed(0),
+                             image.view_pipelines(config))
+    assert [tuple(v.shape) for v in views] == [(5, 3, 16, 16)] * 2 + [(5, 3, 8, 8)] * 3
+    two = image.make_views(TINY, _images(5), torch.Generator().manual_seed(0),
+                           image.view_pipelines(TINY))
+    assert len(two) == 2 and torch.equal(two[0], views[0])  # the global views are unchanged
+
+
+def test_a_multi_crop_run_trains_and_two_view_runs_keep_their_identity():
+    config = dataclasses.replace(TINY, local_views=2, steps=2)
+    model, history = image.train_image_jepa(config, _images(), progress=False)
+    assert len(history["loss"]) == 2 and all(map(math.isfinite, history["loss"]))
+    assert "local_views" in image.identity(config)
+    # files of two-view runs, saved before multi-crop existed, are still recognised
+    assert not set(image.LOCAL_FIELDS) & set(image.identity(TINY))
+
+
+@pytest.mark.parametrize("kwargs, words", [
+    ({"local_views": -1}, "an int >= 0"),
+    ({"local_crop_scale": (0.3, 0.05)}, "0 < low <= high <= 1"),
+    ({"local_size": 0}, "a positive int"),
+])
+def test_multi_crop_settings_are_checked(kwargs, words):
+    with pytest.raises(ValueError, match=words):
+        ImageJEPAConfig(**kwargs)
+
+
 def test_model_shapes_with_and_without_projector():
     model = image.ImageJEPA(TINY)
     assert model(torch.randn(2, 3, 16, 16)).shape == (2, 16)

@@ -27,10 +27,10 @@ import json
 import os
 import tempfile
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
-from ..training.image import ImageJEPAConfig, train_image_jepa
+from ..training.image import ImageJEPAConfig, settings, train_image_jepa
 from .classify import probe_encoder, protocol
 
 FACTORS = {"ci": (0.1, 1.0, 10.0), "class": (0.01, 0.1, 1.0, 10.0, 100.0),
@@ -97,7 +97,7 @@ def key(config: ImageJEPAConfig | dict, n_train: int, n_test: int) -> str:
 
     The config includes ``eval_image_size``: a run probed at another size is another result.
     """
-    config = asdict(config) if isinstance(config, ImageJEPAConfig) else config
+    config = settings(config) if isinstance(config, ImageJEPAConfig) else config
     return json.dumps([config, n_train, n_test], sort_keys=True)
 
 
@@ -143,7 +143,7 @@ def train_and_probe(run: Run, train, test, device="cpu", progress: bool = True) 
     final = {name: values[-1] for name, values in history.items() if name != "step"}
     return {"sweep": run.sweep, "value": run.value, "factor": run.factor, **scores,
             "final_terms": final, "seconds": round(time.perf_counter() - start, 1),
-            "n_train": len(train[0]), "n_test": len(test[0]), "config": asdict(run.config)}
+            "n_train": len(train[0]), "n_test": len(test[0]), "config": settings(run.config)}
 
 
 def run_sweep(runs: list[Run], train, test, path: str | Path | None = None,

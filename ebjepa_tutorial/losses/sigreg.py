@@ -39,11 +39,13 @@ seeds it with the step).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 
 from .. import distributed
 from ..utils import at_least_float32
-from .vicreg import _check_embeddings, invariance_term
+from .vicreg import _check_embeddings, multi_view_invariance
 
 
 def epps_pulley(
@@ -154,6 +156,7 @@ def sigreg_loss(
     sigma: float = 1.0,
     scale_by_n: bool = True,
     across_ranks: bool = False,
+    local: Sequence[torch.Tensor] = (),
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Invariance + ``lam`` * SIGReg on two views ``(B, D)``: returns ``(total, terms)``.
 
@@ -163,13 +166,15 @@ def sigreg_loss(
     ``terms`` holds the unweighted terms as detached 0-d tensors, like ``losses.vicreg_loss``.
     The default ``lam = 0.1`` is the EB-JEPA CIFAR-10 setting for ``scale_by_n=True``.
     ``across_ranks``: SIGReg of the global batch (module docstring); the invariance
-    stays a local mean over pairs, which DDP averages over ranks.
+    stays a local mean over pairs, which DDP averages over ranks. ``local``: more views of
+    the same images (multi-crop), as in :func:`ebjepa_tutorial.losses.vicreg_loss`.
     """
-    inv = invariance_term(z_a, z_b)
+    inv = multi_view_invariance(z_a, z_b, local)
     _check_embeddings(z_a, "z_a", min_batch=2)
     directions = random_directions(z_a.shape[1], num_slices, generator, z_a.device)
     options = dict(directions=directions, knots=knots, t_max=t_max, sigma=sigma)
     options.update(scale_by_n=scale_by_n, across_ranks=across_ranks)
-    reg = (sigreg(z_a, **options) + sigreg(z_b, **options)) / 2
+    views = (z_a, z_b, *local)
+    reg = sum(sigreg(z, **options) for z in views) / len(views)
     total = inv + lam * reg
     return total, {"invariance": inv.detach(), "sigreg": reg.detach()}

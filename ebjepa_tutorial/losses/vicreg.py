@@ -13,6 +13,8 @@ see a batch.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 import torch.nn.functional as F
 
@@ -41,6 +43,20 @@ def invariance_term(z_a: torch.Tensor, z_b: torch.Tensor) -> torch.Tensor:
     if z_a.shape != z_b.shape:
         raise ValueError(f"views differ in shape: {tuple(z_a.shape)} vs {tuple(z_b.shape)}")
     return F.mse_loss(z_a, z_b)
+
+
+def multi_view_invariance(
+    z_a: torch.Tensor, z_b: torch.Tensor, local: Sequence[torch.Tensor] = ()
+) -> torch.Tensor:
+    """:func:`invariance_term` averaged over every pair of a global view with another view.
+
+    The pairs are ``(z_a, z_b)`` and, for each smaller local view ``l``, ``(z_a, l)`` and
+    ``(z_b, l)``: local views are pulled towards the global ones, never towards each other (as
+    in SwAV's and DINO's multi-crop). All views ``(B, D)``. Without local views it is
+    ``invariance_term(z_a, z_b)``.
+    """
+    pairs = [(z_a, z_b)] + [(view, z) for z in local for view in (z_a, z_b)]
+    return sum(invariance_term(x, y) for x, y in pairs) / len(pairs)
 
 
 def variance_term(z: torch.Tensor, gamma: float = 1.0, eps: float = 1e-4) -> torch.Tensor:
@@ -114,10 +130,13 @@ def vicreg_loss(
     std_coeff: float = 1.0,
     cov_coeff: float = 1.0,
     across_ranks: bool = False,
+    local: Sequence[torch.Tensor] = (),
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """VICReg on two views ``(B, D)``: weighted invariance + variance + covariance.
 
-    The variance and covariance terms are applied to each view and averaged.
+    The variance and covariance terms are applied to each view and averaged. ``local``:
+    more views of the same images (multi-crop), each ``(B, D)``; the invariance becomes
+    :func:`multi_view_invariance` and the two regularisers average over every view.
     Returns the total and a dict of the unweighted terms, detached 0-d tensors for logging
     (``float()`` reads one; reading waits for the GPU, so training loops read them only
     when they log).
@@ -127,11 +146,12 @@ def vicreg_loss(
     over pairs and stays local (DDP averages it over ranks). The logged invariance
     is this rank's.
     """
-    inv = invariance_term(z_a, z_b)
+    inv = multi_view_invariance(z_a, z_b, local)
+    views = (z_a, z_b, *local)
     if across_ranks:  # the batch statistics of the global batch, as on one device
-        z_a, z_b = distributed.gather_rows(z_a, z_b)
-    var = (variance_term(z_a) + variance_term(z_b)) / 2
-    cov = (covariance_term(z_a) + covariance_term(z_b)) / 2
+        views = distributed.gather_rows(*views)
+    var = sum(variance_term(z) for z in views) / len(views)
+    cov = sum(covariance_term(z) for z in views) / len(views)
     total = inv_coeff * inv + std_coeff * var + cov_coeff * cov
     return total, {"invariance": inv.detach(), "variance": var.detach(),
                    "covariance": cov.detach()}

@@ -24,7 +24,7 @@ each rank's rows, unless ``sync_batchnorm`` (GPUs only).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import torch
@@ -50,6 +50,7 @@ from .optim import LARS, split_decay_params, warmup_cosine_scheduler
 
 LOSSES = ("vicreg", "sigreg", "invariance")
 EVAL_FIELDS = ("eval_image_size",)  # how a run is scored, not how it is trained
+LOCAL_FIELDS = ("local_views", "local_size", "local_crop_scale")  # multi-crop's
 
 
 @dataclass(frozen=True)
@@ -60,6 +61,11 @@ class ImageJEPAConfig:
     encoder: str = "resnet18"  # or "vit_s"
     widths: tuple[int, int, int, int] = (16, 32, 64, 128)  # ResNet-18 stage widths
     image_size: int = 16  # training views are this many pixels wide
+    # multi-crop: this many more views of each image, smaller crops of local_crop_scale of its
+    # area at local_size px, pulled towards the two global views (0: two views)
+    local_views: int = 0
+    local_size: int = 8
+    local_crop_scale: tuple[float, float] = (0.05, 0.3)
     # The linear probe and kNN see un-augmented images at this side; CIFAR-10 is 32 px
     # natively, so 32 means no resizing.
     eval_image_size: int = 32
@@ -96,7 +102,10 @@ class ImageJEPAConfig:
             "warmup_steps": (lambda w: is_int_at_least(0)(w) and w < self.steps,
                              f"an int in 0..steps-1 = {self.steps - 1}"),
             "batch_size": (is_int_at_least(2), "an int >= 2 (a batch of one has no variance)"),
-            "image_size": pixels, "eval_image_size": pixels,
+            "image_size": pixels, "eval_image_size": pixels, "local_size": pixels,
+            "local_views": (is_int_at_least(0), "an int >= 0 (0: two views, no multi-crop)"),
+            "local_crop_scale": (lambda c: len(c) == 2 and 0 < c[0] <= c[1] <= 1,
+                                 "two area fractions 0 < low <= high <= 1"),
             "widths": (lambda w: len(w) == 4 and all(map(is_int_at_least(1), w)),
                        "four positive ints (the ResNet-18 stage widths)"),
             "projector": (lambda p: p is None or (len(p) == 2 and all(map(is_int_at_least(1), p))),
@@ -127,19 +136,20 @@ class ImageJEPA(nn.Module):
         return self.projector(self.encoder(views))
 
 
-class BothViews(nn.Module):
-    """``model`` on two views in one call: ``(b, 3, S, S) x 2 -> (b, D) x 2``.
+class AllViews(nn.Module):
+    """``model`` on every view in one call: ``(b, 3, S_v, S_v) x V -> (b, D) x V``.
 
     DistributedDataParallel pairs each forward call with one backward, so the
-    two views must go through a single call of the wrapped module.
+    views must go through a single call of the wrapped module. Each view is its own
+    forward pass, so batch norm normalises each view's batch, as with one view.
     """
 
     def __init__(self, model: nn.Module):
         super().__init__()
         self.model = model
 
-    def forward(self, view_a: torch.Tensor, view_b: torch.Tensor):
-        return self.model(view_a), self.model(view_b)
+    def forward(self, *views: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        return tuple(self.model(view) for view in views)
 
 
 def resize(images: torch.Tensor, size: int) -> torch.Tensor:
@@ -150,21 +160,41 @@ def resize(images: torch.Tensor, size: int) -> torch.Tensor:
     return F.interpolate(images, size=size, mode="bilinear", antialias=True, align_corners=False)
 
 
-def jepa_loss(config: ImageJEPAConfig, z_a, z_b, generator=None, across_ranks=False):
+def jepa_loss(config: ImageJEPAConfig, z_a, z_b, generator=None, across_ranks=False,
+              local=()):
     """The training loss of two embedded views ``(B, D)``: returns ``(loss, terms)``.
 
     ``across_ranks``: the regulariser sees the global batch of all ranks (a no-op in
     one process); see :func:`losses.vicreg_loss` and :func:`sigreg.sigreg_loss`.
+    ``local``: the embedded local views of multi-crop, each ``(B, D)``.
     """
     if config.loss == "vicreg":
         return losses.vicreg_loss(z_a, z_b, config.inv_coeff, config.std_coeff, config.cov_coeff,
-                                  across_ranks=across_ranks)
+                                  across_ranks=across_ranks, local=local)
     if config.loss == "sigreg":
         return sigreg.sigreg_loss(z_a, z_b, lam=config.sigreg_lambda,
                                   num_slices=config.sigreg_slices, generator=generator,
-                                  scale_by_n=config.sigreg_scale_by_n, across_ranks=across_ranks)
-    invariance = losses.invariance_term(z_a, z_b)
+                                  scale_by_n=config.sigreg_scale_by_n, across_ranks=across_ranks,
+                                  local=local)
+    invariance = losses.multi_view_invariance(z_a, z_b, local)
     return invariance, {"invariance": invariance.detach()}
+
+
+def make_views(config: ImageJEPAConfig, images: torch.Tensor, generator: torch.Generator,
+               pipelines) -> list[torch.Tensor]:
+    """Two global views of uint8 ``images`` ``(B, 3, 32, 32)`` at ``image_size``, then
+    ``local_views`` smaller ones at ``local_size``: a list of ``(B, 3, S_v, S_v)``."""
+    global_views, local_views = pipelines
+    views = list(augment.two_views(images, global_views, generator))
+    return views + [augment.augment(images, local_views, generator)
+                    for _ in range(config.local_views)]
+
+
+def view_pipelines(config: ImageJEPAConfig):
+    """The augmentations of the global and the local views (:func:`make_views`)."""
+    local = augment.AugmentConfig(size=config.local_size, crop_scale=config.local_crop_scale)
+    return (augment.build_augmentation(augment.AugmentConfig(size=config.image_size)),
+            augment.build_augmentation(local))
 
 
 def make_optimizer(model: nn.Module, config: ImageJEPAConfig):
@@ -199,10 +229,10 @@ def train_image_jepa(
     torch.manual_seed(config.seed)
     layout = memory_format(device)  # channels_last on a GPU; nothing changes on the CPU
     model = ImageJEPA(config).to(device, memory_format=layout)
-    net = distributed.data_parallel(BothViews(model), device, sync_batchnorm)
+    net = distributed.data_parallel(AllViews(model), device, sync_batchnorm)
     optimizer = make_optimizer(model, config)
     scheduler = warmup_cosine_scheduler(optimizer, config.steps, config.warmup_steps)
-    pipeline = augment.build_augmentation(augment.AugmentConfig(size=config.image_size))
+    pipelines = view_pipelines(config)
     start, history = (0, History())
     if checkpoint is not None:
         start, history = resume(checkpoint, model, optimizer, scheduler, identity(config))
@@ -212,17 +242,17 @@ def train_image_jepa(
     def batch(step: int):
         generator = step_generator(config.seed, step)
         index = torch.randint(0, len(images), (config.batch_size,), generator=generator)
-        views = augment.two_views(images[index.to(images.device)], pipeline, generator)
+        views = make_views(config, images[index.to(images.device)], generator, pipelines)
         # every rank made the same global batch; each keeps its rows (all of them on one)
         views = (distributed.local_rows(v).contiguous(memory_format=layout) for v in views)
         return tuple(views), generator
 
     def loss(views_and_generator):
-        (view_a, view_b), generator = views_and_generator
+        views, generator = views_and_generator
         with mixed_precision(device):  # bf16 networks on a GPU; the loss in float32
-            z_a, z_b = net(view_a, view_b)
-        return jepa_loss(config, at_least_float32(z_a), at_least_float32(z_b), generator,
-                         across_ranks=True)
+            embedded = net(*views)
+        z_a, z_b, *local = map(at_least_float32, embedded)
+        return jepa_loss(config, z_a, z_b, generator, across_ranks=True, local=local)
 
     fit(model, optimizer, loss, batch, config.steps, scheduler=scheduler, history=history,
         start_step=start, checkpoint=checkpoint, checkpoint_every=checkpoint_every, log_every=10,
@@ -251,14 +281,25 @@ def seconds_per_step(config: ImageJEPAConfig, images: torch.Tensor, steps: int =
     return max(run(1 + steps) - first, 0.0) / steps
 
 
+def _unused_fields(config: ImageJEPAConfig) -> tuple[str, ...]:
+    # a two-view run reads as it did before multi-crop existed, so its stored files still match
+    return () if config.local_views else LOCAL_FIELDS
+
+
+def settings(config: ImageJEPAConfig) -> dict:
+    """``config`` as a dict, without multi-crop's fields when it is off (``local_views`` 0)."""
+    return {k: v for k, v in asdict(config).items() if k not in _unused_fields(config)}
+
+
 def identity(config: ImageJEPAConfig, encoder_only: bool = False) -> dict:
-    """What a checkpoint stores to recognise its run: the config without ``EVAL_FIELDS``.
+    """What a checkpoint stores to recognise its run: the config without ``EVAL_FIELDS``
+    (and without multi-crop's fields when it is off).
 
     How a network will be probed does not change how it is trained. A file of
     the encoder alone is marked, so it is never read as a whole model.
     """
     stored = run_identity(config, **({"weights": "encoder only"} if encoder_only else {}))
-    return {k: v for k, v in stored.items() if k not in EVAL_FIELDS}
+    return {k: v for k, v in stored.items() if k not in EVAL_FIELDS + _unused_fields(config)}
 
 
 def _partial(name: str) -> Path:
