@@ -58,6 +58,8 @@ def test_a_vit_is_probed_at_the_size_it_was_built_for():
     with pytest.raises(ValueError, match="ViT is built for one image size"):
         ImageJEPAConfig(encoder="vit_s", image_size=16)  # eval_image_size: 32 by default
     assert ImageJEPAConfig(encoder="vit_s", image_size=32).eval_image_size == 32
+    with pytest.raises(ValueError, match="local_size"):
+        ImageJEPAConfig(encoder="vit_s", image_size=32, local_views=2)  # local_size: 8
 
 
 def test_evaluation_is_at_the_native_32_px_whatever_the_training_size():

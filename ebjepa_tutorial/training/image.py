@@ -118,6 +118,10 @@ class ImageJEPAConfig:
             raise ValueError(
                 f"a ViT is built for one image size: eval_image_size ({self.eval_image_size}) "
                 f"must equal image_size ({self.image_size}) with encoder='vit_s'")
+        if self.encoder == "vit_s" and self.local_views and self.local_size != self.image_size:
+            raise ValueError(
+                f"a ViT is built for one image size: local_size ({self.local_size}) must equal "
+                f"image_size ({self.image_size}) with encoder='vit_s' and local views")
 
 
 class ImageJEPA(nn.Module):
