@@ -34,9 +34,8 @@ from ebjepa_tutorial.training.image import (
     ImageJEPA,
     jepa_loss,
     make_optimizer,
-    make_views,
     train_image_jepa,
-    view_pipelines,
+    view_maker,
 )
 from ebjepa_tutorial.utils import print_parts, time_parts
 
@@ -45,12 +44,12 @@ def step_split(config, images: torch.Tensor) -> dict[str, float]:
     """Median seconds of each part of one training step of ``config`` on uint8 ``images``."""
     model = AllViews(ImageJEPA(config))
     optimizer = make_optimizer(model, config)
-    pipelines = view_pipelines(config)
+    make_views = view_maker(config)
 
     def step(repeat: int):
         generator = torch.Generator().manual_seed(repeat)
         index = torch.randint(0, len(images), (config.batch_size,), generator=generator)
-        views = make_views(config, images[index], generator, pipelines)
+        views = make_views(images[index], generator)
         yield "augmentation"
         z_a, z_b, *local = model(*views)
         yield "forward"

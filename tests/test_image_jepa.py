@@ -85,11 +85,9 @@ def test_each_loss_logs_its_terms(loss, terms):
 
 def test_multi_crop_makes_two_global_and_smaller_local_views():
     config = dataclasses.replace(TINY, local_views=3, local_size=8)
-    views = image.make_views(config, _images(5), torch.Generator().manual_seed(0),
-                             image.view_pipelines(config))
+    views = image.view_maker(config)(_images(5), torch.Generator().manual_seed(0))
     assert [tuple(v.shape) for v in views] == [(5, 3, 16, 16)] * 2 + [(5, 3, 8, 8)] * 3
-    two = image.make_views(TINY, _images(5), torch.Generator().manual_seed(0),
-                           image.view_pipelines(TINY))
+    two = image.view_maker(TINY)(_images(5), torch.Generator().manual_seed(0))
     assert len(two) == 2 and torch.equal(two[0], views[0])  # the global views are unchanged
 
 

@@ -184,21 +184,20 @@ def jepa_loss(config: ImageJEPAConfig, z_a, z_b, generator=None, across_ranks=Fa
     return invariance, {"invariance": invariance.detach()}
 
 
-def make_views(config: ImageJEPAConfig, images: torch.Tensor, generator: torch.Generator,
-               pipelines) -> list[torch.Tensor]:
-    """Two global views of uint8 ``images`` ``(B, 3, 32, 32)`` at ``image_size``, then
-    ``local_views`` smaller ones at ``local_size``: a list of ``(B, 3, S_v, S_v)``."""
-    global_views, local_views = pipelines
-    views = list(augment.two_views(images, global_views, generator))
-    return views + [augment.augment(images, local_views, generator)
-                    for _ in range(config.local_views)]
-
-
-def view_pipelines(config: ImageJEPAConfig):
-    """The augmentations of the global and the local views (:func:`make_views`)."""
+def view_maker(config: ImageJEPAConfig):
+    """``views(images, generator)``: two global views of uint8 ``images`` ``(B, 3, 32, 32)`` at
+    ``image_size``, then ``local_views`` smaller ones at ``local_size``, a list of
+    ``(B, 3, S_v, S_v)``. The augmentations are built once, here."""
     local = augment.AugmentConfig(size=config.local_size, crop_scale=config.local_crop_scale)
-    return (augment.build_augmentation(augment.AugmentConfig(size=config.image_size)),
-            augment.build_augmentation(local))
+    global_pipeline = augment.build_augmentation(augment.AugmentConfig(size=config.image_size))
+    local_pipeline = augment.build_augmentation(local)
+
+    def views(images: torch.Tensor, generator: torch.Generator) -> list[torch.Tensor]:
+        return [*augment.two_views(images, global_pipeline, generator),
+                *(augment.augment(images, local_pipeline, generator)
+                  for _ in range(config.local_views))]
+
+    return views
 
 
 def make_optimizer(model: nn.Module, config: ImageJEPAConfig):
@@ -236,7 +235,7 @@ def train_image_jepa(
     net = distributed.data_parallel(AllViews(model), device, sync_batchnorm)
     optimizer = make_optimizer(model, config)
     scheduler = warmup_cosine_scheduler(optimizer, config.steps, config.warmup_steps)
-    pipelines = view_pipelines(config)
+    make_views = view_maker(config)
     start, history = (0, History())
     if checkpoint is not None:
         start, history = resume(checkpoint, model, optimizer, scheduler, identity(config))
@@ -246,7 +245,7 @@ def train_image_jepa(
     def batch(step: int):
         generator = step_generator(config.seed, step)
         index = torch.randint(0, len(images), (config.batch_size,), generator=generator)
-        views = make_views(config, images[index.to(images.device)], generator, pipelines)
+        views = make_views(images[index.to(images.device)], generator)
         # every rank made the same global batch; each keeps its rows (all of them on one)
         views = (distributed.local_rows(v).contiguous(memory_format=layout) for v in views)
         return tuple(views), generator
