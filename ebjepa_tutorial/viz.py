@@ -357,6 +357,24 @@ def plot_success_rates(rows: dict[str, tuple[float, float, float]], ax=None,
     return ax
 
 
+def plot_stopped_by_door_distance(by_distance: dict[str, list[dict]], ax=None, title: str = ""):
+    """The wall test's ``stopped`` by distance along the wall from the door, grouped bars with
+    one series per ``name: bins`` of
+    :func:`~ebjepa_tutorial.evaluation.position.wall_test_by_door_distance` (same edges)."""
+    ax = _axes(ax)
+    first = next(iter(by_distance.values()))
+    width = 0.8 / len(by_distance)
+    for k, (name, bins) in enumerate(by_distance.items()):
+        shift = (k - (len(by_distance) - 1) / 2) * width  # the series side by side, centred
+        ax.bar([i + shift for i in range(len(bins))], [b["stopped"] for b in bins], width=width,
+               label=name)
+    ax.set_xticks(range(len(first)), [f"{b['lo']}-{b['hi']} px\n({b['n']} steps)" for b in first])
+    ax.set(xlabel="distance along the wall from the door's centre", ylabel="stopped (wall test)",
+           ylim=(0, 1.3), yticks=[0, 0.25, 0.5, 0.75, 1], title=title)
+    ax.legend(loc="upper center", ncol=len(by_distance), fontsize=8)
+    return ax
+
+
 def plot_energy_shapes(profiles: dict[str, torch.Tensor], edges, ax=None, title: str = ""):
     """Each ``name: profile`` of :func:`~ebjepa_tutorial.planning.energy_by_distance` (one
     value per ring between ``edges``) over its ring middles, divided by its own maximum so

@@ -350,6 +350,22 @@ def test_success_bars_show_rates_intervals_and_the_reference_on_its_bar():
     matplotlib.pyplot.close(ax.figure)
 
 
+def test_the_wall_test_by_door_distance_draws_each_series_side_by_side():
+    matplotlib = pytest.importorskip("matplotlib")
+    matplotlib.use("agg")
+    from ebjepa_tutorial import viz
+
+    bins = [{"lo": 0, "hi": 8, "n": 5, "stopped": 0.5}, {"lo": 8, "hi": 65, "n": 9, "stopped": 1.0}]
+    other = [{**b, "stopped": b["stopped"] / 2} for b in bins]
+    ax = viz.plot_stopped_by_door_distance({"a": bins, "b": other})
+    assert [bar.get_height() for bar in ax.patches] == pytest.approx([0.5, 1.0, 0.25, 0.5])
+    centres = [bar.get_x() + bar.get_width() / 2 for bar in ax.patches]
+    assert centres == pytest.approx([-0.2, 0.8, 0.2, 1.2])  # each pair centred on its tick
+    assert [t.get_text() for t in ax.get_xticklabels()] == ["0-8 px\n(5 steps)",
+                                                           "8-65 px\n(9 steps)"]
+    matplotlib.pyplot.close(ax.figure)
+
+
 def test_plot_energy_shapes_draws_each_profile_over_its_ring_middles_scaled_to_1():
     import matplotlib
 
