@@ -96,7 +96,8 @@ def agent(config: PlannerConfig) -> str:
     warm = config.warm().iterations
     stop = f"stands still within {config.stop_px:g} px" if config.stop_px else "never stops"
     return (f"{config.method.upper()} H{config.horizon} N{config.samples} "
-            f"J{config.iterations} ({warm} warm), re-plan every {config.execute}, {stop}")
+            f"J{config.iterations} ({warm} warm), first spread {config.init_std:g} px, "
+            f"re-plan every {config.execute}, {stop}")
 
 
 if __name__ == "__main__":

@@ -95,7 +95,9 @@ class PlannerConfig:
     # the previous plan rather than from standing still; 0: J, as the paper's agent
     warm_iterations: int = 3
     temperature: float = 0.05  # tau, MPPI's softness (latent-distance units)
-    init_std: float = 1.5  # spread of the sampled actions at the start of a re-plan, px
+    # spread of the sampled actions at the start of a re-plan, px: wide enough that some
+    # samples of a plan pressed against the wall slide along it to the door
+    init_std: float = 2.0
     update_std: bool = True  # False: keep init_std for every iteration (move the mean only)
     min_std: float = 0.05
     max_std: float = 2.0
