@@ -5,8 +5,9 @@
 
 The world model is notebook 07's at ``--scale`` (shipped, cached, or trained first); the
 fits are ``preset("07").cost`` and ``.coarse`` for that world. Writes
-``cost_head_<world>_<scale>.pt`` and ``coarse_<world>_<scale>.pt`` (each with the identity
-of its fit and of the world model, which notebook 07 checks before it loads a file).
+``cost_head_<world>_<scale>.pt`` and ``coarse_<world>_<scale>.pt`` (``--fits coarse``: the
+second alone), each with the identity of its fit and of the world model, which notebook
+07 checks before it loads a file.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from ..training.runs import train_or_load
 from ..training.world import identity
 
 WORLDS = {"two_rooms": 1, "three_rooms": 2}
+FITS = {"cost_head": fit_cost_head, "coarse": fit_coarse_model}
 
 
 def world_run(world: str, scale: str):
@@ -44,12 +46,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--world", choices=sorted(WORLDS), required=True)
     parser.add_argument("--scale", choices=SCALES, default="class")
     parser.add_argument("--out-dir", required=True, help="folder for the two files")
+    parser.add_argument("--fits", nargs="+", choices=sorted(FITS), default=sorted(FITS),
+                        help="refit only these (default: both)")
     args = parser.parse_args(argv)
     _, config, name = world_run(args.world, args.scale)
     model, _ = train_or_load(config, name, device="cpu")
     cost, coarse = fit_configs(args.world, args.scale)
-    for kind, fit, fit_config in (("cost_head", fit_cost_head, cost),
-                                  ("coarse", fit_coarse_model, coarse)):
+    for kind in args.fits:
+        fit, fit_config = FITS[kind], {"cost_head": cost, "coarse": coarse}[kind]
         start = time.perf_counter()
         fitted, history = fit(model, fit_config)
         seconds = time.perf_counter() - start
