@@ -163,22 +163,47 @@ class TwoLevel:
     steps, warm-started like the flat plan) plans from the current latent to the
     goal; the latent it imagines ``lookahead`` coarse steps ahead is the subgoal
     that the flat planner then plans towards over its short horizon.
+
+    The final approach: once the coarse plan comes within ``reach_px`` of the goal
+    (as the model sees it, :func:`arrival_distance`) by its subgoal, the subgoal is
+    the goal itself. Without it an agent at the goal keeps chasing the coarse model's
+    imprecise latents, and can walk off the goal again.
     """
 
     coarse: torch.nn.Module  # models.hierarchy.CoarseModel: rollout(z0, macro) -> latents
     config: PlannerConfig
     lookahead: int = 1
+    reach_px: float = 0.0  # 0: no final approach, always the coarse plan's latent
+    reach: float | None = None  # reach_px in latent units, set by calibrate()
 
     def __post_init__(self):
         if not 1 <= self.lookahead <= self.config.horizon:
             raise ValueError(f"lookahead must be in 1..{self.config.horizon} coarse steps (the "
                              f"coarse plan's horizon), got {self.lookahead}")
+        if self.reach_px < 0:
+            raise ValueError(f"reach_px must be >= 0 px (0: no final approach), got "
+                             f"{self.reach_px}")
+
+    def calibrate(self, model, walls: int = 1) -> TwoLevel:
+        """The same planner with ``reach`` measured on ``model``'s latents of ``walls``' world
+        (once: a calibrated planner is returned as it is)."""
+        if not self.reach_px or self.reach is not None:
+            return self
+        return replace(self, reach=arrival_distance(model, self.reach_px, walls=walls))
 
     def subgoals(self, z0: torch.Tensor, z_goal: torch.Tensor, config: PlannerConfig,
                  generators: Sequence[torch.Generator], mean: torch.Tensor):
         """``(subgoal latents (B, D), the coarse mean plan (B, H', 2))``."""
+        if self.reach_px and self.reach is None:
+            raise ValueError("a final approach needs its latent distance: two_level.calibrate("
+                             "model, walls) first (run_episodes does it)")
         coarse = plan(self.coarse, z0, z_goal, config, generators, mean).mean
-        return self.coarse.rollout(z0, coarse[:, : self.lookahead])[:, -1], coarse
+        ahead = self.coarse.rollout(z0, coarse[:, : self.lookahead])  # (B, lookahead, D)
+        subgoal = ahead[:, -1]
+        if self.reach is not None:  # the goal, where the plan reaches it by the subgoal
+            there = (ahead - z_goal[:, None]).norm(dim=-1).amin(dim=1) < self.reach  # (B,)
+            subgoal = torch.where(there[:, None], z_goal, subgoal)
+        return subgoal, coarse
 
 
 # -- the energy ------------------------------------------------------------------------------
@@ -493,7 +518,8 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig = PlannerCon
     ``"true_xy"``, the diagnoses of :class:`TrueDynamics`. With ``config.stop_px``
     the model's :func:`arrival_distance` is calibrated once, its CPU time counted.
     ``two_level``: plan towards its subgoals instead of the goal (a learned world only;
-    it re-plans once per coarse step, so ``config.execute`` must be its stride).
+    it re-plans once per coarse step, so ``config.execute`` must be its stride; its final
+    approach is calibrated as ``stop_px`` is).
     """
     if world not in WORLDS:
         raise ValueError(f"world must be one of {WORLDS}, got {world!r}")
@@ -510,6 +536,8 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig = PlannerCon
     if config.stop_px:
         arrived = (config.stop_px if world == "true_xy"
                    else arrival_distance(model, config.stop_px, walls=walls))
+    if two_level is not None:
+        two_level = two_level.calibrate(model, walls)
     cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
     result = EpisodeResults.concat([
         _run_batch(model, seeds[i:i + batch], config, steps, radius, world, arrived, walls,

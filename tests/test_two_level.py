@@ -1,5 +1,6 @@
 """The coarse model and the two-level planner of notebook 07."""
 
+from dataclasses import replace
 from types import SimpleNamespace
 
 import pytest
@@ -52,6 +53,29 @@ def test_two_levels_reach_a_far_goal_under_a_known_linear_model():
     assert (z - goal).norm() < 3.0, z
 
 
+def test_the_final_approach_aims_at_the_goal_once_the_coarse_plan_reaches_it():
+    """Under Drift (latent = position) a plan that comes within ``reach`` of the goal by its
+    second coarse step makes the goal the subgoal; one that does not keeps its latent."""
+    z, g = torch.zeros(2, 2), torch.tensor([[3.0, 0.0], [30.0, 0.0]])
+    generators = [torch.Generator().manual_seed(s) for s in range(2)]
+    two = TwoLevel(Drift(stride=4), HIGH, lookahead=2, reach_px=4.5, reach=3.5)
+    subgoal, plan_ = two.subgoals(z, g, HIGH, generators, torch.zeros(2, 8, 2))
+    ahead = plan_[0, :2].cumsum(dim=0)  # the two imagined latents of the near episode
+    assert (ahead - g[0]).norm(dim=-1).min() < 3.5 and torch.equal(subgoal[0], g[0])
+    assert torch.allclose(subgoal[1], plan_[1, :2].sum(dim=0))  # Drift: the summed macros
+    assert (subgoal[1] - g[1]).norm() > 10
+
+
+def test_a_final_approach_must_be_calibrated_first():
+    two = TwoLevel(Drift(stride=4), HIGH, lookahead=2, reach_px=4.5)
+    with pytest.raises(ValueError, match="calibrate"):
+        two.subgoals(torch.zeros(1, 2), torch.ones(1, 2), HIGH,
+                     [torch.Generator().manual_seed(0)], torch.zeros(1, 8, 2))
+    assert TwoLevel(Drift(4), HIGH).calibrate(None).reach is None  # no final approach: as is
+    calibrated = replace(two, reach=2.0)
+    assert calibrated.calibrate(None) is calibrated  # once
+
+
 def test_a_coarse_model_learns_a_linear_world_from_trajectories():
     g = torch.Generator().manual_seed(0)
     actions = torch.randn(300, 16, 2, generator=g)
@@ -74,3 +98,9 @@ def test_settings_a_two_level_planner_cannot_use_are_refused():
             CoarseModel(2, stride=4), HIGH))
     with pytest.raises(ValueError, match="stride"):
         CoarseModel(2, stride=0)
+    with pytest.raises(ValueError, match="reach_px"):
+        TwoLevel(Drift(4), HIGH, reach_px=-1.0)
+    with pytest.raises(ValueError, match="wall_fraction"):
+        CoarseConfig(wall_fraction=0.9)
+    with pytest.raises(ValueError, match="step_mean"):
+        CoarseConfig(step_mean=0)

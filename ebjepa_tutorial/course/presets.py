@@ -206,6 +206,7 @@ class BeyondPreset:
     low: PlannerConfig  # the two-level planner's lower level: a few steps to the subgoal
     high: tuple[PlannerConfig, PlannerConfig]  # its coarse level, in Two and Three Rooms
     lookahead: int = 2  # the subgoal: the coarse plan's latent this many coarse steps ahead
+    reach_px: float = 4.5  # the final approach: the goal is the subgoal once the plan reaches it
     n_episodes: int = 40  # per planner and world
     first_seed: int = 10_000
     episode_batch: int = 10

@@ -21,6 +21,13 @@ class CoarseConfig:
 
     stride: int = 4  # S, environment steps per coarse step
     n_trajectories: int = 20_000  # fresh data-policy trajectories of 16 steps: 4 coarse steps
+    # The data policy for the fit. The coarse planner asks for macro-actions up to
+    # stride x 1.8 px, and MPPI seeks out whatever the model gets wrong: at the world
+    # model's 1 px mean step the data's 4-step moves stop at about 4.7 px (90th
+    # percentile), and longer ones pass through walls in imagination. Faster steps
+    # and starts heading into a wall show the model what it is asked about.
+    step_mean: float = 1.5  # px per step (the data policy clips steps to 0.2-1.8)
+    wall_fraction: float = 0.25  # trajectories that start in front of a wall, heading in
     steps: int = 3000
     batch_size: int = 1024
     lr: float = 1e-3
@@ -31,13 +38,17 @@ class CoarseConfig:
     def __post_init__(self):
         check_fields(self, {name: (is_int_at_least(1), "an int >= 1") for name in
                             ("stride", "n_trajectories", "steps", "batch_size", "hidden")})
-        check_fields(self, {"lr": (is_positive, "a number > 0")})
+        check_fields(self, {name: (is_positive, "a number > 0") for name in ("lr", "step_mean")})
+        if not 0 <= self.wall_fraction <= 0.65:
+            raise ValueError(f"wall_fraction must be in 0..0.65 (door starts take 0.35), got "
+                             f"{self.wall_fraction}")
 
 
 def fit_coarse_model(model: WorldModel, config: CoarseConfig = CoarseConfig(),
                      progress: bool = True) -> tuple[CoarseModel, History]:
     """A :class:`CoarseModel` fitted on ``model``'s frozen latents; ``(coarse, history)``."""
-    data = generate_trajectories(config.n_trajectories, seed=config.seed, walls=config.walls)
+    data = generate_trajectories(config.n_trajectories, seed=config.seed, walls=config.walls,
+                                 step_mean=config.step_mean, wall_fraction=config.wall_fraction)
     return fit_coarse_on(trajectory_latents(model, data), data.actions, config, progress)
 
 
