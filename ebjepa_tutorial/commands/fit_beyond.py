@@ -51,9 +51,9 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     _, config, name = world_run(args.world, args.scale)
     model, _ = train_or_load(config, name, device="cpu")
-    cost, coarse = fit_configs(args.world, args.scale)
+    configs = dict(zip(("cost_head", "coarse"), fit_configs(args.world, args.scale)))
     for kind in args.fits:
-        fit, fit_config = FITS[kind], {"cost_head": cost, "coarse": coarse}[kind]
+        fit, fit_config = FITS[kind], configs[kind]
         start = time.perf_counter()
         fitted, history = fit(model, fit_config)
         seconds = time.perf_counter() - start

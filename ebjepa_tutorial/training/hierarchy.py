@@ -13,6 +13,7 @@ from ..models.world import WorldModel, trajectory_latents
 from ..utils import check_fields, is_int_at_least, is_positive
 from .checkpoints import run_identity
 from .loop import History, fit, load_or_fit, step_generator
+from .world import WALL_FRACTION_RULE
 
 
 @dataclass(frozen=True)
@@ -38,10 +39,9 @@ class CoarseConfig:
     def __post_init__(self):
         check_fields(self, {name: (is_int_at_least(1), "an int >= 1") for name in
                             ("stride", "n_trajectories", "steps", "batch_size", "hidden")})
-        check_fields(self, {name: (is_positive, "a number > 0") for name in ("lr", "step_mean")})
-        if not 0 <= self.wall_fraction <= 0.65:
-            raise ValueError(f"wall_fraction must be in 0..0.65 (door starts take 0.35), got "
-                             f"{self.wall_fraction}")
+        check_fields(self, {"lr": (is_positive, "a number > 0"),
+                            "step_mean": (is_positive, "a number > 0"),
+                            "wall_fraction": WALL_FRACTION_RULE})
 
 
 def fit_coarse_model(model: WorldModel, config: CoarseConfig = CoarseConfig(),

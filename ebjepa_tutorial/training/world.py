@@ -49,6 +49,8 @@ from .checkpoints import IDENTITY_SCHEMA, checkpoint_paths, load_checkpoint, run
 from .loop import History, fit, load_or_fit, load_or_train, resume, step_generator
 
 TRAJECTORY_ACTIONS = 16  # per training trajectory (17 frames, the paper's clips)
+WALL_FRACTION_RULE = (lambda p: is_non_negative(p) and p <= 0.65,
+                      "a number in [0, 0.65] (35% of trajectories start at the door)")
 _ROLLOUT_RULE = (lambda k: is_int_at_least(1)(k) and k <= TRAJECTORY_ACTIONS,
                  f"an int in 1..{TRAJECTORY_ACTIONS} (the actions per trajectory)")
 
@@ -116,8 +118,7 @@ class WorldTrainConfig:
             "replay_batch": (is_int_at_least(1), "an int >= 1"),
             "replay_lr": (is_positive, "a number > 0"),
             "grad_clip": (is_non_negative, "a number >= 0 (0: no clipping)"),
-            "wall_fraction": (lambda p: is_non_negative(p) and p <= 0.65,
-                              "a number in [0, 0.65] (35% of trajectories start at the door)"),
+            "wall_fraction": WALL_FRACTION_RULE,
         })
         if self.window and self.window < self.rollout_steps + 1:
             raise ValueError(f"window must hold rollout_steps + 1 = {self.rollout_steps + 1} "
