@@ -551,51 +551,81 @@ def _run_batch(model, seeds: list[int], config: PlannerConfig, steps: int | None
                radius: float, world: str, arrived: float | None, walls: int,
                two_level: TwoLevel | None = None) -> EpisodeResults:
     """:func:`run_episodes` for one batch, all at once; ``arrived``: the stopping distance."""
-    device = next(model.parameters()).device
     episodes, generators = episode_generators(seeds, walls)
-    env = TwoRoomsEnv(device)
+    env = TwoRoomsEnv(next(model.parameters()).device)
     cpu, wall = time.process_time(), time.perf_counter()
     observation = env.reset(episodes=episodes)
     steps = env.step_budget if steps is None else steps
-    if world == "learned":
-        imagine, z_goal = model, model.encode(env.goal_images())
-    else:
-        imagine = TrueDynamics(env.layouts, model if world == "true" else None)
-        z_goal = imagine.embed(env.goals)
-    paths = [env.positions.cpu()]
-    first = torch.full((len(seeds),), -1, dtype=torch.long)
-    mean = z_goal.new_zeros(len(seeds), config.horizon, model.config.action_dim)
-    everyone = torch.arange(len(seeds), device=mean.device)
-    replanning = config  # the first plan of each episode starts cold, with J iterations
-    if two_level is not None:  # the coarse plan: cold once, then warm, as the flat one
-        high, coarse = two_level.config, z_goal.new_zeros(len(seeds), two_level.config.horizon, 2)
+    agent = _Agent(model, env, world, config, generators, arrived, two_level)
+    paths, first = [env.positions.cpu()], torch.full((len(seeds),), -1, dtype=torch.long)
     while env.steps_taken < steps:
-        start = model.encode(observation) if world == "learned" else env.positions
-        moving = everyone
-        if arrived is not None:  # the arrived episodes stand still (zero actions), unplanned
-            here = start if world == "learned" else imagine.embed(start)
-            under_way = (here - z_goal).norm(dim=-1) >= arrived  # (B,)
-            mean, moving = torch.where(under_way[:, None, None], mean, 0.0), everyone[under_way]
-        if len(moving):
-            part = imagine if world == "learned" else imagine.rows(moving)
-            mine = [generators[i] for i in moving.tolist()]
-            target = z_goal[moving]
-            if two_level is not None:
-                target, coarse[moving] = two_level.subgoals(start[moving], target, high, mine,
-                                                            coarse[moving])
-            mean[moving] = plan(part, start[moving], target, replanning, mine,
-                                mean[moving]).mean
-        replanning = config.warm()
-        if two_level is not None:
-            high, coarse = two_level.config.warm(), shift_plan(coarse, 1)
-        for action in mean[:, : min(config.execute, steps - env.steps_taken)].unbind(1):
+        for action in agent.act(observation)[:, : steps - env.steps_taken].unbind(1):
             observation = env.step(action)
             paths.append(env.positions.cpu())
             first[(first < 0) & env.success(radius).cpu()] = env.steps_taken
-        mean = shift_plan(mean, config.execute)
     return EpisodeResults(seeds, episodes, torch.stack(paths, dim=1),
                           env.success(radius).cpu(), first,
                           time.process_time() - cpu, time.perf_counter() - wall)
+
+
+class _Agent:
+    """The planning agent of one batch of episodes in ``env``.
+
+    Every ``config.execute`` steps it re-plans the episodes still under way, each
+    plan warm-started from the previous one shifted by the steps executed; the
+    first plan of an episode starts cold, with all ``J`` iterations. A two-level
+    agent carries its coarse plan the same way, shifted by one coarse step.
+    """
+
+    def __init__(self, model, env: TwoRoomsEnv, world: str, config: PlannerConfig,
+                 generators: Sequence[torch.Generator], arrived: float | None,
+                 two_level: TwoLevel | None):
+        if world == "learned":
+            self.imagine, self.z_goal = model, model.encode(env.goal_images())
+        else:
+            self.imagine = TrueDynamics(env.layouts, model if world == "true" else None)
+            self.z_goal = self.imagine.embed(env.goals)
+        self.encode = model.encode if world == "learned" else None
+        self.env, self.generators, self.arrived = env, generators, arrived
+        self.config, self.two_level = config, two_level
+        self.mean = self.z_goal.new_zeros(len(generators), config.horizon,
+                                          model.config.action_dim)  # (B, H, A)
+        if two_level is not None:
+            self.high = two_level.config
+            self.coarse = self.z_goal.new_zeros(len(generators), self.high.horizon, 2)
+
+    def act(self, observation: torch.Tensor) -> torch.Tensor:
+        """Re-plan from ``observation``; the next ``execute`` actions ``(B, m, A)``."""
+        start = self.env.positions if self.encode is None else self.encode(observation)
+        moving = self._under_way(start)
+        if len(moving):
+            self._replan(start, moving)
+        actions, self.mean = self.mean, shift_plan(self.mean, self.config.execute)
+        self.config = self.config.warm()
+        if self.two_level is not None:
+            self.high, self.coarse = self.high.warm(), shift_plan(self.coarse, 1)
+        return actions[:, : self.config.execute]
+
+    def _under_way(self, start: torch.Tensor) -> torch.Tensor:
+        """Indices of the episodes to plan; the arrived ones stand still (zero actions)."""
+        everyone = torch.arange(len(start), device=self.mean.device)
+        if self.arrived is None:
+            return everyone
+        here = start if self.encode is not None else self.imagine.embed(start)
+        under_way = (here - self.z_goal).norm(dim=-1) >= self.arrived  # (B,)
+        self.mean = torch.where(under_way[:, None, None], self.mean, 0.0)
+        return everyone[under_way]
+
+    def _replan(self, start: torch.Tensor, moving: torch.Tensor) -> None:
+        """New plans (and subgoals, for two levels) for the episodes ``moving``."""
+        imagine = self.imagine if self.encode is not None else self.imagine.rows(moving)
+        mine = [self.generators[i] for i in moving.tolist()]
+        target = self.z_goal[moving]
+        if self.two_level is not None:
+            target, self.coarse[moving] = self.two_level.subgoals(
+                start[moving], target, self.high, mine, self.coarse[moving])
+        self.mean[moving] = plan(imagine, start[moving], target, self.config, mine,
+                                 self.mean[moving]).mean
 
 
 def dot_grid(spacing: float = 1.0, device=None) -> tuple[torch.Tensor, torch.Tensor]:
