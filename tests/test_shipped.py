@@ -14,13 +14,14 @@ from pathlib import Path
 import pytest
 import torch
 
+from ebjepa_tutorial.commands import fit_beyond
 from ebjepa_tutorial.course import presets
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.data import DataNotFoundError, load_mnist
 from ebjepa_tutorial.data.moving_mnist import split_digits
 from ebjepa_tutorial.evaluation import sweeps
 from ebjepa_tutorial.training import image, video, world
-from ebjepa_tutorial.training.checkpoints import load_checkpoint, stored_identity
+from ebjepa_tutorial.training.checkpoints import load_checkpoint, run_identity, stored_identity
 
 SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints"
 
@@ -100,6 +101,15 @@ def test_long_image_encoders_match_notebooks_01_and_02(notebook, loss):
     expected = image.identity(replace(cfg.config, steps=cfg.long_steps), encoder_only=True)
     assert stored_config(f"{loss}_class_long", None) == expected
 
+
+@pytest.mark.parametrize("world_name", sorted(fit_beyond.WORLDS))
+def test_chapter_07_files_match_notebook_07(world_name):
+    # each world's model (Two Rooms' is chapter 05's, checked above), cost head and coarse model
+    _, config, name = fit_beyond.world_run(world_name, "class")
+    assert stored_config(name) == world.identity(config)
+    for kind, fit in zip(("cost_head", "coarse"), fit_beyond.fit_configs(world_name, "class")):
+        stored = stored_config(f"{kind}_{world_name}_class", world.upgrade_base)
+        assert stored == run_identity(fit, base=world.identity(config))
 
 
 def test_the_sweep_file_holds_every_run_of_notebook_02():

@@ -309,3 +309,21 @@ def test_environment_runs_three_rooms():
         reached = (env.positions - waypoints[torch.arange(4), leg]).norm(dim=-1) < 1e-3
         leg = (leg + reached.long()).clamp(max=5)
     assert env.success().all() and env.steps_taken < 110
+
+
+def test_a_three_rooms_run_records_the_ranges_of_its_walls(monkeypatch):
+    from dataclasses import replace
+
+    from ebjepa_tutorial.course.presets import preset
+    from ebjepa_tutorial.envs import two_rooms
+    from ebjepa_tutorial.training import world
+
+    config = preset("07", "class").three_rooms
+    current = world.identity(config)
+    assert current["wall_x_ranges"] == [[14, 25], [39, 50]]
+    assert "wall_x_ranges" not in world.identity(replace(config, walls=1))
+    saved_before = {k: v for k, v in current.items() if k != "wall_x_ranges"}
+    assert world.upgrade_identity(saved_before) == current
+    # a learner who narrows the walls must not load the model of the old geometry
+    monkeypatch.setitem(two_rooms.WALL_X_RANGES, 2, ((23, 25), (39, 41)))
+    assert world.identity(config) != world.upgrade_identity(saved_before)

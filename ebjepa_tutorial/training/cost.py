@@ -25,6 +25,7 @@ from ..models.world import WorldModel, trajectory_latents
 from ..utils import check_fields, is_int_at_least, is_positive
 from .checkpoints import run_identity
 from .loop import History, fit, load_or_fit, step_generator
+from .world import upgrade_base
 
 
 @dataclass(frozen=True)
@@ -140,4 +141,5 @@ def cost_head_or_load(model: WorldModel, base: dict, config: CostConfig,
     loaded from ``checkpoints/<name>.pt`` or the cache if it was saved, else fitted and
     saved to the cache. In eval mode, on the CPU."""
     return load_or_fit(name, CostToGo(model.latent_dim, config.hidden),
-                       lambda: fit_cost_head(model, config), run_identity(config, base=base))
+                       lambda: fit_cost_head(model, config), run_identity(config, base=base),
+                       upgrade=upgrade_base)

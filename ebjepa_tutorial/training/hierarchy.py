@@ -13,7 +13,7 @@ from ..models.world import WorldModel, trajectory_latents
 from ..utils import check_fields, is_int_at_least, is_positive
 from .checkpoints import run_identity
 from .loop import History, fit, load_or_fit, step_generator
-from .world import WALL_FRACTION_RULE
+from .world import WALL_FRACTION_RULE, upgrade_base
 
 
 @dataclass(frozen=True)
@@ -85,4 +85,5 @@ def coarse_or_load(model: WorldModel, base: dict, config: CoarseConfig,
     ``base``): loaded from ``checkpoints/<name>.pt`` or the cache if it was saved, else
     fitted and saved to the cache. In eval mode, on the CPU."""
     return load_or_fit(name, CoarseModel(model.latent_dim, config.stride, config.hidden),
-                       lambda: fit_coarse_model(model, config), run_identity(config, base=base))
+                       lambda: fit_coarse_model(model, config), run_identity(config, base=base),
+                       upgrade=upgrade_base)

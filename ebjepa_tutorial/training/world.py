@@ -489,7 +489,13 @@ def upgrade_refit_identity(stored: dict) -> dict:
     """A refit's older identity (version 1: ``{"refit": ..., "base": ...}``) in today's form."""
     if "refit" in stored:
         stored = {"schema": IDENTITY_SCHEMA, **stored["refit"], "base": stored["base"]}
-    return {**stored, "base": upgrade_identity(stored["base"])}
+    return upgrade_base(stored)
+
+
+def upgrade_base(stored: dict) -> dict:
+    """The identity of a fit on a world model (a refit, a cost head, a coarse model) with the
+    world model's identity, ``base``, brought up to date by :func:`upgrade_identity`."""
+    return {**stored, "base": upgrade_identity(stored["base"])} if "base" in stored else stored
 
 
 def refit_or_load(model: WorldModel, base: WorldTrainConfig, config: RefitConfig,
@@ -534,9 +540,17 @@ def with_coeffs(config: WorldTrainConfig, pairs: list[str]) -> WorldTrainConfig:
     return replace(config, coeffs=replace(config.coeffs, **values))
 
 
+# The ranges Three Rooms' walls were drawn from before identities recorded them
+FIRST_THREE_ROOMS = ((14, 25), (39, 50))
+
+
 def identity(config: WorldTrainConfig) -> dict:
-    """What a checkpoint stores to recognise the run of ``config``."""
-    return run_identity(config)
+    """What a checkpoint stores to recognise the run of ``config``. With several walls it
+    records the ranges the walls are drawn from too, so that a model of one geometry never
+    loads as the model of another."""
+    if config.walls == 1:
+        return run_identity(config)
+    return run_identity(config, wall_x_ranges=[list(r) for r in WALL_X_RANGES[config.walls]])
 
 
 REPLAY_OFF = {name: getattr(WorldTrainConfig, name) for name in
@@ -549,10 +563,13 @@ def upgrade_identity(stored: dict) -> dict:
     ``prediction_starts``, ``wall_fraction``, ``window``, ``channels_last``, the replay
     and the ``sigreg`` weight existed rolled out from the first frame of whole trajectories of
     the paper's data, in the default memory layout, without SIGReg or replay; runs from
-    before ``walls`` were Two Rooms, and from before ``grad_clip`` unclipped."""
+    before ``walls`` were Two Rooms, and from before ``grad_clip`` unclipped; Three Rooms runs
+    from before ``wall_x_ranges`` drew their walls from :data:`FIRST_THREE_ROOMS`."""
     stored = {"walls": 1, "grad_clip": 0.0, "prediction_starts": "first", "stay_probability": 0.0,
               "wall_fraction": 0.0, "window": 0, "channels_last": False, **REPLAY_OFF, **stored,
               "coeffs": {"sigreg": 0.0, **stored["coeffs"]}}
+    if stored["walls"] == 2 and "wall_x_ranges" not in stored:
+        stored["wall_x_ranges"] = [list(r) for r in FIRST_THREE_ROOMS]
     if "schema" in stored:
         return stored
     model = {"predictor": "gru", "predictor_hidden": WorldConfig.predictor_hidden,
