@@ -585,7 +585,7 @@ class _Agent:
         else:
             self.imagine = TrueDynamics(env.layouts, model if world == "true" else None)
             self.z_goal = self.imagine.embed(env.goals)
-        self.encode = model.encode if world == "learned" else None
+        self.model, self.learned = model, world == "learned"  # else a TrueDynamics diagnosis
         self.env, self.generators, self.arrived = env, generators, arrived
         self.config, self.two_level = config, two_level
         self.mean = self.z_goal.new_zeros(len(generators), config.horizon,
@@ -596,7 +596,7 @@ class _Agent:
 
     def act(self, observation: torch.Tensor) -> torch.Tensor:
         """Re-plan from ``observation``; the next ``execute`` actions ``(B, m, A)``."""
-        start = self.env.positions if self.encode is None else self.encode(observation)
+        start = self.model.encode(observation) if self.learned else self.env.positions
         moving = self._under_way(start)
         if len(moving):
             self._replan(start, moving)
@@ -611,14 +611,14 @@ class _Agent:
         everyone = torch.arange(len(start), device=self.mean.device)
         if self.arrived is None:
             return everyone
-        here = start if self.encode is not None else self.imagine.embed(start)
+        here = start if self.learned else self.imagine.embed(start)
         under_way = (here - self.z_goal).norm(dim=-1) >= self.arrived  # (B,)
         self.mean = torch.where(under_way[:, None, None], self.mean, 0.0)
         return everyone[under_way]
 
     def _replan(self, start: torch.Tensor, moving: torch.Tensor) -> None:
         """New plans (and subgoals, for two levels) for the episodes ``moving``."""
-        imagine = self.imagine if self.encode is not None else self.imagine.rows(moving)
+        imagine = self.imagine if self.learned else self.imagine.rows(moving)
         mine = [self.generators[i] for i in moving.tolist()]
         target = self.z_goal[moving]
         if self.two_level is not None:

@@ -1,8 +1,11 @@
 """Three Rooms: two walls in a row, run by the same transition code as Two Rooms."""
 
+from dataclasses import replace
+
 import pytest
 import torch
 
+from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.envs import (
     MAX_STEP,
     SUCCESS_RADIUS,
@@ -23,6 +26,7 @@ from ebjepa_tutorial.envs.two_rooms import (
     HIGH,
     LOW,
     MIN_WALL_GAP,
+    WALL_X_RANGES,
     check_layouts,
     check_positions,
     in_wall,
@@ -30,6 +34,7 @@ from ebjepa_tutorial.envs.two_rooms import (
     wall_bounds,
     wall_images,
 )
+from ebjepa_tutorial.training import world
 
 LAYOUT = torch.tensor([[20, 15, 44, 50]])  # doors at rows 11..19 and 46..54
 
@@ -312,12 +317,6 @@ def test_environment_runs_three_rooms():
 
 
 def test_a_three_rooms_run_records_the_ranges_of_its_walls(monkeypatch):
-    from dataclasses import replace
-
-    from ebjepa_tutorial.course.presets import preset
-    from ebjepa_tutorial.envs import two_rooms
-    from ebjepa_tutorial.training import world
-
     config = preset("07", "class").three_rooms
     current = world.identity(config)
     assert current["wall_x_ranges"] == [[14, 25], [39, 50]]
@@ -325,5 +324,5 @@ def test_a_three_rooms_run_records_the_ranges_of_its_walls(monkeypatch):
     saved_before = {k: v for k, v in current.items() if k != "wall_x_ranges"}
     assert world.upgrade_identity(saved_before) == current
     # a learner who narrows the walls must not load the model of the old geometry
-    monkeypatch.setitem(two_rooms.WALL_X_RANGES, 2, ((23, 25), (39, 41)))
+    monkeypatch.setitem(WALL_X_RANGES, 2, ((23, 25), (39, 41)))
     assert world.identity(config) != world.upgrade_identity(saved_before)
