@@ -96,6 +96,7 @@ def main() -> None:
         return
     print(f"evaluation: {protocol(config)}")
 
+    torch.manual_seed(config.seed)  # the weights training starts from, as in the notebooks
     random_init = probe_encoder(ImageJEPA(config).encoder, config, train, test)
     start = time.perf_counter()
     model, _ = train_image_jepa(config, train[0])

@@ -110,6 +110,19 @@ def test_multi_crop_settings_are_checked(kwargs, words):
         ImageJEPAConfig(**kwargs)
 
 
+def test_one_block_per_stage_makes_a_resnet_10_and_resnet_18_runs_keep_their_identity():
+    def blocks(config):
+        return [len(stage) for stage in image.ImageJEPA(config).encoder.stages]
+
+    shallow = dataclasses.replace(TINY, blocks_per_stage=1)
+    assert blocks(TINY) == [2, 2, 2, 2] and blocks(shallow) == [1, 1, 1, 1]
+    assert image.identity(shallow)["blocks_per_stage"] == 1
+    # files of ResNet-18 runs, saved before the block count existed, are still recognised
+    assert "blocks_per_stage" not in image.identity(TINY)
+    with pytest.raises(ValueError, match="2: ResNet-18, 1: ResNet-10"):
+        ImageJEPAConfig(blocks_per_stage=0)
+
+
 def test_model_shapes_with_and_without_projector():
     model = image.ImageJEPA(TINY)
     assert model(torch.randn(2, 3, 16, 16)).shape == (2, 16)
@@ -251,9 +264,11 @@ def test_long_run_command_writes_a_float16_encoder(tmp_path, monkeypatch, capsys
 
 def test_long_presets_train_longer_than_the_main_run():
     for notebook in ("01", "02"):
-        assert preset(notebook, "class").long_steps > preset(notebook, "class").config.steps
+        cfg = preset(notebook, "class")
+        assert cfg.long_config.steps > cfg.config.steps
+        assert cfg.long_config.loss == cfg.config.loss
         full = preset(notebook, "full")
-        assert full.long_steps == full.config.steps  # the paper's run is already the long one
+        assert full.long_config == full.config  # the paper's run is already the long one
 
 
 @pytest.mark.parametrize("field, value, message", [

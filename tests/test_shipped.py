@@ -98,7 +98,7 @@ def test_video_jepas_match_notebook_03():
 @pytest.mark.parametrize("notebook, loss", [("01", "vicreg"), ("02", "sigreg")])
 def test_long_image_encoders_match_notebooks_01_and_02(notebook, loss):
     cfg = preset(notebook, "class")
-    expected = image.identity(replace(cfg.config, steps=cfg.long_steps), encoder_only=True)
+    expected = image.identity(cfg.long_config, encoder_only=True)
     assert stored_config(f"{loss}_class_long", None) == expected
 
 

@@ -53,8 +53,9 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     sizes = preset("01" if args.loss == "vicreg" else "02", args.scale)
     try:
-        warmup = sizes.config.warmup_steps if args.warmup_steps is None else args.warmup_steps
-        config = replace(sizes.config, steps=args.steps or sizes.long_steps, warmup_steps=warmup)
+        long = sizes.long_config
+        warmup = long.warmup_steps if args.warmup_steps is None else args.warmup_steps
+        config = replace(long, steps=args.steps or long.steps, warmup_steps=warmup)
     except ValueError as error:
         parser.error(str(error))  # checked before the data is loaded
     device = launch.join(parser, args, config.batch_size, identity(config),

@@ -41,7 +41,6 @@ from ..utils import (
     is_int_at_least,
     is_non_negative,
     is_positive,
-    memory_format,
     mixed_precision,
 )
 from .checkpoints import checkpoint_paths, run_identity
@@ -59,7 +58,8 @@ class ImageJEPAConfig:
 
     loss: str = "vicreg"  # "vicreg", "sigreg", or "invariance" (no regulariser: collapses)
     encoder: str = "resnet18"  # or "vit_s"
-    widths: tuple[int, int, int, int] = (16, 32, 64, 128)  # ResNet-18 stage widths
+    widths: tuple[int, int, int, int] = (16, 32, 64, 128)  # ResNet stage widths
+    blocks_per_stage: int = 2  # BasicBlocks per ResNet stage: 2 is ResNet-18, 1 is ResNet-10
     image_size: int = 16  # training views are this many pixels wide
     # multi-crop: this many more views of each image, smaller crops of local_crop_scale of its
     # area at local_size px, pulled towards the two global views (0: two views)
@@ -107,7 +107,8 @@ class ImageJEPAConfig:
             "local_crop_scale": (lambda c: len(c) == 2 and 0 < c[0] <= c[1] <= 1,
                                  "two area fractions 0 < low <= high <= 1"),
             "widths": (lambda w: len(w) == 4 and all(map(is_int_at_least(1), w)),
-                       "four positive ints (the ResNet-18 stage widths)"),
+                       "four positive ints (the ResNet stage widths)"),
+            "blocks_per_stage": (is_int_at_least(1), "an int >= 1 (2: ResNet-18, 1: ResNet-10)"),
             "projector": (lambda p: p is None or (len(p) == 2 and all(map(is_int_at_least(1), p))),
                           "None or two positive ints (hidden, output)"),
             "lr": positive, "weight_decay": non_negative, "inv_coeff": non_negative,
@@ -129,8 +130,8 @@ class ImageJEPA(nn.Module):
 
     def __init__(self, config: ImageJEPAConfig):
         super().__init__()
-        kwargs = {"widths": config.widths} if config.encoder == "resnet18" else {
-            "image_size": config.image_size}
+        kwargs = ({"widths": config.widths, "blocks_per_stage": config.blocks_per_stage}
+                  if config.encoder == "resnet18" else {"image_size": config.image_size})
         self.encoder = build_encoder(config.encoder, **kwargs)
         hidden, out = config.projector if config.projector is not None else (0, 0)
         depth = 3 if config.projector is not None else 0
@@ -230,7 +231,7 @@ def train_image_jepa(
     """
     distributed.per_rank_batch(config.batch_size)  # refuses an uneven split before any work
     torch.manual_seed(config.seed)
-    layout = memory_format(device)  # channels_last on a GPU; nothing changes on the CPU
+    layout = torch.channels_last  # faster convolutions on CPUs too (RESULTS.md, 01-02)
     model = ImageJEPA(config).to(device, memory_format=layout)
     net = distributed.data_parallel(AllViews(model), device, sync_batchnorm)
     optimizer = make_optimizer(model, config)
@@ -284,9 +285,15 @@ def seconds_per_step(config: ImageJEPAConfig, images: torch.Tensor, steps: int =
     return max(run(1 + steps) - first, 0.0) / steps
 
 
+# fields added after runs were stored, with the value those runs had
+_ADDED_LATER = {"blocks_per_stage": 2}
+
+
 def _unused_fields(config: ImageJEPAConfig) -> tuple[str, ...]:
-    # a two-view run reads as it did before multi-crop existed, so its stored files still match
-    return () if config.local_views else LOCAL_FIELDS
+    # a two-view ResNet-18 run reads as it did before multi-crop and the block count
+    # existed, so its stored files still match
+    unused = () if config.local_views else LOCAL_FIELDS
+    return unused + tuple(k for k, v in _ADDED_LATER.items() if getattr(config, k) == v)
 
 
 def settings(config: ImageJEPAConfig) -> dict:
