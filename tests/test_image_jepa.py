@@ -241,7 +241,7 @@ def test_long_run_command_writes_a_float16_encoder(tmp_path, monkeypatch, capsys
     monkeypatch.setattr("ebjepa_tutorial.commands.train_image.load_cifar10", lambda split: train)
     monkeypatch.setattr(
         "ebjepa_tutorial.commands.train_image.preset", lambda notebook, scale: dataclasses.replace(
-        preset("01", "ci"), config=TINY, train_images=40, test_images=40))
+        preset("01", "ci"), config=TINY, long=TINY, train_images=40, test_images=40))
     # trains on the best device there is (a GPU: the full scale is the paper's run); the
     # stand-in "cpu:0" is a device of its own, the CPU by another name
     monkeypatch.setattr("ebjepa_tutorial.commands.launch.get_device", lambda: torch.device("cpu:0"))

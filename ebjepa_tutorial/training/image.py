@@ -41,6 +41,7 @@ from ..utils import (
     is_int_at_least,
     is_non_negative,
     is_positive,
+    memory_format,
     mixed_precision,
 )
 from .checkpoints import checkpoint_paths, run_identity
@@ -231,7 +232,8 @@ def train_image_jepa(
     """
     distributed.per_rank_batch(config.batch_size)  # refuses an uneven split before any work
     torch.manual_seed(config.seed)
-    layout = torch.channels_last  # faster convolutions on CPUs too (RESULTS.md, 01-02)
+    # channels_last on a GPU; on the CPU it is faster but two identical runs then differ
+    layout = memory_format(device)
     model = ImageJEPA(config).to(device, memory_format=layout)
     net = distributed.data_parallel(AllViews(model), device, sync_batchnorm)
     optimizer = make_optimizer(model, config)
