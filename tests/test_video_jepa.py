@@ -271,6 +271,22 @@ def test_the_curriculum_trains_one_step_first_then_k_steps(digits, monkeypatch):
     assert seen == [1, 1, 3, 3, 3]
 
 
+def test_after_step_sees_the_training_model_after_every_step(digits, tmp_path):
+    clips = generate_moving_mnist(digits, 8, 10, seed=1).clips
+    config = replace(CI, steps=3, batch_size=2)
+    calls = []  # (step, a copy of one weight, train mode) at each call
+
+    def hook(model, step):
+        calls.append((step, next(model.parameters()).detach().clone(), model.training))
+
+    model, _ = train_video_jepa(config, clips, progress=False, after_step=hook)
+    assert [step for step, _, _ in calls] == [0, 1, 2] and all(mode for _, _, mode in calls)
+    assert not torch.equal(calls[0][1], calls[1][1])  # each call sees the step just taken
+    assert torch.equal(calls[-1][1], next(model.parameters()))  # the model returned
+    with pytest.raises(ValueError, match="after_step is not saved in a checkpoint"):
+        train_video_jepa(config, clips, checkpoint=tmp_path / "v.pt", after_step=hook)
+
+
 def test_train_or_load_trains_once_then_loads(digits, tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))  # checkpoints go to tmp_path/checkpoints
     config = replace(CI, n_clips=16, steps=2, batch_size=2)

@@ -154,7 +154,8 @@ def video_jepa_loss(model: VideoJEPA, frames: torch.Tensor, config: VideoJEPACon
 def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
                      checkpoint: str | Path | None = None, progress: bool = True,
                      device: torch.device | str | None = None,
-                     sync_batchnorm: bool = False) -> tuple[VideoJEPA, History]:
+                     sync_batchnorm: bool = False,
+                     after_step=None) -> tuple[VideoJEPA, History]:
     """Train on uint8 ``clips`` ``(N, T, 1, 64, 64)``; resume from ``checkpoint`` if it exists.
 
     Batch ``step`` is drawn from a generator seeded by ``(seed, step)``, so a
@@ -166,7 +167,12 @@ def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
     world size (a world size that does not divide it is refused). Rank 0 alone
     writes ``checkpoint``, which resumes on any world size. Batch norm normalises
     over each rank's frames; ``sync_batchnorm`` (GPUs only) over the global batch.
+    ``after_step(model, step)``, called after each optimiser step, can score the model
+    as it trains (``benchmarks/video_full.py``); its state is not checkpointed, so it
+    takes no ``checkpoint``.
     """
+    if after_step is not None and checkpoint is not None:
+        raise ValueError("after_step is not saved in a checkpoint: give one or the other")
     if distributed.world_size() > 1:  # refuse an uneven split before any work (one
         distributed.per_rank_batch(config.batch_size)  # process may take one-clip batches)
     check_clips(clips, config.model.context + config.rollout_steps)
@@ -197,7 +203,8 @@ def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
 
     fit(model, optimizer, step_loss, batch, config.steps, scheduler=scheduler, history=history,
         start_step=start, checkpoint=checkpoint, checkpoint_every=100, log_every=10,
-        desc="video JEPA", progress=progress, config=identity(config))
+        desc="video JEPA", progress=progress, config=identity(config),
+        after_step=None if after_step is None else lambda step: after_step(model, step))
     return model.eval(), history
 
 
