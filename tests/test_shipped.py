@@ -87,11 +87,14 @@ def test_video_jepas_match_notebook_03():
         pytest.skip("MNIST is not on this machine (set EBJEPA_DATA)")
     train_digits, _ = split_digits(digits, n_train=cfg.n_train_digits)
     fingerprint = video.digits_fingerprint(train_digits)
-    for config in video.ablation_configs(cfg.train, cfg.rollout_steps, cfg.seeds):
+    runs = [("class", c) for c in video.ablation_configs(cfg.train, cfg.rollout_steps, cfg.seeds)]
+    runs += [("class_long", c) for c in video.ablation_configs(cfg.long_config, (1, 4), (0,))]
+    for scale, config in runs:
         expected = video.identity(config, train_digits)
         assert expected["train_digits"] == fingerprint
-        assert stored_config(video.run_name("class", config), None) == expected
-        weights = load_checkpoint(SHIPPED / f"{video.run_name('class', config)}.pt")["model"]
+        name = video.run_name(scale, config)
+        assert stored_config(name, None) == expected
+        weights = load_checkpoint(SHIPPED / f"{name}.pt")["model"]
         assert {w.dtype for w in weights.values() if w.is_floating_point()} == {torch.float16}
 
 

@@ -357,6 +357,10 @@ def test_command_line_trains_and_reports(digits, tmp_path, monkeypatch, capsys):
     (tmp_path / "checkpoints" / "video_jepa_ci_K1_seed0.pt").unlink()  # the shipped copy loads
     train_video.main(["--scale", "ci", "--K", "1"])
     assert "Loaded a trained model from " + str(tmp_path / "ship") in capsys.readouterr().out
+    train_video.main(["--scale", "ci", "--long"])  # the preset's long runs: K = 1 and 4
+    out = capsys.readouterr().out
+    assert "video_jepa_ci_long_K1_seed0" in out and "video_jepa_ci_long_K4_seed0" in out
+    assert "K=4 seed=0: mAP" in out
 
 
 def video_jepa_preset():
@@ -364,4 +368,5 @@ def video_jepa_preset():
     from ebjepa_tutorial.course.presets import PRESETS
 
     ci = PRESETS["03"]["ci"]
-    return replace(ci, train=replace(ci.train, n_clips=16, steps=2, batch_size=2))
+    short = replace(ci.train, n_clips=16, steps=2, batch_size=2)
+    return replace(ci, train=short, long=replace(short, steps=3))

@@ -1,6 +1,7 @@
 """Train (or load) and evaluate notebook 03's video JEPAs at a scale, printing AP per horizon.
 
     python -m ebjepa_tutorial.commands.train_video --scale class [--K 4] [--seed 0] [--ship]
+    python -m ebjepa_tutorial.commands.train_video --scale class --long --K 4 --ship
 
 On several devices, one process each (DistributedDataParallel; nccl on GPUs, gloo on CPUs):
 
@@ -40,6 +41,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--ship", action="store_true",
                         help="also write each run, in float16, where the course ships its "
                              "checkpoints (checkpoints/<name>.pt)")
+    parser.add_argument("--long", action="store_true",
+                        help="the preset's long run instead (K 1 and 4, seed 0 unless --K and "
+                             "--seed say otherwise), named video_jepa_<scale>_long_K<K>_seed<S>")
     launch.add_flags(parser)
     return parser
 
@@ -48,7 +52,8 @@ def main(argv: list[str] | None = None) -> None:
     """Train (or load) and evaluate notebook 03's runs at a scale, printing AP per horizon.
 
     ``python -m ebjepa_tutorial.commands.train_video --scale class`` trains the K ablation
-    (K 1, 2, 4, 8 times three seeds, 4-10 minutes each on a CPU) into
+    (K 1, 2, 4, 8 times three seeds, 4-10 minutes each on a CPU; ``--long``: the preset's
+    long runs, K 1 and 4, about an hour each on one thread) into
     ``data/cache/checkpoints/``, where the notebook finds them; an interrupted
     run resumes; ``--ship`` also writes float16 copies to ``checkpoints/``. Same digits,
     clips and probe protocol as the notebook. Under torchrun every process trains each run
@@ -57,8 +62,10 @@ def main(argv: list[str] | None = None) -> None:
     parser = _parser()
     args = parser.parse_args(argv)
     cfg = preset("03", args.scale)
+    base, ks, seeds = ((cfg.long_config, (1, 4), (0,)) if args.long
+                       else (cfg.train, cfg.rollout_steps, cfg.seeds))
     try:
-        configs = ablation_configs(cfg.train, args.K or cfg.rollout_steps, args.seed or cfg.seeds)
+        configs = ablation_configs(base, args.K or ks, args.seed or seeds)
     except ValueError as error:
         parser.error(str(error))  # checked before the data is loaded
     device = launch.join(parser, args, cfg.train.batch_size, [identity(c) for c in configs],
@@ -84,7 +91,8 @@ def _train_and_report(args, cfg, configs, device) -> None:
     torch.manual_seed(cfg.train.seed)
     runs = [("random init", VideoJEPA(cfg.train.model).eval())]
     for config in configs:
-        start, name = time.perf_counter(), run_name(args.scale, config)
+        scale = f"{args.scale}_long" if args.long else args.scale
+        start, name = time.perf_counter(), run_name(scale, config)
         model, history = train_or_load(config, name, train_digits, device=device,
                                        sync_batchnorm=args.sync_bn)
         if args.ship and distributed.is_main():
