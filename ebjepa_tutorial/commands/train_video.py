@@ -90,8 +90,8 @@ def _train_and_report(args, cfg, configs, device) -> None:
          f"{len(held_out)} held-out MNIST test digits")
     torch.manual_seed(cfg.train.seed)
     runs = [("random init", VideoJEPA(cfg.train.model).eval())]
+    scale = f"{args.scale}_long" if args.long else args.scale  # names the checkpoints
     for config in configs:
-        scale = f"{args.scale}_long" if args.long else args.scale
         start, name = time.perf_counter(), run_name(scale, config)
         model, history = train_or_load(config, name, train_digits, device=device,
                                        sync_batchnorm=args.sync_bn)
