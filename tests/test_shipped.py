@@ -88,7 +88,7 @@ def test_video_jepas_match_notebook_03():
     train_digits, _ = split_digits(digits, n_train=cfg.n_train_digits)
     fingerprint = video.digits_fingerprint(train_digits)
     runs = [("class", c) for c in video.ablation_configs(cfg.train, cfg.rollout_steps, cfg.seeds)]
-    runs += [("class_long", c) for c in video.ablation_configs(cfg.long_config, (1, 4), (0,))]
+    runs += [("class_long", c) for c in cfg.long_runs()]
     for scale, config in runs:
         expected = video.identity(config, train_digits)
         assert expected["train_digits"] == fingerprint

@@ -62,10 +62,9 @@ def main(argv: list[str] | None = None) -> None:
     parser = _parser()
     args = parser.parse_args(argv)
     cfg = preset("03", args.scale)
-    base, ks, seeds = ((cfg.long_config, (1, 4), (0,)) if args.long
-                       else (cfg.train, cfg.rollout_steps, cfg.seeds))
     try:
-        configs = ablation_configs(base, args.K or ks, args.seed or seeds)
+        configs = (cfg.long_runs(args.K, args.seed) if args.long else
+                   ablation_configs(cfg.train, args.K or cfg.rollout_steps, args.seed or cfg.seeds))
     except ValueError as error:
         parser.error(str(error))  # checked before the data is loaded
     device = launch.join(parser, args, cfg.train.batch_size, [identity(c) for c in configs],

@@ -21,7 +21,7 @@ from ..planning import PlannerConfig
 from ..training.cost import CostConfig
 from ..training.hierarchy import CoarseConfig
 from ..training.image import ImageJEPAConfig
-from ..training.video import VIDEO_CONFIGS, VideoJEPAConfig
+from ..training.video import VIDEO_CONFIGS, VideoJEPAConfig, ablation_configs
 from ..training.world import (
     ABLATABLE_TERMS,
     RefitConfig,
@@ -78,6 +78,12 @@ class VideoPreset:
     def long_config(self) -> VideoJEPAConfig:
         """The longer run: ``long``, or the main run where that is already the long one."""
         return self.train if self.long is None else self.long
+
+    def long_runs(self, rollout_steps=None, seeds=None) -> list[VideoJEPAConfig]:
+        """The long run with each K of ``rollout_steps`` and each seed of ``seeds``; by
+        default K = 1 and the main run's K, at the main run's seed."""
+        return ablation_configs(self.long_config, rollout_steps or (1, self.train.rollout_steps),
+                                seeds or (self.train.seed,))
 
 
 @dataclass(frozen=True)
