@@ -271,6 +271,26 @@ def test_the_curriculum_trains_one_step_first_then_k_steps(digits, monkeypatch):
     assert seen == [1, 1, 3, 3, 3]
 
 
+def test_a_run_hands_its_one_step_half_to_the_same_run_with_another_k(digits, tmp_path):
+    clips = generate_moving_mnist(digits, 8, 10, seed=1).clips
+    one = replace(CI, steps=6, batch_size=2, rollout_steps=1, one_step_fraction=0.5)
+    three = replace(one, rollout_steps=3)
+    assert one.switch_step == 3 and one.shares_start_with(three)
+    assert not one.shares_start_with(replace(three, seed=1))
+    assert not replace(one, one_step_fraction=0.0).shares_start_with(
+        replace(three, one_step_fraction=0.0))  # the paper's runs differ from the first step
+    scratch, scratch_history = train_video_jepa(three, clips, progress=False)
+    handed = tmp_path / "three.partial"
+    train_video_jepa(one, clips, progress=False, handover=[(three, handed)])
+    assert load_checkpoint(handed)["step"] == 3
+    resumed, history = train_video_jepa(three, clips, checkpoint=handed, progress=False)
+    assert history == scratch_history
+    for a, b in zip(scratch.state_dict().values(), resumed.state_dict().values()):
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="only to the same run with another K"):
+        train_video_jepa(one, clips, handover=[(replace(three, seed=1), handed)])
+
+
 def test_after_step_sees_the_training_model_after_every_step(digits, tmp_path):
     clips = generate_moving_mnist(digits, 8, 10, seed=1).clips
     config = replace(CI, steps=3, batch_size=2)
@@ -357,10 +377,18 @@ def test_command_line_trains_and_reports(digits, tmp_path, monkeypatch, capsys):
     (tmp_path / "checkpoints" / "video_jepa_ci_K1_seed0.pt").unlink()  # the shipped copy loads
     train_video.main(["--scale", "ci", "--K", "1"])
     assert "Loaded a trained model from " + str(tmp_path / "ship") in capsys.readouterr().out
+    seen = []  # K of every training loss: K = 4 trains only its steps after the switch
+
+    def recording(predictor, z, context, steps, tbptt):
+        seen.append(steps)
+        return rollout_loss(predictor, z, context, steps, tbptt)
+
+    monkeypatch.setattr(video_training, "rollout_loss", recording)
     train_video.main(["--scale", "ci", "--long"])  # the preset's long runs: K = 1 and 4
     out = capsys.readouterr().out
     assert "video_jepa_ci_long_K1_seed0" in out and "video_jepa_ci_long_K4_seed0" in out
     assert "K=4 seed=0: mAP" in out
+    assert seen == [1, 1, 1, 4]  # 3 steps each, switching after 2
 
 
 def video_jepa_preset():

@@ -53,7 +53,8 @@ def main(argv: list[str] | None = None) -> None:
 
     ``python -m ebjepa_tutorial.commands.train_video --scale class`` trains the K ablation
     (K 1, 2, 4, 8 times three seeds, 4-10 minutes each on a CPU; ``--long``: the preset's
-    long runs, K 1 and 4, about an hour each on one thread) into
+    long runs, K 1 and 4, about an hour each on one thread; a run of one seed hands its
+    K = 1 half to the seed's other K, which train only their second half) into
     ``data/cache/checkpoints/``, where the notebook finds them; an interrupted
     run resumes; ``--ship`` also writes float16 copies to ``checkpoints/``. Same digits,
     clips and probe protocol as the notebook. Under torchrun every process trains each run
@@ -92,8 +93,10 @@ def _train_and_report(args, cfg, configs, device) -> None:
     scale = f"{args.scale}_long" if args.long else args.scale  # names the checkpoints
     for config in configs:
         start, name = time.perf_counter(), run_name(scale, config)
+        # runs of this seed with another K start as this one: they resume from its switch
+        siblings = [(c, run_name(scale, c)) for c in configs if config.shares_start_with(c)]
         model, history = train_or_load(config, name, train_digits, device=device,
-                                       sync_batchnorm=args.sync_bn)
+                                       sync_batchnorm=args.sync_bn, siblings=siblings)
         if args.ship and distributed.is_main():
             shipped = checkpoint_paths(name)[1]
             save_checkpoint(shipped, model=float16_state(model), history=dict(history),

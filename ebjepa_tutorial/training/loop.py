@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -102,6 +102,7 @@ def fit(
     config: dict[str, Any] | None = None,
     after_step: Any = None,
     clip_grad_norm: float = 0.0,
+    snapshots: Sequence[tuple[int, str | Path, dict[str, Any]]] = (),
 ) -> History:
     """Train for ``steps`` optimiser steps; return the :class:`History` of logged terms.
 
@@ -117,6 +118,9 @@ def fit(
     step (e.g. extra updates of part of the model); its ``state_dict()`` is saved
     in the checkpoint and given back to it by :func:`resume`.
     ``clip_grad_norm > 0`` scales each step's gradient down to at most that global norm.
+    ``snapshots``: ``(step, path, config)`` triples; after ``step`` steps the state is also
+    saved to ``path`` as a checkpoint of the run ``config``, for another run that is this one
+    up to that step to resume from (notebook 03's K = 1 curriculum).
     In a process group, ``model`` is the bare module (its state dict is saved,
     by rank 0 alone) and ``loss_fn`` calls its DDP wrapper.
     """
@@ -126,6 +130,13 @@ def fit(
     bar = tqdm(range(start_step, steps), desc=desc, disable=not shown, initial=start_step,
                total=steps)
     started = time.perf_counter() - history.seconds
+
+    def state(done: int, identity: dict[str, Any] | None) -> dict[str, Any]:
+        return dict(model=model.state_dict(), optimizer=optimizer.state_dict(),
+                    scheduler=None if scheduler is None else scheduler.state_dict(),
+                    history=dict(history), step=done, config=identity, seconds=history.seconds,
+                    **({} if after_step is None else {"after_step": after_step.state_dict()}))
+
     for step in bar:
         loss, terms = loss_fn(batch_fn(step))
         logged = step % log_every == 0 or step == steps - 1
@@ -148,18 +159,11 @@ def fit(
         history.seconds = time.perf_counter() - started
         due = done % checkpoint_every == 0 or done == steps
         if checkpoint is not None and due and distributed.is_main():
-            saved = save_or_warn(
-                Path(checkpoint),
-                model=model.state_dict(),
-                optimizer=optimizer.state_dict(),
-                scheduler=None if scheduler is None else scheduler.state_dict(),
-                history=dict(history),
-                step=done,
-                config=config,
-                seconds=history.seconds,
-                **({} if after_step is None else {"after_step": after_step.state_dict()}),
-            )
+            saved = save_or_warn(Path(checkpoint), **state(done, config))
             checkpoint = checkpoint if saved else None  # warned once; train on without
+        for at, path, other in snapshots:
+            if done == at and distributed.is_main():
+                save_or_warn(Path(path), **state(done, other))
     return history
 
 

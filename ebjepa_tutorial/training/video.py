@@ -26,6 +26,8 @@ normalises over each rank's frames, unless ``sync_batchnorm`` (GPUs only).
 from __future__ import annotations
 
 import hashlib
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -94,7 +96,17 @@ class VideoJEPAConfig:
 
     def rollout_steps_at(self, step: int) -> int:
         """K at optimiser step ``step``: 1 during the first ``one_step_fraction`` of the run."""
-        return 1 if step < self.one_step_fraction * self.steps else self.rollout_steps
+        return 1 if step < self.switch_step else self.rollout_steps
+
+    @property
+    def switch_step(self) -> int:
+        """The steps trained at K = 1 before the rollout begins (0 without a curriculum)."""
+        return math.ceil(self.one_step_fraction * self.steps)
+
+    def shares_start_with(self, other: VideoJEPAConfig) -> bool:
+        """Whether ``other`` is this run with another K, hence the same run until the switch."""
+        return (other.rollout_steps != self.rollout_steps and self.switch_step > 0
+                and replace(other, rollout_steps=self.rollout_steps) == self)
 
 
 VIDEO_CONFIGS = {
@@ -154,8 +166,9 @@ def video_jepa_loss(model: VideoJEPA, frames: torch.Tensor, config: VideoJEPACon
 def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
                      checkpoint: str | Path | None = None, progress: bool = True,
                      device: torch.device | str | None = None,
-                     sync_batchnorm: bool = False,
-                     after_step=None) -> tuple[VideoJEPA, History]:
+                     sync_batchnorm: bool = False, after_step=None,
+                     handover: Sequence[tuple[VideoJEPAConfig, str | Path]] = (),
+                     ) -> tuple[VideoJEPA, History]:
     """Train on uint8 ``clips`` ``(N, T, 1, 64, 64)``; resume from ``checkpoint`` if it exists.
 
     Batch ``step`` is drawn from a generator seeded by ``(seed, step)``, so a
@@ -170,7 +183,14 @@ def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
     ``after_step(model, step)``, called after each optimiser step, can score the model
     as it trains (``benchmarks/video_full.py``); its state is not checkpointed, so it
     takes no ``checkpoint``.
+    ``handover``: ``(config, path)`` pairs of runs that are this one with another K; at the
+    switch to the rollout, the state is saved to each ``path`` as that run's checkpoint, which
+    then resumes from it instead of training its K = 1 half again.
     """
+    for other, _ in handover:
+        if not config.shares_start_with(other):
+            raise ValueError(f"a run can hand over its K = 1 half only to the same run with "
+                             f"another K; got {other} for {config}")
     if after_step is not None and checkpoint is not None:
         raise ValueError("after_step is not saved in a checkpoint: give one or the other")
     if distributed.world_size() > 1:  # refuse an uneven split before any work (one
@@ -204,7 +224,8 @@ def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
     fit(model, optimizer, step_loss, batch, config.steps, scheduler=scheduler, history=history,
         start_step=start, checkpoint=checkpoint, checkpoint_every=100, log_every=10,
         desc="video JEPA", progress=progress, config=identity(config),
-        after_step=None if after_step is None else lambda step: after_step(model, step))
+        after_step=None if after_step is None else lambda step: after_step(model, step),
+        snapshots=[(config.switch_step, path, identity(other)) for other, path in handover])
     return model.eval(), history
 
 
@@ -228,7 +249,8 @@ def run_name(scale: str, config: VideoJEPAConfig) -> str:
 
 def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor,
                   device: torch.device | str | None = None, progress: bool = True,
-                  sync_batchnorm: bool = False):
+                  sync_batchnorm: bool = False,
+                  siblings: Sequence[tuple[VideoJEPAConfig, str]] = ()):
     """The model of ``config``: loaded if a run with exactly this config was saved, else trained.
 
     Looks for ``checkpoints/<name>.pt`` (shipped with the course), then
@@ -238,6 +260,9 @@ def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor
     (resumable from ``<name>.partial`` in the cache) and saves. Notebook 03.
     Returns ``(model in eval mode, history)``. In a process group every rank trains
     (:func:`train_video_jepa`, with ``sync_batchnorm``); rank 0 reads and writes the files.
+    ``siblings``: ``(config, name)`` of runs that are this one with another K; those not
+    saved or started yet get this run's state at the switch as their ``.partial``, so
+    they train only their rollout half.
     """
     torch.manual_seed(config.seed)
     model = VideoJEPA(config.model).to(get_device(device))
@@ -247,13 +272,25 @@ def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor
     def train() -> History:
         clips = make_clips(config, train_digits)
         trained, history = train_video_jepa(config, clips, checkpoint=partial, progress=progress,
-                                            device=device, sync_batchnorm=sync_batchnorm)
+                                            device=device, sync_batchnorm=sync_batchnorm,
+                                            handover=_not_started(siblings))
         model.load_state_dict(trained.state_dict())
         return history
 
     history = load_or_train(cache_path, model, train, identity(config, train_digits), shipped,
                             partial=partial)
     return model.eval(), history
+
+
+def _not_started(siblings: Sequence[tuple[VideoJEPAConfig, str]]):
+    """``(config, its .partial)`` of the ``siblings`` with no file yet, shipped or cached."""
+    waiting = []
+    for config, name in siblings:
+        cache_path, shipped = checkpoint_paths(name)
+        partial = cache_path.with_suffix(".partial")
+        if not any(path.exists() for path in (cache_path, shipped, partial)):
+            waiting.append((config, partial))
+    return waiting
 
 
 # --- a decoder, to draw latents as pictures ---------------------------------------------------
