@@ -80,10 +80,11 @@ def epps_pulley(
     t = torch.linspace(0.0, t_max, knots, device=x.device, dtype=x.dtype)  # (K,)
 
     # One knot at a time: the whole (N, M, K) tensor of t * x outgrows a CPU's cache at
-    # thousands of slices, which made the loss 2.6x slower at 2,048 (RESULTS.md, chapter 02).
+    # thousands of slices, which made the loss 2.6x slower at 2,048 (RESULTS.md, 01-02).
     xt = [x * t_k for t_k in t]  # K tensors like x: t_k * x_n for every sample
-    ecf_real = torch.stack([torch.cos(a).mean(dim=0) for a in xt], dim=-1)  # Re phi_N(t): (K,) or (M, K)
-    ecf_imag = torch.stack([torch.sin(a).mean(dim=0) for a in xt], dim=-1)  # Im phi_N(t)
+    # Re and Im of phi_N(t) at the K knots: (K,) or (M, K)
+    ecf_real = torch.stack([torch.cos(a).mean(dim=0) for a in xt], dim=-1)
+    ecf_imag = torch.stack([torch.sin(a).mean(dim=0) for a in xt], dim=-1)
     if across_ranks:  # the mean of equal-sized ranks' means: the ECF of the global batch
         ecf_real, ecf_imag = distributed.mean_across_ranks(ecf_real, ecf_imag)
         n = n * distributed.world_size()
