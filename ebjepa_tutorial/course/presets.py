@@ -117,9 +117,11 @@ class ImagePreset:
 # ci probes at 16 px: it only checks that the code runs, and 32-px probes slow its run
 _IMAGE_CI = ImageJEPAConfig(widths=(8, 8, 16, 16), blocks_per_stage=1, projector=(64, 64),
                             batch_size=32, steps=15, warmup_steps=3, eval_image_size=16)
-# ResNet-10 (one block per stage) at widths 16-128 trained on 16-px views, 5,000 AdamW
-# steps; probed at 32 px. It learns more per CPU-second than a ResNet-18 (RESULTS.md, 01-02)
-_IMAGE_CLASS = ImageJEPAConfig(blocks_per_stage=1, steps=5000, warmup_steps=500)
+# ResNet-10 (one block per stage) at widths 32-256 trained on 16-px views, 1,100 AdamW
+# steps (9-12 minutes on 2 cores); probed at 32 px. Shallow and wide learns the most
+# per CPU-second of the networks we measured (RESULTS.md, 01-02)
+_IMAGE_CLASS = ImageJEPAConfig(widths=(32, 64, 128, 256), blocks_per_stage=1, steps=1100,
+                               warmup_steps=110)
 _IMAGE_FULL = ImageJEPAConfig(  # the paper: 300 epochs of batch 256 with LARS, all at 32 px
     widths=(64, 128, 256, 512), image_size=32, projector=(2048, 2048), batch_size=256,
     steps=300 * 195, warmup_steps=10 * 195, optimizer="lars", lr=0.3, weight_decay=1e-4,
@@ -136,13 +138,15 @@ def image_preset(scale: str, loss: str) -> ImagePreset:
     base = {"ci": _IMAGE_CI, "class": _IMAGE_CLASS, "full": _IMAGE_FULL}[scale]
     if loss == "sigreg" and scale == "full":  # the paper: lambda 10, 2048-128 projector
         base = replace(base, projector=(2048, 128), sigreg_lambda=10.0, sigreg_scale_by_n=False)
-    if loss == "sigreg" and scale == "class":  # a narrower output suits SIGReg (RESULTS.md, 02)
-        base = replace(base, projector=(1024, 256))
+    if loss == "sigreg" and scale == "class":  # a narrower output and more slices (RESULTS.md, 02)
+        base = replace(base, projector=(1024, 256), sigreg_slices=1024)
     config = replace(base, loss=loss)
     if scale == "ci":
         return ImagePreset(config, train_images=2000, test_images=1000, sweep_steps=5,
                            long=replace(config, steps=30))
-    return ImagePreset(config, long=replace(_LONG_CLASS, loss=loss) if scale == "class" else None)
+    if scale == "class":  # sweeps of a quarter of the run: about 2 minutes each on 2 cores
+        return ImagePreset(config, sweep_steps=250, long=replace(_LONG_CLASS, loss=loss))
+    return ImagePreset(config)
 
 
 @dataclass(frozen=True)
