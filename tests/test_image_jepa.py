@@ -168,6 +168,29 @@ def test_probe_encoder_reports_both_accuracies():
     assert 0.0 <= result["probe_acc"] <= 1.0
 
 
+def test_cached_probe_scores_are_reused_only_for_the_same_encoder_and_data(
+        tmp_path, monkeypatch):
+    monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
+    images, labels = _images(40), torch.arange(40) % 4
+    encoder = image.ImageJEPA(TINY).encoder
+    first = classify.probe_encoder(encoder, TINY, (images, labels), (images, labels), cache=True)
+    assert len(list((tmp_path / "probes").glob("*.json"))) == 1
+
+    def no_probe(*args, **kwargs):
+        raise AssertionError("the probe ran again")
+
+    monkeypatch.setattr(classify, "linear_probe", no_probe)
+    assert classify.probe_encoder(encoder, TINY, (images, labels), (images, labels),
+                                  cache=True) == first  # read back, not recomputed
+    with pytest.raises(AssertionError, match="the probe ran again"):  # other test labels
+        classify.probe_encoder(encoder, TINY, (images, labels), (images, labels.flip(0)),
+                               cache=True)
+    with torch.no_grad():
+        next(encoder.parameters()).add_(0.01)
+    with pytest.raises(AssertionError, match="the probe ran again"):  # other weights
+        classify.probe_encoder(encoder, TINY, (images, labels), (images, labels), cache=True)
+
+
 @pytest.mark.parametrize("eval_size", [32, 24, 16])
 def test_probe_and_knn_see_images_of_eval_image_size(eval_size):
     config = dataclasses.replace(TINY, eval_image_size=eval_size)  # trained on 16-px views

@@ -19,8 +19,12 @@ slice of the train split. Features ``(N, D)``, labels ``(N,)`` int64.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
+import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
@@ -28,6 +32,7 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from ..augment import normalize
+from ..data.paths import cache_dir
 from ..training.image import ImageJEPAConfig, resize
 
 
@@ -226,16 +231,42 @@ def embed(encoder: nn.Module, images: torch.Tensor, size: int, batch_size: int =
     return torch.cat(chunks)
 
 
-def probe_encoder(encoder, config: ImageJEPAConfig, train, test, knn_k: int = 20) -> dict:
+def probe_encoder(encoder, config: ImageJEPAConfig, train, test, knn_k: int = 20,
+                  cache: bool = False) -> dict:
     """Probe and kNN test accuracy of frozen features; ``train``, ``test``: (images, labels).
 
     Both see the images at ``config.eval_image_size`` px, not at the training size.
+    With ``cache``, the scores are kept in ``data/cache/probes/``, named by a digest of
+    the encoder's weights, the protocol and the data, and read back when all three
+    match, so re-running a notebook skips the minute each probe takes at class scale.
+    (Delete that folder after editing this module: the digest cannot see code.)
     """
+    path = _scores_path(encoder, config, train, test, knn_k) if cache else None
+    if path is not None and path.exists():
+        return json.loads(path.read_text())
     train_features = embed(encoder, train[0], config.eval_image_size)
     test_features = embed(encoder, test[0], config.eval_image_size)
     probe = linear_probe(train_features, train[1], test_features, test[1])
     knn = knn_accuracy(train_features, train[1], test_features, test[1], k=knn_k)
-    return {"probe_acc": probe.test_accuracy, "knn_acc": knn}
+    scores = {"probe_acc": probe.test_accuracy, "knn_acc": knn}
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(scores))
+        os.replace(tmp, path)  # a killed write leaves no half file under the real name
+    return scores
+
+
+def _scores_path(encoder: nn.Module, config: ImageJEPAConfig, train, test, knn_k: int) -> Path:
+    """Where :func:`probe_encoder` keeps the scores of this encoder, protocol and data."""
+    digest = hashlib.sha1(protocol(config, knn_k).encode())
+    data = [("train", train[0]), ("train labels", train[1]),
+            ("test", test[0]), ("test labels", test[1])]
+    for name, tensor in [*encoder.state_dict().items(), *data]:
+        tensor = tensor.detach().cpu().contiguous()
+        digest.update(f"{name} {tensor.dtype} {tuple(tensor.shape)}".encode())
+        digest.update(tensor.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return cache_dir() / "probes" / f"{digest.hexdigest()[:16]}.json"
 
 
 def protocol(config: ImageJEPAConfig, knn_k: int = 20) -> str:
