@@ -133,8 +133,8 @@ def sigreg(
     loop tests new directions each step), unless ``directions`` ``(D, M)`` are
     given. ``knots``, ``t_max``, ``sigma``, ``scale_by_n`` and ``across_ranks``
     go to :func:`epps_pulley`.
-    The cost is O(B * num_slices * knots); the reference uses 1024 slices on a
-    GPU, 256 is enough to see the effect on a CPU.
+    The cost is O(B * num_slices * knots); the reference uses 1024 slices, and so
+    does chapter 02's class run: 256 cost it 2 points of probe (RESULTS.md, 01-02).
     """
     _check_embeddings(z, "z", min_batch=2)
     if directions is None:
