@@ -231,6 +231,16 @@ def test_mnist_wrong_md5_offline_without_other_copy_says_so(tmp_path, monkeypatc
 # --- (d) temporaries left by a killed run -----------------------------------------------------
 
 
+def test_an_atomic_write_cut_short_keeps_the_old_file_and_no_temporary(tmp_path):
+    path = tmp_path / "results.json"
+    with paths.atomic_file(path) as f:
+        f.write(b"old")
+    with pytest.raises(KeyboardInterrupt), paths.atomic_file(path) as f:
+        f.write(b"new, half written")
+        raise KeyboardInterrupt  # a user stopping the kernel mid-write
+    assert path.read_bytes() == b"old" and sorted(tmp_path.iterdir()) == [path]
+    assert path.stat().st_mode & 0o777 == 0o644  # readable by all, unlike mkstemp's own files
+
 def test_remove_stale_temporaries_keeps_fresh_and_unrelated_files(tmp_path):
     folder = tmp_path / "checkpoints"
     folder.mkdir()

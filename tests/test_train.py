@@ -1,6 +1,7 @@
 """The training loop: history, NaN guard, atomic checkpoints, exact resume, load-or-train."""
 
 import os
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -218,7 +219,7 @@ def test_an_unwritable_checkpoint_folder_warns_once_and_training_goes_on(tmp_pat
     def read_only(*args, **kwargs):
         raise OSError(30, "Read-only file system")
 
-    monkeypatch.setattr(checkpoints.tempfile, "mkstemp", read_only)
+    monkeypatch.setattr(tempfile, "mkstemp", read_only)
     model, optimizer, loss_fn, batch = _problem()
     with pytest.warns(UserWarning, match="Read-only") as warned:
         history = loop.fit(model, optimizer, loss_fn, batch, steps=20, checkpoint=tmp_path /
@@ -283,8 +284,8 @@ def test_another_runs_checkpoint_is_kept_and_found_again(tmp_path, capsys):
 
 def test_stale_temporaries_of_killed_writers_are_removed(tmp_path):
     path = tmp_path / "run.partial"
-    stale, fresh = tmp_path / "run.partialab12.tmp", tmp_path / "run.partialcd34.tmp"
-    other = tmp_path / "notes.tmp"
+    stale, fresh = tmp_path / ".run.partial.ab12.part", tmp_path / ".run.partial.cd34.part"
+    other = tmp_path / ".notes.ab12.part"
     for file in (stale, fresh, other):
         file.write_bytes(b"x" * 10)
     old = stale.stat().st_mtime - 2 * checkpoints.STALE_AFTER_S

@@ -16,10 +16,10 @@ from __future__ import annotations
 
 import datetime
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..data.paths import atomic_file
 from ..training.checkpoints import SHIPPED_DIR
 from .presets import current_scale
 
@@ -81,9 +81,8 @@ def record(key: str, value: float, command: str, protocol: str, threads: int,
     figures = load(path)
     figures[key] = {"value": float(value), "command": command, "protocol": protocol,
                     "threads": threads, "date": datetime.date.today().isoformat()}
-    partial = path.with_suffix(".json.partial")
-    partial.write_text(json.dumps(figures, indent=1, sort_keys=True) + "\n", encoding="utf-8")
-    os.replace(partial, path)
+    with atomic_file(path) as f:
+        f.write((json.dumps(figures, indent=1, sort_keys=True) + "\n").encode())
 
 
 def references(key: str, path: Path = REFERENCE_FILE) -> list[str]:

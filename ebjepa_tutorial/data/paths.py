@@ -9,14 +9,17 @@ Three places matter:
   which may be a read-only shared folder;
 - the download URLs, each file checked against its published MD5.
 
-Downloads and cache files are written to a temporary file in the same folder
-and renamed into place only once complete, so an interrupted run never leaves
-a half-written file that a later run would trust. Temporaries left by a
-killed run are removed by a later one (:func:`remove_stale_temporaries`).
+Downloads, cache files, checkpoints and results are written through
+:func:`atomic_file`: a temporary file in the same folder, renamed into place
+only once complete, so an interrupted run never leaves a half-written file that
+a later run would trust. Temporaries left by a killed run are removed by a later
+one (:func:`remove_stale_temporaries`).
 """
 
 from __future__ import annotations
 
+import contextlib
+import glob
 import hashlib
 import http.client
 import os
@@ -25,8 +28,9 @@ import tempfile
 import time
 import urllib.request
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -113,6 +117,32 @@ def remove_stale_temporaries(
     return removed
 
 
+def temporaries_of(path: Path) -> str:
+    """The glob of the temp files that :func:`atomic_file` makes beside ``path``."""
+    return f".{glob.escape(path.name)}.*.part"
+
+
+@contextlib.contextmanager
+def atomic_file(path: Path) -> Iterator[BinaryIO]:
+    """A binary file that appears at ``path`` whole, or not at all.
+
+    The block writes a hidden temp file beside ``path`` (:func:`temporaries_of`);
+    on leaving it the file is synced to disk, made readable by all and renamed
+    over ``path``. An exception in the block deletes it and leaves ``path`` as it was.
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())  # on disk before the rename: a power loss leaves no empty file
+        os.chmod(tmp, 0o644)  # mkstemp makes it private; these are ordinary shared files
+        os.replace(tmp, path)
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+
+
 def set_aside(path: Path) -> Path | None:
     """Rename ``path`` to ``<name>.bad`` so that later runs skip it; None if that fails."""
     target = path.with_name(path.name + ".bad")
@@ -140,30 +170,20 @@ def _fetch_once(url: str, dest: Path, md5: str) -> None:
 
 def _stream_to(response, dest: Path, md5: str, url: str, total: int | None) -> None:
     """Copy ``response`` into a temp file beside ``dest``; rename it only if the MD5 matches."""
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=dest.parent, prefix=f".{dest.name}.", suffix=".part")
-    try:
-        digest, size = hashlib.md5(), 0
-        with os.fdopen(fd, "wb") as out:
-            with tqdm(total=total, unit="B", unit_scale=True, desc=dest.name, leave=False) as bar:
-                for block in iter(lambda: response.read(1 << 20), b""):
-                    out.write(block)
-                    digest.update(block)
-                    size += len(block)
-                    bar.update(len(block))
-            out.flush()
-            os.fsync(out.fileno())  # on disk before the rename: a power loss leaves no empty file
-        if digest.hexdigest() != md5:
+    digest, size = hashlib.md5(), 0
+    with atomic_file(dest) as out, tqdm(total=total, unit="B", unit_scale=True,
+                                        desc=dest.name, leave=False) as bar:
+        for block in iter(lambda: response.read(1 << 20), b""):
+            out.write(block)
+            digest.update(block)
+            size += len(block)
+            bar.update(len(block))
+        if digest.hexdigest() != md5:  # raised inside the block: the temp file goes
             expected = f" of {total:,}" if total else ""
             raise CorruptDataError(
                 f"{url} gave {size:,}{expected} bytes with MD5 {digest.hexdigest()}, "
                 f"expected {md5} (a truncated or damaged download)"
             )
-        os.chmod(tmp, 0o644)  # mkstemp makes it private; data files are ordinary files
-        os.replace(tmp, dest)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
 
 
 def download(urls: Sequence[str], dest: Path, md5: str, attempts: int = 2) -> Path:
@@ -173,7 +193,7 @@ def download(urls: Sequence[str], dest: Path, md5: str, attempts: int = 2) -> Pa
     if a server sent wrong bytes every time, DownloadError if none could be reached.
     """
     dest = Path(dest)
-    remove_stale_temporaries(dest.parent, [f".{dest.name}.*.part"])  # left by a killed download
+    remove_stale_temporaries(dest.parent, [temporaries_of(dest)])  # left by a killed download
     failures: list[Exception] = []
     for url in urls:
         for _ in range(attempts):
@@ -236,7 +256,7 @@ def source_key(*paths: Path) -> str:
     return digest.hexdigest()[:12]
 
 
-CACHE_TEMPORARIES = (".*.npy.*.part",)  # what _save_npy_atomic leaves when killed
+CACHE_TEMPORARIES = (".*.npy.*.part",)  # what atomic_file leaves when killed
 
 
 def _cache_paths(name: str) -> tuple[Path, Path]:
@@ -261,21 +281,6 @@ def read_cache(name: str) -> tuple[np.ndarray, np.ndarray] | None:
     return (images, labels) if len(images) == len(labels) else None
 
 
-def _save_npy_atomic(path: Path, array: np.ndarray) -> None:
-    """Write ``array`` to a temp file beside ``path``, flush it to disk, rename it to ``path``."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.save(f, array)
-            f.flush()
-            os.fsync(f.fileno())  # on disk before the rename: a power loss leaves no empty file
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-
-
 def write_cache(name: str, images: np.ndarray, labels: np.ndarray) -> None:
     """Save ``images`` and ``labels`` under ``name`` in :func:`cache_dir`, each file atomically.
 
@@ -283,8 +288,8 @@ def write_cache(name: str, images: np.ndarray, labels: np.ndarray) -> None:
     """
     images_path, labels_path = _cache_paths(name)
     try:
-        images_path.parent.mkdir(parents=True, exist_ok=True)
-        _save_npy_atomic(images_path, images)
-        _save_npy_atomic(labels_path, labels)
+        for path, array in ((images_path, images), (labels_path, labels)):
+            with atomic_file(path) as f:
+                np.save(f, array)
     except OSError as err:  # a read-only or full disk costs speed next time, not this result
         warnings.warn(f"could not cache {name} in {images_path.parent}: {err}", stacklevel=3)

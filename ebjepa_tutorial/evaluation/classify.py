@@ -22,7 +22,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,7 +31,7 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from ..augment import normalize
-from ..data.paths import cache_dir
+from ..data.paths import atomic_file, cache_dir
 from ..training.image import ImageJEPAConfig, resize
 
 
@@ -250,10 +249,8 @@ def probe_encoder(encoder, config: ImageJEPAConfig, train, test, knn_k: int = 20
     knn = knn_accuracy(train_features, train[1], test_features, test[1], k=knn_k)
     scores = {"probe_acc": probe.test_accuracy, "knn_acc": knn}
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(scores))
-        os.replace(tmp, path)  # a killed write leaves no half file under the real name
+        with atomic_file(path) as f:  # a killed write leaves no half file under the real name
+            f.write(json.dumps(scores).encode())
     return scores
 
 

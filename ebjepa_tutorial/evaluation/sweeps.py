@@ -24,12 +24,11 @@ run, so an interrupted sweep resumes where it stopped.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from ..data.paths import atomic_file
 from ..training.image import ImageJEPAConfig, settings, train_image_jepa
 from .classify import probe_encoder, protocol
 
@@ -126,13 +125,9 @@ def missing_runs(runs: list[Run], n_train: int, n_test: int, stored: dict) -> li
 
 
 def _save_results(path: Path, rows: list[dict], meta: dict) -> None:
-    """Write ``{**meta, "runs": rows}`` as JSON atomically (a temp file, then a rename)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump({**meta, "runs": rows}, f, indent=1)
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, path)
+    """Write ``{**meta, "runs": rows}`` as JSON, whole or not at all."""
+    with atomic_file(path) as f:
+        f.write(json.dumps({**meta, "runs": rows}, indent=1).encode())
 
 
 def train_and_probe(run: Run, train, test, device="cpu", progress: bool = True) -> dict:

@@ -12,12 +12,10 @@
 
 from __future__ import annotations
 
-import glob
 import hashlib
 import json
 import os
 import pickle
-import tempfile
 import warnings
 from collections.abc import Callable
 from dataclasses import asdict
@@ -26,7 +24,7 @@ from typing import Any
 
 import torch
 
-from ..data.paths import cache_dir, remove_stale_temporaries
+from ..data.paths import atomic_file, cache_dir, remove_stale_temporaries, temporaries_of
 
 
 class CheckpointError(RuntimeError):
@@ -52,20 +50,9 @@ def save_checkpoint(path: str | Path, **state: Any) -> Path:
     were killed (older than :data:`STALE_AFTER_S`) are removed first.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    # the pattern of the temp names below: files of killed writers, never a live one's
-    remove_stale_temporaries(path.parent, [f"{glob.escape(path.name)}*.tmp"], STALE_AFTER_S)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(state, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp makes the file private; a checkpoint is shareable
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    remove_stale_temporaries(path.parent, [temporaries_of(path)], STALE_AFTER_S)
+    with atomic_file(path) as f:
+        torch.save(state, f)
     return path
 
 
