@@ -37,7 +37,13 @@ from ebjepa_tutorial.training.image import (
     train_image_jepa,
     view_maker,
 )
-from ebjepa_tutorial.utils import print_parts, time_parts
+from ebjepa_tutorial.utils import (
+    at_least_float32,
+    cpu_has_bf16,
+    mixed_precision,
+    print_parts,
+    time_parts,
+)
 
 
 def step_split(config, images: torch.Tensor) -> dict[str, float]:
@@ -51,7 +57,8 @@ def step_split(config, images: torch.Tensor) -> dict[str, float]:
         index = torch.randint(0, len(images), (config.batch_size,), generator=generator)
         views = make_views(images[index], generator)
         yield "augmentation"
-        z_a, z_b, *local = model(*views)
+        with mixed_precision("cpu", cpu=True):  # as train_image_jepa computes it
+            z_a, z_b, *local = map(at_least_float32, model(*views))
         yield "forward"
         loss, _ = jepa_loss(config, z_a, z_b, generator, local=local)
         yield "loss"
@@ -94,7 +101,8 @@ def main() -> None:
         print_parts(f"one step of {config.batch_size} images x 2 views of {config.image_size} "
                     f"px{local}", step_split(config, train[0]))
         return
-    print(f"evaluation: {protocol(config)}")
+    precision = "bf16 autocast (this CPU has bf16)" if cpu_has_bf16() else "float32"
+    print(f"evaluation: {protocol(config)}; training networks in {precision}")
 
     torch.manual_seed(config.seed)  # the weights training starts from, as in the notebooks
     random_init = probe_encoder(ImageJEPA(config).encoder, config, train, test)
@@ -111,7 +119,7 @@ def main() -> None:
           f"probe_acc={trained['probe_acc']:.4f} knn_acc={trained['knn_acc']:.4f}")
     if args.record and args.loss != "invariance":
         where = dict(command=" ".join(["python", *sys.argv]), threads=args.threads,
-                     protocol=f"{config.steps} steps; {protocol(config)}")
+                     protocol=f"{config.steps} steps in {precision}; {protocol(config)}")
         reference.record(f"{args.loss}_probe_acc", trained["probe_acc"], **where)
         reference.record(f"{args.loss}_random_init_probe_acc", random_init["probe_acc"], **where)
 

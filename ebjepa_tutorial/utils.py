@@ -24,16 +24,37 @@ def get_device(prefer: str | None = None) -> torch.device:
     return torch.device("cpu")
 
 
-def mixed_precision(device: torch.device | str) -> contextlib.AbstractContextManager:
-    """bfloat16 autocast on a CUDA GPU that has it; on any other device, nothing.
+def cpu_has_bf16() -> bool:
+    """Whether this CPU computes bfloat16 natively (x86 AVX-512 BF16 or AMX).
+
+    Elsewhere a CPU emulates it, slower than float32.
+    """
+    checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
+    return any(getattr(torch.cpu, name, lambda: False)() for name in checks)
+
+
+def network_dtype(device: torch.device | str, cpu: bool = False) -> torch.dtype:
+    """What :func:`mixed_precision` computes networks in: bfloat16 on a CUDA GPU that has
+    it and, with ``cpu=True``, on a CPU that has it (:func:`cpu_has_bf16`); else float32."""
+    kind = torch.device(device).type
+    gpu_bf16 = kind == "cuda" and torch.cuda.is_bf16_supported()
+    return torch.bfloat16 if gpu_bf16 or kind == "cpu" and cpu and cpu_has_bf16() else torch.float32
+
+
+def mixed_precision(device: torch.device | str, cpu: bool = False
+                    ) -> contextlib.AbstractContextManager:
+    """bfloat16 autocast where :func:`network_dtype` says so; elsewhere, nothing.
 
     Training loops run their networks under it and compute the losses after it,
     on ``.float()`` outputs: the batch statistics (variance, covariance, the
-    Epps-Pulley test) lose their digits in bfloat16. The CPU path is unchanged.
+    Epps-Pulley test) lose their digits in bfloat16. ``cpu=True`` is for the
+    image encoders, whose training step at the class width is about 1.3x faster
+    in bf16 on such a CPU; the smaller networks of the later chapters stay in float32.
     """
-    if torch.device(device).type == "cuda" and torch.cuda.is_bf16_supported():
-        return torch.autocast("cuda", dtype=torch.bfloat16)
-    return contextlib.nullcontext()
+    dtype = network_dtype(device, cpu)
+    if dtype == torch.float32:
+        return contextlib.nullcontext()
+    return torch.autocast(torch.device(device).type, dtype=dtype)
 
 
 def at_least_float32(x: torch.Tensor) -> torch.Tensor:

@@ -1,4 +1,5 @@
-"""Mixed precision on a GPU: the networks run in bfloat16, the losses' batch statistics in float32.
+"""Mixed precision on a GPU (and for the image encoders on a CPU with bf16 instructions): the
+networks run in bfloat16, the losses' batch statistics in float32.
 
 There is no GPU here, so the GPU's autocast is stood in for by the CPU's bfloat16 autocast
 (patched into the training modules): it lowers the same matmuls and convolutions.
@@ -25,7 +26,29 @@ def test_on_the_cpu_nothing_is_lowered_or_reordered():
     assert utils.memory_format("cuda") == torch.channels_last
 
 
-def cpu_bf16(device):
+
+@pytest.mark.parametrize("has_bf16", [True, False])
+def test_a_cpu_lowers_only_when_asked_and_able(monkeypatch, has_bf16):
+    monkeypatch.setattr(utils, "cpu_has_bf16", lambda: has_bf16)
+    with utils.mixed_precision("cpu", cpu=True):
+        asked = torch.ones(4, 4) @ torch.ones(4, 4)
+    with utils.mixed_precision("cpu"):
+        not_asked = torch.ones(4, 4) @ torch.ones(4, 4)
+    assert asked.dtype == (torch.bfloat16 if has_bf16 else torch.float32)
+    assert not_asked.dtype == torch.float32  # chapters 03-06 keep float32 on any CPU
+
+
+def test_image_training_asks_for_bf16_on_the_cpu(monkeypatch):
+    calls = []
+    monkeypatch.setattr(image, "mixed_precision", lambda *a, **k: calls.append((a, k)) or
+                        utils.mixed_precision(*a, **k))
+    config = image.ImageJEPAConfig(widths=(4, 8, 8, 8), projector=(16, 16), batch_size=8,
+                                   steps=2, warmup_steps=0)
+    image.train_image_jepa(config, torch.randint(0, 256, (16, 3, 32, 32), dtype=torch.uint8),
+                           progress=False)
+    assert calls and all(k == {"cpu": True} for _, k in calls)
+
+def cpu_bf16(device, **_):
     return torch.autocast("cpu", dtype=torch.bfloat16)
 
 

@@ -1,6 +1,6 @@
 """Train notebook 01's or 02's CIFAR-10 run longer and save its encoder (float16).
 
-    python -m ebjepa_tutorial.commands.train_image --loss vicreg --steps 8000 --out FILE.pt
+    python -m ebjepa_tutorial.commands.train_image --loss vicreg --out FILE.pt
 
 On several devices, one process each (DistributedDataParallel; nccl on GPUs, gloo on CPUs):
 

@@ -255,7 +255,8 @@ def train_image_jepa(
 
     def loss(views_and_generator):
         views, generator = views_and_generator
-        with mixed_precision(device):  # bf16 networks on a GPU; the loss in float32
+        # bf16 networks on a GPU or a CPU with bf16 instructions; the loss in float32
+        with mixed_precision(device, cpu=True):
             embedded = net(*views)
         z_a, z_b, *local = map(at_least_float32, embedded)
         return jepa_loss(config, z_a, z_b, generator, across_ranks=True, local=local)
