@@ -93,7 +93,8 @@ def references(key: str, path: Path = REFERENCE_FILE) -> list[str]:
         parts.append(f"{metric.ours}: not recorded (run {metric.benchmark} --record)"
                      if ours is None else
                      f"{metric.ours} {metric.fmt.format(ours['value'])} "
-                     f"({ours['threads']} CPU threads, {ours['date']})")
+                     f"({ours['threads']} CPU thread{'s' * (ours['threads'] != 1)}, "
+                     f"{ours['date']})")
     if metric.paper is not None:
         parts.append(f"the paper {metric.fmt.format(metric.paper)} ({metric.paper_setting})")
     return parts
