@@ -39,8 +39,8 @@ from ebjepa_tutorial.training.image import (
 )
 from ebjepa_tutorial.utils import (
     at_least_float32,
-    cpu_has_bf16,
     mixed_precision,
+    network_dtype,
     print_parts,
     time_parts,
 )
@@ -101,7 +101,8 @@ def main() -> None:
         print_parts(f"one step of {config.batch_size} images x 2 views of {config.image_size} "
                     f"px{local}", step_split(config, train[0]))
         return
-    precision = "bf16 autocast (this CPU has bf16)" if cpu_has_bf16() else "float32"
+    lowered = network_dtype("cpu", cpu=True) == torch.bfloat16  # what train_image_jepa does
+    precision = "bf16 autocast (this CPU has bf16)" if lowered else "float32"
     print(f"evaluation: {protocol(config)}; training networks in {precision}")
 
     torch.manual_seed(config.seed)  # the weights training starts from, as in the notebooks
