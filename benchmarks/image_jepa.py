@@ -1,7 +1,7 @@
 """Image-JEPA benchmark: training speed and linear-probe / kNN accuracy on CIFAR-10.
 
 Run: ``python benchmarks/image_jepa.py [--scale class] [--loss vicreg] [--steps N]
-[--eval-size PX] [--split]``. Trains the notebook's configuration at that scale from
+[--seed S] [--eval-size PX] [--split]``. Trains the notebook's configuration at that scale from
 scratch (no checkpoint), then evaluates the frozen encoder on un-augmented
 images at the preset's ``eval_image_size`` (32 px, CIFAR-10's native size, at
 class and full scale, whatever size the training views had; 16 px at ci scale;
@@ -76,6 +76,8 @@ def main() -> None:
     parser.add_argument("--scale", choices=SCALES, default="class")
     parser.add_argument("--loss", choices=("vicreg", "sigreg", "invariance"), default="vicreg")
     parser.add_argument("--steps", type=int, default=None, help="override the preset's steps")
+    parser.add_argument("--seed", type=int, default=None,
+                        help="override the preset's seed (weights, batches, augmentations)")
     parser.add_argument("--eval-size", type=int, default=None,
                         help="side in px of the images the probe and kNN see (class preset: 32)")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
@@ -83,13 +85,16 @@ def main() -> None:
     parser.add_argument("--record", action="store_true",
                         help="store the result in checkpoints/reference.json (class recipe only)")
     args = parser.parse_args()
-    if args.record and (args.scale, args.steps, args.eval_size) != ("class", None, None):
+    if args.record and (args.scale, args.steps, args.eval_size, args.seed) != (
+            "class", None, None, None):
         parser.error("--record stores the class recipe's figures: drop --scale, --steps, "
-                     "--eval-size")
+                     "--eval-size, --seed")
     torch.set_num_threads(args.threads)
 
     preset = image_preset(args.scale, args.loss)
     config = preset.config if args.steps is None else replace(preset.config, steps=args.steps)
+    if args.seed is not None:
+        config = replace(config, seed=args.seed)
     if args.eval_size is not None:
         config = replace(config, eval_image_size=args.eval_size)
     train = random_subset(*load_cifar10("train"), preset.train_images)

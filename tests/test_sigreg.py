@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 import torch
 
-from ebjepa_tutorial.losses.sigreg import epps_pulley, random_directions, sigreg, sigreg_loss
+from ebjepa_tutorial.losses.sigreg import (
+    empirical_cf,
+    epps_pulley,
+    random_directions,
+    sigreg,
+    sigreg_loss,
+)
 from ebjepa_tutorial.utils import make_generator
 
 
@@ -42,6 +48,23 @@ def test_default_quadrature_against_a_fine_numpy_integral(sigma):
     assert fine == pytest.approx(reference, rel=1e-6)
     coarse = epps_pulley(torch.tensor(x), sigma=sigma).item()  # 17 knots on [0, 3]
     assert coarse == pytest.approx(reference, rel=1e-2)
+
+
+def test_hand_written_gradient_matches_finite_differences():
+    # epps_pulley's ECF has its own backward pass (the closed-form derivative of cos and sin)
+    x = torch.randn(7, 3, dtype=torch.float64, generator=make_generator(0), requires_grad=True)
+    assert torch.autograd.gradcheck(lambda x: epps_pulley(x, knots=21, t_max=4.0), (x,))
+
+
+def test_angle_addition_keeps_the_ecf_exact_over_many_knots():
+    # cos and sin at each knot are built from the previous knot's: check they do not drift
+    x = 3 * torch.randn(64, 4, generator=make_generator(1))  # float32, arguments up to ~100 rad
+    knots, t_max = 201, 12.0
+    real, imag = empirical_cf(x, t_max / (knots - 1), knots)  # (4, 201) each
+    t = torch.linspace(0.0, t_max, knots, dtype=torch.float64)
+    angles = x.double()[..., None] * t  # (64, 4, 201)
+    assert torch.allclose(real.double(), angles.cos().mean(0), atol=2e-5)
+    assert torch.allclose(imag.double(), angles.sin().mean(0), atol=2e-5)
 
 
 def test_columns_are_independent_slices():
