@@ -29,6 +29,7 @@ from ebjepa_tutorial.course import reference
 from ebjepa_tutorial.course.presets import SCALES, image_preset
 from ebjepa_tutorial.data import load_cifar10, random_subset
 from ebjepa_tutorial.evaluation.classify import probe_encoder, protocol
+from ebjepa_tutorial.evaluation.sweeps import shorten
 from ebjepa_tutorial.training.image import (
     AllViews,
     ImageJEPA,
@@ -75,7 +76,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scale", choices=SCALES, default="class")
     parser.add_argument("--loss", choices=("vicreg", "sigreg", "invariance"), default="vicreg")
-    parser.add_argument("--steps", type=int, default=None, help="override the preset's steps")
+    parser.add_argument("--steps", type=int, default=None,
+                        help="override the preset's steps (warm-up: at most a tenth of them)")
     parser.add_argument("--seed", type=int, default=None,
                         help="override the preset's seed (weights, batches, augmentations)")
     parser.add_argument("--eval-size", type=int, default=None,
@@ -92,7 +94,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     preset = image_preset(args.scale, args.loss)
-    config = preset.config if args.steps is None else replace(preset.config, steps=args.steps)
+    config = preset.config if args.steps is None else shorten(preset.config, args.steps)
     if args.seed is not None:
         config = replace(config, seed=args.seed)
     if args.eval_size is not None:

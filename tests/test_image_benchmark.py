@@ -1,0 +1,41 @@
+"""``benchmarks/image_jepa.py``: the last line scripts parse, the seed it trains, what --record
+refuses (chapters 01-02's class target is measured by this script)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _benchmark(*arguments: str) -> subprocess.CompletedProcess:
+    command = [sys.executable, "benchmarks/image_jepa.py", *arguments]
+    environment = {**os.environ, "OMP_NUM_THREADS": "1"}
+    return subprocess.run(command, cwd=ROOT, env=environment, capture_output=True, text=True,
+                          timeout=300)
+
+
+def test_record_refuses_a_run_that_is_not_the_class_recipe():
+    done = _benchmark("--record", "--seed", "1")
+    assert done.returncode == 2 and "drop --scale, --steps, --eval-size, --seed" in done.stderr
+
+
+@pytest.mark.slow  # trains 3 steps at ci scale and probes twice on real CIFAR-10: seconds
+def test_a_short_run_trains_the_seed_asked_for_and_ends_with_a_parseable_line():
+    data = Path(os.environ.get("EBJEPA_DATA", ROOT.parent / "shared" / "data"))
+    if not (data / "cifar10-jpeg.tar.gz").is_file():
+        pytest.skip("no CIFAR-10 copy (set EBJEPA_DATA or provide ../shared/data)")
+    done = _benchmark("--scale", "ci", "--loss", "sigreg", "--steps", "3", "--seed", "1",
+                      "--threads", "1")
+    assert done.returncode == 0, done.stderr[-2000:]
+    lines = done.stdout.strip().splitlines()
+    assert "seed=1" in lines[0] and "steps=3" in lines[0]  # the config it trained
+    fields = dict(pair.split("=") for pair in lines[-1].split())
+    assert set(fields) == {"images_per_s", "minutes", "probe_acc", "knn_acc"}
+    assert float(fields["images_per_s"]) > 0
+    assert 0.0 <= float(fields["probe_acc"]) <= 1.0 and 0.0 <= float(fields["knn_acc"]) <= 1.0
