@@ -42,7 +42,13 @@ from ebjepa_tutorial.training.video import (
     make_clips,
     train_video_jepa,
 )
-from ebjepa_tutorial.utils import print_parts, time_parts
+from ebjepa_tutorial.utils import (
+    at_least_float32,
+    mixed_precision,
+    network_dtype,
+    print_parts,
+    time_parts,
+)
 
 
 def load_digits() -> torch.Tensor | None:
@@ -64,6 +70,12 @@ def time_generator(digits: torch.Tensor, clips: int, frames: int, seed: int) -> 
     return clips / elapsed
 
 
+def precision() -> str:
+    """What the video networks train in here (``video_jepa_loss``'s rule)."""
+    lowered = network_dtype("cpu", cpu=True) == torch.bfloat16
+    return "bf16 autocast" if lowered else "float32"
+
+
 def step_split() -> dict[str, float]:
     """Median seconds of each part of one class-scale training step (forward parts, backward)."""
     config = VIDEO_CONFIGS["class"]
@@ -74,12 +86,14 @@ def step_split() -> dict[str, float]:
                            dtype=torch.uint8)
 
     def step(repeat: int):
-        z = model.encode(frames)
-        yield "encoder"
-        prediction = rollout_loss(model.predictor, z, config.model.context,
-                                  config.rollout_steps, config.tbptt)
-        yield "rollout"
-        variance, covariance = variance_and_covariance(model.project(z))
+        with mixed_precision("cpu", cpu=True):  # the networks as video_jepa_loss runs them
+            z = model.encode(frames)
+            yield "encoder"
+            prediction = rollout_loss(model.predictor, z, config.model.context,
+                                      config.rollout_steps, config.tbptt)
+            yield "rollout"
+            projected = model.project(z)
+        variance, covariance = variance_and_covariance(at_least_float32(projected))
         loss = prediction + config.std_coeff * variance + config.cov_coeff * covariance
         yield "projector+regulariser"
         optimizer.zero_grad(set_to_none=True)
@@ -107,7 +121,8 @@ def model_benchmark(cfg, train_digits, held_out, rollout_steps: int, seed: int,
     baseline = detection_report(VideoJEPA(config.model).eval(), probe_data, eval_data,
                                 cfg.horizons, cfg.probe_steps)
     print(f"K = {rollout_steps}, seed {seed}: {config.steps} steps of {config.batch_size} clips "
-          f"in {seconds / 60:.1f} min on {torch.get_num_threads()} thread(s), prediction loss "
+          f"in {seconds / 60:.1f} min on {torch.get_num_threads()} thread(s) in {precision()}, "
+          f"prediction loss "
           f"{history['prediction'][0]:.3f} -> {history['prediction'][-1]:.3f}")
     print(f"protocol: detection probe fitted on {cfg.n_probe} clips of training digits, AP on "
           f"{cfg.n_eval} clips of {len(held_out)} held-out digits, horizons 1..{cfg.horizons}")
@@ -164,7 +179,8 @@ def main() -> None:
         if args.record:
             reference.record("video_map", mean_ap, command=" ".join(["python", *sys.argv]),
                              threads=args.threads,
-                             protocol=f"K = {args.rollout_steps}, seed {args.seed}; detection "
+                             protocol=f"K = {args.rollout_steps}, seed {args.seed}, "
+                             f"{precision()}; detection "
                              f"probe fitted on {cfg.n_probe} clips of training digits, AP on "
                              f"{cfg.n_eval} clips of held-out digits, horizons 1..{cfg.horizons}")
     print(f"clips_per_s={statistics.median(rates):.0f} train_clips_per_s={train_rate:.1f} "

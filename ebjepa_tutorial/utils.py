@@ -48,8 +48,8 @@ def mixed_precision(device: torch.device | str, cpu: bool = False
     Training loops run their networks under it and compute the losses after it,
     on ``.float()`` outputs: the batch statistics (variance, covariance, the
     Epps-Pulley test) lose their digits in bfloat16. ``cpu=True`` is for the
-    image encoders, whose training step at the class width is about 1.3x faster
-    in bf16 on such a CPU; the smaller networks of the later chapters stay in float32.
+    image and video networks, whose class training steps are about 1.3x faster
+    in bf16 on such a CPU; the world models of chapters 05-07 stay in float32.
     """
     dtype = network_dtype(device, cpu)
     if dtype == torch.float32:

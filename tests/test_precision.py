@@ -1,5 +1,5 @@
-"""Mixed precision on a GPU (and for the image encoders on a CPU with bf16 instructions): the
-networks run in bfloat16, the losses' batch statistics in float32.
+"""Mixed precision on a GPU (and for the image and video networks on a CPU with bf16
+instructions): the networks run in bfloat16, the losses' batch statistics in float32.
 
 There is no GPU here, so the GPU's autocast is stood in for by the CPU's bfloat16 autocast
 (patched into the training modules): it lowers the same matmuls and convolutions.
@@ -35,18 +35,33 @@ def test_a_cpu_lowers_only_when_asked_and_able(monkeypatch, has_bf16):
     with utils.mixed_precision("cpu"):
         not_asked = torch.ones(4, 4) @ torch.ones(4, 4)
     assert asked.dtype == (torch.bfloat16 if has_bf16 else torch.float32)
-    assert not_asked.dtype == torch.float32  # chapters 03-06 keep float32 on any CPU
+    assert not_asked.dtype == torch.float32  # the world models keep float32 on any CPU
+
+
+def record_calls(monkeypatch, module) -> list[dict]:
+    """The keyword arguments of each call of ``module.mixed_precision``."""
+    calls = []
+    monkeypatch.setattr(module, "mixed_precision", lambda *a, **k: calls.append(k) or
+                        utils.mixed_precision(*a, **k))
+    return calls
 
 
 def test_image_training_asks_for_bf16_on_the_cpu(monkeypatch):
-    calls = []
-    monkeypatch.setattr(image, "mixed_precision", lambda *a, **k: calls.append((a, k)) or
-                        utils.mixed_precision(*a, **k))
+    calls = record_calls(monkeypatch, image)
     config = image.ImageJEPAConfig(widths=(4, 8, 8, 8), projector=(16, 16), batch_size=8,
                                    steps=2, warmup_steps=0)
     image.train_image_jepa(config, torch.randint(0, 256, (16, 3, 32, 32), dtype=torch.uint8),
                            progress=False)
-    assert calls and all(k == {"cpu": True} for _, k in calls)
+    assert calls and all(k == {"cpu": True} for k in calls)
+
+
+def test_video_training_asks_for_bf16_on_the_cpu(monkeypatch):
+    calls = record_calls(monkeypatch, video)
+    config = replace(VIDEO_CONFIGS["ci"], steps=2, batch_size=4)
+    digits = torch.randint(0, 256, (20, 1, 28, 28), dtype=torch.uint8)
+    clips = generate_moving_mnist(digits, 8, config.n_frames, seed=0).clips
+    video.train_video_jepa(config, clips, progress=False, device="cpu")
+    assert len(calls) == 2 and all(k == {"cpu": True} for k in calls)
 
 def cpu_bf16(device, **_):
     return torch.autocast("cpu", dtype=torch.bfloat16)

@@ -151,7 +151,7 @@ def video_jepa_loss(model: VideoJEPA, frames: torch.Tensor, config: VideoJEPACon
     ``across_ranks`` (a no-op in one process): the variance and covariance of the global
     batch of all ranks (:func:`~ebjepa_tutorial.losses.variance_and_covariance`).
     """
-    with mixed_precision(frames.device):  # bf16 networks on a GPU; the statistics in float32
+    with mixed_precision(frames.device, cpu=True):  # bf16 networks where fast; statistics in fp32
         z = model.encode(frames)
         prediction = rollout_loss(model.predictor, z, model.config.context,
                                   rollout_steps or config.rollout_steps, config.tbptt)
