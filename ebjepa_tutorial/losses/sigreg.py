@@ -103,9 +103,10 @@ def _cos_sin_at_knots(x: torch.Tensor, dt: float, knots: int):
     cos_step, sin_step = torch.cos(x * dt), torch.sin(x * dt)
     cos_k, sin_k = torch.ones_like(x), torch.zeros_like(x)
     for k in range(knots):
-        if k % _ANCHOR_EVERY == 1:
-            cos_k, sin_k = (cos_step, sin_step) if k == 1 else (torch.cos(x * k * dt),
-                                                                 torch.sin(x * k * dt))
+        if k == 1:
+            cos_k, sin_k = cos_step, sin_step
+        elif k % _ANCHOR_EVERY == 1:  # exact again, so that rounding errors do not pile up
+            cos_k, sin_k = torch.cos(x * (k * dt)), torch.sin(x * (k * dt))
         elif k:
             cos_k, sin_k = cos_k * cos_step - sin_k * sin_step, sin_k * cos_step + cos_k * sin_step
         yield cos_k, sin_k
