@@ -41,7 +41,7 @@ from ebjepa_tutorial.training.image import (
 from ebjepa_tutorial.utils import (
     at_least_float32,
     mixed_precision,
-    network_dtype,
+    precision_name,
     print_parts,
     time_parts,
 )
@@ -108,8 +108,7 @@ def main() -> None:
         print_parts(f"one step of {config.batch_size} images x 2 views of {config.image_size} "
                     f"px{local}", step_split(config, train[0]))
         return
-    lowered = network_dtype("cpu", cpu=True) == torch.bfloat16  # what train_image_jepa does
-    precision = "bf16 autocast (this CPU has bf16)" if lowered else "float32"
+    precision = precision_name("cpu", cpu=True)  # what train_image_jepa does
     print(f"evaluation: {protocol(config)}; training networks in {precision}")
 
     torch.manual_seed(config.seed)  # the weights training starts from, as in the notebooks

@@ -45,7 +45,7 @@ from ebjepa_tutorial.training.video import (
 from ebjepa_tutorial.utils import (
     at_least_float32,
     mixed_precision,
-    network_dtype,
+    precision_name,
     print_parts,
     time_parts,
 )
@@ -68,12 +68,6 @@ def time_generator(digits: torch.Tensor, clips: int, frames: int, seed: int) -> 
     elapsed = time.perf_counter() - start
     assert batch.clips.shape == (clips, frames, 1, 64, 64)
     return clips / elapsed
-
-
-def precision() -> str:
-    """What the video networks train in here (``video_jepa_loss``'s rule)."""
-    lowered = network_dtype("cpu", cpu=True) == torch.bfloat16
-    return "bf16 autocast" if lowered else "float32"
 
 
 def step_split() -> dict[str, float]:
@@ -106,8 +100,10 @@ def step_split() -> dict[str, float]:
 
 
 def model_benchmark(cfg, train_digits, held_out, rollout_steps: int, seed: int,
-                    steps: int | None):
-    """Train notebook 03's class run (``cfg``, K, seed); return (training clips/s, report)."""
+                    steps: int | None, precision: str):
+    """Train notebook 03's class run (``cfg``, K, seed); return (training clips/s, report).
+
+    ``precision``: what the networks train in here, for the log."""
     config = replace(cfg.train, rollout_steps=rollout_steps, seed=seed,
                      steps=steps or cfg.train.steps)
     clips = make_clips(config, train_digits)
@@ -121,9 +117,8 @@ def model_benchmark(cfg, train_digits, held_out, rollout_steps: int, seed: int,
     baseline = detection_report(VideoJEPA(config.model).eval(), probe_data, eval_data,
                                 cfg.horizons, cfg.probe_steps)
     print(f"K = {rollout_steps}, seed {seed}: {config.steps} steps of {config.batch_size} clips "
-          f"in {seconds / 60:.1f} min on {torch.get_num_threads()} thread(s) in {precision()}, "
-          f"prediction loss "
-          f"{history['prediction'][0]:.3f} -> {history['prediction'][-1]:.3f}")
+          f"in {seconds / 60:.1f} min on {torch.get_num_threads()} thread(s) in {precision}, "
+          f"prediction loss {history['prediction'][0]:.3f} -> {history['prediction'][-1]:.3f}")
     print(f"protocol: detection probe fitted on {cfg.n_probe} clips of training digits, AP on "
           f"{cfg.n_eval} clips of {len(held_out)} held-out digits, horizons 1..{cfg.horizons}")
     for name, r in (("trained", report), ("random init", baseline)):
@@ -173,14 +168,15 @@ def main() -> None:
         )
     train_rate, mean_ap, ap3 = float("nan"), float("nan"), float("nan")
     if digits is not None and args.steps != 0:
+        precision = precision_name("cpu", cpu=True)  # what video_jepa_loss trains in here
         train_rate, report = model_benchmark(cfg, train_digits, held_out, args.rollout_steps,
-                                             args.seed, args.steps)
+                                             args.seed, args.steps, precision)
         mean_ap, ap3 = report["map"], float(report["ap"][2])
         if args.record:
             reference.record("video_map", mean_ap, command=" ".join(["python", *sys.argv]),
                              threads=args.threads,
                              protocol=f"K = {args.rollout_steps}, seed {args.seed}, "
-                             f"{precision()}; detection "
+                             f"{precision}; detection "
                              f"probe fitted on {cfg.n_probe} clips of training digits, AP on "
                              f"{cfg.n_eval} clips of held-out digits, horizons 1..{cfg.horizons}")
     print(f"clips_per_s={statistics.median(rates):.0f} train_clips_per_s={train_rate:.1f} "

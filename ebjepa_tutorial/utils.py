@@ -41,6 +41,11 @@ def network_dtype(device: torch.device | str, cpu: bool = False) -> torch.dtype:
     return torch.bfloat16 if gpu_bf16 or kind == "cpu" and cpu and cpu_has_bf16() else torch.float32
 
 
+def precision_name(device: torch.device | str, cpu: bool = False) -> str:
+    """:func:`network_dtype` in words, for logs and recorded protocols."""
+    return "bf16 autocast" if network_dtype(device, cpu) == torch.bfloat16 else "float32"
+
+
 def mixed_precision(device: torch.device | str, cpu: bool = False
                     ) -> contextlib.AbstractContextManager:
     """bfloat16 autocast where :func:`network_dtype` says so; elsewhere, nothing.
