@@ -245,8 +245,8 @@ def planning_cost(model, z0: torch.Tensor, z_goal: torch.Tensor, actions: torch.
     one batch; the cost is the Euclidean latent distance to the goal, summed over
     the horizon (``"sum"``) or at the last step (``"last"``); or (``"learned"``)
     ``model.cost_to_go`` from the last latent. The px the plan spends are not added:
-    the head is fitted low (a small expectile), so with them standing still would
-    look cheapest.
+    a move straight at the goal lowers the head by about what it spends, so their
+    sum would rank plans by the head's errors.
     """
     if cost not in COSTS:
         raise ValueError(f"cost must be one of {COSTS}, got {cost!r}")

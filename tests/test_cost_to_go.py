@@ -1,5 +1,6 @@
 """The learned cost-to-go of notebook 07: its loss, its targets, its fit and its use in planning."""
 
+import math
 from dataclasses import replace
 from types import SimpleNamespace
 
@@ -7,73 +8,118 @@ import pytest
 import torch
 from torch import nn
 
-from ebjepa_tutorial.losses.cost import cost_to_go_targets, expectile_loss
-from ebjepa_tutorial.models.cost import CostToGo, WithLearnedCost
+from ebjepa_tutorial.losses.cost import imagination_gap, spread_loss, step_violation
+from ebjepa_tutorial.models.cost import COST_SCALE, CostToGo, WithLearnedCost
 from ebjepa_tutorial.planning import PlannerConfig, planning_cost
-from ebjepa_tutorial.training.cost import CostConfig, fit_cost_to_go, sample_goals
+from ebjepa_tutorial.training.cost import (
+    CostConfig,
+    CostData,
+    Multiplier,
+    cost_objective,
+    fit_cost_to_go,
+    sample_batch,
+)
 
 
-def test_expectile_loss_by_hand():
-    estimate, target = torch.tensor([1.0, 2.0]), torch.tensor([2.0, 1.0])
-    # errors +1 (target above: weight tau) and -1 (below: weight 1 - tau)
-    assert expectile_loss(estimate, target, 0.1) == pytest.approx((0.1 + 0.9) / 2)
-    assert expectile_loss(estimate, target + 1, 0.1) == pytest.approx((0.1 * 4 + 0.0) / 2)
-    assert expectile_loss(estimate, target, 0.5) == pytest.approx(0.5 * 1.0)
-    with pytest.raises(ValueError, match="tau must be in"):
-        expectile_loss(estimate, target, 1.0)
+def test_spread_loss_by_hand():
+    distance = torch.tensor([0.0, 1.0, 30.0])
+    expected = (math.log(1 + math.e) + math.log(2) + math.log(1 + math.exp(-29))) / 3
+    assert spread_loss(distance, 1.0) == pytest.approx(expected)
+    distance.requires_grad_(True)
+    spread_loss(distance, 1.0).backward()  # pushing apart lowers it; far pairs hardly move
+    assert (distance.grad < 0).all() and distance.grad[2] > -1e-12
+
+
+def test_step_violation_by_hand():
+    # three steps; the second is stretched 2 units beyond its action, the others are within
+    assert step_violation(torch.tensor([1.0, 3.0, 2.0]), torch.tensor([2.0, 1.0, 2.0])) == \
+        pytest.approx(4 / 3)
     with pytest.raises(ValueError, match="same shape"):
-        expectile_loss(estimate, target[:1], 0.1)
+        step_violation(torch.ones(3), torch.ones(2))
 
 
-def test_targets_on_a_hand_made_trajectory():
-    # steps of 1, 2 and 3 px along a line; the target head believes 10 px remain from s'
-    step_cost, next_to_go = torch.tensor([1.0, 1.0, 1.0, 2.0]), torch.full((4,), 10.0)
-    offset = torch.tensor([0, 1, 3, -1])  # s is the goal; s' is; 3 frames on; elsewhere
-    spent = torch.tensor([0.0, 1.0, 6.0, 99.0])  # 1 + 2 + 3 px to the frame 3 on
-    y = cost_to_go_targets(step_cost, next_to_go, offset, spent)
-    assert y.tolist() == [0.0, 1.0, 6.0, 12.0]  # 0; min(11, 1); min(11, 6); 2 + 10
-    tight = cost_to_go_targets(step_cost, torch.full((4,), 2.0), offset, spent)
-    assert tight.tolist() == [0.0, 1.0, 3.0, 4.0]  # the bootstrap undercuts the data's path
+def test_imagination_gap_by_hand():
+    imagined, true = torch.tensor([[3.0, 4.0], [1.0, 1.0]]), torch.tensor([[0.0, 0.0], [1.0, 1.0]])
+    assert imagination_gap(imagined, true) == pytest.approx((25 + 0) / 2)
 
 
-def test_goals_come_from_the_same_trajectory_later_or_from_anywhere():
-    n, frames = 6, 5  # latent = (trajectory, frame); every step 2 px long
+class Ruler(CostToGo):
+    """A hand-set head on latents that are positions / COST_SCALE: the straight distance in px."""
+
+    def __init__(self, latent_dim=1):
+        super().__init__(latent_dim)
+        self.embed = nn.Identity()
+
+
+def test_the_objective_on_a_hand_made_trajectory():
+    # a dot walks 0 -> 2 -> 3 -> 6 px on a line; its actions asked for 2, 2 and 2 px, so the
+    # last step (3 px) is 1 px longer than its action, the second 1 px shorter
+    x = torch.tensor([0.0, 2.0, 3.0, 6.0])[:, None] / COST_SCALE
+    z, z_next, length = x[:-1], x[1:], torch.full((3,), 2.0)
+    other = x.flip(0)[:3]  # pairs (0, 6), (2, 3), (3, 2) px
+    config = CostConfig(tolerance=0.5, consistency=0.0)
+    head, multiplier = Ruler(), Multiplier()
+    loss, terms = cost_objective(head, multiplier, (z, z_next, length, other, z, z), config)
+    violation = (1 / COST_SCALE) ** 2 / 3  # only the last step: 1 px over, in head units
+    assert terms["violation_px"] == pytest.approx(COST_SCALE * violation ** 0.5)
+    spread = sum(math.log(1 + math.exp(15 - d / 10)) for d in (6.0, 1.0, 1.0)) / 3
+    assert loss.item() == pytest.approx(spread + 100 * math.log(2) * (
+        violation - violation + (0.5 / COST_SCALE) ** 2))
+    loss.backward()  # violation (1/300) above eps (1/400): the multiplier must rise
+    assert multiplier.raw.grad < 0
+    # within tolerance (every step <= its action): the multiplier falls
+    multiplier.raw.grad = None
+    cost_objective(head, multiplier, (z, z_next, torch.full((3,), 3.0), other, z, z),
+                   config)[0].backward()
+    assert multiplier.raw.grad > 0
+
+
+def test_the_objective_reads_imagined_latents_through_the_embedding():
+    head, x = Ruler(2), torch.zeros(4, 2)
+    imagined = torch.tensor([[0.3, 0.4]]).expand(4, 2)  # 0.5 from the true latents, each
+    batch = (x, x, torch.ones(4), x + 1, imagined, x)
+    without = cost_objective(head, Multiplier(), batch, CostConfig(consistency=0.0))[0]
+    with_gap = cost_objective(head, Multiplier(), batch, CostConfig(consistency=10.0))[0]
+    assert (with_gap - without).item() == pytest.approx(10 * 0.25)
+
+
+def test_a_batch_pairs_frames_of_one_layout_and_imagined_latents_with_their_frames():
+    n, frames, k = 6, 9, 4  # latent = (trajectory, frame); imagined from frames 0 and 4
     latents = torch.stack(torch.meshgrid(torch.arange(n), torch.arange(frames), indexing="ij"),
                           dim=-1).float()
-    actions = torch.tensor([2.0, 0.0]).expand(n, frames - 1, 2)
-    z, z_next, goal, step_cost, offset, spent = sample_goals(
-        latents, actions, 500, 0.5, torch.Generator().manual_seed(0), group=3)
-    assert (z_next == z + torch.tensor([0.0, 1.0])).all()  # the next frame
-    assert (step_cost == 2).all()
-    own = offset >= 0
-    assert 0.3 < own.float().mean() < 0.7
-    assert (goal[own, 0] == z[own, 0]).all() and (goal[own, 1] == z[own, 1] + offset[own]).all()
-    assert (spent[own] == 2 * offset[own]).all()
-    assert set(offset[own].tolist()) == set(range(frames))  # the goal itself up to the last frame
-    # the others: any frame of a trajectory in the same group of 3 (which share a layout)
-    assert (goal[~own, 0] // 3 == z[~own, 0] // 3).all()
-    assert len(set(goal[~own, 0].tolist())) == n and set(goal[~own, 1].tolist()) == set(range(5))
+    imagined = torch.stack([latents[:, p * k + 1: p * k + k + 1] for p in range(2)], dim=1)
+    data = CostData(latents, torch.full((n, frames - 1), 2.0), imagined + 0.5, group=3)
+    z, z_next, length, other, imag, true = sample_batch(data, 500, torch.Generator().manual_seed(0))
+    assert (z_next == z + torch.tensor([0.0, 1.0])).all() and (length == 2).all()
+    assert (other[:, 0] // 3 == z[:, 0] // 3).all()  # the same group of trajectories
+    assert set(other[:, 1].tolist()) == set(range(frames)) and len(set(other[:, 0].tolist())) == n
+    assert (imag == true + 0.5).all()  # each imagined latent beside the frame it stands for
+    assert (true[:, 0] == z[:, 0]).all() and set(true[:, 1].tolist()) == set(range(1, frames))
 
 
 @pytest.mark.slow  # 1,000 Adam steps: seconds
 def test_on_a_line_the_head_learns_the_distance_not_the_random_walks():
     """Random walks on [0, 20] with steps up to 1.5 px either way: the shortest way is
-    |x - g|, while the data's walks take far longer. The low expectile finds the former."""
+    |x - g|, while the data's walks take far longer. The largest distance that no step
+    exceeds is the former."""
     g = torch.Generator().manual_seed(0)
     n, steps = 400, 16
     moves = (torch.rand(n, steps, generator=g) * 2 - 1) * 1.5
     x = (torch.rand(n, 1, generator=g) * 20 + torch.cat([torch.zeros(n, 1), moves.cumsum(1)],
                                                         1)).clamp(0, 20)
     line = torch.stack([x / 10, torch.zeros_like(x)], dim=-1)  # (N, T+1, 2) latents
-    actions = torch.stack([moves, torch.zeros_like(moves)], dim=-1)
-    config = CostConfig(steps=1000, batch_size=256, hidden=64, lr=3e-3, target_momentum=0.95)
-    head, history = fit_cost_to_go(line, actions, config, progress=False, group=n)  # one world
+    imagined = line[:, 1:].reshape(n, 1, steps, 2)  # a perfect predictor
+    data = CostData(line, (x[:, 1:] - x[:, :-1]).abs(), imagined, group=n)  # one world
+    config = CostConfig(steps=1000, batch_size=256, hidden=64, dims=4, lr=3e-3, cap=40.0,
+                        imagined=16, trajectory_steps=16)
+    head, history = fit_cost_to_go(data, config, progress=False)
     at = torch.tensor([[0.5, 0.0], [1.0, 0.0], [1.5, 0.0]])  # x = 5, 10, 15
     with torch.no_grad():
         near, far = head(at[1], at[0]), head(at[2], at[0])
-        back, here = head(at[0], at[1]), head(at[1], at[1])
-    assert 4 < near < 6 and 4 < back < 6, (near, back)  # 5 px; a random walk needs ~25
-    assert 8 < far < 12 and here < 1
+        here = head(at[1], at[1])
+    assert 4 < near < 6.5, near  # 5 px; a random walk needs ~25
+    assert 8 < far < 13 and here == 0, (far, here)
+    assert history["violation_px"][-1] < 0.3
 
 
 class Drift(nn.Module):
@@ -117,9 +163,9 @@ def test_a_head_for_other_latents_is_refused():
         WithLearnedCost(Drift(), CostToGo(3))
 
 
-@pytest.mark.parametrize("field, value", [("tau", 0.0), ("target_momentum", 1.0),
-                                          ("hindsight", 1.5), ("steps", 0),
-                                          ("layouts", 30_000), ("layouts", 3)])
+@pytest.mark.parametrize("field, value", [("tolerance", 0.0), ("cap", -1.0),
+                                          ("consistency", -1.0), ("steps", 0), ("dims", 0),
+                                          ("imagined", 48), ("layouts", 3)])
 def test_cost_config_refuses_settings_that_cannot_fit(field, value):
     with pytest.raises(ValueError, match=field):
         CostConfig(**{field: value})
@@ -133,7 +179,8 @@ def test_a_fitted_head_is_saved_once_and_loaded_after(tmp_path, monkeypatch):
                         lambda name: (tmp_path / f"{name}.pt", tmp_path / "none.pt"))
     world = WorldTrainConfig(n_trajectories=8, steps=1)
     model = new_model(world, make_data(world)).eval()
-    config = CostConfig(n_trajectories=4, layouts=2, steps=3, batch_size=16, hidden=8)
+    config = CostConfig(n_trajectories=4, trajectory_steps=8, imagined=4, layouts=2, steps=3,
+                        batch_size=16, hidden=8, dims=4)
     first = cost.cost_head_or_load(model, identity(world), config, "head")
     assert (tmp_path / "head.pt").exists()
     again = cost.cost_head_or_load(model, identity(world), config, "head")

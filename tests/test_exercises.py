@@ -22,8 +22,8 @@ CHECKERS = {
     "epps_pulley_1d": exercises.check_epps_pulley,
     "rollout_loss": exercises.check_rollout_loss,
     "mppi_update": exercises.check_mppi_update,
-    "cost_to_go_targets": exercises.check_cost_to_go_targets,
-    "expectile_loss": exercises.check_expectile_loss,
+    "step_violation": exercises.check_step_violation,
+    "spread_loss": exercises.check_spread_loss,
 }
 
 
@@ -341,17 +341,15 @@ def test_checker_names_each_mistake_it_knows(checker):
 
 
 def test_chapter_07_checkers_accept_a_learner_s_own_right_answers(capsys):
-    def cost_to_go_targets(step_cost, next_to_go, offset, spent):
-        target = step_cost + next_to_go
-        target = torch.where(offset > 0, target.clamp(max=spent), target)
-        return target * (offset != 0)
+    def step_violation(step_distance, step_length):
+        over = (step_distance - step_length).clamp(min=0)
+        return (over * over).sum() / over.numel()
 
-    def expectile_loss(estimate, target, tau):
-        error = target - estimate
-        return (torch.abs(tau - (error < 0).float()) * error**2).mean()
+    def spread_loss(distance, cap):
+        return torch.log1p(torch.exp(cap - distance)).mean()
 
-    assert exercises.check_cost_to_go_targets(cost_to_go_targets) is cost_to_go_targets
-    assert exercises.check_expectile_loss(expectile_loss) is expectile_loss
+    assert exercises.check_step_violation(step_violation) is step_violation
+    assert exercises.check_spread_loss(spread_loss) is spread_loss
     assert capsys.readouterr().out.count("Correct") == 2
 
 

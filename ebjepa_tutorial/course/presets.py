@@ -265,7 +265,8 @@ _BEYOND_CLASS = BeyondPreset(
 _TINY = PlannerConfig(horizon=4, samples=16, elites=2, iterations=2, execute=4)
 _BEYOND_CI = replace(
     _BEYOND_CLASS, two_rooms=_WORLD_CI, three_rooms=replace(_WORLD_CI, walls=2),
-    cost=CostConfig(n_trajectories=200, layouts=10, steps=30, batch_size=64, hidden=32),
+    cost=CostConfig(n_trajectories=200, trajectory_steps=16, layouts=10, steps=30, batch_size=64,
+                    hidden=32, dims=8),
     coarse=CoarseConfig(n_trajectories=200, steps=30, batch_size=64, hidden=32),
     flat=_PLANNER_CI, short=_TINY, learned=replace(_TINY, cost="learned", temperature=1.0),
     low=_TINY, high=(replace(_HIGH, horizon=4, samples=16, elites=2),) * 2,

@@ -1,54 +1,49 @@
-"""The cost-to-go head's loss: temporal differences with hindsight goals (notebook 07).
+"""The cost-to-go head's loss: the largest distance that no observed step exceeds (notebook 07).
 
-The head ``d(z, g)`` should be the length of the SHORTEST path from ``z`` to
-``g``; the offline data only shows random walks. Bellman's equation for the
-shortest path, ``d(s, g) = min_a [c(s, a) + d(s', g)]``, has a minimum over
-actions that the data cannot take. Expectile regression stands in for it: on
-the data's transitions ``(s, a, s')`` the target is
+The head ``d(z, g) = s ||f(z) - f(g)||`` is a distance between embeddings, so it
+obeys the triangle inequality ``d(a, c) <= d(a, b) + d(b, c)`` whatever ``f`` is,
+and a chain of short steps bounds a long way. The length of the shortest way
+between two states is the LARGEST such distance under which no step of the data
+is longer than the px its action asked for: squeeze every observed step, push
+everything else apart (quasimetric RL, Wang et al., 2023):
 
-    y = c(s, a) + dbar(s', g)     (0 when s is the goal)
+    maximise    - mean softplus(C - d(z, g))              over pairs of frames of one layout
+    subject to    mean relu(d(z_t, z_t+1) - |a_t|)^2 <= eps   over the data's steps
 
-lowered, when the goal lies later on the same trajectory, to what the
-trajectory itself spent to get there (a path the data shows exists).
-
-and the head is fitted with an asymmetric square that weights targets below
-the estimate by ``1 - tau`` and those above by ``tau``. With ``tau`` small the
-fit settles near the low end of the targets: the best of the data's ways on,
-not their average. ``dbar`` is a slowly moving copy of the head (the target
-network), so that the regression chases a fixed target between updates.
+The softplus is a smooth hinge: pairs nearer than ``C`` are pushed apart,
+farther ones hardly at all, so the push ends where the steps' constraint holds
+it. A Lagrange multiplier holds the constraint (``training.cost``). Distances
+here are in the head's units (``models.cost.COST_SCALE`` px), which sets how
+soft the hinge is.
 """
 
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 
 
-def expectile_loss(estimate: torch.Tensor, target: torch.Tensor, tau: float) -> torch.Tensor:
-    """``mean(|tau - 1[target < estimate]| * (target - estimate)^2)``, any equal shapes.
-
-    ``tau = 0.5`` is half the mean squared error; ``tau < 0.5`` pulls the estimate
-    towards the low targets (a soft minimum), ``tau > 0.5`` towards the high ones.
-    """
-    if estimate.shape != target.shape:
-        raise ValueError(f"estimate {tuple(estimate.shape)} and target {tuple(target.shape)} "
-                         "must have the same shape")
-    if not 0 < tau < 1:
-        raise ValueError(f"tau must be in (0, 1), got {tau}")
-    error = target - estimate
-    weight = torch.where(error < 0, 1 - tau, tau)
-    return (weight * error.square()).mean()
+def _check_same_shape(a: torch.Tensor, b: torch.Tensor, names: str) -> None:
+    if a.shape != b.shape:
+        raise ValueError(f"{names} must have the same shape, got {tuple(a.shape)} and "
+                         f"{tuple(b.shape)}")
 
 
-def cost_to_go_targets(step_cost: torch.Tensor, next_to_go: torch.Tensor,
-                       offset: torch.Tensor, spent: torch.Tensor) -> torch.Tensor:
-    """TD targets ``(B,)`` for transitions ``s -> s'`` and goals ``offset`` frames after ``s``.
+def spread_loss(distance: torch.Tensor, cap: float) -> torch.Tensor:
+    """``mean(softplus(cap - distance))``: lower as pairs ``(...)`` move apart, flat far past
+    ``cap``."""
+    return F.softplus(cap - distance).mean()
 
-    ``step_cost``: ``c(s, a)``, the px the action spends; ``next_to_go``: ``dbar(s', g)``;
-    ``offset``: how many frames after ``s`` the goal is in the same trajectory (0: ``s``
-    is the goal; -1: a goal from elsewhere, reached only by bootstrapping); ``spent``:
-    the px the trajectory spent from ``s`` to its goal (ignored where ``offset < 1``),
-    which bounds the shortest path from above: the target is the smaller of the two.
-    """
-    bootstrap = step_cost + next_to_go
-    target = torch.where(offset > 0, torch.minimum(bootstrap, spent), bootstrap)
-    return torch.where(offset == 0, 0.0, target)
+
+def step_violation(step_distance: torch.Tensor, step_length: torch.Tensor) -> torch.Tensor:
+    """``mean(relu(step_distance - step_length)^2)``: how far the head stretches the data's
+    steps beyond what their actions asked for (0 when none is longer). Same shapes."""
+    _check_same_shape(step_distance, step_length, "step_distance and step_length")
+    return F.relu(step_distance - step_length).square().mean()
+
+
+def imagination_gap(imagined: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
+    """``mean ||imagined - true||^2`` over embeddings ``(B, k)``: how differently the head reads
+    the predictor's imagined latents and the true ones they stand for."""
+    _check_same_shape(imagined, true, "imagined and true")
+    return (imagined - true).square().sum(dim=-1).mean()

@@ -10,34 +10,37 @@ Planned with it, the cost of a plan is what is left after it:
     S(a_1..a_H) = d(zhat_H, z_goal)
 
 so a short horizon suffices: the head, not the imagined path, sees the door.
+
+The head is a distance between learned embeddings, ``d(z, g) = s ||f(z) - f(g)||``:
+it is 0 from a state to itself, symmetric (the world's moves are reversible) and
+obeys the triangle inequality by construction, so no single estimate can offer a
+shortcut that a chain of others rules out.
 """
 
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
-COST_SCALE = 10.0  # px per output unit: keeps the network's outputs near 1 for 10-100 px
+COST_SCALE = 10.0  # px per unit of embedding distance: keeps f's outputs near 1 for 10-100 px
 
 
 class CostToGo(nn.Module):
     """``d(z, g) >= 0``: the estimated shortest-path length in px from latent ``z`` to ``g``.
 
-    Latents ``(..., D)`` and goals ``(..., D)`` -> ``(...)``. An MLP on
-    ``[z, g, z - g]`` with two GELU layers, then a softplus (never negative).
+    Latents ``(..., D)`` and goals ``(..., D)`` (broadcast) -> ``(...)``:
+    ``COST_SCALE * ||f(z) - f(g)||``, with ``f`` an MLP ``D -> hidden -> hidden -> dims``
+    (GELU).
     """
 
-    def __init__(self, latent_dim: int, hidden: int = 256):
+    def __init__(self, latent_dim: int, hidden: int = 256, dims: int = 32):
         super().__init__()
-        self.latent_dim, self.hidden = latent_dim, hidden
-        self.body = nn.Sequential(nn.Linear(3 * latent_dim, hidden), nn.GELU(),
-                                  nn.Linear(hidden, hidden), nn.GELU(), nn.Linear(hidden, 1))
+        self.latent_dim, self.hidden, self.dims = latent_dim, hidden, dims
+        self.embed = nn.Sequential(nn.Linear(latent_dim, hidden), nn.GELU(),
+                                   nn.Linear(hidden, hidden), nn.GELU(), nn.Linear(hidden, dims))
 
     def forward(self, z: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
-        z, goal = torch.broadcast_tensors(z, goal)
-        x = torch.cat([z, goal, z - goal], dim=-1)
-        return COST_SCALE * F.softplus(self.body(x)).squeeze(-1)
+        return COST_SCALE * (self.embed(z) - self.embed(goal)).norm(dim=-1)
 
 
 class WithLearnedCost(nn.Module):

@@ -1,137 +1,167 @@
 """Fit a cost-to-go head on a frozen world model's latents (notebook 07).
 
 The world model is not changed: its encoder turns fresh data-policy
-trajectories into latents once, and the head (``models.cost.CostToGo``) is
-fitted on them by temporal differences with hindsight goals
-(``losses.cost``). Half the goals (``hindsight``) are frames later in the same
-trajectory, whose distance the data itself bounds; the rest are frames of
-other trajectories in the same layout (a distance between two layouts means
-nothing), which the head can only learn by chaining estimates: the long way
-round the wall is learned from short pieces. So the trajectories come in
-groups that share a layout.
+trajectories into latents once, its predictor imagines short rollouts of them
+once, and the head (``models.cost.CostToGo``) is fitted on those by the rule of
+``losses.cost``: pairs of frames of one layout pushed apart, each observed step
+held within its action's length by a Lagrange multiplier. The trajectories come
+in groups that share a layout (a distance between two layouts means nothing),
+long enough to cross a room, and a quarter start at a wall heading in.
+
+A planner scores the head on the predictor's IMAGINED latents, and MPPI seeks
+out any plan whose imagined latents the head reads as progress. Pushed into a
+wall the predictor drifts a little; so the fit also asks the head to read each
+imagined latent as the true one it stands for (``consistency``).
 """
 
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
+from torch import nn
 
 from ..envs import generate_trajectories, random_layouts
-from ..losses.cost import cost_to_go_targets, expectile_loss
-from ..models.cost import CostToGo
+from ..losses.cost import imagination_gap, spread_loss, step_violation
+from ..models.cost import COST_SCALE, CostToGo
 from ..models.world import WorldModel, trajectory_latents
 from ..utils import check_fields, is_int_at_least, is_positive
 from .checkpoints import run_identity
 from .loop import History, fit, load_or_fit, step_generator
-from .world import upgrade_base
+from .world import WALL_FRACTION_RULE, upgrade_base
 
 
 @dataclass(frozen=True)
 class CostConfig:
     """How a cost-to-go head is fitted. The defaults are notebook 07's class run."""
 
-    n_trajectories: int = 20_000  # fresh data-policy trajectories, encoded once
+    n_trajectories: int = 5_000  # fresh data-policy trajectories, encoded once
+    trajectory_steps: int = 64  # long enough for a random walk to cross a room
     layouts: int = 500  # distinct layouts, each shared by n_trajectories / layouts of them
+    wall_fraction: float = 0.25  # trajectories that start in front of a wall, heading in
     steps: int = 4000  # Adam steps
-    batch_size: int = 1024
+    batch_size: int = 1024  # pairs, steps and imagined latents, each
     lr: float = 1e-3
     hidden: int = 256
-    tau: float = 0.1  # the expectile: small = the shortest of the data's ways on
-    target_momentum: float = 0.99  # dbar <- m * dbar + (1 - m) * d after every step
-    hindsight: float = 0.5  # share of goals later in the same trajectory
+    dims: int = 32  # the embedding whose distance is the cost
+    cap: float = 150.0  # px: pairs farther apart are hardly pushed (the softplus's hinge)
+    tolerance: float = 0.1  # px: the root mean square by which steps may exceed their action
+    multiplier_lr: float = 1e-2  # gradient ascent on the Lagrange multiplier
+    consistency: float = 10.0  # weight of the imagined latents' gap (0: none)
+    imagined: int = 16  # steps of each imagined rollout (trajectory_steps is a multiple)
     walls: int = 1  # 1: Two Rooms; 2: Three Rooms
     seed: int = 7
 
     def __post_init__(self):
         check_fields(self, {name: (is_int_at_least(1), "an int >= 1") for name in
-                            ("n_trajectories", "layouts", "steps", "batch_size",
-                             "hidden")})
+                            ("n_trajectories", "trajectory_steps", "layouts", "steps",
+                             "batch_size", "hidden", "dims", "imagined")})
         if self.n_trajectories % self.layouts:
             raise ValueError(f"n_trajectories ({self.n_trajectories}) must be a multiple of "
                              f"layouts ({self.layouts}): each layout has as many trajectories")
-        check_fields(self, {"lr": (is_positive, "a number > 0")})
-        for name in ("tau", "target_momentum", "hindsight"):
-            if not 0 < getattr(self, name) < 1:
-                raise ValueError(f"{name} must be in (0, 1), got {getattr(self, name)}")
+        if self.trajectory_steps % self.imagined:
+            raise ValueError(f"trajectory_steps ({self.trajectory_steps}) must be a multiple of "
+                             f"imagined ({self.imagined}): each trajectory is imagined in pieces")
+        check_fields(self, {name: (is_positive, "a number > 0") for name in
+                            ("lr", "cap", "tolerance", "multiplier_lr")})
+        check_fields(self, {"wall_fraction": WALL_FRACTION_RULE})
+        if not self.consistency >= 0:
+            raise ValueError(f"consistency must be >= 0 (0: none), got {self.consistency}")
 
 
-def sample_goals(latents: torch.Tensor, actions: torch.Tensor, batch: int, hindsight: float,
-                 generator: torch.Generator, group: int = 1):
-    """One batch of transitions with goals, from latents ``(N, T+1, D)`` and actions ``(N, T, A)``.
+@dataclass
+class CostData:
+    """What the head is fitted on, in groups of ``group`` trajectories that share a layout.
 
-    Trajectories ``k * group .. (k + 1) * group - 1`` share a layout; a goal that is not
-    later on its own trajectory is a frame of one of its group's.
-
-    Returns ``z (B, D)``, ``z_next (B, D)``, ``goal (B, D)``, ``step_cost (B,)`` (the
-    action's length, px), ``offset (B,)`` and ``spent (B,)`` (see
-    :func:`~ebjepa_tutorial.losses.cost.cost_to_go_targets`).
+    ``latents (N, T+1, D)``, ``lengths (N, T)`` (px each action asks for) and
+    ``imagined (N, T // k, k, D)``: the predictor's rollout of each piece of ``k`` steps
+    from its first true latent, so ``imagined[n, p, j]`` stands for ``latents[n, p*k + j + 1]``.
     """
+
+    latents: torch.Tensor
+    lengths: torch.Tensor
+    imagined: torch.Tensor
+    group: int
+
+
+@torch.no_grad()
+def cost_data(model: WorldModel, config: CostConfig) -> CostData:
+    """Fresh trajectories of ``config``, encoded and imagined by ``model`` (frozen)."""
+    generator = torch.Generator().manual_seed(config.seed)
+    group = config.n_trajectories // config.layouts
+    layouts = random_layouts(config.layouts, generator, config.walls)
+    data = generate_trajectories(config.n_trajectories, config.trajectory_steps, generator,
+                                 wall_fraction=config.wall_fraction,
+                                 layouts=layouts.repeat_interleave(group, dim=0))
+    latents, k = trajectory_latents(model, data), config.imagined
+    imagined = torch.stack([model.rollout(latents[:, s], data.actions[:, s: s + k])
+                            for s in range(0, config.trajectory_steps, k)], dim=1)
+    return CostData(latents, data.actions.norm(dim=-1), imagined, group)
+
+
+def sample_batch(data: CostData, batch: int, generator: torch.Generator):
+    """One batch: ``z (B, D)``, ``z_next (B, D)``, ``length (B,)`` (a step of the data);
+    ``other (B, D)``, a frame of a trajectory in ``z``'s layout group; ``imagined (B, D)`` and
+    ``true (B, D)``, an imagined latent of the same trajectory and the one it stands for."""
+    latents = data.latents
     n, frames, _ = latents.shape
     i = torch.randint(0, n, (batch,), generator=generator)
     t = torch.randint(0, frames - 1, (batch,), generator=generator)
-    later = (torch.rand(batch, generator=generator) * (frames - t)).long()  # 0..T-t
-    own = torch.rand(batch, generator=generator) < hindsight
-    other_i = i // group * group + torch.randint(0, group, (batch,), generator=generator)
-    other_t = torch.randint(0, frames, (batch,), generator=generator)
-    goal = torch.where(own[:, None], latents[i, t + later],
-                       latents[other_i, other_t])
-    offset = torch.where(own, later, -1)
-    lengths = actions.norm(dim=-1)  # (N, T)
-    spent = torch.cat([lengths.new_zeros(n, 1), lengths.cumsum(dim=1)], dim=1)  # (N, T+1)
-    spent = spent[i, t + later] - spent[i, t]
-    return latents[i, t], latents[i, t + 1], goal, lengths[i, t], offset, spent
+    j = i // data.group * data.group + torch.randint(0, data.group, (batch,), generator=generator)
+    u = torch.randint(0, frames, (batch,), generator=generator)
+    pieces, k = data.imagined.shape[1:3]
+    p = torch.randint(0, pieces, (batch,), generator=generator)
+    s = torch.randint(0, k, (batch,), generator=generator)
+    return (latents[i, t], latents[i, t + 1], data.lengths[i, t], latents[j, u],
+            data.imagined[i, p, s], latents[i, p * k + s + 1])
 
 
-class TargetCopy:
-    """The slowly moving copy ``dbar`` of a head, updated after every optimiser step."""
+class Multiplier(nn.Module):
+    """The Lagrange multiplier ``lambda = 100 softplus(raw) > 0`` of the steps' constraint."""
 
-    def __init__(self, head: CostToGo, momentum: float):
-        self.head, self.momentum = head, momentum
-        self.copy = copy.deepcopy(head).requires_grad_(False)
+    def __init__(self):
+        super().__init__()
+        self.raw = nn.Parameter(torch.zeros(()))
 
-    @torch.no_grad()
-    def __call__(self, step: int) -> None:
-        for mine, theirs in zip(self.copy.parameters(), self.head.parameters()):
-            mine.lerp_(theirs, 1 - self.momentum)
+    def forward(self) -> torch.Tensor:
+        return 100 * F.softplus(self.raw)
+
+
+def cost_objective(head: CostToGo, multiplier: Multiplier, batch, config: CostConfig):
+    """``(loss, terms)`` of one batch. Descending the loss fits the head and, through
+    ``-lambda (violation - eps)``, raises lambda while the steps are too long (gradient
+    ascent on the multiplier) and lowers it once they hold."""
+    z, z_next, length, other, imagined, true = batch
+    lam, eps = multiplier(), (config.tolerance / COST_SCALE) ** 2
+    violation = step_violation(head(z, z_next) / COST_SCALE, length / COST_SCALE)
+    loss = (spread_loss(head(z, other) / COST_SCALE, config.cap / COST_SCALE)
+            + lam.detach() * violation - lam * (violation.detach() - eps))
+    if config.consistency:
+        loss = loss + config.consistency * imagination_gap(head.embed(imagined), head.embed(true))
+    return loss, {"violation_px": violation.detach().sqrt() * COST_SCALE,
+                  "multiplier": lam.detach()}
 
 
 def fit_cost_head(model: WorldModel, config: CostConfig = CostConfig(),
                   progress: bool = True) -> tuple[CostToGo, History]:
     """A :class:`CostToGo` fitted on ``model``'s frozen latents; returns ``(head, history)``."""
-    generator = torch.Generator().manual_seed(config.seed)
-    group = config.n_trajectories // config.layouts
-    layouts = random_layouts(config.layouts, generator, config.walls)
-    data = generate_trajectories(config.n_trajectories, seed=generator,
-                                 layouts=layouts.repeat_interleave(group, dim=0))
-    return fit_cost_to_go(trajectory_latents(model, data), data.actions, config, progress,
-                          group)
+    return fit_cost_to_go(cost_data(model, config), config, progress)
 
 
-def fit_cost_to_go(latents: torch.Tensor, actions: torch.Tensor, config: CostConfig,
-                   progress: bool = True, group: int = 1) -> tuple[CostToGo, History]:
-    """Fit a head on trajectories of latents ``(N, T+1, D)`` and their actions ``(N, T, A)``,
-    in groups of ``group`` consecutive trajectories that share a layout (:func:`sample_goals`).
-    """
+def fit_cost_to_go(data: CostData, config: CostConfig,
+                   progress: bool = True) -> tuple[CostToGo, History]:
+    """Fit a head on ``data`` (:func:`cost_data`) by :func:`cost_objective`."""
     torch.manual_seed(config.seed)
-    head = CostToGo(latents.shape[-1], config.hidden)
-    target = TargetCopy(head, config.target_momentum)
-    optimizer = torch.optim.Adam(head.parameters(), lr=config.lr)
-
-    def batch(step: int):
-        generator = step_generator(config.seed, step)
-        return sample_goals(latents, actions, config.batch_size, config.hindsight, generator,
-                            group)
-
-    def loss(pairs):
-        z, z_next, goal, step_cost, offset, spent = pairs
-        with torch.no_grad():
-            y = cost_to_go_targets(step_cost, target.copy(z_next, goal), offset, spent)
-        return expectile_loss(head(z, goal), y, config.tau), {}
-
-    history = fit(head, optimizer, loss, batch, config.steps, log_every=50,
-                  desc="cost-to-go", progress=progress, after_step=target)
+    head, multiplier = CostToGo(data.latents.shape[-1], config.hidden, config.dims), Multiplier()
+    optimizer = torch.optim.Adam([{"params": head.parameters()},
+                                  {"params": multiplier.parameters(),
+                                   "lr": config.multiplier_lr}], lr=config.lr)
+    history = fit(head, optimizer,
+                  lambda batch: cost_objective(head, multiplier, batch, config),
+                  lambda step: sample_batch(data, config.batch_size,
+                                            step_generator(config.seed, step)),
+                  config.steps, log_every=50, desc="cost-to-go", progress=progress)
     return head.eval(), history
 
 
@@ -140,6 +170,6 @@ def cost_head_or_load(model: WorldModel, base: dict, config: CostConfig,
     """The head of ``config`` on ``model`` (trained by the run whose identity is ``base``):
     loaded from ``checkpoints/<name>.pt`` or the cache if it was saved, else fitted and
     saved to the cache. In eval mode, on the CPU."""
-    return load_or_fit(name, CostToGo(model.latent_dim, config.hidden),
+    return load_or_fit(name, CostToGo(model.latent_dim, config.hidden, config.dims),
                        lambda: fit_cost_head(model, config), run_identity(config, base=base),
                        upgrade=upgrade_base)

@@ -10,7 +10,7 @@ the lesson depends on a gradient, the gradient is compared too. One module per
 chapter's exercises.
 """
 
-from .beyond import check_cost_to_go_targets, check_expectile_loss
+from .beyond import check_spread_loss, check_step_violation
 from .common import Case, ExerciseError, compare
 from .planning import check_mppi_update
 from .sigreg import check_epps_pulley
@@ -27,13 +27,13 @@ from .world_model import check_inverse_dynamics, check_temporal_similarity
 __all__ = [
     "Case",
     "ExerciseError",
-    "check_cost_to_go_targets",
     "check_covariance_term",
     "check_epps_pulley",
-    "check_expectile_loss",
     "check_inverse_dynamics",
     "check_mppi_update",
     "check_rollout_loss",
+    "check_spread_loss",
+    "check_step_violation",
     "check_temporal_similarity",
     "check_variance_term",
     "check_vicreg",
