@@ -63,8 +63,8 @@ def test_the_objective_on_a_hand_made_trajectory():
     violation = (1 / COST_SCALE) ** 2 / 3  # only the last step: 1 px over, in head units
     assert terms["violation_px"] == pytest.approx(COST_SCALE * violation ** 0.5)
     spread = sum(math.log(1 + math.exp(15 - d / 10)) for d in (6.0, 1.0, 1.0)) / 3
-    assert loss.item() == pytest.approx(spread + 100 * math.log(2) * (
-        violation - violation + (0.5 / COST_SCALE) ** 2))
+    # lambda * violation - lambda * (violation - eps) leaves lambda * eps; lambda = 100 log 2
+    assert loss.item() == pytest.approx(spread + 100 * math.log(2) * (0.5 / COST_SCALE) ** 2)
     loss.backward()  # violation (1/300) above eps (1/400): the multiplier must rise
     assert multiplier.raw.grad < 0
     # within tolerance (every step <= its action): the multiplier falls
