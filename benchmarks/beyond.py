@@ -8,7 +8,7 @@ class model; ``2``: Three Rooms with ``checkpoints/world_model_three_rooms_class
 one episode per seed from ``--first-seed`` (layout, start and goal in the outer
 rooms, and the planner's noise all come from the seed); success when the dot
 ends within 4.5 px of the goal at the end of the world's step budget (200 and
-300 steps). The planners are notebook 07's at class scale
+120 steps). The planners are notebook 07's at class scale
 (``course.presets.preset("07", "class")``); the cost head and the coarse model
 are loaded from ``checkpoints/`` or the cache, or fitted on the world model's
 frozen latents (minutes). Each row: the success rate, its Wilson 95% interval
@@ -29,7 +29,7 @@ from ebjepa_tutorial.commands import fit_beyond
 from ebjepa_tutorial.course import reference
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.models.cost import WithLearnedCost
-from ebjepa_tutorial.planning import TwoLevel, run_episodes
+from ebjepa_tutorial.planning import TwoLevel, fit_coarse_with_visits, run_episodes
 from ebjepa_tutorial.training.cost import cost_head_or_load
 from ebjepa_tutorial.training.hierarchy import coarse_or_load
 from ebjepa_tutorial.training.runs import train_or_load
@@ -47,7 +47,8 @@ def planners(walls: int) -> dict:
     model, _ = train_or_load(config, name, device="cpu")
     cost, coarse = fit_beyond.fit_configs(world, "class")
     head = cost_head_or_load(model, identity(config), cost, f"cost_head_{world}_class")
-    coarse = coarse_or_load(model, identity(config), coarse, f"coarse_{world}_class")
+    coarse = coarse_or_load(model, identity(config), coarse, f"coarse_{world}_class",
+                            fit_coarse_with_visits)
     return {"flat": (model, cfg.flat, None), "short": (model, cfg.short, None),
             "learned_cost": (WithLearnedCost(model, head), cfg.learned, None),
             "two_level": (model, cfg.low, TwoLevel(coarse, cfg.high[walls - 1], cfg.lookahead,

@@ -40,6 +40,9 @@ exactly by rerunning its whole batch with the same thread count; played
 alone or in another batch it is the same computation and agrees up to that
 rounding. With dynamics evaluated exactly per row (:class:`TrueDynamics`)
 an episode gives the same path alone and in any batch.
+
+Notebook 07 adds a two-level planner (:class:`TwoLevel`) and fits its coarse
+model again on that planner's own episodes (:func:`fit_coarse_with_visits`).
 """
 
 from __future__ import annotations
@@ -57,6 +60,7 @@ from .envs import (
     MAX_STEP,
     SUCCESS_RADIUS,
     Episodes,
+    Trajectories,
     TwoRoomsEnv,
     clip_actions,
     make_episodes,
@@ -72,6 +76,10 @@ from .envs.two_rooms import (
     wall_collision,
 )
 from .evaluation.metrics import wilson_interval
+from .models.hierarchy import CoarseModel
+from .models.world import trajectory_latents
+from .training.hierarchy import CoarseConfig, coarse_data, fit_coarse_on, windows
+from .training.loop import History
 from .utils import check_fields, is_int_at_least, is_positive
 
 METHODS = ("mppi", "cem")
@@ -415,6 +423,7 @@ class EpisodeResults:
     seeds: list[int]
     episodes: Episodes
     paths: torch.Tensor  # (B, steps + 1, 2) dot positions, start first
+    actions: torch.Tensor  # (B, steps, 2) what the agent asked; action t moved paths[:, t]
     success: torch.Tensor  # (B,) bool: within SUCCESS_RADIUS of the goal at the end
     first_arrival: torch.Tensor  # (B,) long: first step within the radius, -1 if never
     cpu_seconds: float  # process CPU time of the whole batch
@@ -427,16 +436,22 @@ class EpisodeResults:
             return torch.cat([getattr(p, name) for p in parts])
 
         episodes = Episodes.concat([p.episodes for p in parts])
-        return cls([s for p in parts for s in p.seeds], episodes, cat("paths"), cat("success"),
-                   cat("first_arrival"), sum(p.cpu_seconds for p in parts),
+        return cls([s for p in parts for s in p.seeds], episodes, cat("paths"), cat("actions"),
+                   cat("success"), cat("first_arrival"), sum(p.cpu_seconds for p in parts),
                    sum(p.wall_seconds for p in parts))
 
     def first(self, n: int) -> EpisodeResults:
         """The first ``n`` episodes (times: this batch's, pro rata)."""
         share = n / len(self.seeds)
-        return EpisodeResults(self.seeds[:n], self.episodes[:n], self.paths[:n], self.success[:n],
-                              self.first_arrival[:n], self.cpu_seconds * share,
-                              self.wall_seconds * share)
+        return EpisodeResults(self.seeds[:n], self.episodes[:n], self.paths[:n],
+                              self.actions[:n], self.success[:n], self.first_arrival[:n],
+                              self.cpu_seconds * share, self.wall_seconds * share)
+
+    def as_trajectories(self) -> Trajectories:
+        """The episodes as offline data: what the agent saw and did, as
+        :func:`~ebjepa_tutorial.envs.generate_trajectories` stores a random walk."""
+        return Trajectories(self.paths, self.actions, self.episodes.layouts,
+                            torch.zeros(len(self.seeds), dtype=torch.bool))
 
     @property
     def success_rate(self) -> float:
@@ -509,7 +524,7 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig = PlannerCon
     Episode ``seed`` draws its layout, start and goal (the two outer rooms) and
     then its planner's noise from ``torch.Generator().manual_seed(seed)``.
     ``walls``: 1 for Two Rooms, 2 for Three Rooms. ``steps``: the episode's
-    length; None gives the world's step budget (200 steps with one wall, 300
+    length; None gives the world's step budget (200 steps with one wall, 120
     with two: :func:`~ebjepa_tutorial.envs.step_budget`). ``batch``
     episodes run at once (default: all of them); the same batches and thread
     count reproduce the paths exactly (other batches: see the module docstring
@@ -558,12 +573,14 @@ def _run_batch(model, seeds: list[int], config: PlannerConfig, steps: int | None
     steps = env.step_budget if steps is None else steps
     agent = _Agent(model, env, world, config, generators, arrived, two_level)
     paths, first = [env.positions.cpu()], torch.full((len(seeds),), -1, dtype=torch.long)
+    actions = []
     while env.steps_taken < steps:
         for action in agent.act(observation)[:, : steps - env.steps_taken].unbind(1):
             observation = env.step(action)
             paths.append(env.positions.cpu())
+            actions.append(action.cpu())
             first[(first < 0) & env.success(radius).cpu()] = env.steps_taken
-    return EpisodeResults(seeds, episodes, torch.stack(paths, dim=1),
+    return EpisodeResults(seeds, episodes, torch.stack(paths, dim=1), torch.stack(actions, dim=1),
                           env.success(radius).cpu(), first,
                           time.process_time() - cpu, time.perf_counter() - wall)
 
@@ -745,3 +762,58 @@ def energy_by_distance(model, episodes: Episodes, edges=(0, 5, 10, 15, 20, 30, 4
         sums += torch.bincount(ring[keep], energy[free][keep], minlength=rings).float()
         counts += torch.bincount(ring[keep], minlength=rings).float()
     return sums / counts
+
+
+# -- a coarse model that learns from its own planner (notebook 07) --------------------------
+@dataclass(frozen=True)
+class CoarseFit:
+    """The coarse model's fit on ``coarse``'s random walks, then again with the episodes of
+    the two-level planner built on the first fit added (DAgger, Ross et al., 2011).
+
+    A planner seeks out what its model gets wrong, a long macro-action into a wall beside
+    a door, and random walks rarely go there; the planner's own episodes show the model
+    what really happens where it is asked. The planner: ``low`` and a :class:`TwoLevel` of
+    ``high``, ``lookahead`` and ``reach_px``. It plays ``episodes`` episodes of ``steps``
+    steps (seeds from ``first_seed``, a range no evaluation uses), cut into windows as long
+    as the walks, one starting every ``every`` steps.
+    """
+
+    coarse: CoarseConfig
+    low: PlannerConfig
+    high: PlannerConfig
+    lookahead: int
+    reach_px: float
+    episodes: int = 300
+    steps: int = 200
+    every: int = 8
+    first_seed: int = 40_000
+    batch: int = 10  # episodes played at once
+
+    def __post_init__(self):
+        check_fields(self, {name: (is_int_at_least(1), "an int >= 1") for name in
+                            ("lookahead", "episodes", "steps", "every", "batch")})
+
+
+def fit_coarse_with_visits(model, config: CoarseFit,
+                           progress: bool = True) -> tuple[CoarseModel, History]:
+    """A coarse model fitted on ``model``'s frozen latents of random walks and of its own
+    planner's episodes: ``(coarse, history of the second fit)``."""
+    latents, actions = coarse_data(model, config.coarse)
+    first, _ = fit_coarse_on(latents, actions, config.coarse, progress)
+    z, a = planner_windows(model, first, config, actions.shape[1])
+    return fit_coarse_on(torch.cat([latents, z]), torch.cat([actions, a]), config.coarse,
+                         progress)
+
+
+def planner_windows(model, coarse: CoarseModel, config: CoarseFit,
+                    length: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The episodes of the two-level planner on ``coarse``, cut into windows of ``length``
+    actions: ``(latents (W, length + 1, D), actions (W, length, 2))``."""
+    seeds = range(config.first_seed, config.first_seed + config.episodes)
+    coarse = copy.deepcopy(coarse).to(next(model.parameters()).device)  # plans beside model
+    two_level = TwoLevel(coarse, config.high, config.lookahead, config.reach_px)
+    played = run_episodes(model, seeds, config.low, config.steps, batch=config.batch,
+                          walls=config.coarse.walls, two_level=two_level).as_trajectories()
+    latents = trajectory_latents(model, played)  # (E, steps + 1, D)
+    return (windows(latents, length + 1, config.every),
+            windows(played.actions, length, config.every))

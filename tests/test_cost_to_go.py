@@ -210,6 +210,7 @@ def test_calibration_sets_the_straight_distance_against_the_way_round_the_walls(
 def test_the_fit_command_writes_files_that_the_notebook_then_loads(tmp_path, monkeypatch, capsys):
     from ebjepa_tutorial.commands import fit_beyond
     from ebjepa_tutorial.course.presets import preset
+    from ebjepa_tutorial.planning import fit_coarse_with_visits
     from ebjepa_tutorial.training.cost import cost_head_or_load
     from ebjepa_tutorial.training.hierarchy import coarse_or_load
     from ebjepa_tutorial.training.runs import train_or_load
@@ -224,5 +225,6 @@ def test_the_fit_command_writes_files_that_the_notebook_then_loads(tmp_path, mon
     capsys.readouterr()
     cost_head_or_load(model, identity(config), replace(cfg.cost, walls=2),
                       "cost_head_three_rooms_ci")
-    coarse_or_load(model, identity(config), replace(cfg.coarse, walls=2), "coarse_three_rooms_ci")
+    coarse_or_load(model, identity(config), cfg.coarse_fit(2), "coarse_three_rooms_ci",
+                   fit_coarse_with_visits)
     assert capsys.readouterr().out.count("Loaded a trained model") == 2  # nothing refitted

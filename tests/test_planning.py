@@ -9,7 +9,7 @@ import torch
 from torch import nn
 
 from ebjepa_tutorial import planning
-from ebjepa_tutorial.envs import SUCCESS_RADIUS, render
+from ebjepa_tutorial.envs import SUCCESS_RADIUS, clip_actions, render
 from ebjepa_tutorial.envs.two_rooms import transition
 from ebjepa_tutorial.evaluation.metrics import wilson_interval
 from ebjepa_tutorial.planning import PlannerConfig
@@ -382,9 +382,24 @@ def test_plot_energy_shapes_draws_each_profile_over_its_ring_middles_scaled_to_1
     matplotlib.pyplot.close(ax.figure)
 
 
+def test_episodes_keep_the_actions_that_replay_their_paths():
+    """What the agent asked, moved by the world's transition, is the path it took, walls
+    included (the linear model plans straight through them): offline data, as
+    ``generate_trajectories`` stores a random walk."""
+    config = planning.PlannerConfig(horizon=8, samples=32, elites=4, iterations=2, execute=4)
+    played = planning.run_episodes(LinearLatentModel(), [10, 11], config, steps=40,
+                                   walls=2).as_trajectories()
+    assert played.actions.shape == (2, 40, 2) and played.positions.shape == (2, 41, 2)
+    for t in range(40):
+        moved = transition(played.positions[:, t], played.actions[:, t], played.layouts)
+        assert torch.equal(moved, played.positions[:, t + 1])
+    asked = clip_actions(played.actions).norm(dim=-1)
+    assert (played.positions.diff(dim=1).norm(dim=-1) < asked - 0.5).any()  # a wall stopped it
+
+
 def test_a_summary_with_no_arrival_says_so_instead_of_nan():
     episodes, _ = planning.episode_generators([0, 1])
-    result = planning.EpisodeResults([0, 1], episodes, torch.zeros(2, 3, 2),
+    result = planning.EpisodeResults([0, 1], episodes, torch.zeros(2, 3, 2), torch.zeros(2, 2, 2),
                                      torch.zeros(2, dtype=torch.bool), torch.tensor([-1, -1]),
                                      cpu_seconds=1.0, wall_seconds=1.0)
     assert "no episode reached the goal" in result.summary() and "nan" not in result.summary()

@@ -9,8 +9,15 @@ from torch import nn
 
 from ebjepa_tutorial.envs import MAX_STEP, clip_actions
 from ebjepa_tutorial.models.hierarchy import CoarseModel, macro_actions
-from ebjepa_tutorial.planning import PlannerConfig, TwoLevel, plan, run_episodes, shift_plan
-from ebjepa_tutorial.training.hierarchy import CoarseConfig, fit_coarse_on
+from ebjepa_tutorial.planning import (
+    CoarseFit,
+    PlannerConfig,
+    TwoLevel,
+    plan,
+    run_episodes,
+    shift_plan,
+)
+from ebjepa_tutorial.training.hierarchy import CoarseConfig, fit_coarse_on, windows
 
 
 class Drift(nn.Module):
@@ -36,6 +43,16 @@ def test_macro_actions_sum_each_stride():
     actions = torch.arange(12.0).view(1, 6, 2)
     assert macro_actions(actions, 3).tolist() == [[[6.0, 9.0], [24.0, 27.0]]]
     assert macro_actions(actions, 4).shape == (1, 1, 2)  # the last 2 steps make no macro
+
+
+def test_windows_start_every_few_steps_and_keep_their_length():
+    x = torch.arange(10.0).view(1, 10, 1) + torch.tensor([0.0, 100.0]).view(2, 1, 1)
+    cut = windows(x, 4, 3)  # (2 sequences x 3 windows, 4, 1): starts 0, 3 and 6
+    assert cut[..., 0].tolist() == [[0, 1, 2, 3], [3, 4, 5, 6], [6, 7, 8, 9],
+                                    [100, 101, 102, 103], [103, 104, 105, 106],
+                                    [106, 107, 108, 109]]
+    with pytest.raises(ValueError, match="no window of 11"):
+        windows(x, 11, 1)
 
 
 def test_two_levels_reach_a_far_goal_under_a_known_linear_model():
@@ -104,3 +121,5 @@ def test_settings_a_two_level_planner_cannot_use_are_refused():
         CoarseConfig(wall_fraction=0.9)
     with pytest.raises(ValueError, match="step_mean"):
         CoarseConfig(step_mean=0)
+    with pytest.raises(ValueError, match="every"):
+        CoarseFit(CoarseConfig(), LOW, HIGH, lookahead=2, reach_px=4.5, every=0)

@@ -18,14 +18,14 @@ from dataclasses import replace
 from pathlib import Path
 
 from ..course.presets import SCALES, preset
+from ..planning import fit_coarse_with_visits
 from ..training.checkpoints import run_identity, save_checkpoint
 from ..training.cost import fit_cost_head
-from ..training.hierarchy import fit_coarse_model
 from ..training.runs import train_or_load
 from ..training.world import identity
 
 WORLDS = {"two_rooms": 1, "three_rooms": 2}
-FITS = {"cost_head": fit_cost_head, "coarse": fit_coarse_model}
+FITS = {"cost_head": fit_cost_head, "coarse": fit_coarse_with_visits}
 
 
 def world_run(world: str, scale: str):
@@ -36,9 +36,9 @@ def world_run(world: str, scale: str):
 
 
 def fit_configs(world: str, scale: str):
-    """``(CostConfig, CoarseConfig)``: notebook 07's fits for ``world`` at ``scale``."""
+    """``(CostConfig, planning.CoarseFit)``: notebook 07's fits for ``world`` at ``scale``."""
     cfg, walls = preset("07", scale), WORLDS[world]
-    return replace(cfg.cost, walls=walls), replace(cfg.coarse, walls=walls)
+    return replace(cfg.cost, walls=walls), cfg.coarse_fit(walls)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -1,7 +1,12 @@
-"""Fit a coarse model (``models.hierarchy``) on a frozen world model's latents (notebook 07)."""
+"""Fit a coarse model (``models.hierarchy``) on a frozen world model's latents (notebook 07).
+
+Fitted on the data policy's random walks here; ``planning.fit_coarse_with_visits``
+fits it again with its own planner's episodes added (a layer up: it plays the planner).
+"""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -44,12 +49,26 @@ class CoarseConfig:
                             "wall_fraction": WALL_FRACTION_RULE})
 
 
+def coarse_data(model: WorldModel, config: CoarseConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """Fresh random walks of ``config`` on ``model``'s frozen latents: ``(latents (N, T+1, D),
+    actions (N, T, 2))``."""
+    data = generate_trajectories(config.n_trajectories, seed=config.seed, walls=config.walls,
+                                 step_mean=config.step_mean, wall_fraction=config.wall_fraction)
+    return trajectory_latents(model, data), data.actions
+
+
 def fit_coarse_model(model: WorldModel, config: CoarseConfig = CoarseConfig(),
                      progress: bool = True) -> tuple[CoarseModel, History]:
     """A :class:`CoarseModel` fitted on ``model``'s frozen latents; ``(coarse, history)``."""
-    data = generate_trajectories(config.n_trajectories, seed=config.seed, walls=config.walls,
-                                 step_mean=config.step_mean, wall_fraction=config.wall_fraction)
-    return fit_coarse_on(trajectory_latents(model, data), data.actions, config, progress)
+    return fit_coarse_on(*coarse_data(model, config), config, progress)
+
+
+def windows(x: torch.Tensor, length: int, every: int) -> torch.Tensor:
+    """Windows of ``length`` along the time axis, one starting every ``every`` steps:
+    ``(N, T, F) -> (N * W, length, F)`` with ``W = (T - length) // every + 1``."""
+    if x.shape[1] < length:
+        raise ValueError(f"sequences of {x.shape[1]} steps hold no window of {length}")
+    return x.unfold(1, length, every).transpose(-1, -2).flatten(0, 1)
 
 
 def fit_coarse_on(latents: torch.Tensor, actions: torch.Tensor, config: CoarseConfig,
@@ -79,11 +98,16 @@ def fit_coarse_on(latents: torch.Tensor, actions: torch.Tensor, config: CoarseCo
     return coarse.eval(), history
 
 
-def coarse_or_load(model: WorldModel, base: dict, config: CoarseConfig,
-                   name: str) -> CoarseModel:
+def coarse_or_load(model: WorldModel, base: dict, config, name: str,
+                   fit: Callable = fit_coarse_model) -> CoarseModel:
     """The coarse model of ``config`` on ``model`` (trained by the run whose identity is
     ``base``): loaded from ``checkpoints/<name>.pt`` or the cache if it was saved, else
-    fitted and saved to the cache. In eval mode, on the CPU."""
-    return load_or_fit(name, CoarseModel(model.latent_dim, config.stride, config.hidden),
-                       lambda: fit_coarse_model(model, config), run_identity(config, base=base),
+    fitted by ``fit(model, config)`` and saved to the cache. In eval mode, on the CPU.
+
+    ``config``: a :class:`CoarseConfig`, or a fit one layer up that holds one as
+    ``config.coarse`` (``planning.CoarseFit``, fitted by ``planning.fit_coarse_with_visits``).
+    """
+    shape = getattr(config, "coarse", config)
+    return load_or_fit(name, CoarseModel(model.latent_dim, shape.stride, shape.hidden),
+                       lambda: fit(model, config), run_identity(config, base=base),
                        upgrade=upgrade_base)
