@@ -7,7 +7,7 @@ Protocol: one episode per seed ``first_seed .. first_seed + episodes - 1``
 (layout, start and goal in opposite rooms, and the planner's noise all come
 from that seed); success when the dot ends within 4.5 px of the goal after
 200 steps. ``--walls 2`` plays Three Rooms instead (start and goal in the
-outer rooms, 300 steps; ``--steps`` sets another length) with a model
+outer rooms, 120 steps; ``--steps`` sets another length) with a model
 trained there. Episodes run ``--batch`` at a time. Prints the success rate with
 its Wilson 95% interval, the mean first-arrival step (episodes that
 arrived), and process CPU seconds per episode (all threads counted). Last
@@ -58,7 +58,7 @@ def main() -> None:
     parser.add_argument("--walls", type=int, choices=sorted(WALL_X_RANGES), default=1,
                         help="1: Two Rooms; 2: Three Rooms (a model trained with --walls 2)")
     parser.add_argument("--steps", type=int, default=None,
-                        help="episode length (default: the world's budget, 200 or 300)")
+                        help="episode length (default: the world's budget, 200 or 120)")
     for field in dataclasses.fields(PlannerConfig):  # --method, --cost, --horizon, ...
         kind = _yes_no if isinstance(field.default, bool) else type(field.default)
         parser.add_argument(f"--{field.name.replace('_', '-')}", type=kind, default=field.default)

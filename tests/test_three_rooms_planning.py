@@ -22,7 +22,7 @@ TINY = PlannerConfig(horizon=8, samples=8, elites=2, iterations=1, execute=4)
 
 
 # -- episodes ------------------------------------------------------------------------------
-def test_three_room_episodes_run_their_300_step_budget_and_never_enter_a_wall():
+def test_three_room_episodes_run_their_step_budget_and_never_enter_a_wall():
     result = planning.run_episodes(LinearLatentModel(), range(2), SMALL_PLANNER,
                                    world="true_xy", walls=2)
     episodes, steps = result.episodes, THREE_ROOMS_EPISODE_STEPS
