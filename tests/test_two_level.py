@@ -17,7 +17,12 @@ from ebjepa_tutorial.planning import (
     run_episodes,
     shift_plan,
 )
-from ebjepa_tutorial.training.hierarchy import CoarseConfig, fit_coarse_on, windows
+from ebjepa_tutorial.training.hierarchy import (
+    CoarseConfig,
+    coarse_or_load,
+    fit_coarse_on,
+    windows,
+)
 
 
 class Drift(nn.Module):
@@ -123,3 +128,5 @@ def test_settings_a_two_level_planner_cannot_use_are_refused():
         CoarseConfig(step_mean=0)
     with pytest.raises(ValueError, match="every"):
         CoarseFit(CoarseConfig(), LOW, HIGH, lookahead=2, reach_px=4.5, every=0)
+    with pytest.raises(TypeError, match="fit=planning.fit_coarse_with_visits"):
+        coarse_or_load(Drift(), {}, CoarseFit(CoarseConfig(), LOW, HIGH, 2, 4.5), "unused")

@@ -255,9 +255,9 @@ class BeyondPreset:
 
 
 # Chosen on seeds 10,600-10,699 (RESULTS.md, "07 · Beyond the paper"); the visits and Three
-# Rooms' 200 coarse samples on 10,600-10,999 at 120 steps ("07 · The coarse model fitted
-# again on its planner's episodes"). The coarse level
-# plans macro-actions of `stride` steps: their bound and spread scale with the stride.
+# Rooms' 200 coarse samples on 10,600-10,999 at 120 steps (RESULTS.md, "07 · The coarse
+# model fitted again on its planner's episodes"). The coarse level plans macro-actions of
+# `stride` steps: their bound and spread scale with the stride.
 # The fine planners keep the spread chapter 07's figures were measured with (1.5 px);
 # chapter 06's planner has since widened to 2.0, not yet measured here.
 _STRIDE = CoarseConfig.stride

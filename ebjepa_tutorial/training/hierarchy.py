@@ -99,14 +99,19 @@ def fit_coarse_on(latents: torch.Tensor, actions: torch.Tensor, config: CoarseCo
 
 
 def coarse_or_load(model: WorldModel, base: dict, config, name: str,
-                   fit: Callable = fit_coarse_model) -> CoarseModel:
+                   fit: Callable | None = None) -> CoarseModel:
     """The coarse model of ``config`` on ``model`` (trained by the run whose identity is
     ``base``): loaded from ``checkpoints/<name>.pt`` or the cache if it was saved, else
     fitted by ``fit(model, config)`` and saved to the cache. In eval mode, on the CPU.
 
-    ``config``: a :class:`CoarseConfig`, or a fit one layer up that holds one as
-    ``config.coarse`` (``planning.CoarseFit``, fitted by ``planning.fit_coarse_with_visits``).
+    ``config``: a :class:`CoarseConfig` (``fit`` defaults to :func:`fit_coarse_model`), or
+    a fit one layer up that holds one as ``config.coarse`` (``planning.CoarseFit``, with
+    ``fit=planning.fit_coarse_with_visits``).
     """
+    if fit is None and not isinstance(config, CoarseConfig):
+        raise TypeError(f"a {type(config).__name__} needs its own fit: coarse_or_load(..., "
+                        "fit=planning.fit_coarse_with_visits)")
+    fit = fit or fit_coarse_model
     shape = getattr(config, "coarse", config)
     return load_or_fit(name, CoarseModel(model.latent_dim, shape.stride, shape.hidden),
                        lambda: fit(model, config), run_identity(config, base=base),
