@@ -76,9 +76,10 @@ from .envs.two_rooms import (
     wall_collision,
 )
 from .evaluation.metrics import wilson_interval
+from .losses.world import windows
 from .models.hierarchy import CoarseModel
 from .models.world import trajectory_latents
-from .training.hierarchy import CoarseConfig, coarse_data, fit_coarse_on, windows
+from .training.hierarchy import CoarseConfig, coarse_data, fit_coarse_on
 from .training.loop import History
 from .utils import check_fields, is_int_at_least, is_positive
 

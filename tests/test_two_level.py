@@ -8,6 +8,7 @@ import torch
 from torch import nn
 
 from ebjepa_tutorial.envs import MAX_STEP, clip_actions
+from ebjepa_tutorial.losses.world import windows
 from ebjepa_tutorial.models.hierarchy import CoarseModel, macro_actions
 from ebjepa_tutorial.planning import (
     CoarseFit,
@@ -21,7 +22,6 @@ from ebjepa_tutorial.training.hierarchy import (
     CoarseConfig,
     coarse_or_load,
     fit_coarse_on,
-    windows,
 )
 
 

@@ -103,6 +103,14 @@ def draw_still_steps(windows: int, steps: int, probability: float,
     return distributed.local_rows(stay) if across_ranks else stay
 
 
+def windows(x: torch.Tensor, length: int, every: int) -> torch.Tensor:
+    """Windows of ``length`` along the time axis, one starting every ``every`` steps:
+    ``(N, T, F) -> (N * W, length, F)`` with ``W = (T - length) // every + 1``."""
+    if x.shape[1] < length:
+        raise ValueError(f"sequences of {x.shape[1]} steps hold no window of {length}")
+    return x.unfold(1, length, every).transpose(-1, -2).flatten(0, 1)
+
+
 def multistep_prediction_loss(
     predict: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
     z: torch.Tensor,
@@ -142,8 +150,8 @@ def multistep_prediction_loss(
     if starts not in PREDICTION_STARTS:
         raise ValueError(f"starts must be one of {PREDICTION_STARTS}, got {starts!r}")
     if starts == "all":  # every window of K + 1 frames becomes a trajectory of its own
-        z = z.unfold(1, steps + 1, 1).permute(0, 1, 3, 2).flatten(0, 1)  # (B S, K + 1, D)
-        actions = actions.unfold(1, steps, 1).permute(0, 1, 3, 2).flatten(0, 1)  # (B S, K, A)
+        # (B S, K + 1, D) and (B S, K, A)
+        z, actions = windows(z, steps + 1, 1), windows(actions, steps, 1)
     if stay_probability:
         z, actions = z[:, : steps + 1], actions[:, :steps]
         stay = draw_still_steps(len(z), steps, stay_probability, generator, across_ranks)

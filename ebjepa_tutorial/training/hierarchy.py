@@ -63,14 +63,6 @@ def fit_coarse_model(model: WorldModel, config: CoarseConfig = CoarseConfig(),
     return fit_coarse_on(*coarse_data(model, config), config, progress)
 
 
-def windows(x: torch.Tensor, length: int, every: int) -> torch.Tensor:
-    """Windows of ``length`` along the time axis, one starting every ``every`` steps:
-    ``(N, T, F) -> (N * W, length, F)`` with ``W = (T - length) // every + 1``."""
-    if x.shape[1] < length:
-        raise ValueError(f"sequences of {x.shape[1]} steps hold no window of {length}")
-    return x.unfold(1, length, every).transpose(-1, -2).flatten(0, 1)
-
-
 def fit_coarse_on(latents: torch.Tensor, actions: torch.Tensor, config: CoarseConfig,
                   progress: bool = True) -> tuple[CoarseModel, History]:
     """Fit on trajectories of latents ``(N, T+1, D)`` and actions ``(N, T, 2)``: the rollout
