@@ -89,11 +89,12 @@ def test_video_jepas_match_notebook_03():
     fingerprint = video.digits_fingerprint(train_digits)
     runs = [("class", c) for c in video.ablation_configs(cfg.train, cfg.rollout_steps, cfg.seeds)]
     runs += [("class_long", c) for c in cfg.long_runs()]
+    runs += [("class_autoregressive", replace(cfg.train, unroll="autoregressive"))]  # section 8
     for scale, config in runs:
         expected = video.identity(config, train_digits)
         assert expected["train_digits"] == fingerprint
         name = video.run_name(scale, config)
-        assert stored_config(name, None) == expected
+        assert stored_config(name, video.upgrade_identity) == expected
         weights = load_checkpoint(SHIPPED / f"{name}.pt")["model"]
         assert {w.dtype for w in weights.values() if w.is_floating_point()} == {torch.float16}
 

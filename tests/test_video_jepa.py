@@ -18,7 +18,12 @@ from ebjepa_tutorial.evaluation.detection import (
     fit_detection_probe,
 )
 from ebjepa_tutorial.evaluation.metrics import average_precision
-from ebjepa_tutorial.losses.rollout import rollout, rollout_loss
+from ebjepa_tutorial.losses.rollout import (
+    parallel_rollout_loss,
+    parallel_unroll,
+    rollout,
+    rollout_loss,
+)
 from ebjepa_tutorial.models.video import (
     VIDEO_MODEL_CONFIGS,
     DetectionHead,
@@ -124,6 +129,64 @@ def test_rollout_loss_by_hand():
         assert got.item() == pytest.approx(expected)
     # teacher forcing would see the true z_{s+k} and always be off by exactly 1 - c = 1
     assert rollout_loss(shift_predictor(0.0), z, steps=1).item() == pytest.approx(1.0)
+
+
+def test_parallel_rollout_loss_by_hand():
+    # z_t = t, "last + c": after step k frame t is predicted min(k, t - 1) steps past its
+    # most recent true latent (frames 0 and 1 are fed back true), so its error is that times
+    # (1 - c). Frames 2..5, steps 1..3: errors 1 1 1 1 / 1 2 2 2 / 1 2 3 3.
+    z = torch.arange(6.0).view(1, 6, 1, 1, 1).expand(2, 6, 3, 2, 2)
+    for c in (0.0, 0.5):
+        expected = (1 - c) ** 2 * (4 / 4 + 13 / 4 + 23 / 4) / 3
+        got = parallel_rollout_loss(shift_predictor(c), z, context=2, steps=3)
+        assert got.item() == pytest.approx(expected)
+
+
+def test_parallel_step_k_predicts_k_steps_past_the_newest_true_latent():
+    # A predictor that adds its window: an impulse at true frame j reaches exactly the
+    # predictions that depend on it. Step k's frame t (t >= context - 1 + k) depends on
+    # frames t - 2k .. t - k, so on nothing newer than t - k, unlike the autoregressive
+    # rollout, whose order-k window holds one true latent only at k = 1.
+    context, steps, T = 2, 3, 10
+    for j in range(T):
+        z = torch.zeros(1, T, 1, 1, 1)
+        z[:, j] = 1.0
+        for k, predictions in enumerate(parallel_unroll(lambda w: w.sum(1), z, context, steps), 1):
+            for t in range(context - 1 + k, T):
+                reached = predictions[0, t - context].item() > 0
+                assert reached == (t - 2 * k <= j <= t - k), (j, k, t)
+
+
+def test_both_unrolls_are_the_same_loss_at_one_step():
+    g = torch.Generator().manual_seed(0)
+    z = torch.randn(2, 7, 3, 2, 2, generator=g)
+    weight = torch.randn(2, 3, 3, generator=g)
+    predictor = lambda w: torch.tanh(torch.einsum("nkchw,kcd->ndhw", w, weight))  # noqa: E731
+    one_step = rollout_loss(predictor, z, steps=1)
+    assert torch.equal(parallel_rollout_loss(predictor, z, steps=1), one_step)
+    assert not torch.allclose(parallel_rollout_loss(predictor, z, steps=3),
+                              rollout_loss(predictor, z, steps=3))
+
+
+@pytest.mark.parametrize("loss", [rollout_loss, parallel_rollout_loss])
+def test_detached_later_orders_keep_the_value_and_give_the_encoder_one_step_only(loss):
+    g = torch.Generator().manual_seed(1)
+    z0 = torch.randn(2, 8, 3, 2, 2, generator=g)
+    weight = torch.randn(2, 3, 3, generator=g) / 2
+    predictor = lambda w: torch.tanh(torch.einsum("nkchw,kcd->ndhw", w, weight))  # noqa: E731
+    steps, n = 3, 8 - 2 - 3 + 1  # rollout_loss's order-1 term covers n starts
+
+    def value_and_grad(fn):
+        z = z0.clone().requires_grad_()
+        value = fn(z)
+        return value.detach(), torch.autograd.grad(value, z)[0]
+
+    full, full_grad = value_and_grad(lambda z: loss(predictor, z, steps=steps))
+    value, grad = value_and_grad(lambda z: loss(predictor, z, steps=steps, detach_later=True))
+    frames = n + 2 if loss is rollout_loss else 8
+    _, one_step_grad = value_and_grad(lambda z: loss(predictor, z[:, :frames], steps=1) / steps)
+    assert torch.allclose(value, full)
+    assert torch.allclose(grad, one_step_grad) and not torch.allclose(grad, full_grad)
 
 
 def test_rollout_feeds_predictions_back():
@@ -238,10 +301,12 @@ def test_training_resumes_and_evaluation_runs(digits, tmp_path):
 
     probe_data = generate_moving_mnist(digits, 8, 10, seed=2)
     eval_data = generate_moving_mnist(digits, 8, 10, seed=3)
-    report = detection_report(model, probe_data, eval_data, horizons=7, probe_steps=3)
-    for name in ("ap", "ap_encoded", "ap_copy"):
-        assert report[name].shape == (7,) and ((report[name] >= 0) & (report[name] <= 1)).all()
-    assert report["map"] == pytest.approx(float(report["ap"].mean()))
+    for unroll in ("parallel", "autoregressive"):
+        report = detection_report(model, probe_data, eval_data, horizons=7, probe_steps=3,
+                                  unroll=unroll)
+        for name in ("ap", "ap_encoded", "ap_copy"):
+            assert report[name].shape == (7,) and ((report[name] >= 0) & (report[name] <= 1)).all()
+        assert report["map"] == pytest.approx(float(report["ap"].mean()))
     cosine = tmp_path / "cosine.pt"  # the rate falls to 0 at the last step
     train_video_jepa(replace(config, cosine=True), clips, checkpoint=cosine, progress=False)
     state = load_checkpoint(cosine)
@@ -254,17 +319,17 @@ def test_training_resumes_and_evaluation_runs(digits, tmp_path):
 
 
 def test_the_curriculum_trains_one_step_first_then_k_steps(digits, monkeypatch):
-    class_ = VIDEO_CONFIGS["class"]  # 1,600 steps, the first half at K = 1
-    assert [class_.rollout_steps_at(s) for s in (0, 799, 800, 1599)] == [1, 1, 4, 4]
+    class_ = VIDEO_CONFIGS["class"]  # 2,400 steps, the first half at K = 1
+    assert [class_.rollout_steps_at(s) for s in (0, 1199, 1200, 2399)] == [1, 1, 4, 4]
     paper = replace(class_, one_step_fraction=0.0)
-    assert {paper.rollout_steps_at(s) for s in (0, 1599)} == {4}
+    assert {paper.rollout_steps_at(s) for s in (0, 2399)} == {4}
     seen = []  # K of every loss the training loop computes
 
-    def recording(predictor, z, context, steps, tbptt):
+    def recording(predictor, z, context, steps, tbptt, detach_later):
         seen.append(steps)
-        return rollout_loss(predictor, z, context, steps, tbptt)
+        return parallel_rollout_loss(predictor, z, context, steps, tbptt, detach_later)
 
-    monkeypatch.setattr(video_training, "rollout_loss", recording)
+    monkeypatch.setitem(video_training.UNROLLS, "parallel", recording)
     clips = generate_moving_mnist(digits, 8, 10, seed=1).clips
     config = replace(CI, steps=5, batch_size=2, rollout_steps=3, one_step_fraction=0.4)
     train_video_jepa(config, clips, progress=False)
@@ -332,6 +397,19 @@ def test_run_names_and_ablation_configs():
     assert len({run_name("class", r) for r in runs}) == len(runs)
 
 
+def test_runs_from_before_the_parallel_unroll_load_as_what_they_trained():
+    def older(config):  # an identity stored before the unroll fields existed
+        new_fields = ("unroll", "detach_later_orders")
+        return {k: v for k, v in video_training.identity(config).items() if k not in new_fields}
+
+    k4, k1 = replace(CI, rollout_steps=4), replace(CI, rollout_steps=1)
+    upgraded = video_training.upgrade_identity(older(k4))
+    then = replace(k4, unroll="autoregressive", detach_later_orders=False)
+    assert upgraded == video_training.identity(then)
+    assert upgraded != video_training.identity(k4)  # the parallel run is another run
+    assert video_training.upgrade_identity(older(k1)) == video_training.identity(k1)
+
+
 def test_evaluation_clips_use_their_own_digits_and_seeds(digits):
     held_out = digits.clone()
     held_out[:, :, 9:19, 9:19] = 128  # grey squares: recognisably other digits
@@ -370,7 +448,9 @@ def test_command_line_trains_and_reports(digits, tmp_path, monkeypatch, capsys):
     train_video.main(["--scale", "ci", "--K", "1", "--ship"])
     out = capsys.readouterr().out
     assert "video_jepa_ci_K1_seed0" in out and (tmp_path / "checkpoints").is_dir()
-    assert "random init: mAP" in out and "K=1 seed=0: mAP" in out
+    for protocol in ("parallel", "autoregressive"):  # the paper's, then a planner's
+        assert f"random init, {protocol} protocol: mAP" in out
+        assert f"K=1 seed=0, {protocol} protocol: mAP" in out
     shipped = load_checkpoint(tmp_path / "ship" / "video_jepa_ci_K1_seed0.pt")
     assert {v.dtype for v in shipped["model"].values() if v.is_floating_point()} == {
         torch.float16}
@@ -379,16 +459,19 @@ def test_command_line_trains_and_reports(digits, tmp_path, monkeypatch, capsys):
     assert "Loaded a trained model from " + str(tmp_path / "ship") in capsys.readouterr().out
     seen = []  # K of every training loss: K = 4 trains only its steps after the switch
 
-    def recording(predictor, z, context, steps, tbptt):
+    def recording(predictor, z, context, steps, tbptt, detach_later):
         seen.append(steps)
-        return rollout_loss(predictor, z, context, steps, tbptt)
+        return parallel_rollout_loss(predictor, z, context, steps, tbptt, detach_later)
 
-    monkeypatch.setattr(video_training, "rollout_loss", recording)
+    monkeypatch.setitem(video_training.UNROLLS, "parallel", recording)
     train_video.main(["--scale", "ci", "--long"])  # the preset's long runs: K = 1 and 4
     out = capsys.readouterr().out
     assert "video_jepa_ci_long_K1_seed0" in out and "video_jepa_ci_long_K4_seed0" in out
-    assert "K=4 seed=0: mAP" in out
+    assert "K=4 seed=0, parallel protocol: mAP" in out
     assert seen == [1, 1, 1, 4]  # 3 steps each, switching after 2
+    train_video.main(["--scale", "ci", "--K", "4", "--unroll", "autoregressive"])
+    assert "video_jepa_ci_autoregressive_K4_seed0" in capsys.readouterr().out
+    assert len(seen) == 4  # the autoregressive loss trained it
 
 
 def video_jepa_preset():

@@ -294,8 +294,8 @@ PRESETS: dict[str, dict[str, object]] = {
     "03": {
         "ci": VideoPreset(VIDEO_CONFIGS["ci"], long=replace(VIDEO_CONFIGS["ci"], steps=30),
                           seeds=(0,), n_probe=64, n_eval=64, probe_steps=60, decoder_steps=40),
-        # one run fits a class; the twelve ship, and so does the long run (about an hour a
-        # thread: 7.5 times the steps on 6 times the clips, each clip seen 8 times)
+        # one run fits a class; the twelve ship, and so do the long runs (35-53 minutes a
+        # thread: 5 times the steps on 6 times the clips, each clip seen 8 times)
         "class": VideoPreset(VIDEO_CONFIGS["class"],
                              long=replace(VIDEO_CONFIGS["class"], n_clips=24_000, steps=12_000)),
         "full": VideoPreset(VIDEO_CONFIGS["full"], n_probe=2000, n_eval=2000, probe_steps=2000,

@@ -5,6 +5,11 @@ marks which cells of an 8x8 grid hold a digit centre; it is scored on latents
 predicted ``k = 1..7`` steps ahead, and the average precision (AP) is computed
 over the whole evaluation set per horizon (not averaged per batch), with
 their mean (mAP). Boxes come exactly from the generator.
+
+Two protocols, one per way to unroll (:mod:`ebjepa_tutorial.losses.rollout`): the
+paper's parallel unroll scores, at horizon k, every frame it predicts k steps past
+its most recent true latent; the autoregressive one rolls each clip's first
+frames forward and scores one frame per clip and horizon, as a planner would use it.
 """
 
 from __future__ import annotations
@@ -13,10 +18,10 @@ import torch
 import torch.nn.functional as F
 
 from ..data.moving_mnist import centres_to_grid, generate_moving_mnist
-from ..losses.rollout import rollout
+from ..losses.rollout import UNROLLS, parallel_unroll, rollout
 from ..models.video import DetectionHead, VideoJEPA
 from ..training.video import check_clips
-from .metrics import average_precision_per_horizon
+from .metrics import average_precision
 
 PROBE_SEED, EVAL_SEED = 1001, 1002  # seeds of the evaluation clips (training clips use 0, 1, ...)
 
@@ -26,26 +31,41 @@ def _pool(z: torch.Tensor, grid: int) -> torch.Tensor:
     return F.adaptive_avg_pool2d(z.flatten(0, 1), grid).unflatten(0, z.shape[:2])
 
 
+def scored_frames(unroll: str, context: int, horizon: int, n_frames: int) -> slice:
+    """The frames that ``horizon`` k scores: the first is ``context - 1 + k``, k steps past
+    the true context; the parallel unroll scores every later frame too (each also predicted
+    k steps past its most recent true latent), the autoregressive rollout that one alone."""
+    first = context - 1 + horizon
+    return slice(first, n_frames if unroll == "parallel" else first + 1)
+
+
 @torch.no_grad()
 def grid_features(model: VideoJEPA, clips: torch.Tensor, horizons: int = 7,
-                  batch_size: int = 100, grid: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
+                  batch_size: int = 100, grid: int = 8, unroll: str = "parallel"):
     """Pooled latents of uint8 ``clips`` ``(N, T, 1, 64, 64)`` for the probe, on the CPU.
 
     Returns ``encoded`` ``(N, T, C, grid, grid)``, every frame encoded, and
-    ``predicted`` ``(N, horizons, C, grid, grid)``: the predictor unrolled from
-    the first ``context`` frames, so entry ``k - 1`` is the guess for frame
-    ``context - 1 + k``, made ``k`` steps ahead.
+    ``predicted``, a list over horizons k = 1..``horizons``: ``(N, F_k, C, grid, grid)``,
+    the predictions of the frames :func:`scored_frames` gives, made k steps ahead by
+    ``unroll`` (:data:`~ebjepa_tutorial.losses.rollout.UNROLLS`).
     """
     context = model.config.context
     check_clips(clips, context + horizons)
+    if unroll not in UNROLLS:
+        raise ValueError(f"unroll must be one of {sorted(UNROLLS)}, got {unroll!r}")
     model.eval()
     device = next(model.parameters()).device
     encoded, predicted = [], []
     for lo in range(0, len(clips), batch_size):
         z = model.encode(clips[lo:lo + batch_size].to(device))
-        predicted.append(_pool(rollout(model.predictor, z[:, :context], horizons), grid).cpu())
+        if unroll == "parallel":  # step k's predictions from frame context - 1 + k on
+            steps = parallel_unroll(model.predictor, z, context, horizons)
+            predicted.append([_pool(p[:, k:], grid).cpu() for k, p in enumerate(steps)])
+        else:  # one rollout from the first context frames: entry k - 1 is k steps ahead
+            steps = _pool(rollout(model.predictor, z[:, :context], horizons), grid).cpu()
+            predicted.append(list(steps.split(1, dim=1)))
         encoded.append(_pool(z, grid).cpu())
-    return torch.cat(encoded), torch.cat(predicted)
+    return torch.cat(encoded), [torch.cat(k_steps) for k_steps in zip(*predicted)]
 
 
 def fit_detection_probe(features: torch.Tensor, targets: torch.Tensor, steps: int = 400,
@@ -74,15 +94,18 @@ def fit_detection_probe(features: torch.Tensor, targets: torch.Tensor, steps: in
 
 @torch.no_grad()
 def detection_report(model: VideoJEPA, probe_data, eval_data, horizons: int = 7,
-                     probe_steps: int = 400, seed: int = 0) -> dict:
+                     probe_steps: int = 400, seed: int = 0, unroll: str = "parallel") -> dict:
     """Fit the probe on ``probe_data``'s encoded frames; AP per horizon on ``eval_data``.
 
     Both are :class:`~ebjepa_tutorial.data.moving_mnist.MovingMNISTBatch`
-    (make ``eval_data`` from held-out digits). Returns float64 ``(horizons,)``
-    tensors ``ap`` (probe on predicted latents), ``ap_encoded`` (on the true
-    encodings of the same frames: what a perfect predictor would reach) and
-    ``ap_copy`` (on the last context frame: a predictor that never moves),
-    their means ``map``, ``map_encoded``, ``map_copy``, and the ``probe``.
+    (make ``eval_data`` from held-out digits). ``unroll``: how predictions k steps
+    ahead are made and which frames they score (:func:`scored_frames`): ``"parallel"``,
+    the paper's protocol, or ``"autoregressive"``, one rollout per clip. Returns
+    float64 ``(horizons,)`` tensors ``ap`` (probe on predicted latents), ``ap_encoded``
+    (on the true encodings of the same frames: what a perfect predictor would reach)
+    and ``ap_copy`` (on the most recent true latent each prediction starts from: a
+    predictor that never moves), their means ``map``, ``map_encoded``, ``map_copy``,
+    and the ``probe``.
     """
     context = model.config.context
     fit_features, _ = grid_features(model, probe_data.clips, horizons=1)  # encodings only
@@ -90,18 +113,25 @@ def detection_report(model: VideoJEPA, probe_data, eval_data, horizons: int = 7,
         probe = fit_detection_probe(fit_features.flatten(0, 1),
                                     centres_to_grid(probe_data.centres).flatten(0, 1),
                                     steps=probe_steps, seed=seed)
-    encoded, predicted = grid_features(model, eval_data.clips, horizons)
-    targets = centres_to_grid(eval_data.centres)[:, context:context + horizons]
+    encoded, predicted = grid_features(model, eval_data.clips, horizons, unroll=unroll)
+    cells = centres_to_grid(eval_data.centres)  # (N, T, g, g)
+    frames = [scored_frames(unroll, context, k, cells.shape[1]) for k in range(1, horizons + 1)]
 
-    def scores(features):  # (N, H, C, g, g) -> (N, H, g, g)
-        return probe(features.flatten(0, 1)).unflatten(0, features.shape[:2])
+    def aps(features):  # k -> (N, F_k, C, g, g), for k = 1..horizons -> float64 (horizons,)
+        return torch.tensor([average_precision(probe(features(k).flatten(0, 1)),
+                                               cells[:, frames[k - 1]].flatten(0, 1))
+                             for k in range(1, horizons + 1)], dtype=torch.float64)
 
-    last = encoded[:, context - 1:context].expand(-1, horizons, -1, -1, -1)
-    report = {"probe": probe}
-    for name, features in (("", predicted), ("_encoded", encoded[:, context:context + horizons]),
-                           ("_copy", last)):
-        report["ap" + name] = average_precision_per_horizon(scores(features), targets)
-        report["map" + name] = float(report["ap" + name].mean())
+    def shifted(k):  # the frames k before the scored ones: the most recent true latents
+        f = frames[k - 1]
+        return slice(f.start - k, f.stop - k)
+
+    report = {"probe": probe,
+              "ap": aps(lambda k: predicted[k - 1]),
+              "ap_encoded": aps(lambda k: encoded[:, frames[k - 1]]),
+              "ap_copy": aps(lambda k: encoded[:, shifted(k)])}
+    report.update({"map" + name[2:]: float(report[name].mean())
+                   for name in ("ap", "ap_encoded", "ap_copy")})
     return report
 
 

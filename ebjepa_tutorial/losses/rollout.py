@@ -5,12 +5,20 @@ sees the last ``context`` latents and guesses the next one. Training unrolls
 it on its own guesses for ``K`` steps from every start frame of a clip and
 compares the guess of order ``k`` with the true encoding.
 
-Where we differ from the reference code: its training unroll feeds order-k
-predictions of *both* context frames (each made from another true context)
-and averages the error over the clip's ground-truth context frames too; ours
-rolls one true context forward, exactly as evaluation (and a planner) uses
-the predictor, and averages over predicted frames only. Its prediction error
-is also taken after the projector; ours on the latents themselves.
+Two ways to unroll, both the reference code's (its ``unroll_mode``):
+
+- ``"autoregressive"`` (:func:`rollout_loss`): one true context rolled
+  forward, the prediction of order k made from orders k-1 and k-2 of the
+  same rollout, exactly as a planner uses the predictor.
+- ``"parallel"`` (:func:`parallel_rollout_loss`, the paper's training and
+  evaluation): each step predicts every frame of the clip at once from the
+  previous step's sequence, so from order 2 on both context latents of a
+  window are predictions, each made from another true window.
+
+At K = 1 the two are the same loss. Where we differ from the reference: its
+parallel loss also averages the (zero) error of the true context frames, and
+is taken after the projector; ours averages predicted frames only, on the
+latents themselves.
 """
 
 from __future__ import annotations
@@ -62,7 +70,7 @@ def rollout(predictor: Predictor, window: torch.Tensor, steps: int, tbptt: int |
 
 
 def rollout_loss(predictor: Predictor, z: torch.Tensor, context: int = 2, steps: int = 4,
-                 tbptt: int | None = None) -> torch.Tensor:
+                 tbptt: int | None = None, detach_later: bool = False) -> torch.Tensor:
     """K-step rollout loss over latents ``z`` ``(B, T, C, H, W)``: a 0-d tensor.
 
     From every start frame ``s`` (``0 <= s <= T - context - K``) the predictor
@@ -82,10 +90,70 @@ def rollout_loss(predictor: Predictor, z: torch.Tensor, context: int = 2, steps:
     outputs. Since all orders sit in one loss, each predictor call is
     back-propagated once either way: truncation changes what the gradient asks
     for (and can tame exploding rollouts), not the cost.
+
+    ``detach_later``: orders 2..K unroll from, and aim at, detached latents, so they
+    train the predictor alone and the encoder learns from one-step errors only (the same
+    value; the first step is computed twice).
     """
     check_rollout_args(z, context, steps, tbptt)
+    if detach_later and steps > 1:
+        n = z.shape[1] - context - steps + 1  # the order-1 term of the same n starts
+        first = rollout_loss(predictor, z[:, :n + context], context, 1)
+        later = _rollouts(predictor, z.detach(), context, steps, tbptt)
+        return (first + (steps - 1) * F.mse_loss(*(x[:, 1:] for x in later))) / steps
+    return F.mse_loss(*_rollouts(predictor, z, context, steps, tbptt))
+
+
+def _rollouts(predictor: Predictor, z: torch.Tensor, context: int, steps: int,
+              tbptt: int | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Predictions and targets ``(B * n, K, C, H, W)`` of the rollouts from every start."""
     n = z.shape[1] - context - steps + 1  # rollouts per clip, one per start frame
     windows = torch.stack([z[:, j:j + n] for j in range(context)], dim=2)  # (B, n, ctx, C, H, W)
     targets = torch.stack([z[:, context + k:context + k + n] for k in range(steps)], dim=2)
-    predictions = rollout(predictor, windows.flatten(0, 1), steps, tbptt)  # (B*n, K, C, H, W)
-    return F.mse_loss(predictions, targets.flatten(0, 1))
+    return rollout(predictor, windows.flatten(0, 1), steps, tbptt), targets.flatten(0, 1)
+
+
+def parallel_unroll(predictor: Predictor, z: torch.Tensor, context: int = 2, steps: int = 4,
+                    tbptt: int | None = None) -> list[torch.Tensor]:
+    """The paper's parallel unroll of latents ``z`` ``(B, T, C, H, W)``: a list of ``steps``
+    tensors ``(B, T - context, C, H, W)``, step k's predictions of frames ``context .. T-1``.
+
+    Step k feeds the predictor, for every frame t, the window of frames ``t - context ..
+    t - 1`` of the sequence step k-1 made (the true latents at step 1), then puts the true
+    ``z_0 .. z_{context-1}`` back in front. After step k, frame t is predicted k steps ahead
+    of its most recent true input when ``t >= context - 1 + k`` (earlier frames repeat
+    lower orders). ``tbptt=m`` detaches the sequence every ``m`` steps.
+    """
+    check_rollout_args(z, context, steps, tbptt)
+    sequence, out = z, []
+    for k in range(steps):
+        if tbptt is not None and k > 0 and k % tbptt == 0:
+            sequence = sequence.detach()
+        n = sequence.shape[1] - context  # one window per predicted frame
+        windows = torch.stack([sequence[:, j:j + n] for j in range(context)], dim=2)
+        predictions = predictor(windows.flatten(0, 1)).unflatten(0, windows.shape[:2])
+        out.append(predictions)
+        sequence = torch.cat([z[:, :context], predictions], dim=1)
+    return out
+
+
+def parallel_rollout_loss(predictor: Predictor, z: torch.Tensor, context: int = 2,
+                          steps: int = 4, tbptt: int | None = None,
+                          detach_later: bool = False) -> torch.Tensor:
+    """The paper's K-step loss: the mean over steps k of the squared error of step k's
+    predictions (:func:`parallel_unroll`) against the true ``z_context .. z_{T-1}``: a 0-d tensor.
+
+    At ``steps=1`` this is :func:`rollout_loss` with one step. Targets keep their gradient.
+    ``detach_later``: steps 2..K unroll from, and aim at, detached latents (see
+    :func:`rollout_loss`).
+    """
+    if detach_later and steps > 1:
+        first = parallel_rollout_loss(predictor, z, context, 1)
+        z = z.detach()
+        later = parallel_unroll(predictor, z, context, steps, tbptt)[1:]
+        return torch.stack([first, *(F.mse_loss(p, z[:, context:]) for p in later)]).mean()
+    predictions = parallel_unroll(predictor, z, context, steps, tbptt)
+    return torch.stack([F.mse_loss(p, z[:, context:]) for p in predictions]).mean()
+
+
+UNROLLS = {"autoregressive": rollout_loss, "parallel": parallel_rollout_loss}  # name -> loss

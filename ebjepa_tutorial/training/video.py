@@ -1,14 +1,16 @@
 """Video JEPA on Moving MNIST (notebook 03): the run's config, its clips, training, load-or-train.
 
-The loss is the K-step rollout loss (:mod:`ebjepa_tutorial.losses.rollout`)
-plus the variance and covariance terms on projected latents (each location of
-each frame is one sample), so that the latent cannot collapse:
+The loss is the K-step loss (:mod:`ebjepa_tutorial.losses.rollout`, unrolled the
+paper's parallel way or autoregressively) plus the variance and covariance terms on
+projected latents (each location of each frame is one sample), so that the latent
+cannot collapse:
 
-    L = (1/K) sum_k mean ||zhat_k - z_{s+1+k}||^2 + std v(P(Z)) + cov c(P(Z))
+    L = (1/K) sum_k mean ||zhat_k - z||^2 + std v(P(Z)) + cov c(P(Z))
 
 The class run is a curriculum: its first half trains K = 1 (the encoder learns
-what to predict), its second half the K-step rollout (the predictor learns to
-build on its own guesses); the paper trains K steps throughout.
+what to predict), its second half K steps with orders 2..K on detached latents (the
+predictor learns to build on its own guesses); the paper trains K steps throughout,
+every order reaching the encoder.
 
 Evaluation lives in :mod:`ebjepa_tutorial.evaluation.detection`; the command
 that trains notebook 03's runs ahead of a class is
@@ -37,7 +39,7 @@ import torch.nn.functional as F
 from .. import distributed
 from ..data.moving_mnist import generate_moving_mnist
 from ..losses import variance_and_covariance
-from ..losses.rollout import rollout_loss
+from ..losses.rollout import UNROLLS
 from ..models.video import VIDEO_MODEL_CONFIGS, FrameDecoder, VideoJEPA, VideoModelConfig
 from ..utils import (
     at_least_float32,
@@ -61,7 +63,7 @@ class VideoJEPAConfig:
     n_clips: int = 4000  # training clips from the training digits (make_clips; 164 MB)
     n_frames: int = 10  # frames per clip (needs >= context + rollout_steps)
     batch_size: int = 16  # clips per step (the paper: 64; per clip, small batches run faster here)
-    steps: int = 1600  # sized for a class period on a laptop CPU
+    steps: int = 2400  # sized for a class period on a laptop CPU
     lr: float = 3e-3  # Adam's base rate (the paper: 1e-3, constant)
     cosine: bool = True  # decay the rate to 0 by a half cosine (the paper: constant)
     # convolutions in channels_last: faster on CPUs too. PyTorch's CPU backward in
@@ -76,6 +78,12 @@ class VideoJEPAConfig:
     # differ only in K are then the same run until the switch
     one_step_fraction: float = 0.5
     tbptt: int | None = None  # truncated back-propagation through time (None: full)
+    # how the K-step loss unrolls (losses.rollout.UNROLLS): "parallel", the paper's, or
+    # "autoregressive", one true context rolled forward as a planner does (the same at K = 1)
+    unroll: str = "parallel"
+    # orders 2..K unroll from detached latents: they train the predictor alone, and the
+    # encoder learns from one-step errors only (the paper: False)
+    detach_later_orders: bool = True
     seed: int = 0
 
     def __post_init__(self):
@@ -92,6 +100,7 @@ class VideoJEPAConfig:
             "cov_coeff": (is_non_negative, "a number >= 0"),
             "one_step_fraction": (lambda f: is_non_negative(f) and f < 1, "a number in [0, 1)"),
             "tbptt": (lambda m: m is None or is_int_at_least(1)(m), "None or an int >= 1"),
+            "unroll": (lambda u: u in UNROLLS, f"one of {sorted(UNROLLS)}"),
         })
 
     def rollout_steps_at(self, step: int) -> int:
@@ -116,7 +125,8 @@ VIDEO_CONFIGS = {
     # the paper: 18,000 clips of 10 frames, batch 64, 50 epochs at a constant 1e-3
     "full": VideoJEPAConfig(model=VIDEO_MODEL_CONFIGS["full"], n_clips=18_000, batch_size=64,
                             steps=50 * 18_000 // 64, lr=1e-3, cosine=False,
-                            channels_last=False, one_step_fraction=0.0),
+                            channels_last=False, one_step_fraction=0.0,
+                            detach_later_orders=False),
 }
 
 
@@ -153,8 +163,9 @@ def video_jepa_loss(model: VideoJEPA, frames: torch.Tensor, config: VideoJEPACon
     """
     with mixed_precision(frames.device, cpu=True):  # bf16 networks where fast; statistics in fp32
         z = model.encode(frames)
-        prediction = rollout_loss(model.predictor, z, model.config.context,
-                                  rollout_steps or config.rollout_steps, config.tbptt)
+        prediction = UNROLLS[config.unroll](model.predictor, z, model.config.context,
+                                            rollout_steps or config.rollout_steps, config.tbptt,
+                                            config.detach_later_orders)
         projected = model.project(z)  # (B*T*S*S, D): every location of every frame is a sample
     variance, covariance = variance_and_covariance(at_least_float32(projected),
                                                    across_ranks=across_ranks)
@@ -237,6 +248,18 @@ def identity(config: VideoJEPAConfig, train_digits: torch.Tensor | None = None) 
     return run_identity(config, train_digits=digits_fingerprint(train_digits))
 
 
+def upgrade_identity(stored: dict) -> dict:
+    """An older identity in today's form: runs from before ``unroll`` existed trained the
+    autoregressive rollout with every order reaching the encoder. At K = 1 neither field
+    changes the loss, so an older K = 1 run is today's default one."""
+    if "unroll" in stored:
+        return stored
+    one_step = stored["rollout_steps"] == 1
+    default = VideoJEPAConfig()
+    return {**stored, "unroll": default.unroll if one_step else "autoregressive",
+            "detach_later_orders": default.detach_later_orders if one_step else False}
+
+
 def digits_fingerprint(digits: torch.Tensor) -> str:
     """A short hash of the training digits: a saved run is reused only with the same digits."""
     return hashlib.sha1(digits.contiguous().numpy().tobytes()).hexdigest()[:12]
@@ -278,7 +301,7 @@ def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor
         return history
 
     history = load_or_train(cache_path, model, train, identity(config, train_digits), shipped,
-                            partial=partial)
+                            partial=partial, upgrade=upgrade_identity)
     return model.eval(), history
 
 
