@@ -446,7 +446,8 @@ def test_torchrun_trains_the_video_command_on_two_processes(tmp_path, monkeypatc
                     EBJEPA_CACHE=str(tmp_path))  # checkpoints go to tmp_path/checkpoints
     assert done.returncode == 0, done.stderr[-3000:]
     assert "video_jepa_ci_K1_seed0: ready in" in done.stdout and "on 2 process(es)" in done.stdout
-    assert done.stdout.count("Trained and saved") == 1 and "K=1 seed=0: mAP" in done.stdout
+    assert done.stdout.count("Trained and saved") == 1
+    assert "K=1 seed=0, parallel protocol: mAP" in done.stdout
     sizes = preset("03", "ci")
     config = replace(sizes.train, rollout_steps=1)
     monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))  # the digits as the command decoded them
