@@ -100,8 +100,8 @@ def _train_and_report(args, cfg, configs, device) -> None:
     torch.manual_seed(cfg.train.seed)
     runs = [("random init", VideoJEPA(cfg.train.model).eval())]
     scale = f"{args.scale}_long" if args.long else args.scale  # names the checkpoints
-    if args.unroll not in (None, cfg.train.unroll):
-        scale += f"_{args.unroll}"
+    if configs[0].unroll != cfg.train.unroll:  # --unroll: another way than the preset's
+        scale += f"_{configs[0].unroll}"
     for config in configs:
         start, name = time.perf_counter(), run_name(scale, config)
         # runs of this seed with another K start as this one: they resume from its switch

@@ -147,13 +147,13 @@ def parallel_rollout_loss(predictor: Predictor, z: torch.Tensor, context: int = 
     ``detach_later``: steps 2..K unroll from, and aim at, detached latents (see
     :func:`rollout_loss`).
     """
-    if detach_later and steps > 1:
-        first = parallel_rollout_loss(predictor, z, context, 1)
+    errors = []
+    if detach_later and steps > 1:  # step 1 on the latents, steps 2..K on detached ones
+        errors.append(parallel_rollout_loss(predictor, z, context, 1))
         z = z.detach()
-        later = parallel_unroll(predictor, z, context, steps, tbptt)[1:]
-        return torch.stack([first, *(F.mse_loss(p, z[:, context:]) for p in later)]).mean()
-    predictions = parallel_unroll(predictor, z, context, steps, tbptt)
-    return torch.stack([F.mse_loss(p, z[:, context:]) for p in predictions]).mean()
+    predictions = parallel_unroll(predictor, z, context, steps, tbptt)[len(errors):]
+    errors += [F.mse_loss(p, z[:, context:]) for p in predictions]
+    return torch.stack(errors).mean()
 
 
 UNROLLS = {"autoregressive": rollout_loss, "parallel": parallel_rollout_loss}  # name -> loss
