@@ -3,14 +3,16 @@
 #   make test   set up .venv (first time only) and run every test
 # A learner starts with `make lab-student` (the exercises unsolved, in student/).
 #
-# torch is installed first, on its own, so you choose the build that fits your
-# machine, e.g. `make lab TORCH="torch==2.13.0"` (the default, a CPU build) or
-# `make lab TORCH="torch --index-url https://download.pytorch.org/whl/cu124"`.
-# Its version is then written to .venv/constraints.txt and every later install
-# is constrained by it, so no dependency can swap torch for another build.
+# torch and torchvision are installed first, on their own, so you choose the build
+# that fits your machine (README.md, "Installing torch"): the default takes them
+# from PyPI; on Linux a CPU-only build comes from PyTorch's CPU index,
+#   make lab TORCH="torch==2.14.1 torchvision==0.29.1 --index-url https://download.pytorch.org/whl/cpu"
+# Their versions are then written to .venv/constraints.txt and every later
+# install is constrained by them, so no dependency can swap them for another build.
+# (The course's development machines hold this default pair on their own disk.)
 
 PYTHON ?= python3
-TORCH ?= torch==2.13.0
+TORCH ?= torch==2.14.1 torchvision==0.29.1
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
@@ -23,7 +25,7 @@ $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet $(TORCH)
-	$(BIN)/python -c "import importlib.metadata as m; print('torch==' + m.version('torch'))" > $(VENV)/constraints.txt
+	$(BIN)/python -c "import importlib.metadata as m; [print(p + '==' + m.version(p)) for p in ('torch', 'torchvision')]" > $(VENV)/constraints.txt
 	$(BIN)/python -m pip install --quiet --constraint $(VENV)/constraints.txt --editable ".[test,book]"
 	touch $@
 
@@ -37,10 +39,13 @@ lab: setup
 lab-student: student
 	$(BIN)/jupyter lab $(ROOT_FLAG) $(LAB_ARGS) student/
 
-# Unit tests, every notebook (teacher's and student's) at ci scale, and the book in a browser.
-# The book's build executes each notebook top to bottom, so nbval would only run them again.
+# Unit tests; every notebook run by nbval at ci scale (each executed once: the book's test
+# renders them without running them again); the student versions run to the end; the book
+# read in a browser. Waiting OpenMP threads sleep, so two processes do not starve each other.
+NBVAL := --nbval-lax --nbval-current-env --nbval-cell-timeout=900
 test: setup
-	EBJEPA_SCALE=ci $(BIN)/python -m pytest -p no:cacheprovider --durations=15
+	EBJEPA_SCALE=ci MPLBACKEND=agg OMP_WAIT_POLICY=PASSIVE $(BIN)/python -m pytest \
+		-p no:cacheprovider --durations=15 tests notebooks $(NBVAL)
 
 # The fast unit tests (under 30 s on 2 idle cores), for quick edit-test loops; `slow` marks the rest.
 test-fast: setup

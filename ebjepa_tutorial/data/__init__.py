@@ -1,4 +1,4 @@
-"""Datasets as uint8 tensors: CIFAR-10 and MNIST (downloaded, MD5-checked, cached).
+"""Datasets as uint8 tensors: CIFAR-10 and MNIST, through torchvision.datasets, cached.
 
 Images come back as uint8 ``(N, C, H, W)`` tensors with int64 labels ``(N,)``;
 :func:`to_float` turns a batch into float32 in ``[0, 1]``. Where the files are

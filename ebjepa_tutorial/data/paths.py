@@ -1,16 +1,15 @@
-"""Where data lives, how it is downloaded safely, and the cache of decoded arrays.
+"""Where data lives, the cache of decoded arrays, and files written atomically.
 
-Three places matter:
+Two places matter:
 
 - the data directory (:func:`data_dir`): an explicit ``root``, else the
   ``EBJEPA_DATA`` environment variable, else the project's ``data/`` folder;
 - the cache directory (:func:`cache_dir`): ``EBJEPA_CACHE``, else
   ``<project>/data/cache`` (git-ignored). It never lives under ``EBJEPA_DATA``,
-  which may be a read-only shared folder;
-- the download URLs, each file checked against its published MD5.
+  which may be a read-only shared folder.
 
-Downloads, cache files, checkpoints and results are written through
-:func:`atomic_file`: a temporary file in the same folder, renamed into place
+Downloads are torchvision's (MD5-checked). Cache files, checkpoints and results
+are written through :func:`atomic_file`: a temporary file in the same folder, renamed into place
 only once complete, so an interrupted run never leaves a half-written file that
 a later run would trust. Temporaries left by a killed run are removed by a later
 one (:func:`remove_stale_temporaries`).
@@ -21,19 +20,16 @@ from __future__ import annotations
 import contextlib
 import glob
 import hashlib
-import http.client
 import os
 import stat
 import tempfile
 import time
-import urllib.request
 import warnings
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import BinaryIO
 
 import numpy as np
-from tqdm.auto import tqdm
 
 
 class DataNotFoundError(FileNotFoundError):
@@ -41,11 +37,7 @@ class DataNotFoundError(FileNotFoundError):
 
 
 class CorruptDataError(RuntimeError):
-    """A data file is damaged: wrong MD5, truncated archive, or a format we cannot read."""
-
-
-class DownloadError(OSError):
-    """Every download attempt failed for a network reason (no connection, HTTP error...)."""
+    """A data file is damaged: truncated archive, wrong checksum, or a format we cannot read."""
 
 
 def project_root() -> Path | None:
@@ -79,15 +71,6 @@ def check_split(split: str, choices: Sequence[str]) -> None:
     """Raise ValueError naming the choices when ``split`` is not one of them."""
     if split not in choices:
         raise ValueError(f"split must be one of {', '.join(map(repr, choices))}; got {split!r}")
-
-
-def md5sum(path: Path, chunk: int = 1 << 20) -> str:
-    """Hex MD5 of a file, read in 1 MiB chunks."""
-    digest = hashlib.md5()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(chunk), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def remove_stale_temporaries(
@@ -141,105 +124,6 @@ def atomic_file(path: Path) -> Iterator[BinaryIO]:
         os.replace(tmp, path)
     finally:
         Path(tmp).unlink(missing_ok=True)
-
-
-def set_aside(path: Path) -> Path | None:
-    """Rename ``path`` to ``<name>.bad`` so that later runs skip it; None if that fails."""
-    target = path.with_name(path.name + ".bad")
-    try:
-        os.replace(path, target)
-    except OSError:
-        return None
-    return target
-
-
-def _open_url(url: str, timeout: float = 60.0):
-    """Open ``url`` for reading (a seam the tests replace to simulate servers)."""
-    return urllib.request.urlopen(url, timeout=timeout)
-
-
-def _fetch_once(url: str, dest: Path, md5: str) -> None:
-    """Download ``url`` to a temp file beside ``dest``, check its MD5, then rename it to ``dest``.
-
-    Raises CorruptDataError on a checksum mismatch; the temp file is always removed.
-    """
-    with _open_url(url) as response:  # connect first: no network, no temp file
-        total = int(response.headers.get("Content-Length") or 0) or None
-        _stream_to(response, dest, md5, url, total)
-
-
-def _stream_to(response, dest: Path, md5: str, url: str, total: int | None) -> None:
-    """Copy ``response`` into a temp file beside ``dest``; rename it only if the MD5 matches."""
-    digest, size = hashlib.md5(), 0
-    with atomic_file(dest) as out, tqdm(total=total, unit="B", unit_scale=True,
-                                        desc=dest.name, leave=False) as bar:
-        for block in iter(lambda: response.read(1 << 20), b""):
-            out.write(block)
-            digest.update(block)
-            size += len(block)
-            bar.update(len(block))
-        if digest.hexdigest() != md5:  # raised inside the block: the temp file goes
-            expected = f" of {total:,}" if total else ""
-            raise CorruptDataError(
-                f"{url} gave {size:,}{expected} bytes with MD5 {digest.hexdigest()}, "
-                f"expected {md5} (a truncated or damaged download)"
-            )
-
-
-def download(urls: Sequence[str], dest: Path, md5: str, attempts: int = 2) -> Path:
-    """Fetch ``dest`` from the first of ``urls`` that works; each URL is tried ``attempts`` times.
-
-    Only a file whose MD5 matches ever appears at ``dest``. Raises CorruptDataError
-    if a server sent wrong bytes every time, DownloadError if none could be reached.
-    """
-    dest = Path(dest)
-    remove_stale_temporaries(dest.parent, [temporaries_of(dest)])  # left by a killed download
-    failures: list[Exception] = []
-    for url in urls:
-        for _ in range(attempts):
-            print(f"Downloading {url} -> {dest}")
-            try:
-                _fetch_once(url, dest, md5)
-                return dest
-            except CorruptDataError as err:
-                failures.append(err)
-            except (OSError, http.client.HTTPException) as err:  # URLError, timeouts, short reads
-                failures.append(DownloadError(f"{url}: {err}"))
-    reasons = "\n  ".join(str(f) for f in failures)
-    if any(isinstance(f, CorruptDataError) for f in failures):
-        raise CorruptDataError(
-            f"Could not download a correct {dest.name}; nothing was kept.\n  {reasons}\n"
-            "Try again later, or download the file by hand and check its MD5."
-        )
-    raise DownloadError(f"could not download {dest.name}:\n  {reasons}")
-
-
-def verify_md5(path: Path, md5: str, urls: Sequence[str], fetch: bool) -> str | None:
-    """None if ``path`` has MD5 ``md5``, else why it cannot be used and what to do about it.
-
-    With ``fetch``, a damaged file is first replaced by a fresh download from
-    ``urls``; if that fails, it is renamed to ``<name>.bad`` so that later runs
-    skip it (and download it again once they can). Without ``fetch`` the file
-    is left alone.
-    """
-    actual = md5sum(path)
-    if actual == md5:
-        return None
-    problem = f"{path} has the wrong MD5 ({actual}, expected {md5}): it is damaged or incomplete."
-    if not fetch:
-        return f"{problem} Delete it, or call with download=True to replace it."
-    try:
-        download(urls, path, md5)
-        return None
-    except (DownloadError, CorruptDataError) as err:
-        problem += f" No fresh copy could be downloaded ({err})."
-    moved = set_aside(path)
-    if moved is None:
-        return f"{problem} Delete it, or replace it with a good copy."
-    return (
-        f"{problem} It was renamed to {moved}, so the next run downloads a fresh copy "
-        "(or reads another one); delete that file."
-    )
 
 
 def source_key(*paths: Path) -> str:
