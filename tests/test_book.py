@@ -1,4 +1,8 @@
-"""The online book: book.yml checks (fast), then a real ci-scale build read in headless Chromium."""
+"""The online book: book.yml checks (fast), then a real build read in headless Chromium.
+
+CI's build renders the notebooks without running them: nbval has run every one
+of them at ci scale already (`make test`), so running them here would be twice.
+"""
 
 from __future__ import annotations
 
@@ -193,29 +197,14 @@ def run_browser(url: str, profile: Path, *args: str) -> str:
 
 @pytest.fixture(scope="module")
 def site(tmp_path_factory):
-    """Build the book described by the repository's book.yml at ci scale; serve it locally."""
+    """Build the book described by the repository's book.yml, unexecuted; serve it locally."""
     work = tmp_path_factory.mktemp("book")
-    html = bk.build_book(bk.DEFAULT_CONFIG, scale="ci", work=work)
+    html = bk.build_book(bk.DEFAULT_CONFIG, scale="ci", work=work, execute=False)
     handler = functools.partial(QuietHandler, directory=str(html))
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)  # a free port
     threading.Thread(target=server.serve_forever, daemon=True).start()
     yield bk.load_book(bk.DEFAULT_CONFIG), html, f"http://127.0.0.1:{server.server_port}/", work
     server.shutdown()
-
-
-NOTEBOOK_CHAPTERS = [c for c in bk.load_book(bk.DEFAULT_CONFIG).chapters if c.endswith(".ipynb")]
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("chapter", NOTEBOOK_CHAPTERS, ids=lambda c: Path(c).stem)
-def test_every_chapter_ran_top_to_bottom_at_ci(site, chapter):
-    """CI's run of each notebook: the build executed every code cell, in order, without error."""
-    book, _, _, work = site
-    key = bk.notebook_key(book.root / chapter, "ci")
-    [executed] = (work / "book-cache").glob(f"ci-*/{key}.ipynb")
-    cells = [c for c in nbformat.read(executed, as_version=4).cells if c.cell_type == "code"]
-    assert [c.execution_count for c in cells] == list(range(1, len(cells) + 1))
-    assert not [o for c in cells for o in c.outputs if o.output_type == "error"]
 
 
 @pytest.mark.slow
@@ -242,7 +231,7 @@ def test_index_shows_title_and_chapter_navigation(site):
 
 @pytest.mark.slow
 @pytest.mark.browser
-def test_first_chapter_renders_math_and_figures(site):
+def test_first_chapter_renders_math_and_code(site):
     book, html, url, work = site
     page = str(Path(book.chapters[0]).with_suffix(".html"))
     dom = run_browser(url + page, work / "profile-dom", "--dump-dom")
@@ -251,10 +240,8 @@ def test_first_chapter_renders_math_and_figures(site):
     visible = re.sub(r"<script\b.*?</script>", "", dom, flags=re.S)
     assert "\\(" not in visible and "\\[" not in visible, "raw TeX left on the page"
     assert "Math Processing Error" not in visible
-    images = re.findall(r'<img\b[^>]*\bsrc="([^"]*_images/[^"]+\.png)"', dom)
-    assert images, "no figure (PNG output of a notebook cell) on the page"
-    with Image.open(html / Path(page).parent / images[0]) as figure:
-        assert min(figure.size) > 50
+    assert "shown as committed, without outputs" in (html / "index.html").read_text()
+    assert 'class="highlight-ipython3' in dom, "no code cell rendered on the page"
 
     shot = work / "chapter-00.png"
     run_browser(url + page, work / "profile-shot", f"--screenshot={shot}",

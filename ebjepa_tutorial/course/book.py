@@ -1,12 +1,15 @@
 """Build the course's online book from ``book.yml``, fully offline.
 
-    python -m ebjepa_tutorial.course.book build [--scale ci|class|full] [--out DIR] [--config FILE]
+    python -m ebjepa_tutorial.course.book build [--scale ci|class|full] [--no-execute]
+                                                [--out DIR] [--config FILE]
 
 ``book.yml`` names the title, authors, chapters (notebooks, in order) and how
 to execute them. ``build`` executes every notebook at the chosen scale in its own
 folder, writes a Sphinx project into ``build/book-src`` (generated ``conf.py`` and
 title page, the executed chapters, a local MathJax), then runs sphinx-build, which
 renders them (myst-nb) into ``build/book/html``. Nothing comes from the network.
+``--no-execute`` renders the notebooks as committed, without outputs: CI does
+that, since nbval has already run every notebook there.
 
 Executed notebooks are cached in ``build/book-cache`` per scale, per notebook text
 and per version of the package's code, so a second build is fast. A cell may run
@@ -175,7 +178,7 @@ def conf_py(book: Book) -> str:
     return "\n".join(lines) + "\n"
 
 
-def index_md(book: Book, scale: str) -> str:
+def index_md(book: Book, scale: str | None) -> str:
     """The title page: title, authors, description, the scale it was run at, the chapters."""
     docs = [str(Path(chapter).with_suffix("").as_posix()) for chapter in book.chapters]
     parts = [f"# {book.title}", ""]
@@ -185,13 +188,18 @@ def index_md(book: Book, scale: str) -> str:
         parts += ["By " + ", ".join(book.authors), ""]
     if book.description:
         parts += [book.description.strip(), ""]
-    parts += [f"The notebooks on these pages were executed at scale `{scale}` "
-              f"(`EBJEPA_SCALE={scale}`).", ""]
+    if scale is None:
+        parts += ["The notebooks on these pages are shown as committed, without outputs: "
+                  "run them with `make lab`.", ""]
+    else:
+        parts += [f"The notebooks on these pages were executed at scale `{scale}` "
+                  f"(`EBJEPA_SCALE={scale}`).", ""]
     parts += ["```{toctree}", ":caption: Chapters", ":maxdepth: 1", "", *docs, "```", ""]
     return "\n".join(parts)
 
 
-def write_sphinx_project(book: Book, scale: str, src: Path, executed: dict[str, Path]) -> None:
+def write_sphinx_project(book: Book, scale: str | None, src: Path,
+                         executed: dict[str, Path]) -> None:
     """Fill ``src`` with conf.py, index.md, the chapters' folders (``executed`` maps a
     notebook chapter to its executed copy) and MathJax in _static."""
     src.mkdir(parents=True, exist_ok=True)
@@ -340,11 +348,13 @@ def find_external_assets(html_dir: str | Path) -> list[tuple[str, str]]:
 
 
 def build_book(config: str | Path = DEFAULT_CONFIG, scale: str | None = None,
-               out: str | Path | None = None, work: str | Path | None = None) -> Path:
+               out: str | Path | None = None, work: str | Path | None = None,
+               execute: bool = True) -> Path:
     """Build the HTML book; return the folder with ``index.html``.
 
     ``work`` holds the generated Sphinx project and the execution cache
     (default: ``build/`` next to book.yml); ``out`` defaults to ``work/book/html``.
+    ``execute=False`` renders the notebooks as committed, without outputs.
     """
     book = load_book(config)
     scale = resolve_scale(book, scale)
@@ -362,10 +372,11 @@ def build_book(config: str | Path = DEFAULT_CONFIG, scale: str | None = None,
     cache_dir = (cache_root / key).resolve()
     cache_dir.mkdir(parents=True, exist_ok=True)
     start = time.monotonic()
-    executed = execute_chapters(book, scale, cache_dir)
+    executed = execute_chapters(book, scale, cache_dir) if execute else {}
     src = work / "book-src"
-    write_sphinx_project(book, scale, src, executed)
-    print(f"Rendering the book at scale {scale!r} into {out}", flush=True)
+    write_sphinx_project(book, scale if execute else None, src, executed)
+    shown = f"at scale {scale!r}" if execute else "without running the notebooks"
+    print(f"Rendering the book {shown} into {out}", flush=True)
     run_sphinx(src, out, work / "book-doctrees")
     print(f"built in {(time.monotonic() - start) / 60:.1f} min", flush=True)
     for file, url in find_external_assets(out):
@@ -382,9 +393,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--config", default=str(DEFAULT_CONFIG), help="book.yml to read")
     parser.add_argument("--scale", choices=SCALES, help="override book.yml and EBJEPA_SCALE")
     parser.add_argument("--out", help="HTML output folder (default build/book/html)")
+    parser.add_argument("--no-execute", action="store_true",
+                        help="render the notebooks as committed, without outputs")
     args = parser.parse_args(argv)
     try:
-        html = build_book(args.config, args.scale, args.out)
+        html = build_book(args.config, args.scale, args.out, execute=not args.no_execute)
     except BookError as error:
         print(f"error: {error}", file=sys.stderr)
         return 1
