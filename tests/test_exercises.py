@@ -1,19 +1,27 @@
-"""Exercise checkers accept the solutions, reject wrong answers; student versions are valid."""
+"""Exercise checkers accept the solutions and other valid answers, reject wrong ones in
+words (each exercise's own typical mistakes and the general ones), and offer graded hints;
+student versions hold no line of a solution and hand over the course's implementations."""
 
+import functools
 import json
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
+from ebjepa_tutorial import losses
 from ebjepa_tutorial.course import exercises
-from ebjepa_tutorial.course.exercises import check_wall_collision
+from ebjepa_tutorial.course.exercises import check_wall_collision, common
+from ebjepa_tutorial.course.student import MARKDOWN_SOLUTION, strip_solutions
 
 NOTEBOOKS = sorted(Path(__file__).resolve().parents[1].glob("notebooks/*.ipynb"))
 CHECKERS = {
     "variance_term": exercises.check_variance_term,
     "covariance_term": exercises.check_covariance_term,
+    "slab_crossing": exercises.check_slab_crossing,
     "wall_collision": check_wall_collision,
     "temporal_similarity": exercises.check_temporal_similarity,
     "inverse_dynamics": exercises.check_inverse_dynamics,
@@ -25,23 +33,51 @@ CHECKERS = {
     "step_violation": exercises.check_step_violation,
     "spread_loss": exercises.check_spread_loss,
 }
+# the exercises whose output trains something, and the argument it trains
+TRAINED = {"variance_term": 0, "covariance_term": 0, "vicreg": 0, "epps_pulley_1d": 0,
+           "rollout_loss": 1, "temporal_similarity": 0, "inverse_dynamics": 1,
+           "step_violation": 0, "spread_loss": 0}
+BEGIN, END = "### BEGIN SOLUTION", "### END SOLUTION"
+
+
+def _cells(path):
+    return json.loads(path.read_text())["cells"]  # nbformat's import is slow
+
+
+def _source(cell):
+    return "".join(cell["source"])
+
+
+def _solution_cells():
+    """(notebook, index, source) of every code cell that holds a solution region."""
+    for path in NOTEBOOKS:
+        for index, cell in enumerate(_cells(path)):
+            if cell["cell_type"] == "code" and BEGIN in _source(cell):
+                yield path, index, _source(cell)
 
 
 def _solution_functions():
     """Every function defined in a notebook cell that holds a solution region."""
-    for path in NOTEBOOKS:
-        for cell in json.loads(path.read_text())["cells"]:  # nbformat's import is slow
-            source = "".join(cell["source"])
-            if cell["cell_type"] == "code" and "### BEGIN SOLUTION" in source:
-                namespace = {"torch": torch}
-                exec(source, namespace)
-                for name in re.findall(r"^def (\w+)\(", source, flags=re.M):
-                    yield path.name, name, namespace[name]
+    for path, _, source in _solution_cells():
+        namespace = {"torch": torch}
+        exec(source, namespace)
+        for name in re.findall(r"^def (\w+)\(", source, flags=re.M):
+            yield path.name, name, namespace[name]
+
+
+SOLUTIONS = {name: fn for _, name, fn in _solution_functions()}
+
+
+@pytest.fixture(autouse=True)
+def _fresh_hints():
+    common._shown.clear()  # which hint levels a failed check has offered: per test
+    yield
+    common._shown.clear()
 
 
 def test_notebooks_have_exercises():
     assert NOTEBOOKS, "no notebooks found"
-    assert any(True for _ in _solution_functions())
+    assert set(SOLUTIONS) == set(CHECKERS)
 
 
 @pytest.mark.parametrize("notebook, name, fn", list(_solution_functions()),
@@ -49,8 +85,11 @@ def test_notebooks_have_exercises():
 def test_checker_accepts_the_notebook_solution(notebook, name, fn, capsys):
     assert name in CHECKERS, f"{notebook}: exercise {name} has no checker in CHECKERS"
     assert CHECKERS[name](fn) is fn  # the notebook goes on with the learner's own function
-    assert "Correct" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "Correct" in out and "Note" not in out
 
+
+# ------------------------------------------------------- each exercise's own mistakes
 
 def _biased_variance(z, gamma=1.0, eps=1e-4):
     return torch.relu(gamma - torch.sqrt(z.var(dim=0, unbiased=False) + eps)).mean()
@@ -60,75 +99,14 @@ def _per_dimension_variance(z, gamma=1.0, eps=1e-4):
     return torch.relu(gamma - torch.sqrt(z.var(dim=0) + eps))
 
 
-def _covariance_with_diagonal(z):
-    centred = z - z.mean(dim=0)
-    cov = centred.T @ centred / (len(z) - 1)
-    return cov.pow(2).sum() / (z.shape[1] * (z.shape[1] - 1))
-
-
-def _covariance_divided_by_d(z):
-    centred = z - z.mean(dim=0)
-    cov = centred.T @ centred / (len(z) - 1)
-    return (cov - torch.diag(torch.diagonal(cov))).pow(2).sum() / z.shape[1]
-
-
-def _temporal_similarity_summed(z):
-    return (z[:, 1:] - z[:, :-1]).pow(2).sum(dim=-1).mean()
-
-
-def _temporal_similarity_swapped_axes(z):
-    return (z[1:] - z[:-1]).pow(2).mean()
-
-
-def _inverse_dynamics_swapped_frames(predict_actions, z, actions):
-    return (predict_actions(z[:, 1:], z[:, :-1]) - actions).pow(2).mean()
-
-
-def _vicreg_regularising_one_view(z_a, z_b, inv_coeff, std_coeff, cov_coeff):
-    from ebjepa_tutorial import losses
-
-    return (inv_coeff * losses.invariance_term(z_a, z_b)
-            + std_coeff * losses.variance_term(z_a) + cov_coeff * losses.covariance_term(z_a))
-
-
-def _epps_pulley_without_n(x, knots=17, t_max=3.0, scale_by_n=True):
-    from ebjepa_tutorial.losses import sigreg
-
-    return sigreg.epps_pulley(x, knots=knots, t_max=t_max, scale_by_n=False)
-
-
-def _mppi_without_shift(actions, costs, elites, temperature):
-    from ebjepa_tutorial import planning
-
-    elite_actions, elite_costs = planning.select_elites(actions, costs, elites)
-    weights = torch.exp(-elite_costs / temperature)
-    return planning.weighted_mean_std(elite_actions, weights / weights.sum(1, keepdim=True))
-
-
-def _mppi_weighting_every_sample(actions, costs, elites, temperature):
-    from ebjepa_tutorial import planning
-
-    return planning.mppi_update(actions, costs, actions.shape[1], temperature)
-
-
-def _mppi_plain_mean(actions, costs, elites, temperature):
-    from ebjepa_tutorial import planning
-
-    return planning.cem_update(actions, costs, elites)
-
-
 def _variance_without_eps(z, gamma=1.0, eps=1e-4):
     return torch.relu(gamma - z.std(dim=0)).mean()
 
 
-def _variance_summed(z, gamma=1.0, eps=1e-4):
-    return torch.relu(gamma - torch.sqrt(z.var(dim=0) + eps)).sum()
-
-
-def _covariance_biased(z):
+def _covariance_with_diagonal(z):
     centred = z - z.mean(dim=0)
-    cov = centred.T @ centred / len(z)
-    return (cov - torch.diag(torch.diagonal(cov))).pow(2).sum() / (z.shape[1] * (z.shape[1] - 1))
+    cov = centred.T @ centred / (len(z) - 1)
+    return cov.pow(2).sum() / (z.shape[1] * (z.shape[1] - 1))
 
 
 def _covariance_not_centred(z):
@@ -136,17 +114,30 @@ def _covariance_not_centred(z):
     return (cov - torch.diag(torch.diagonal(cov))).pow(2).sum() / (z.shape[1] * (z.shape[1] - 1))
 
 
-def _vicreg_adding_views(z_a, z_b, inv_coeff, std_coeff, cov_coeff):
-    from ebjepa_tutorial import losses
+def _temporal_similarity_unsquared(z):
+    return (z[:, 1:] - z[:, :-1]).norm(dim=-1).mean()
 
+
+def _inverse_dynamics_swapped_frames(predict_actions, z, actions):
+    return (predict_actions(z[:, 1:], z[:, :-1]) - actions).pow(2).mean()
+
+
+def _inverse_dynamics_detached_next(predict_actions, z, actions):
+    return (predict_actions(z[:, :-1], z[:, 1:].detach()) - actions).pow(2).mean()
+
+
+def _vicreg_regularising_one_view(z_a, z_b, inv_coeff, std_coeff, cov_coeff):
+    return (inv_coeff * losses.invariance_term(z_a, z_b)
+            + std_coeff * losses.variance_term(z_a) + cov_coeff * losses.covariance_term(z_a))
+
+
+def _vicreg_adding_views(z_a, z_b, inv_coeff, std_coeff, cov_coeff):
     return (inv_coeff * losses.invariance_term(z_a, z_b)
             + std_coeff * (losses.variance_term(z_a) + losses.variance_term(z_b))
             + cov_coeff * (losses.covariance_term(z_a) + losses.covariance_term(z_b)))
 
 
 def _vicreg_swapped_weights(z_a, z_b, inv_coeff, std_coeff, cov_coeff):
-    from ebjepa_tutorial import losses
-
     return losses.vicreg_loss(z_a, z_b, inv_coeff, cov_coeff, std_coeff)[0]
 
 
@@ -199,46 +190,35 @@ def _rollout_detached_targets(predictor, z, context=2, steps=4, tbptt=None):
     return _rollout(predictor, z, context, steps, tbptt, target=torch.Tensor.detach)
 
 
-def _temporal_similarity_detached(z):
-    z = z.detach()
-    return (z[:, 1:] - z[:, :-1]).pow(2).mean()
-
-
-def _temporal_similarity_unsquared(z):
-    return (z[:, 1:] - z[:, :-1]).norm(dim=-1).mean()
-
-
-def _inverse_dynamics_detached(predict_actions, z, actions):
-    z = z.detach()
-    return (predict_actions(z[:, :-1], z[:, 1:]) - actions).pow(2).mean()
-
-
-def _inverse_dynamics_detached_next(predict_actions, z, actions):
-    return (predict_actions(z[:, :-1], z[:, 1:].detach()) - actions).pow(2).mean()
-
-
-def _inverse_dynamics_summed_over_actions(predict_actions, z, actions):
-    return (predict_actions(z[:, :-1], z[:, 1:]) - actions).pow(2).sum(-1).mean()
-
-
-def _mppi(actions, costs, elites, temperature, *, scale=None, std=None):
-    """The notebook's MPPI update; ``scale`` replaces ``/ tau`` and ``std`` the spread."""
+def _mppi(actions, costs, elites, temperature, *, scale=None, std=None, shift=True):
+    """The notebook's MPPI update; ``scale`` replaces ``/ tau``, ``std`` the spread, and
+    ``shift=False`` leaves out the minimum cost."""
     elite_costs, index = costs.topk(elites, dim=1, largest=False)
     elite = actions.gather(1, index[:, :, None, None].expand(-1, -1, *actions.shape[2:]))
-    shifted = elite_costs - elite_costs.min(dim=1, keepdim=True).values
-    logits = -shifted * temperature if scale == "times" else -shifted / temperature
+    if shift:
+        elite_costs = elite_costs - elite_costs.min(dim=1, keepdim=True).values
+    logits = -elite_costs * temperature if scale == "times" else -elite_costs / temperature
     w = torch.softmax(logits, dim=1)[:, :, None, None]
     mean = (w * elite).sum(dim=1)
     var = (w * (elite - mean[:, None]).pow(2)).sum(dim=1)
     return mean, var if std == "variance" else var.sqrt()
 
 
-def _mppi_variance_as_std(actions, costs, elites, temperature):
-    return _mppi(actions, costs, elites, temperature, std="variance")
+def _mppi_without_shift(actions, costs, elites, temperature):
+    elite_costs, index = costs.topk(elites, dim=1, largest=False)
+    elite = actions.gather(1, index[:, :, None, None].expand(-1, -1, *actions.shape[2:]))
+    weights = torch.exp(-elite_costs / temperature)
+    w = (weights / weights.sum(1, keepdim=True))[:, :, None, None]
+    mean = (w * elite).sum(1)
+    return mean, (w * (elite - mean[:, None]).pow(2)).sum(1).sqrt()
 
 
-def _mppi_times_tau(actions, costs, elites, temperature):
-    return _mppi(actions, costs, elites, temperature, scale="times")
+def _mppi_weighting_every_sample(actions, costs, elites, temperature):
+    return _mppi(actions, costs, actions.shape[1], temperature)
+
+
+def _mppi_plain_mean(actions, costs, elites, temperature):
+    return _mppi(actions, costs, elites, 1e9)
 
 
 def _wall_stay_put(pos, moves, layouts):
@@ -264,8 +244,16 @@ def _wall_without_door_sides(pos, moves, layouts):
     return torch.stack([torch.where(hits_face, torch.where(x0 <= x_lo, x_lo, x_hi), x1), y1], -1)
 
 
+def _slab_crossing_unordered(x0, x1, x_lo, x_hi):
+    moving = x1 != x0
+    dx = torch.where(moving, x1 - x0, torch.ones_like(x0))
+    t_in = torch.where(moving, ((x_lo - x0) / dx).clamp(0, 1), 0.0)
+    t_out = torch.where(moving, ((x_hi - x0) / dx).clamp(0, 1),
+                        ((x0 > x_lo) & (x0 < x_hi)).float())
+    return t_in, t_out
+
+
 @pytest.mark.parametrize("checker, wrong, message", [
-    (exercises.check_epps_pulley, _epps_pulley_without_n, "N times too small"),
     (exercises.check_epps_pulley, _epps_pulley_unweighted,
      r"weight w\(t\) = exp\(-t\^2/2\) is missing"),
     (exercises.check_epps_pulley, _epps_pulley_real_part_only, "imaginary part is missing"),
@@ -283,48 +271,37 @@ def _wall_without_door_sides(pos, moves, layouts):
     (exercises.check_vicreg_paper_to_ebjepa,
      lambda inv, std, cov, dim: (1.0, std / inv, cov / (dim - 1) / inv),
      r"divided the covariance weight by \(D - 1\)"),
-    (exercises.check_temporal_similarity, _temporal_similarity_summed,
-     "but the answer is .*summed the squared change over the D dimensions"),
-    (exercises.check_temporal_similarity, _temporal_similarity_swapped_axes,
-     "but the answer is .*differences along the batch axis"),
     (exercises.check_temporal_similarity, _temporal_similarity_unsquared, "unsquared distance"),
-    (exercises.check_temporal_similarity, _temporal_similarity_detached,
-     "right value .* but not the right gradient .* no gradient reaches the latents z"),
     (exercises.check_inverse_dynamics, _inverse_dynamics_swapped_frames,
      "but the answer is .*pair in the wrong order"),
-    (exercises.check_inverse_dynamics, _inverse_dynamics_detached,
-     r"right value, but no gradient reaches the latents z: did you \.detach\(\) them\?"),
     (exercises.check_inverse_dynamics, _inverse_dynamics_detached_next,
-     r"gradient reaches z_t but not z_t\+1: you detached z\[:, 1:\]"),
-    (exercises.check_inverse_dynamics, _inverse_dynamics_summed_over_actions,
-     "summed the squared error over the A action dimensions"),
+     r"not the right gradient .* gradient reaches z_t but not z_t\+1: you detached the later"),
     (exercises.check_variance_term, _biased_variance, "but the answer is .*biased variance"),
     (exercises.check_variance_term, _variance_without_eps, "eps is missing from the square root"),
-    (exercises.check_variance_term, _variance_summed, "summed the hinge over the D dimensions"),
     (exercises.check_variance_term, _per_dimension_variance, "a single number.*one hinge per"),
-    (exercises.check_variance_term, lambda z, gamma=1.0, eps=1e-4: 0.0, "expected a torch tensor"),
     (exercises.check_covariance_term, _covariance_with_diagonal,
-     "but the answer is .*forgot to zero the diagonal"),
-    (exercises.check_covariance_term, _covariance_divided_by_d,
-     r"but the answer is .*divided the sum by D, as the VICReg paper does"),
-    (exercises.check_covariance_term, _covariance_biased, "divides by B - 1"),
+     "but the answer is .*kept the diagonal"),
     (exercises.check_covariance_term, _covariance_not_centred, "did not centre z"),
     (exercises.check_rollout_loss, _rollout_off_by_one, "off-by-one target"),
     (exercises.check_rollout_loss, _rollout_teacher_forcing, "teacher forcing"),
     (exercises.check_rollout_loss, _rollout_summed, "summed the errors instead of averaging"),
     (exercises.check_rollout_loss, _rollout_detached_targets,
-     "no gradient reaches the target latents"),
+     "does not flow to the last latent.*no gradient reaches the target latents"),
+    (exercises.check_slab_crossing, _slab_crossing_unordered,
+     "your t_in .* but the answer is .*a move to the left reaches x_hi first"),
     (exercises.check_wall_collision, _wall_stay_put, "cancel the whole move"),
     (exercises.check_wall_collision, _wall_without_door_sides, "not the door's sides"),
-    (exercises.check_mppi_update, _mppi_without_shift, "underflow.*subtract the minimum cost"),
+    (exercises.check_mppi_update, _mppi_without_shift,
+     "do not subtract the minimum cost: .* underflows"),
     (exercises.check_mppi_update, _mppi_weighting_every_sample,
      "but the answer is .*weighted all N sampled plans"),
     (exercises.check_mppi_update, _mppi_plain_mean, "but the answer is .*same weight"),
-    (exercises.check_mppi_update, _mppi_variance_as_std,
-     r"a wrong std: std\[\d+, \d+, \d+\] is .* \(your mean is right\).* weighted variance"),
-    (exercises.check_mppi_update, _mppi_times_tau, "multiplied by the temperature"),
+    (exercises.check_mppi_update, functools.partial(_mppi, std="variance"),
+     r"your std .* but the answer is .*the weighted variance: take its square root"),
+    (exercises.check_mppi_update, functools.partial(_mppi, scale="times"),
+     "multiplied by the temperature"),
     (exercises.check_mppi_update, lambda actions, costs, elites, temperature: actions.mean(1),
-     "must return a pair"),
+     r"must return a pair \(mean, std\)"),
 ])
 def test_checker_rejects_wrong_answers(checker, wrong, message):
     with pytest.raises(exercises.ExerciseError, match=message):
@@ -340,6 +317,266 @@ def test_checker_names_each_mistake_it_knows(checker):
             checker(wrong)
 
 
+# ------------------------------------------- an output that trains must keep its gradient
+
+def _detached(right, index):
+    @functools.wraps(right)
+    def wrong(*args, **kwargs):
+        args = list(args)
+        args[index] = args[index].detach()
+        return right(*args, **kwargs)
+    return wrong
+
+
+def _through_numpy(right, index):
+    @functools.wraps(right)
+    def wrong(*args, **kwargs):
+        args = list(args)
+        args[index] = torch.from_numpy(np.array(args[index].detach().numpy()))
+        return right(*args, **kwargs)
+    return wrong
+
+
+def _under_no_grad(right):
+    @functools.wraps(right)
+    def wrong(*args, **kwargs):
+        with torch.no_grad():
+            return right(*args, **kwargs)
+    return wrong
+
+
+def _sign_flipped(right):
+    @functools.wraps(right)
+    def wrong(*args, **kwargs):
+        return -right(*args, **kwargs)
+    return wrong
+
+
+LABELS = {  # how a message names the input that stops receiving a gradient
+    "vicreg": "the first view z_a", "epps_pulley_1d": "the sample x",
+    "rollout_loss": r"the (predictor's weights|last latent z\[:, -1\] \(only ever a target\))",
+    "temporal_similarity": "the latents z", "inverse_dynamics": "the latents z",
+    "step_violation": "the step distances", "spread_loss": "the distances"}
+
+
+@pytest.mark.parametrize("name", list(TRAINED))
+@pytest.mark.parametrize("cut, found", [
+    (lambda fn, index: _detached(fn, index), r"\.detach\(\) \(detaches a tensor"),
+    (lambda fn, index: _through_numpy(fn, index), r"\.numpy\(\) \(leaves torch for numpy"),
+    (lambda fn, index: _under_no_grad(fn), r"torch\.no_grad\(\) \(switches gradients off"),
+], ids=["detach", "numpy", "no_grad"])
+def test_an_answer_that_cuts_the_gradient_is_named(name, cut, found):
+    label = LABELS.get(name, "z")
+    wrong = cut(SOLUTIONS[name], TRAINED[name])
+    with pytest.raises(exercises.ExerciseError,
+                       match=rf"right value on .*, but the gradient does not flow to {label}, so "
+                             rf"training could not change it .*Found in your function: .*{found}"):
+        CHECKERS[name](wrong)
+
+
+@pytest.mark.parametrize("name", list(TRAINED))
+def test_a_sign_flipped_answer_is_named(name):
+    with pytest.raises(exercises.ExerciseError,
+                       match=r"has the wrong sign on .*: it is minus the answer\. A loss "
+                             r".*difference taken the wrong way round.*Yours: -?[\d.]"):
+        CHECKERS[name](_sign_flipped(SOLUTIONS[name]))
+
+
+def test_a_numpy_implementation_is_named():
+    def variance_term(z, gamma=1.0, eps=1e-4):
+        std = np.sqrt(np.var(z.detach().numpy(), axis=0, ddof=1) + eps)
+        return torch.tensor(np.maximum(0.0, gamma - std).mean())
+
+    def epps_pulley_1d(x, knots=17, t_max=3.0, scale_by_n=True):
+        t = np.linspace(0.0, t_max, knots)
+        xt = np.asarray(x)[:, None] * t  # np.asarray reads a tensor through numpy
+        gap = (np.cos(xt).mean(0) - np.exp(-t**2 / 2)) ** 2 + np.sin(xt).mean(0) ** 2
+        statistic = 2 * np.trapezoid(np.exp(-t**2 / 2) * gap, t)
+        return torch.tensor(statistic * len(x) if scale_by_n else statistic)
+
+    for checker, fn, label in [(exercises.check_variance_term, variance_term, "z"),
+                               (exercises.check_epps_pulley, epps_pulley_1d, "the sample x")]:
+        with pytest.raises(exercises.ExerciseError,
+                           match=rf"does not flow to {label}, so .*numpy"):
+            checker(fn)
+
+
+# ------------------------------------------------- general mistakes, each on two exercises
+
+def _temporal_over_t(z):
+    return (z[:, 1:] - z[:, :-1]).pow(2).sum() / z.numel()
+
+
+@pytest.mark.parametrize("checker, wrong, message", [
+    # a factor off
+    (exercises.check_covariance_term,
+     lambda z: losses.covariance_term(z) * (z.shape[1] - 1),
+     r"is too large by a factor of D - 1 = 7 on .*the VICReg paper divides the sum by D"),
+    (exercises.check_covariance_term,
+     lambda z: losses.covariance_term(z) * ((len(z) - 1) / len(z)) ** 2,
+     r"is too small by a factor of \(B/\(B - 1\)\)² = 1.066.*divides by B - 1, not B"),
+    (exercises.check_variance_term,
+     lambda z, gamma=1.0, eps=1e-4: torch.relu(gamma - (z.var(0) + eps).sqrt()).sum(),
+     r"is too large by a factor of D = 8 on .*averaged over the D dimensions, not summed"),
+    (exercises.check_temporal_similarity,
+     lambda z: (z[:, 1:] - z[:, :-1]).pow(2).sum(-1).mean(),
+     r"is too large by a factor of D = 8 on .*averaged over the D dimensions too"),
+    (exercises.check_temporal_similarity, _temporal_over_t,
+     r"is too small by a factor of T/\(T - 1\) = 1.062.*T latents make T - 1 changes"),
+    (exercises.check_inverse_dynamics,
+     lambda g, z, a: (g(z[:, :-1], z[:, 1:]) - a).pow(2).sum(-1).mean(),
+     r"is too large by a factor of A = 2 on .*averaged over the A action dimensions"),
+    (exercises.check_epps_pulley,
+     lambda x, knots=17, t_max=3.0, scale_by_n=True: losses.sigreg.epps_pulley(
+         x, knots=knots, t_max=t_max, scale_by_n=False),
+     r"is too small by a factor of N = 256 on .*N times the integral"),
+    # an input changed in place
+    (exercises.check_covariance_term,
+     lambda z: (z.sub_(z.mean(0)).T @ z / (len(z) - 1)).fill_diagonal_(0).pow(2).sum()
+     / (z.shape[1] * (z.shape[1] - 1)),
+     r"changed its input z in place on a random batch.*-=, \+= or \*="),
+    (exercises.check_variance_term,
+     lambda z, gamma=1.0, eps=1e-4: torch.relu(gamma - (z.sub_(z.mean(0)).var(0) + eps).sqrt())
+     .mean(), r"changed its input z in place"),
+    (exercises.check_mppi_update,
+     lambda actions, costs, elites, temperature: _mppi(
+         actions, costs.sub_(costs.min(1, keepdim=True).values), elites, temperature),
+     r"changed its input costs in place"),
+    # the wrong axis
+    (exercises.check_variance_term,
+     lambda z, gamma=1.0, eps=1e-4: torch.relu(gamma - (z.var(1) + eps).sqrt()).mean(),
+     r"worked along the wrong axis on .*the batch and the dimension axes of z exchanged"),
+    (exercises.check_temporal_similarity, lambda z: (z[1:] - z[:-1]).pow(2).mean(),
+     r"worked along the wrong axis on .*the batch and the time axes.*neighbours along axis 1"),
+    (exercises.check_covariance_term,
+     lambda z: (torch.cov(z) - torch.diag(torch.cov(z).diagonal())).pow(2).sum()
+     / (len(z) * (len(z) - 1)),
+     r"worked along the wrong axis on .*torch.cov, for one, treats each row as a variable"),
+    # a transposed result
+    (exercises.check_mppi_update,
+     lambda *args: tuple(t.transpose(1, 2) for t in _mppi(*args)),
+     r"right numbers in the wrong layout .*your mean has shape \(2, 2, 4\) where \(2, 4, 2\)"),
+    (exercises.check_wall_collision,
+     lambda pos, moves, layouts: SOLUTIONS["wall_collision"](pos, moves, layouts).T,
+     r"right positions in the wrong layout .*shape \(2, 512\)"),
+    # a Python float, a numpy number or a tuple where a tensor belongs
+    (exercises.check_variance_term,
+     lambda z, gamma=1.0, eps=1e-4: losses.variance_term(z, gamma, eps).item(),
+     r"returned a Python float \([\d.]+\) on .*carries no gradient.*\.item\(\)"),
+    (exercises.check_temporal_similarity,
+     lambda z: np.float64((z[:, 1:] - z[:, :-1]).pow(2).mean()),
+     r"returned a numpy float64 on .*numpy carries no gradient"),
+    (exercises.check_vicreg,
+     lambda z_a, z_b, *coeffs: losses.vicreg_loss(z_a, z_b, *coeffs),
+     r"returned a tuple of 2 on .*a loss and its parts"),
+    (exercises.check_covariance_term, lambda z: float(losses.covariance_term(z)),
+     r"returned a Python float"),
+])
+def test_general_mistakes_are_named_in_words(checker, wrong, message):
+    with pytest.raises(exercises.ExerciseError, match=message):
+        checker(wrong)
+
+
+def _rules_on_the_raw_target(positions, moves, layouts, clamp_at_the_end):
+    """The notebook's scaffold, its first step left out: the target is not clamped first."""
+    from ebjepa_tutorial.envs.two_rooms import HIGH, LOW
+
+    wall_x, door_y = layouts.float().unbind(-1)
+    x_lo, x_hi, y_lo, y_hi = wall_x - 2.5, wall_x + 2.5, door_y - 3.5, door_y + 3.5
+    x0, y0 = positions.unbind(-1)
+    x1, y1 = (positions + moves).unbind(-1)
+    t_in, t_out = SOLUTIONS["slab_crossing"](x0, x1, x_lo, x_hi)
+    y_in, y_out = y0 + t_in * (y1 - y0), y0 + t_out * (y1 - y0)
+    face = (t_out > t_in) & ((y_in < y_lo) | (y_in > y_hi))
+    side = (t_out > t_in) & ~face & ((y_out < y_lo) | (y_out > y_hi))
+    x = torch.where(face, torch.where(x0 <= x_lo, x_lo, x_hi), x1)
+    new = torch.stack([x, torch.where(side, y1.clamp(y_lo, y_hi), y1)], dim=-1)
+    return new.clamp(LOW, HIGH) if clamp_at_the_end else new
+
+
+@pytest.mark.parametrize("clamp_at_the_end", [True, False], ids=["clamped last", "never"])
+def test_an_unclamped_target_is_named_not_an_open_door(clamp_at_the_end):
+    def wall_collision(positions, moves, layouts):
+        return _rules_on_the_raw_target(positions, moves, layouts, clamp_at_the_end)
+
+    with pytest.raises(exercises.ExerciseError) as caught:
+        check_wall_collision(wall_collision)
+    assert "the target was not clamped to the arena first. Rule 1" in str(caught.value)
+    assert "the door is open there" not in str(caught.value)
+
+
+# ------------------------------------------------------------- valid answers are accepted
+
+def test_checkers_accept_other_valid_conventions(capsys):
+    def temporal_similarity(z):
+        return F.mse_loss(z[:, 1:], z[:, :-1])
+
+    def inverse_dynamics(predict_actions, z, actions):
+        return F.mse_loss(predict_actions(z[:, :-1], z[:, 1:]), actions)
+
+    def mppi_update(actions, costs, elites, temperature):  # E[a^2] - mean^2, other indexing
+        elite_costs, index = costs.topk(elites, dim=1, largest=False)  # cheapest first
+        elite = actions[torch.arange(len(costs))[:, None], index]
+        w = torch.softmax(-(elite_costs - elite_costs[:, :1]) / temperature, 1)[:, :, None, None]
+        mean = (w * elite).sum(1)
+        return mean, ((w * elite.pow(2)).sum(1) - mean.pow(2)).clamp_min(0).sqrt()
+
+    def slab_crossing(x0, x1, x_lo, x_hi):  # the times of the two faces, sorted
+        dx = x1 - x0
+        faces = torch.stack([(x_lo - x0) / dx, (x_hi - x0) / dx]).sort(dim=0).values.clamp(0, 1)
+        inside = ((x0 > x_lo) & (x0 < x_hi)).to(x0.dtype)
+        return (torch.where(dx == 0, 0.0, faces[0]).to(x0.dtype),
+                torch.where(dx == 0, inside, faces[1]))
+
+    for checker, fn in [(exercises.check_temporal_similarity, temporal_similarity),
+                        (exercises.check_inverse_dynamics, inverse_dynamics),
+                        (exercises.check_mppi_update, mppi_update),
+                        (exercises.check_slab_crossing, slab_crossing)]:
+        assert checker(fn) is fn
+    assert capsys.readouterr().out.count("Correct") == 4
+
+
+@pytest.mark.parametrize("covariance_term", [
+    lambda z: (torch.cov(z.T).pow(2).sum() - torch.cov(z.T).diagonal().pow(2).sum())
+    / (z.shape[1] * (z.shape[1] - 1)),
+    lambda z: torch.cov(z.T).fill_diagonal_(0).pow(2).sum() / (z.shape[1] * (z.shape[1] - 1)),
+    lambda z: ((torch.einsum("bi,bj->ij", z, z) - len(z) * torch.outer(z.mean(0), z.mean(0)))
+               / (len(z) - 1)).triu(1).pow(2).sum() * 2 / (z.shape[1] * (z.shape[1] - 1)),
+], ids=["torch.cov", "fill_diagonal_", "einsum"])
+def test_equivalent_covariance_formulas_are_accepted(covariance_term, capsys):
+    assert exercises.check_covariance_term(covariance_term) is covariance_term
+    assert "Correct" in capsys.readouterr().out
+
+
+def test_answers_that_compute_in_float64_are_accepted(capsys):
+    def variance_term(z, gamma=1.0, eps=1e-4):
+        return torch.relu(gamma - torch.sqrt(z.double().var(dim=0) + eps)).mean()
+
+    def epps_pulley_1d(x, knots=17, t_max=3.0, scale_by_n=True):
+        x = x.double()
+        t = torch.linspace(0.0, t_max, knots, dtype=torch.float64)
+        gaussian = torch.exp(-t**2 / 2)
+        gap = ((torch.cos(x[:, None] * t).mean(0) - gaussian) ** 2
+               + torch.sin(x[:, None] * t).mean(0) ** 2)
+        statistic = 2 * torch.trapezoid(gaussian * gap, t)
+        return statistic * len(x) if scale_by_n else statistic
+
+    assert exercises.check_variance_term(variance_term) is variance_term
+    assert exercises.check_epps_pulley(epps_pulley_1d) is epps_pulley_1d
+    assert capsys.readouterr().out.count("Correct") == 2
+
+
+def test_softmax_without_the_minimum_is_accepted_and_told_about_float32(capsys):
+    def mppi_update(actions, costs, elites, temperature):
+        return _mppi(actions, costs, elites, temperature, shift=False)
+
+    assert exercises.check_mppi_update(mppi_update) is mppi_update
+    out = capsys.readouterr().out
+    assert "Correct" in out
+    assert re.search(r"costs near 10,000 your mean and std differ .* by up to \d\.\de-0\d, "
+                     r"which float32 explains.*about three decimals", out, re.S), out
+
+
 def test_chapter_07_checkers_accept_a_learner_s_own_right_answers(capsys):
     def step_violation(step_distance, step_length):
         over = (step_distance - step_length).clamp(min=0)
@@ -353,6 +590,17 @@ def test_chapter_07_checkers_accept_a_learner_s_own_right_answers(capsys):
     assert capsys.readouterr().out.count("Correct") == 2
 
 
+def test_calling_the_course_s_own_function_passes_with_a_note(capsys):
+    def variance_term(z, gamma=1.0, eps=1e-4):
+        return losses.variance_term(z, gamma, eps)
+
+    assert exercises.check_variance_term(variance_term) is variance_term
+    out = capsys.readouterr().out
+    assert "Correct" in out and "calls the course's own losses.vicreg.variance_term" in out
+    assert exercises.whose(variance_term) == "your"
+    assert exercises.whose(exercises.check_variance_term.reference) == "the course's"
+
+
 def test_an_unknown_mistake_is_not_given_a_cause():
     def variance_term(z, gamma=1.0, eps=1e-4):
         return torch.relu(gamma - torch.sqrt(z.var(dim=0) + eps)).mean() + 0.1
@@ -362,42 +610,15 @@ def test_an_unknown_mistake_is_not_given_a_cause():
     assert "Likely cause" not in str(caught.value)
 
 
-def test_checkers_accept_other_valid_conventions(capsys):
-    import torch.nn.functional as F
-
-    def temporal_similarity(z):
-        return F.mse_loss(z[:, 1:], z[:, :-1])
-
-    def inverse_dynamics(predict_actions, z, actions):
-        return F.mse_loss(predict_actions(z[:, :-1], z[:, 1:]), actions)
-
-    def covariance_term(z):
-        cov = torch.cov(z.T)
-        return (cov.pow(2).sum() - cov.diagonal().pow(2).sum()) / (z.shape[1] * (z.shape[1] - 1))
-
-    def mppi_update(actions, costs, elites, temperature):  # E[a^2] - mean^2, other indexing
-        elite_costs, index = costs.topk(elites, dim=1, largest=False)  # cheapest first
-        elite = actions[torch.arange(len(costs))[:, None], index]
-        w = torch.softmax(-(elite_costs - elite_costs[:, :1]) / temperature, 1)[:, :, None, None]
-        mean = (w * elite).sum(1)
-        return mean, ((w * elite.pow(2)).sum(1) - mean.pow(2)).clamp_min(0).sqrt()
-
-    for checker, fn in [(exercises.check_temporal_similarity, temporal_similarity),
-                        (exercises.check_inverse_dynamics, inverse_dynamics),
-                        (exercises.check_covariance_term, covariance_term),
-                        (exercises.check_mppi_update, mppi_update)]:
-        assert checker(fn) is fn
-    assert capsys.readouterr().out.count("Correct") == 4
-
-
 @pytest.mark.parametrize("checker", list(CHECKERS.values()), ids=list(CHECKERS))
 def test_an_unfinished_exercise_hands_over_the_course_implementation(checker, capsys):
     def stub(*args, **kwargs):
-        raise NotImplementedError("Exercise: see the text above this cell")
+        raise NotImplementedError("Exercise: write it")
 
     assert checker(stub) is checker.reference  # so "Run All" reaches the end of the chapter
     out = capsys.readouterr().out
     assert "not implemented yet" in out and "uses the course's implementation" in out
+    assert f"exercises.hint({checker.exercise!r})" in out
 
 
 def test_a_wrong_answer_is_reported_without_the_checkers_insides():
@@ -418,34 +639,148 @@ def test_checker_reports_a_crash_in_plain_words():
         exercises.check_covariance_term(covariance_term)
 
 
-def test_strip_solutions_keeps_hints_and_indentation():
-    from ebjepa_tutorial.course import student  # imports nbformat: only where needed
+# -------------------------------------------------------------------------------- hints
 
+def test_hints_come_one_level_at_a_time(capsys):
+    for level in (1, 2, 3, 3):
+        exercises.hint("mppi_update")
+        assert f"Hint {level} of 3 for mppi_update" in capsys.readouterr().out
+    exercises.hint(SOLUTIONS["covariance_term"], level=2)  # the function itself will do
+    assert "Hint 2 of 3 for covariance_term, the formula" in capsys.readouterr().out
+    exercises.hint("mppi")
+    assert "no exercise called 'mppi'" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="level is 1"):
+        exercises.hint("mppi_update", level=4)
+
+
+def test_a_failed_check_offers_the_next_hint_without_code():
+    def covariance_term(z):
+        return z.var(dim=0).sum()
+
+    offered = []
+    for _ in range(3):
+        with pytest.raises(exercises.ExerciseError) as caught:
+            exercises.check_covariance_term(covariance_term)
+        offered.append(str(caught.value))
+    assert "Hint 1 of 3 for covariance_term, the idea" in offered[0]
+    assert "Hint 2 of 3 for covariance_term, the formula" in offered[1]
+    assert "exercises.hint('covariance_term', level=3) shows an outline" in offered[2]
+    assert common.HINTS["covariance_term"][2] not in "".join(offered)
+
+
+def test_every_exercise_has_three_hints():
+    for name, checker in CHECKERS.items():
+        assert checker.exercise == name
+        idea, formula, outline = common.HINTS[name]
+        assert len(idea) > 80 and len(formula) > 80 and outline
+
+
+# --------------------------------------------------- the student version shows no solution
+
+def _code(line):
+    """A solution line without its comment and indentation ('' for a comment line)."""
+    return "" if line.strip().startswith("#") else line.split("  #")[0].strip()
+
+
+def _solution_lines(source):
+    inside, lines = False, []
+    for line in source.splitlines():
+        if BEGIN in line or END in line:
+            inside = BEGIN in line
+        elif inside and _code(line):
+            lines.append(_code(line))
+    return lines
+
+
+def _right_hand_side(line):
+    """What a solution line computes, when that is long enough to be telling."""
+    rhs = line.split(" = ", 1)[1] if " = " in line else line.removeprefix("return ")
+    computes = any(c in rhs for c in ".+-*/[")  # not a bare call such as predictor(window)
+    return rhs if len(rhs) >= 12 and computes else None
+
+
+def _student_cells(path):
+    out = []
+    for cell in _cells(path):
+        source = _source(cell)
+        out.append(strip_solutions(source) if cell["cell_type"] == "code"
+                   else MARKDOWN_SOLUTION.sub("", source))
+    return out
+
+
+def _exercise_cells(cells, index):
+    """A stub cell's exercise cells: the markdown above that states it, the stub, its check."""
+    check = next(i for i in range(index + 1, len(cells)) if "exercises.check_" in cells[i])
+    return [cells[index - 1], cells[index], cells[check]]
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
+def test_the_student_version_holds_no_line_of_a_solution(path):
+    cells, text = _cells(path), "\n".join(_student_cells(path))
+    student = _student_cells(path)
+    for index, cell in enumerate(cells):
+        if cell["cell_type"] != "code" or BEGIN not in _source(cell):
+            continue
+        lines = _solution_lines(_source(cell))
+        names = re.findall(r"^def (\w+)\(", _source(cell), flags=re.M)
+        hints = "\n".join(common.HINTS[name][level] for name in names for level in (0, 1))
+        near = "\n".join(_exercise_cells(student, index)) + hints
+        for line in lines:
+            assert line not in text + hints, f"{path.name} cell {index}: {line!r} is shown"
+            rhs = _right_hand_side(line)
+            assert rhs is None or rhs not in near, f"{path.name} cell {index}: {rhs!r} is shown"
+        assert all(f'exercises.hint("{name}")' in student[index] for name in names)
+
+
+ANSWERS = {"variance_term": ["losses.variance_term", "variance_and_covariance", "vicreg_loss"],
+           "covariance_term": ["losses.covariance_term", "covariance_matrix", "vicreg_loss"],
+           "vicreg": ["vicreg_loss"], "vicreg_paper_to_ebjepa": [],
+           "epps_pulley_1d": ["sigreg.epps_pulley", "import epps_pulley", "sigreg_loss"],
+           "rollout_loss": ["rollout.rollout_loss", "parallel_rollout_loss"],
+           "slab_crossing": ["stop_at_wall"],
+           "wall_collision": ["envs.wall_collision", "two_rooms.wall_collision", "stop_at_wall"],
+           "temporal_similarity": ["temporal_similarity_loss"],
+           "inverse_dynamics": ["inverse_dynamics_loss"],
+           "mppi_update": ["planning.mppi_update", "mppi_weights", "weighted_mean_std"],
+           "step_violation": ["cost.step_violation"], "spread_loss": ["cost.spread_loss"]}
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
+def test_the_exercise_cells_do_not_name_the_answer(path):
+    student = _student_cells(path)
+    for index, cell in enumerate(_cells(path)):
+        if cell["cell_type"] == "code" and BEGIN in _source(cell):
+            shown = "\n".join(_exercise_cells(student, index))
+            for name in re.findall(r"^def (\w+)\(", _source(cell), flags=re.M):
+                for answer in ANSWERS[name]:
+                    assert answer not in shown, f"{path.name} cell {index} names {answer}"
+
+
+def test_strip_solutions_leaves_a_stub_that_asks_for_a_hint():
     source = (
         "def f(x):\n"
         "    y = 1\n"
         "    ### BEGIN SOLUTION\n"
-        "    # HINT: add y\n"
         "    return x + y\n"
         "    ### END SOLUTION\n"
     )
-    assert student.strip_solutions(source) == (
+    assert strip_solutions(source) == (
         "def f(x):\n"
         "    y = 1\n"
-        "    # HINT: add y\n"
-        "    raise NotImplementedError('Exercise: add y')"
+        '    # Your code here. Stuck? exercises.hint("f") gives a hint, one level at a time.\n'
+        "    raise NotImplementedError('Exercise: write f; exercises.hint(\"f\") gives a hint.')"
     )
 
 
 @pytest.mark.parametrize("source", [
     "### BEGIN SOLUTION\nx = 1\n",
     "x = 1\n### END SOLUTION\n",
+    "def f():\n    ### BEGIN SOLUTION\n    # HINT: the answer\n    return 1\n"
+    "    ### END SOLUTION\n",
 ])
-def test_unbalanced_markers_are_errors(source):
-    from ebjepa_tutorial.course import student
-
-    with pytest.raises(ValueError, match="SOLUTION"):
-        student.strip_solutions(source)
+def test_unbalanced_markers_and_hint_lines_are_errors(source):
+    with pytest.raises(ValueError, match="SOLUTION|HINT"):
+        strip_solutions(source)
 
 
 @pytest.mark.slow  # nbformat's validator takes seconds to import
@@ -467,11 +802,11 @@ def test_student_versions_are_valid_and_solution_free(tmp_path, capsys):
         assert not any("Solutions are in this notebook" in s for s in text)
         assert not any(c.get("outputs") for c in notebook.cells if c.cell_type == "code")
         stubs = [s for s in code if "raise NotImplementedError" in s]
-        for source in stubs:  # every stub still defines its function, which then says "todo"
+        for source in stubs:  # every stub still defines its functions, which then say "todo"
             namespace = {"torch": torch}
             exec(source, namespace)
-            name = re.search(r"^def (\w+)\(", source, flags=re.M).group(1)
-            assert CHECKERS[name](namespace[name]) is CHECKERS[name].reference
+            for name in re.findall(r"^def (\w+)\(", source, flags=re.M):
+                assert CHECKERS[name](namespace[name]) is CHECKERS[name].reference
 
 
 @pytest.mark.slow

@@ -1,12 +1,17 @@
 """Write student versions of the notebooks: solutions out, everything else identical.
 
 A notebook is written once, with its solutions. In a code cell, a solution is
-the lines between ``### BEGIN SOLUTION`` and ``### END SOLUTION``; comment
-lines inside it that start with ``# HINT:`` are kept. The student version
-replaces each region by its hints and a ``raise NotImplementedError`` at the
-same indentation, drops the text of markdown cells between
+the lines between ``### BEGIN SOLUTION`` and ``### END SOLUTION``, inside the
+function that is the exercise. The student version replaces each region by a
+comment and a ``raise NotImplementedError`` at the same indentation: they ask
+the learner to write the function and say how to get a hint. The hints
+themselves (the idea, the formula, an outline of the code) live beside each
+checker in :mod:`ebjepa_tutorial.course.exercises`, one place per exercise, and
+come from ``exercises.hint("name")`` or a failed check, so no code of the
+solution stays in the student version; a ``# HINT:`` line inside a region is an
+error. The student version also drops the text of markdown cells between
 ``<!-- BEGIN SOLUTION -->`` and ``<!-- END SOLUTION -->`` (sentences about the
-solutions), and drops all outputs. Each exercise's checker hands the course's
+solutions), and all outputs. Each exercise's checker hands the course's
 implementation to the rest of the notebook while the stub is unsolved, so a
 student version runs to the end::
 
@@ -22,28 +27,46 @@ import re
 import sys
 from pathlib import Path
 
-import nbformat
-
 BEGIN = re.compile(r"^(\s*)### BEGIN SOLUTION\s*$")
 END = re.compile(r"^\s*### END SOLUTION\s*$")
-HINT = re.compile(r"^\s*# HINT:\s*(.*)$")
+HINT = re.compile(r"^\s*# HINT:")
+DEF = re.compile(r"^(\s*)def (\w+)\(")
 MARKDOWN_SOLUTION = re.compile(r"<!-- BEGIN SOLUTION -->.*?<!-- END SOLUTION -->\s*", re.S)
 
 
+def _exercise_name(lines: list[str], indent: str) -> str | None:
+    """The function the region at ``indent`` belongs to: the nearest ``def`` above it that
+    is indented less."""
+    for line in reversed(lines):
+        if (match := DEF.match(line)) and len(match.group(1)) < len(indent):
+            return match.group(2)
+    return None
+
+
+def stub(name: str | None, indent: str = "") -> list[str]:
+    """The lines that stand for a solution region of the exercise ``name``."""
+    if name is None:
+        return [f"{indent}raise NotImplementedError('Exercise: the text above says what to "
+                "write here.')"]
+    ask = f'exercises.hint("{name}")'
+    message = f"Exercise: write {name}; {ask} gives a hint."
+    return [f"{indent}# Your code here. Stuck? {ask} gives a hint, one level at a time.",
+            f"{indent}raise NotImplementedError({message!r})"]
+
+
 def strip_solutions(source: str) -> str:
-    """Replace every solution region in a code cell's ``source`` by hints and a stub."""
-    out, hints, indent = [], [], None
+    """Replace every solution region in a code cell's ``source`` by a stub."""
+    out, indent = [], None
     for number, line in enumerate(source.splitlines(), start=1):
         if indent is None and (begin := BEGIN.match(line)):
-            indent, hints = begin.group(1), []
+            indent = begin.group(1)
+            out.extend(stub(_exercise_name(out, indent), indent))
         elif indent is not None and END.match(line):
-            hint = " ".join(hints) or "see the text above this cell"
-            out.append(f"{indent}raise NotImplementedError({('Exercise: ' + hint)!r})")
             indent = None
         elif indent is not None:
-            if hint := HINT.match(line):
-                out.append(line)
-                hints.append(hint.group(1).strip())
+            if HINT.match(line):
+                raise ValueError(f"line {number}: a '# HINT:' line in a solution; hints live "
+                                 "beside the checkers, in ebjepa_tutorial/course/exercises")
         elif END.match(line):
             raise ValueError(f"line {number}: END SOLUTION without BEGIN SOLUTION")
         else:
@@ -53,8 +76,11 @@ def strip_solutions(source: str) -> str:
     return "\n".join(out)
 
 
-def student_notebook(notebook: nbformat.NotebookNode) -> nbformat.NotebookNode:
-    """A copy of ``notebook`` with solutions (code and markdown) stripped, outputs removed."""
+def student_notebook(notebook):
+    """A copy of ``notebook`` (an ``nbformat`` notebook) with solutions (code and markdown)
+    stripped and outputs removed."""
+    import nbformat  # imported here: strip_solutions alone needs no notebook machinery
+
     student = nbformat.from_dict(notebook)
     for cell in student.cells:
         if cell.cell_type == "code":
@@ -71,6 +97,8 @@ def write_student_versions(src: str | Path, dst: str | Path, overwrite: bool = F
     A student notebook already in ``dst`` holds a learner's work: it is kept
     unless ``overwrite`` (delete it to start that chapter afresh).
     """
+    import nbformat
+
     src, dst = Path(src), Path(dst)
     dst.mkdir(parents=True, exist_ok=True)
     written = []

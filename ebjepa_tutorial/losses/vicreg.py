@@ -13,7 +13,7 @@ see a batch.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -131,6 +131,8 @@ def vicreg_loss(
     cov_coeff: float = 1.0,
     across_ranks: bool = False,
     local: Sequence[torch.Tensor] = (),
+    variance: Callable[[torch.Tensor], torch.Tensor] = variance_term,
+    covariance: Callable[[torch.Tensor], torch.Tensor] = covariance_term,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """VICReg on two views ``(B, D)``: weighted invariance + variance + covariance.
 
@@ -144,14 +146,15 @@ def vicreg_loss(
     views are gathered from all ranks to ``(W b, D)`` for variance and covariance,
     gradients flowing back to each rank's own rows; the invariance term is a mean
     over pairs and stays local (DDP averages it over ranks). The logged invariance
-    is this rank's.
+    is this rank's. ``variance`` and ``covariance``: the two regularisers, ``(B, D) -> 0-d``
+    (notebook 00 trains with the learner's own once they pass their checks).
     """
     inv = multi_view_invariance(z_a, z_b, local)
     views = (z_a, z_b, *local)
     if across_ranks:  # the batch statistics of the global batch, as on one device
         views = distributed.gather_rows(*views)
-    var = sum(variance_term(z) for z in views) / len(views)
-    cov = sum(covariance_term(z) for z in views) / len(views)
+    var = sum(variance(z) for z in views) / len(views)
+    cov = sum(covariance(z) for z in views) / len(views)
     total = inv_coeff * inv + std_coeff * var + cov_coeff * cov
     return total, {"invariance": inv.detach(), "variance": var.detach(),
                    "covariance": cov.detach()}

@@ -11,12 +11,13 @@ augmentation: two views of one point are a compatible pair ``(x, y)``.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 from torch import nn
 
-from ..losses import covariance_matrix, vicreg_loss
+from ..losses import covariance_matrix, covariance_term, variance_term, vicreg_loss
 from .loop import History, fit
 
 
@@ -69,11 +70,15 @@ def train_toy(
     noise: float = 0.2,
     seed: int = 0,
     progress: bool = False,
+    variance: Callable[[torch.Tensor], torch.Tensor] = variance_term,
+    covariance: Callable[[torch.Tensor], torch.Tensor] = covariance_term,
 ) -> tuple[nn.Module, History]:
     """Train an :func:`mlp_encoder` on the points ``x`` ``(N, 2)`` with VICReg ``coeffs``.
 
     Full batch: every step sees all points, with fresh noise drawn from a
     generator seeded by ``(seed, step)``, so a run is exactly reproducible.
+    ``variance`` and ``covariance``: the two regularisers, ``(B, D) -> 0-d`` (notebook 00
+    passes the learner's own once they pass their checks).
     """
     torch.manual_seed(seed)
     encoder = mlp_encoder(embed_dim, hidden, x.shape[1])
@@ -84,7 +89,8 @@ def train_toy(
 
     def loss(views: tuple[torch.Tensor, torch.Tensor]):
         z_a, z_b = encoder(views[0]), encoder(views[1])
-        return vicreg_loss(z_a, z_b, coeffs.inv, coeffs.var, coeffs.cov)
+        return vicreg_loss(z_a, z_b, coeffs.inv, coeffs.var, coeffs.cov, variance=variance,
+                           covariance=covariance)
 
     history = fit(encoder, optimizer, loss, batch, steps, progress=progress, desc=str(coeffs))
     encoder.eval()

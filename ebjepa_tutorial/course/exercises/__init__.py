@@ -1,20 +1,22 @@
 """Checkers for the notebooks' exercises: is the learner's function right?
 
-Each ``check_*`` runs the learner's function and the package's reference
-implementation on the same small inputs, prints a one-line verdict when they
-agree, and otherwise raises :class:`ExerciseError` saying in plain words which
-input went wrong and how. Each checker also knows its exercise's typical
-mistakes (a wrong variant per mistake, see :func:`common.diagnose`): when the
-learner's output matches one, the message names it and how to fix it. Where
-the lesson depends on a gradient, the gradient is compared too. One module per
-chapter's exercises.
+Each ``check_*`` runs the learner's function and the course's implementation on
+the same small inputs, prints a one-line verdict when they agree, and otherwise
+raises :class:`ExerciseError` saying in plain words which input went wrong and
+how: one of the exercise's typical mistakes (a wrong variant per mistake, see
+:func:`common.diagnose`) or a general one (a sign flip, a factor off, an input
+changed in place, a gradient that does not flow, the wrong axis, a transposed
+result, a float or a tuple where a tensor belongs). Where the output trains
+something, the gradients are compared too. A failed check offers the next hint;
+``hint("name")`` asks for one: the idea, then the formula, then an outline of the
+code. One module per chapter's exercises, each exercise's hints beside its checker.
 """
 
 from .beyond import check_spread_loss, check_step_violation
-from .common import Case, ExerciseError, compare
+from .common import Case, ExerciseError, compare, hint, whose
 from .planning import check_mppi_update
 from .sigreg import check_epps_pulley
-from .two_rooms import check_wall_collision
+from .two_rooms import check_slab_crossing, check_wall_collision
 from .vicreg import (
     check_covariance_term,
     check_variance_term,
@@ -32,6 +34,7 @@ __all__ = [
     "check_inverse_dynamics",
     "check_mppi_update",
     "check_rollout_loss",
+    "check_slab_crossing",
     "check_spread_loss",
     "check_step_violation",
     "check_temporal_similarity",
@@ -40,4 +43,6 @@ __all__ = [
     "check_vicreg_paper_to_ebjepa",
     "check_wall_collision",
     "compare",
+    "hint",
+    "whose",
 ]

@@ -1,12 +1,27 @@
-"""What every checker shares: the error it raises, a test case, the comparison (values, and
-gradients where the lesson needs them), :func:`diagnose`, which names a known mistake, and
-:func:`exercise`, which lets a notebook run on past an exercise not yet done."""
+"""What every checker shares.
+
+- :class:`ExerciseError`, the error a check raises, and :class:`Case`, one test input;
+- the graded hints: :func:`hint` (level 1 the idea, 2 the formula and the shapes in words or
+  maths, 3 an outline of the code), each exercise's text kept beside its checker;
+- :func:`compare`: the learner's function against the course's on every case, values and,
+  where the output trains something, gradients;
+- the general mistakes, named in words wherever they occur: a sign flip, a factor off, an
+  input changed in place, a gradient that does not flow (and what cut it), the wrong axis,
+  a transposed result, a float, a tuple or a numpy value where a tensor belongs;
+- :func:`diagnose`, which names one of an exercise's own typical mistakes;
+- :func:`exercise`, which lets a notebook run on past an exercise not yet done.
+"""
 
 from __future__ import annotations
 
 import functools
+import inspect
+import itertools
+import sys
+import textwrap
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import torch
 
@@ -27,74 +42,233 @@ def not_implemented(name: str) -> NotImplementedYet:
         "code, run that cell, then run this check again.")
 
 
-def exercise(reference: Callable, mistakes: Sequence[Diagnosis] = ()) -> Callable:
-    """Make ``check(fn)`` return the function the rest of the notebook should use.
+# ------------------------------------------------------------------------------ graded hints
 
-    ``fn`` when it is right; ``reference`` (the course's implementation, same
-    signature) when ``fn`` is still the student stub, so that "Run All" reaches
-    the end of the chapter; an :class:`ExerciseError` naming the mistake when
-    ``fn`` is wrong. Raised from here, the error's traceback shows the learner's
-    cell, not the checker's insides (nor the answer). ``mistakes``: the typical
-    wrong versions the check names, ``(words, function)``, kept as ``check.mistakes``.
+LEVELS = ("the idea", "the formula", "an outline of the code")
+HINTS: dict[str, tuple[str, str, str]] = {}  # exercise -> its hints, in the order of LEVELS
+_shown: dict[str, int] = {}  # exercise -> the highest level shown in this session
+
+
+def hint(name, level: int | None = None) -> None:
+    """Print a hint for the exercise ``name`` (its function's name, or the function itself).
+
+    ``level`` 1 gives the idea, 2 the formula and the shapes, 3 an outline of
+    the code; without it, the next level not shown yet.
     """
-    def decorate(check: Callable) -> Callable:
-        @functools.wraps(check)
-        def run(fn: Callable, *args, **kwargs) -> Callable:
-            if fn is reference:  # this cell ran again after handing the course's one over
-                print("This is still the course's implementation: run the cell with your "
-                      "function first, then this check.")
-                return reference
-            try:
-                check(fn, *args, **kwargs)
-            except NotImplementedYet:
-                print(f"{getattr(fn, '__name__', 'your function')} is not implemented yet: the "
-                      "rest of this notebook uses the course's implementation. Write yours in "
-                      "the cell above, then run it and this check again.")
-                return reference
-            except ExerciseError as error:
-                raise ExerciseError(str(error)) from None
-            return fn
-        run.__annotations__ = {"fn": "Callable", "return": "Callable"}  # not check's bool
-        run.reference = reference
-        run.mistakes = tuple(mistakes)
-        return run
-    return decorate
+    name = getattr(name, "__name__", name)
+    if name not in HINTS:
+        print(f"There is no exercise called {name!r}; the exercises with hints are "
+              f"{', '.join(sorted(HINTS))}.")
+        return
+    if level is None:
+        level = min(_shown.get(name, 0) + 1, len(LEVELS))
+    if level not in range(1, len(LEVELS) + 1):
+        raise ValueError(f"level is 1 (the idea), 2 (the formula) or 3 (an outline of the "
+                         f"code), not {level!r}")
+    _shown[name] = max(_shown.get(name, 0), level)
+    print(hint_text(name, level))
 
+
+def hint_text(name: str, level: int) -> str:
+    """Hint ``level`` of the exercise ``name``, with a heading and how to get the next one."""
+    body = HINTS[name][level - 1]  # the outline keeps its lines; the words are wrapped
+    body = body if level == len(LEVELS) else textwrap.fill(body, 88)
+    text = f"Hint {level} of {len(LEVELS)} for {name}, {LEVELS[level - 1]}:\n{body}"
+    if level < len(LEVELS):
+        text += f"\n(exercises.hint({name!r}) again gives {LEVELS[level]}.)"
+    return text
+
+
+def _offer(name: str) -> str:
+    """What a failed check adds: the next hint not shown yet when it holds no code (levels 1
+    and 2), else how to ask for the outline."""
+    if name not in HINTS:
+        return ""
+    level = _shown.get(name, 0) + 1
+    if level < len(LEVELS):
+        _shown[name] = level
+        return "\n\n" + hint_text(name, level)
+    return f"\n\nStill stuck? exercises.hint({name!r}, level=3) shows an outline of the code."
+
+
+# --------------------------------------------------------------- watching the learner's call
+
+_NOT_THE_LEARNER = (str(Path(torch.__file__).parent), str(Path(__file__).parent))
+_CUTS = {"detach": ".detach()", "detach_": ".detach_()", "numpy": ".numpy()",
+         "item": ".item()", "tolist": ".tolist()"}
+_GRAD_OFF = {"no_grad.__enter__": "torch.no_grad()",
+             "inference_mode.__enter__": "torch.inference_mode()",
+             "set_grad_enabled.__init__": "torch.set_grad_enabled(False)"}
+_WHAT_CUTS = {".detach()": "detaches a tensor from the autograd graph",
+              ".detach_()": "detaches a tensor from the autograd graph",
+              ".numpy()": "leaves torch for numpy, which has no gradients",
+              "numpy": "leaves torch for numpy, which has no gradients",
+              ".item()": "turns a tensor into a Python number",
+              ".tolist()": "turns a tensor into Python numbers",
+              "torch.no_grad()": "switches gradients off",
+              "torch.inference_mode()": "switches gradients off",
+              "torch.set_grad_enabled(False)": "switches gradients off"}
+
+
+class _Spy:
+    """Watches one call of a learner's function (``sys.setprofile``): what in it can cut a
+    gradient (``cuts``), and which of the exercise's answers, the course's own functions, it
+    calls (kept for the whole check in ``_Spy.called``; ``_Spy.answers`` is set by
+    :func:`exercise`)."""
+
+    answers: dict = {}  # code object -> the name of the course's function
+    called: list = []
+
+    def __init__(self):
+        self.cuts: list[str] = []
+
+    def __enter__(self) -> _Spy:
+        self._previous = sys.getprofile()
+        sys.setprofile(self._event)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        sys.setprofile(self._previous)
+
+    @staticmethod
+    def _note(found: list, word: str) -> None:
+        if word not in found:
+            found.append(word)
+
+    def _event(self, frame, event, arg) -> None:
+        if event == "c_call":
+            word = _CUTS.get(getattr(arg, "__name__", None))
+            if word and not frame.f_code.co_filename.startswith(_NOT_THE_LEARNER):
+                self._note(self.cuts, word)
+        elif event == "call":
+            code, caller = frame.f_code, frame.f_back
+            learner = caller is not None and not caller.f_code.co_filename.startswith(
+                _NOT_THE_LEARNER)
+            qualname = getattr(code, "co_qualname", code.co_name)
+            # a decorator's no_grad is entered from torch's own code: count it wherever it is
+            if qualname in _GRAD_OFF and (learner or code.co_name == "__enter__"):
+                self._note(self.cuts, _GRAD_OFF[qualname])
+            elif code.co_name == "__array__" and learner:
+                self._note(self.cuts, "numpy")
+            elif code in _Spy.answers:
+                self._note(_Spy.called, _Spy.answers[code])
+
+
+def _own_copy(case: Case) -> tuple[tuple, dict]:
+    """``case``'s inputs with every tensor cloned: the learner's function gets its own."""
+    def copy(v):
+        return v.clone() if isinstance(v, torch.Tensor) else v
+    return tuple(copy(v) for v in case.args), {k: copy(v) for k, v in case.kwargs.items()}
+
+
+def _label(labels: Sequence[str], index) -> str:
+    if isinstance(index, str):
+        return index
+    return labels[index] if index < len(labels) else f"argument {index + 1}"
+
+
+def _run(fn: Callable, name: str, case: Case, labels: Sequence[str] = ()):
+    """``fn`` on its own copy of ``case``'s inputs: returns ``(output, spy)``; raises
+    :class:`ExerciseError` if it crashes or changes an input in place."""
+    args, kwargs = _own_copy(case)
+    with _Spy() as spy:
+        try:
+            out = fn(*args, **kwargs)
+        except NotImplementedError:
+            raise not_implemented(name) from None
+        except Exception as err:
+            message = f"{name} raised {type(err).__name__}: {err} on {case.description}."
+            if "numpy" in str(err) and "grad" in str(err):
+                message += (" numpy cannot carry a gradient, so a loss computed through it "
+                            "cannot train anything: compute with torch operations on the "
+                            "tensors you are given.")
+            raise ExerciseError(message) from err
+    for where, before, after in [*zip(range(len(args)), case.args, args),
+                                 *((k, case.kwargs[k], kwargs[k]) for k in kwargs)]:
+        if isinstance(before, torch.Tensor) and (after.shape != before.shape
+                                                 or not torch.equal(after, before)):
+            label = _label(labels, where)
+            raise ExerciseError(
+                f"{name} changed its input {label} in place on {case.description}: after the "
+                f"call, {label} no longer holds what was passed in. Look for an operator such "
+                "as -=, += or *=, a method whose name ends in an underscore (sub_, clamp_, ...) "
+                f"or an assignment into part of {label}, and compute on a new tensor instead: "
+                "in training the same tensor is still needed by the rest of the loss and by "
+                "the backward pass.")
+    return out, spy
+
+
+def _call(fn: Callable, name: str, case: Case, labels: Sequence[str] = ()):
+    """``fn``'s output on its own copy of ``case``'s inputs (see :func:`_run`)."""
+    return _run(fn, name, case, labels)[0]
+
+
+# ---------------------------------------------------------------------------- test cases
 
 @dataclass
 class Case:
-    """One test input: a description for the learner and the arguments to call with."""
+    """One test input: a description for the learner and the arguments to call with.
+
+    ``sizes``: named sizes of the inputs (``{"B": 32, "D": 8}``) the factor detector
+    tries, besides those :func:`compare` reads off the shapes (its ``dims``). ``atol``:
+    a looser tolerance on this case, where float32 cannot do better; ``why_loose`` says
+    why, printed beside the verdict when an answer needed it.
+    """
 
     description: str
     args: tuple
     kwargs: dict = field(default_factory=dict)
+    sizes: dict = field(default_factory=dict)
+    atol: float | None = None
+    why_loose: str = ""
 
 
 def _describe(value) -> str:
     if isinstance(value, torch.Tensor):
         return f"a tensor of shape {tuple(value.shape)}"
-    return f"a {type(value).__name__}"
+    if isinstance(value, (tuple, list)):
+        return f"a {type(value).__name__} of {len(value)}"
+    return f"a {type(value).__module__}.{type(value).__name__}".replace("builtins.", "Python ")
 
 
-def _call(fn: Callable, name: str, case: Case):
-    try:
-        return fn(*case.args, **case.kwargs)
-    except NotImplementedError:
-        raise not_implemented(name) from None
-    except Exception as err:
-        message = f"{name} raised {type(err).__name__}: {err} on {case.description}."
-        raise ExerciseError(message) from err
+def _type_problem(got, name: str, case: Case, label: str = "") -> str | None:
+    """Words for a non-tensor ``got`` (a Python number, numpy, a tuple, None), else None."""
+    if isinstance(got, torch.Tensor):
+        return None
+    yours = f"{name} returned {label + ' as ' if label else ''}"
+    where = f"on {case.description}, where a torch tensor is expected"
+    if got is None:
+        return f"{yours}None {where}: did you forget the return statement?"
+    if type(got).__module__.split(".")[0] == "numpy":
+        return (f"{yours}a numpy {type(got).__name__} {where}. numpy carries no gradient, so "
+                "training could not use it: compute with torch operations on the tensors "
+                "you are given.")
+    if isinstance(got, (bool, int, float)):
+        return (f"{yours}a Python {type(got).__name__} ({got:.6g}) {where}. A Python number "
+                "carries no gradient, so training could not use it: look for .item(), "
+                "float() or the math module, and keep the result a tensor (a 0-d tensor for "
+                "a single number).")
+    if isinstance(got, (tuple, list)):
+        return (f"{yours}a {type(got).__name__} of {len(got)} {where}. Did you return "
+                "several things (say, a loss and its parts)? Return the one tensor asked for.")
+    return f"{yours}{_describe(got)} {where}."
 
 
 def _numbers(value) -> torch.Tensor | None:
-    """``value`` as a float64 tensor (a tensor, or a tuple of numbers), else None."""
+    """``value`` as a float64 tensor (a tensor, a tuple of tensors flattened and joined, or
+    numbers), else None."""
     if isinstance(value, torch.Tensor):
         return value.detach().double()
+    if isinstance(value, (tuple, list)) and value and all(
+            isinstance(v, torch.Tensor) for v in value):
+        return torch.cat([v.detach().double().flatten() for v in value])
     try:
         return torch.as_tensor(value, dtype=torch.float64)
     except (TypeError, ValueError, RuntimeError):
         return None
 
+
+# ------------------------------------------------------------------------ known mistakes
 
 def diagnose(got, diagnoses: Sequence[Diagnosis], case: Case, atol: float = 1e-5) -> str:
     """Name the known mistake that gives ``got`` on ``case``: `` Likely cause: ...`` or ``''``.
@@ -116,69 +290,252 @@ def diagnose(got, diagnoses: Sequence[Diagnosis], case: Case, atol: float = 1e-5
     return f" Likely cause: {min(matches)[2]}" if matches else ""
 
 
-def gradient(fn: Callable, index: int) -> Callable:
-    """``fn`` returning the gradient of its 0-d output with respect to positional argument
-    ``index`` instead: zeros where no gradient reaches that argument (e.g. it was detached)."""
-    def run(*args, **kwargs):
-        x = args[index].detach().clone().requires_grad_()
-        out = fn(*args[:index], x.clone(), *args[index + 1:], **kwargs)  # clone: in place is ok
-        if not isinstance(out, torch.Tensor) or not out.requires_grad:
-            return torch.zeros_like(x)
-        grad = torch.autograd.grad(out.sum(), x, allow_unused=True)[0]
-        return torch.zeros_like(x) if grad is None else grad
+# ---------------------------------------------------------------------- general mistakes
 
-    run.__name__ = getattr(fn, "__name__", "your function")
+def _factors(sizes: dict) -> list[tuple[str, float]]:
+    """The factors a value can be off by: for each named size n, n, n - 1, n/(n - 1) and its
+    square (an unbiased estimate divided by n, then squared); then 2. A named size comes
+    first: its advice is the more telling."""
+    out = []
+    for k, n in sizes.items():
+        out += [(k, float(n))] if n >= 2 else []
+        if n > 2:
+            out += [(f"{k} - 1", n - 1.0), (f"{k}/({k} - 1)", n / (n - 1)),
+                    (f"({k}/({k} - 1))²", (n / (n - 1)) ** 2)]
+    return out + [("2", 2.0)]
+
+
+_FACTOR_ADVICE = {
+    "2": "a sum of two things where their average belongs (or the reverse), or a factor 2 "
+         "missing or repeated",
+    "n": "a sum over {k} where a mean belongs (or a mean where a sum belongs), or a division "
+         "by the wrong count",
+    "n - 1": "a division by {k} - 1 where {k} belongs or the reverse, or a count that is off",
+    "ratio": "a division by {k} where {k} - 1 belongs (the unbiased estimate divides by "
+             "{k} - 1), or the reverse",
+}
+
+
+def _factor_off(got, expected, sizes: dict, advice: dict) -> tuple[str, str, str] | None:
+    """``(what was found, '', what to look at)`` when ``got`` is ``expected`` times one of
+    :func:`_factors`, else None."""
+    big = expected.abs() > 1e-8
+    if not big.any() or not torch.isfinite(got).all():
+        return None
+    ratio = got[big] / expected[big]
+    r = float(ratio.median())
+    if r <= 0 or not torch.allclose(ratio, torch.full_like(ratio, r), rtol=1e-4, atol=0):
+        return None
+    for words, value in _factors(sizes):
+        for direction, target in (("too large", value), ("too small", 1 / value)):
+            if abs(r - target) < 1e-4 * target:
+                k = words.split("/")[0].strip("(").split(" ")[0]
+                kind = ("2" if words == "2" else "n" if words == k else
+                        "n - 1" if words.endswith("- 1") else "ratio")
+                shown = "" if words == "2" else f" = {value:.4g}"
+                return (f"is {direction} by a factor of {words}{shown}", "",
+                        "The formula is right up to a constant; look at what you divide by or "
+                        f"average over: {advice.get(words, _FACTOR_ADVICE[kind].format(k=k))}")
+    return None
+
+
+def _transposition(got, expected, atol: float) -> tuple[int, ...] | None:
+    """The axis order ``p`` with ``expected.permute(p) == got``, if there is one."""
+    if got.ndim != expected.ndim or got.ndim < 2 or got.shape == expected.shape:
+        return None
+    for order in itertools.permutations(range(expected.ndim)):
+        if tuple(expected.shape[i] for i in order) == tuple(got.shape) and torch.allclose(
+                expected.permute(order).double(), got.double(), atol=atol, rtol=1e-4):
+            return order
+    return None
+
+
+@dataclass
+class _Options:
+    """What :func:`compare` knows about an exercise besides its reference."""
+
+    atol: float
+    diagnoses: Sequence[Diagnosis]
+    labels: Sequence[str]
+    dims: dict
+    swap: tuple | None
+    factors: dict
+
+
+def _sizes(case: Case, options: _Options) -> dict:
+    """The named sizes of ``case``: read off the shapes (``options.dims``), then its own."""
+    sizes = {}
+    for index, names in options.dims.items():
+        shape = case.args[index].shape
+        sizes.update({k: n for k, n in zip(names, shape) if k != "_"})
+    return {**sizes, **case.sizes}
+
+
+def _swapped(reference: Callable, swap: tuple) -> Callable:
+    """``reference`` applied with two axes of one input exchanged (the wrong-axis mistake)."""
+    index, a, b = swap[:3]
+
+    def run(*args, **kwargs):
+        args = list(args)
+        args[index] = args[index].transpose(a, b).contiguous()
+        return reference(*args, **kwargs)
     return run
 
 
-def _disagreement(got, expected, atol: float, parts: Sequence[str] | None = None) -> str:
-    """``'x, but the answer is y'``, naming the first element (and output, ``parts``) that
-    differs."""
+def _general_cause(got, expected, case: Case, reference: Callable, options: _Options):
+    """``(what was found, what it means, what to look at)`` for a general mistake of value,
+    or None; the second may be empty."""
+    if torch.isfinite(expected).all() and not torch.isfinite(got).all():
+        return ("returned NaN or infinity", "",
+                "Look for 0/0 (exponentials that underflowed to 0, then divided by their "
+                "sum), a square root or a log of a negative number, or a division by zero")
+    scale = float(expected.abs().max()) if expected.numel() else 0.0
+    if scale > 10 * options.atol and torch.allclose(got, -expected, atol=options.atol,
+                                                    rtol=1e-4):
+        return ("has the wrong sign", "it is minus the answer",
+                "A loss that training minimises must grow with what it penalises; look for a "
+                "difference taken the wrong way round or a minus sign too many")
+    if (found := _factor_off(got, expected, _sizes(case, options), options.factors)):
+        return found
+    if options.swap is not None:
+        try:
+            wrong = _numbers(_swapped(reference, options.swap)(*case.args, **case.kwargs))
+        except Exception:
+            wrong = None
+        if wrong is not None and wrong.shape == got.shape and torch.allclose(
+                got, wrong, atol=options.atol / 10, rtol=1e-5):
+            return ("worked along the wrong axis",
+                    f"it gives what the answer would be with {options.swap[3]}", options.swap[4])
+    return None
+
+
+def _disagreement(got, expected, atol: float) -> str:
+    """``'x, but the answer is y'``, naming the first element that differs."""
     got, expected = got.detach(), expected.detach()
     if expected.numel() == 1:
         return f"{float(got):.6g}, but the answer is {float(expected):.6g}"
     bad = ~torch.isclose(got.double(), expected.double(), atol=atol, rtol=1e-4)
     first = tuple(int(i) for i in bad.nonzero()[0])
     g, e = float(got[first]), float(expected[first])
-    if parts:  # dim 0 holds several outputs, e.g. (mean, std)
-        right = [p for p, b in zip(parts, bad) if not b.any()]
-        also = f" (your {' and '.join(right)} {'is' if len(right) == 1 else 'are'} right)"
-        return (f"a wrong {parts[first[0]]}: {parts[first[0]]}{list(first[1:])} is {g:.6g}, but "
-                f"the answer is {e:.6g}{also if right else ''}")
     return (f"{g:.6g} at index {list(first)}, but the answer is {e:.6g} (the first of "
             f"{int(bad.sum())} wrong elements out of {bad.numel()})")
 
 
-def _check_case(fn, reference, case: Case, name: str, atol: float,
-                diagnoses: Sequence[Diagnosis], parts=None) -> None:
-    """Raise :class:`ExerciseError` unless ``fn`` agrees with ``reference`` on ``case``."""
+def _parts(value, parts) -> list:
+    return list(value) if parts else [value]
+
+
+def _shape_problem(got, expected, name: str, case: Case, label: str, atol: float) -> str:
+    """Words for one output ``got`` of the wrong shape: transposed, or otherwise."""
+    yours = f"your {label}" if label else "your output"
+    if _transposition(got, expected, atol) is not None:
+        return (f"{name} put the right numbers in the wrong layout on {case.description}: "
+                f"{yours} has shape {tuple(got.shape)} where {tuple(expected.shape)} is "
+                "expected, and holds the answer with its axes in another order. Look at the "
+                "order of the axes where you build it: stacking along another dim, a transpose, "
+                "or indexing that moved an axis.")
+    single = " (a single number)" if expected.ndim == 0 else ""
+    return (f"{name} returned shape {tuple(got.shape)} on {case.description}"
+            f"{' for ' + yours if label else ''}; expected shape {tuple(expected.shape)}"
+            f"{single}.")
+
+
+def _check_case(fn, reference, case: Case, name: str, options: _Options,
+                parts: Sequence[str] | None) -> str:
+    """Raise :class:`ExerciseError` unless ``fn`` agrees with ``reference`` on ``case``;
+    returns a note when it agreed only within the case's looser tolerance."""
     expected = reference(*case.args, **case.kwargs)
-    got = _call(fn, name, case)
-    if not isinstance(got, torch.Tensor):
-        raise ExerciseError(f"{name} returned {_describe(got)}; expected a torch tensor.")
-    if got.shape != expected.shape:
-        single = " (a single number)" if expected.ndim == 0 else ""
+    got, _ = _run(fn, name, case, options.labels)
+    atol = case.atol if case.atol is not None else options.atol
+    if parts and (not isinstance(got, (tuple, list)) or len(got) != len(parts)):
         raise ExerciseError(
-            f"{name} returned shape {tuple(got.shape)} on {case.description}; expected shape "
-            f"{tuple(expected.shape)}{single}.{diagnose(got, diagnoses, case, atol)}")
-    if not torch.allclose(got.double(), expected.double(), atol=atol, rtol=1e-4):
-        raise ExerciseError(
-            f"{name} gave {_disagreement(got, expected, atol, parts)} on {case.description}."
-            f"{diagnose(got, diagnoses, case, atol)}")
+            f"{name} returned {_describe(got)} on {case.description}; it must return a pair "
+            f"({', '.join(parts)}), {len(parts)} tensors.")
+    note = ""
+    for label, g, e in zip(parts or [""], _parts(got, parts), _parts(expected, parts)):
+        if (problem := _type_problem(g, name, case, label)):
+            raise ExerciseError(problem)
+        if g.shape != e.shape:
+            raise ExerciseError(_shape_problem(g, e, name, case, label, atol)
+                                + diagnose(got, options.diagnoses, case, atol))
+        if torch.allclose(g.double(), e.double(), atol=atol, rtol=1e-4):
+            if not torch.allclose(g.double(), e.double(), atol=options.atol, rtol=1e-4):
+                note = case.why_loose.format(diff=float((g.double() - e.double()).abs().max()))
+            continue
+        numbers = f"{'your ' + label + ' ' if label else ''}{_disagreement(g, e, atol)}"
+        why = diagnose(got, options.diagnoses, case, atol)
+        general = None if why else _general_cause(g.double(), e.double(), case, reference,
+                                                  options)
+        if general:
+            found, meaning, look = general
+            where = f" (your {label})" if label else ""
+            meaning = f": {meaning}" if meaning else ""
+            raise ExerciseError(f"{name} {found} on {case.description}{where}{meaning}. {look}. "
+                                f"Yours: {numbers}.")
+        raise ExerciseError(f"{name} gave {numbers} on {case.description}.{why}")
+    return note
 
 
-def _check_gradient(fn, reference, case: Case, name: str, atol: float,
-                    diagnoses: Sequence[Diagnosis], grad: tuple[int, str]) -> None:
-    """Raise :class:`ExerciseError` unless ``fn``'s gradient agrees with ``reference``'s."""
-    index, label = grad
+def gradient(fn: Callable, index: int) -> Callable:
+    """``fn`` returning the gradient of its output's sum with respect to positional argument
+    ``index`` instead: zeros where no gradient reaches that argument. After a call,
+    ``.connected`` says whether the output was connected to the autograd graph at all."""
+    def run(*args, **kwargs):
+        x = args[index].detach().clone().requires_grad_()
+        out = fn(*args[:index], x.clone(), *args[index + 1:], **kwargs)  # clone: in place is ok
+        run.connected = isinstance(out, torch.Tensor) and out.requires_grad
+        if not run.connected:
+            return torch.zeros_like(x)
+        grad = torch.autograd.grad(out.sum(), x, allow_unused=True)[0]
+        return torch.zeros_like(x) if grad is None else grad
+
+    run.__name__ = getattr(fn, "__name__", "your function")
+    run.connected = True
+    return run
+
+
+def _and(words: Sequence[str]) -> str:
+    return words[0] if len(words) == 1 else ", ".join(words[:-1]) + " and " + words[-1]
+
+
+def _no_flow(name: str, case: Case, label: str, cuts: Sequence[str], connected: bool,
+             why: str = "") -> ExerciseError:
+    """The error for a right value whose gradient does not reach ``label``: what cut it."""
+    if cuts:
+        found = _and([f"{c} ({_WHAT_CUTS[c]})" for c in cuts])
+        look = (f"Found in your function: {found}. Keep every step from the inputs to the "
+                "output in torch, with no .detach(), .item(), numpy or torch.no_grad() on the "
+                "way.")
+    elif not connected:
+        look = ("Its output is not connected to the inputs in autograd: look for .detach(), "
+                ".item(), a detour through numpy, or torch.no_grad().")
+    else:
+        look = (f"The output depends on the other inputs but not on {label}: look for a "
+                f".detach() on {label}, or on a part of it.")
+    return ExerciseError(
+        f"{name} has the right value on {case.description}, but the gradient does not flow to "
+        f"{label}, so training could not change it through this term. {look}{why}")
+
+
+def _check_gradient(fn, reference, case: Case, name: str, options: _Options, index: int,
+                    label: str) -> None:
+    """Raise :class:`ExerciseError` unless ``fn``'s gradient with respect to argument ``index``
+    agrees with ``reference``'s."""
+    atol = case.atol if case.atol is not None else options.atol
     expected = gradient(reference, index)(*case.args, **case.kwargs)
-    got = _call(gradient(fn, index), name, case)
+    probe = gradient(fn, index)
+    try:
+        got, spy = _run(probe, name, case, options.labels)
+    except ExerciseError as error:  # numpy refuses a tensor that requires a gradient
+        if "numpy" in str(error) and "grad" in str(error):
+            raise _no_flow(name, case, label, ["numpy"], False) from None
+        raise
     if torch.allclose(got.double(), expected.double(), atol=atol, rtol=1e-4):
         return
-    why = diagnose(got, [(w, gradient(v, index)) for w, v in diagnoses], case, atol)
-    if not why and not got.any():
-        why = (f" Likely cause: no gradient reaches {label}: did you .detach() them, or compute "
-               "with .item(), numpy or under torch.no_grad()?")
+    why = diagnose(got, [(w, gradient(v, index)) for w, v in options.diagnoses], case, atol)
+    if expected.abs().max() > 0 and not got.any():  # an own slip explains only a partial cut
+        raise _no_flow(name, case, label, spy.cuts, probe.connected,
+                       why if probe.connected else "")
     raise ExerciseError(
         f"{name} has the right value on {case.description}, but not the right gradient with "
         f"respect to {label}: it gave {_disagreement(got, expected, atol)}.{why}")
@@ -186,19 +543,107 @@ def _check_gradient(fn, reference, case: Case, name: str, atol: float,
 
 def compare(fn: Callable, reference: Callable, cases: list[Case], atol: float = 1e-5,
             diagnoses: Sequence[Diagnosis] = (), parts: Sequence[str] | None = None,
-            grad: tuple[int, str] | None = None) -> bool:
+            grad: Sequence[tuple[int, str]] = (), labels: Sequence[str] | None = None,
+            dims: dict | None = None, swap: tuple | None = None,
+            factors: dict | None = None) -> bool:
     """Check ``fn`` against ``reference`` on every case; print a verdict or raise ExerciseError.
 
-    ``diagnoses``: known mistakes, ``(words, variant)``, named when ``fn`` makes
-    one (see :func:`diagnose`). ``parts``: names of the outputs stacked along dim 0
-    (say which one is wrong). ``grad``: ``(index, label)`` of a positional argument
-    whose gradient must agree too, checked once every value agrees.
+    ``diagnoses``: the exercise's known mistakes, ``(words, variant)``, named when
+    ``fn`` makes one (see :func:`diagnose`); otherwise the general mistakes are
+    looked for. ``parts``: names of the outputs when ``fn`` returns several
+    tensors (a tuple). ``grad``: ``(index, label)`` of each positional argument
+    whose gradient must agree too, checked once every value agrees. ``labels``:
+    the arguments' names in messages (default: the reference's parameters).
+    ``dims``: ``{index: "BD"}``, names of an argument's axes, whose sizes the
+    factor detector tries (``_`` skips an axis). ``swap``: ``(index, a, b, what
+    it means, what to look at)``: the wrong-axis mistake of exchanging axes ``a``
+    and ``b`` of one argument. ``factors``: advice for a factor off, by its name
+    (``"D - 1"``).
     """
     name = getattr(fn, "__name__", "your function")
+    if labels is None:
+        try:
+            labels = list(inspect.signature(reference).parameters)
+        except (TypeError, ValueError):
+            labels = []
+    options = _Options(atol, diagnoses, labels, dims or {}, swap, factors or {})
+    notes = [_check_case(fn, reference, case, name, options, parts) for case in cases]
     for case in cases:
-        _check_case(fn, reference, case, name, atol, diagnoses, parts)
-    for case in cases if grad is not None else ():
-        _check_gradient(fn, reference, case, name, atol, diagnoses, grad)
-    what = " (values and gradients)" if grad is not None else ""
+        for index, label in grad:
+            _check_gradient(fn, reference, case, name, options, index, label)
+    what = f" (values, and gradients with respect to {_and([g[1] for g in grad])})" if grad else ""
     print(f"Correct: {name} matches the reference on {len(cases)} test inputs{what}.")
+    for note in dict.fromkeys(n for n in notes if n):
+        print(note)
     return True
+
+
+# -------------------------------------------------------------------------- the exercises
+
+_REFERENCES: list[Callable] = []
+
+
+def whose(fn: Callable) -> str:
+    """``"the course's"`` when ``fn`` is an implementation a check handed over in place of an
+    unfinished exercise, else ``"your"``: for a notebook to print whose function it runs."""
+    return "the course's" if any(fn is r for r in _REFERENCES) else "your"
+
+
+def _qualified(fn: Callable) -> str:
+    module = getattr(fn, "__module__", "") or ""
+    return f"{module.removeprefix('ebjepa_tutorial.')}.{fn.__name__}".lstrip(".")
+
+
+def exercise(reference: Callable, mistakes: Sequence[Diagnosis] = (), *, name: str,
+             hints: Sequence[str], answers: Sequence[Callable] = ()) -> Callable:
+    """Make ``check(fn)`` return the function the rest of the notebook should use.
+
+    ``fn`` when it is right; ``reference`` (the course's implementation, same
+    signature) when ``fn`` is still the student stub, so that "Run All" reaches
+    the end of the chapter; an :class:`ExerciseError` naming the mistake when
+    ``fn`` is wrong, followed by the next hint. Raised from here, the error's
+    traceback shows the learner's cell, not the checker's insides (nor the
+    answer). ``mistakes``: the typical wrong versions the check names, ``(words,
+    function)``, kept as ``check.mistakes``. ``name``: the exercise's function, as
+    the notebook calls it. ``hints``: the idea, the formula, an outline of the code
+    (:func:`hint`). ``answers``: the course's functions that compute the answer
+    besides ``reference``: a right ``fn`` that only calls one of them is told so.
+    """
+    if len(hints) != len(LEVELS):
+        raise ValueError(f"{name}: give {len(LEVELS)} hints, one per level {LEVELS}")
+    HINTS[name] = tuple(hints)
+    _REFERENCES.append(reference)
+    codes = {f.__code__: _qualified(f) for f in (reference, *answers) if hasattr(f, "__code__")}
+
+    def decorate(check: Callable) -> Callable:
+        @functools.wraps(check)
+        def run(fn: Callable, *args, **kwargs) -> Callable:
+            if fn is reference:  # this cell ran again after handing the course's one over
+                print("This is still the course's implementation: run the cell with your "
+                      "function first, then this check.")
+                return reference
+            _Spy.answers, _Spy.called = codes, []
+            try:
+                check(fn, *args, **kwargs)
+            except NotImplementedYet:
+                print(f"{getattr(fn, '__name__', 'your function')} is not implemented yet: the "
+                      "rest of this notebook uses the course's implementation. Write yours in "
+                      f"the cell above, then run it and this check again (exercises.hint("
+                      f"{name!r}) gives a hint).")
+                return reference
+            except ExerciseError as error:
+                raise ExerciseError(str(error) + _offer(name)) from None
+            finally:
+                _Spy.answers = {}
+            if _Spy.called:
+                print(f"Note: your {getattr(fn, '__name__', 'function')} calls the course's "
+                      f"own {_and(_Spy.called)}. The check passes, but it checked the course's "
+                      "code, not yours: write it from the formula to get what the exercise "
+                      "teaches.")
+            return fn
+        run.__annotations__ = {"fn": "Callable", "return": "Callable"}  # not check's bool
+        run.reference = reference
+        run.mistakes = tuple(mistakes)
+        run.exercise = name
+        return run
+    return decorate

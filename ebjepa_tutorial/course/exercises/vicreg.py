@@ -1,5 +1,6 @@
 """Checkers of chapters 00-01: the variance and covariance terms, the VICReg loss, the
-conversion of the VICReg paper's coefficients to EB-JEPA's."""
+conversion of the VICReg paper's coefficients to EB-JEPA's. Each exercise's hints are here,
+beside its checker."""
 
 from __future__ import annotations
 
@@ -9,6 +10,10 @@ import torch
 
 from ... import losses
 from .common import Case, ExerciseError, _call, _describe, compare, diagnose, exercise
+
+_ALONG_THE_BATCH = (0, 0, 1, "the batch and the dimension axes of z exchanged",
+                    "Here z is (B, D), one row per sample: each dimension's statistics are taken "
+                    "over the batch, down the columns (dim 0)")
 
 
 def _embedding_cases(seed: int = 0) -> list[Case]:
@@ -20,6 +25,7 @@ def _embedding_cases(seed: int = 0) -> list[Case]:
         Case("a batch of 2 rows", (torch.randn(2, 3, generator=g),)),
         Case("a batch with correlated dimensions",
              (torch.randn(40, 1, generator=g) * torch.tensor([[1.0, -2.0, 0.5]]),)),
+        Case("a float64 batch (12, 6)", (torch.randn(12, 6, generator=g, dtype=torch.float64),)),
     ]
 
 
@@ -27,9 +33,22 @@ def _hinge(std: torch.Tensor, gamma: float) -> torch.Tensor:
     return torch.relu(gamma - std).mean()
 
 
+_VARIANCE_HINTS = (
+    "A collapsed encoder gives every input the same embedding: each of the D dimensions then "
+    "has no spread over the batch. The term charges each dimension for the spread it lacks "
+    "below a target gamma, and nothing once it has enough. Spread here is the standard "
+    "deviation of one dimension across the B samples, not across the D numbers of one sample.",
+    "v(Z) = (1/D) * sum over j of max(0, gamma - sqrt(Var_j + eps)), where Var_j is the "
+    "unbiased variance (divide by B - 1) of column j of z over its B rows. z is (B, D): that "
+    "gives D standard deviations, one hinge each, and their mean, a 0-d tensor. eps sits "
+    "inside the square root, so a collapsed dimension has std sqrt(eps) and a finite gradient.",
+    "std = torch.sqrt(<the variance of z down the batch, one per dimension> + eps)  # (D,)\n"
+    "return <the mean over the D dimensions of torch.relu(gamma - std)>  # 0-d",
+)
+
 _VARIANCE_SLIPS = [
-    ("you used the biased variance (dividing by B); the course uses the unbiased one, "
-     "z.var(dim=0), which divides by B - 1.",
+    ("you used the biased variance (dividing by B); the course uses the unbiased one, which "
+     "divides by B - 1 (PyTorch's default for a variance).",
      lambda z, gamma=1.0, eps=1e-4: _hinge((z.var(0, unbiased=False) + eps).sqrt(), gamma)),
     ("eps is missing from the square root: std = sqrt(Var + eps), so that a collapsed "
      "dimension has std sqrt(eps), not 0 (and a finite gradient).",
@@ -38,29 +57,28 @@ _VARIANCE_SLIPS = [
      lambda z, gamma=1.0, eps=1e-4: _hinge(z.var(0).sqrt() + eps, gamma)),
     ("you used the variance where the standard deviation belongs: take sqrt(Var + eps).",
      lambda z, gamma=1.0, eps=1e-4: _hinge(z.var(0) + eps, gamma)),
-    ("you took the variance over dim=1 (each sample's D numbers); it is over the batch, "
-     "dim=0: one std per dimension.",
-     lambda z, gamma=1.0, eps=1e-4: _hinge((z.var(1) + eps).sqrt(), gamma)),
-    ("you summed the hinge over the D dimensions; the course averages it (.mean()).",
-     lambda z, gamma=1.0, eps=1e-4: torch.relu(gamma - (z.var(0) + eps).sqrt()).sum()),
-    ("the hinge is missing: max(0, gamma - std) (torch.relu) makes a dimension whose std is "
-     "above gamma cost nothing, instead of a reward.",
+    ("the hinge is missing: max(0, gamma - std) makes a dimension whose std is above gamma "
+     "cost nothing, instead of earning a reward.",
      lambda z, gamma=1.0, eps=1e-4: (gamma - (z.var(0) + eps).sqrt()).mean()),
-    ("you ignored the gamma argument (the target std): use relu(gamma - std).",
+    ("you ignored the gamma argument (the target std): the hinge is max(0, gamma - std).",
      lambda z, gamma=1.0, eps=1e-4: _hinge((z.var(0) + eps).sqrt(), 1.0)),
-    ("you returned one hinge per dimension; take their mean, a single number.",
+    ("you returned one hinge per dimension; the term is their mean, a single number.",
      lambda z, gamma=1.0, eps=1e-4: torch.relu(gamma - (z.var(0) + eps).sqrt())),
 ]
 
 
-@exercise(losses.variance_term, _VARIANCE_SLIPS)
+@exercise(losses.variance_term, _VARIANCE_SLIPS, name="variance_term", hints=_VARIANCE_HINTS,
+          answers=(losses.vicreg.variance_and_covariance, losses.vicreg_loss))
 def check_variance_term(fn: Callable) -> bool:
-    """Notebook 00 and 01: ``variance_term(z, gamma=1.0, eps=1e-4)`` on ``(B, D)``."""
+    """Notebook 00: ``variance_term(z, gamma=1.0, eps=1e-4)`` on ``(B, D)``; value and
+    gradient with respect to ``z``."""
     cases = _embedding_cases() + [
         Case("gamma=2.0", (torch.randn(32, 4, generator=torch.Generator().manual_seed(1)),),
              {"gamma": 2.0}),
     ]
-    return compare(fn, losses.variance_term, cases, diagnoses=_VARIANCE_SLIPS)
+    return compare(fn, losses.variance_term, cases, diagnoses=_VARIANCE_SLIPS,
+                   grad=[(0, "z")], dims={0: "BD"}, swap=_ALONG_THE_BATCH,
+                   factors={"D": "the hinge is averaged over the D dimensions, not summed"})
 
 
 def _covariance(z: torch.Tensor, unbiased: bool = True, centre: bool = True) -> torch.Tensor:
@@ -76,38 +94,57 @@ def _mean_square(cov: torch.Tensor, dim: int) -> torch.Tensor:
     return _off_diagonal(cov).pow(2).sum() / (dim * (dim - 1))
 
 
+_COVARIANCE_HINTS = (
+    "Dimensions that copy each other vary together over the batch. Measure how much each "
+    "pair of different dimensions varies together, square it so that positive and negative "
+    "correlations both count, and average over the pairs. A dimension with itself (its "
+    "variance) is not a pair.",
+    "C = (1/(B - 1)) * sum over b of (z_b - mean)(z_b - mean)^T, a D x D matrix, the mean "
+    "taken over the batch. c(Z) = (1/(D(D - 1))) * sum over i != j of C_ij^2: the diagonal "
+    "is left out, and there are D(D - 1) off-diagonal entries. Any correct way of getting C "
+    "is accepted.",
+    "centred = z minus its mean over the batch  # (B, D)\n"
+    "cov = centred.T @ centred / (B - 1)  # (D, D)\n"
+    "off = cov with its diagonal set to zero (without changing z)\n"
+    "return off.pow(2).sum() / (D * (D - 1))",
+)
+
 _COVARIANCE_SLIPS = [
-    ("you divided the covariance by B; the sample covariance divides by B - 1.",
-     lambda z: _mean_square(_covariance(z, unbiased=False), z.shape[1])),
-    ("you divided the sum by D, as the VICReg paper does; the course divides by D(D - 1), "
-     "the number of off-diagonal entries, so that the term is their mean.",
-     lambda z: _off_diagonal(_covariance(z)).pow(2).sum() / z.shape[1]),
-    ("you divided the sum by D^2; there are D(D - 1) off-diagonal entries.",
-     lambda z: _off_diagonal(_covariance(z)).pow(2).sum() / z.shape[1] ** 2),
-    ("you forgot to zero the diagonal (the variances): use cov - torch.diag(torch.diagonal("
-     "cov)) before squaring and summing.",
-     lambda z: _covariance(z).pow(2).sum() / (z.shape[1] * (z.shape[1] - 1))),
-    ("you averaged all D^2 squared entries, the diagonal (the variances) included; zero the "
-     "diagonal and divide by D(D - 1).", lambda z: _covariance(z).pow(2).mean()),
-    ("you did not centre z: subtract its mean over the batch before z.T @ z.",
+    ("you did not centre z: subtract its mean over the batch before multiplying.",
      lambda z: _mean_square(_covariance(z, centre=False), z.shape[1])),
+    ("you kept the diagonal: C_jj is the variance of dimension j, not a covariance between "
+     "two dimensions; leave it out of the sum.",
+     lambda z: _covariance(z).pow(2).sum() / (z.shape[1] * (z.shape[1] - 1))),
+    ("you averaged all D^2 squared entries, the diagonal (the variances) included; leave the "
+     "diagonal out and divide by D(D - 1).", lambda z: _covariance(z).pow(2).mean()),
     ("you summed the covariances themselves; square them first (a positive and a negative "
      "correlation must not cancel).",
      lambda z: _off_diagonal(_covariance(z)).sum() / (z.shape[1] * (z.shape[1] - 1))),
     ("you took absolute values; the term squares the covariances.",
      lambda z: _off_diagonal(_covariance(z)).abs().sum() / (z.shape[1] * (z.shape[1] - 1))),
-    ("torch.cov treats each row as a variable: for z of shape (B, D) use torch.cov(z.T).",
+    ("torch.cov treats each row as a variable: z has one row per sample, so it needs the "
+     "transpose of z.",
      lambda z: _mean_square(torch.cov(z), z.shape[1])),
-    ("torch.cov treats each row as a variable: for z of shape (B, D) use torch.cov(z.T).",
-     lambda z: _mean_square(torch.cov(z), z.shape[0])),
 ]
 
 
-@exercise(losses.covariance_term, _COVARIANCE_SLIPS)
+@exercise(losses.covariance_term, _COVARIANCE_SLIPS, name="covariance_term",
+          hints=_COVARIANCE_HINTS,
+          answers=(losses.covariance_matrix, losses.vicreg.variance_and_covariance,
+                   losses.vicreg_loss))
 def check_covariance_term(fn: Callable) -> bool:
-    """Notebook 00 and 01: ``covariance_term(z)`` on ``(B, D)``."""
+    """Notebook 00: ``covariance_term(z)`` on ``(B, D)``; value and gradient with respect to
+    ``z``."""
+    swap = (*_ALONG_THE_BATCH[:4], "Here z is (B, D), one row per sample: the covariance is "
+            "between the D dimensions, D x D, each entry estimated over the batch (torch.cov, for "
+            "one, treats each row as a variable)")
     return compare(fn, losses.covariance_term, _embedding_cases(seed=2),
-                   diagnoses=_COVARIANCE_SLIPS)
+                   diagnoses=_COVARIANCE_SLIPS, grad=[(0, "z")], dims={0: "BD"}, swap=swap,
+                   factors={"D - 1": "the VICReg paper divides the sum by D; the course "
+                                     "divides by D(D - 1), the number of off-diagonal "
+                                     "entries, so that the term is their mean",
+                            "D/(D - 1)": "there are D(D - 1) off-diagonal entries, not D^2",
+                            "(B/(B - 1))²": "the sample covariance divides by B - 1, not B"})
 
 
 def _vicreg_total(z_a, z_b, inv_coeff, std_coeff, cov_coeff):
@@ -134,32 +171,48 @@ def _vicreg_slip(invariance=losses.invariance_term, views="both", swap=False) ->
     return vicreg
 
 
-_ONE_VIEW = ("you regularised one view only; apply variance_term and covariance_term to each "
+_VICREG_HINTS = (
+    "The loss adds three things: how far apart the two views' embeddings are, how much "
+    "spread each view lacks, and how correlated each view's dimensions are. The last two "
+    "judge one batch of embeddings at a time, so apply them to each view on its own, then "
+    "combine the two views.",
+    "L = inv_coeff * s(z_a, z_b) + std_coeff * (v(z_a) + v(z_b)) / 2 "
+    "+ cov_coeff * (c(z_a) + c(z_b)) / 2, with s the mean squared difference between the "
+    "views, v the variance term and c the covariance term, all three imported at the top of "
+    "the cell. Each takes (B, D) embeddings and gives a 0-d tensor; so does L.",
+    "invariance = <the invariance term of the two views>\n"
+    "variance = <the variance term of z_a and of z_b, averaged>\n"
+    "covariance = <the same with the covariance term>\n"
+    "return inv_coeff * invariance + std_coeff * variance + cov_coeff * covariance",
+)
+
+_ONE_VIEW = ("you regularised one view only; apply the variance and covariance terms to each "
              "view and average the two.")
 _VICREG_SLIPS = [
-    ("you added the two views' variance and covariance terms; average them: "
-     "(term(z_a) + term(z_b)) / 2.", _vicreg_slip(views="sum")),
+    ("you added the two views' variance and covariance terms; average them (their sum over "
+     "the two views, divided by 2).", _vicreg_slip(views="sum")),
     (_ONE_VIEW, _vicreg_slip(views="z_a")),
     (_ONE_VIEW, _vicreg_slip(views="z_b")),
     ("you computed the variance and covariance on the two views stacked into one batch; "
      "compute each on one view, then average the two.", _vicreg_slip(views="stacked")),
     ("you swapped the weights: std_coeff multiplies the variance term, cov_coeff the "
      "covariance term.", _vicreg_slip(swap=True)),
-    ("your invariance sums the squared difference over the D dimensions; invariance_term "
-     "(the mean squared error) averages over them too.",
+    ("your invariance sums the squared difference over the D dimensions; the invariance "
+     "term (the mean squared error) averages over them too.",
      _vicreg_slip(invariance=lambda a, b: (a - b).pow(2).sum(1).mean())),
     ("your invariance is an unsquared distance ||z_a - z_b||; it is the mean squared "
-     "difference, invariance_term(z_a, z_b).",
-     _vicreg_slip(invariance=lambda a, b: (a - b).norm(dim=1).mean())),
+     "difference.", _vicreg_slip(invariance=lambda a, b: (a - b).norm(dim=1).mean())),
 ]
 
 
-@exercise(_vicreg_total, _VICREG_SLIPS)
+@exercise(_vicreg_total, _VICREG_SLIPS, name="vicreg", hints=_VICREG_HINTS,
+          answers=(losses.vicreg_loss,))
 def check_vicreg(fn: Callable) -> bool:
     """Notebook 01: ``vicreg(z_a, z_b, inv_coeff, std_coeff, cov_coeff)`` -> a 0-d tensor.
 
     Two views ``(B, D)``; the variance and covariance terms are computed on each
-    view and averaged, as :func:`losses.vicreg_loss` does.
+    view and averaged, as :func:`losses.vicreg_loss` does. Value and gradients with
+    respect to both views.
     """
     g = torch.Generator().manual_seed(5)
     z = torch.randn(32, 8, generator=g)
@@ -178,8 +231,13 @@ def check_vicreg(fn: Callable) -> bool:
               0.0, 0.0, 1.0)),
         Case("two identical collapsed views (every row the same), coefficients 2, 3, 4",
              (torch.ones(8, 3), torch.ones(8, 3), 2.0, 3.0, 4.0)),
+        Case("two float64 views (16, 4), coefficients 1, 2, 3",
+             (torch.randn(16, 4, generator=g, dtype=torch.float64),
+              torch.randn(16, 4, generator=g, dtype=torch.float64), 1.0, 2.0, 3.0)),
     ]
-    return compare(fn, _vicreg_total, cases, diagnoses=_VICREG_SLIPS)
+    return compare(fn, _vicreg_total, cases, diagnoses=_VICREG_SLIPS,
+                   grad=[(0, "the first view z_a"), (1, "the second view z_b")],
+                   dims={0: "BD"})
 
 
 def _vicreg_paper_to_ebjepa(inv: float, std: float, cov: float, dim: int) -> tuple:
@@ -191,6 +249,17 @@ def _vicreg_paper_to_ebjepa(inv: float, std: float, cov: float, dim: int) -> tup
     """
     return 1.0, std / inv, cov * (dim - 1) / inv
 
+
+_CONVERSION_HINTS = (
+    "The two papers scale the covariance term differently, so the same loss needs different "
+    "weights. Find how many times smaller EB-JEPA's covariance term is than the VICReg "
+    "paper's, make its weight that many times larger, then rescale all three weights so "
+    "that the invariance weight becomes 1 (only their ratios shape the loss).",
+    "c_VICReg = (D - 1) * c_EB-JEPA, so nu * c_VICReg = nu * (D - 1) * c_EB-JEPA. Then divide "
+    "every weight by the invariance weight lambda. Return three Python numbers: the "
+    "invariance, variance and covariance weights.",
+    "return 1.0, <std divided by inv>, <cov times (dim - 1), divided by inv>",
+)
 
 _CONVERSION_SLIPS = [
     ("you forgot the factor (D - 1): the paper divides the covariance sum by D, EB-JEPA by "
@@ -211,7 +280,8 @@ _CONVERSION_SLIPS = [
 ]
 
 
-@exercise(_vicreg_paper_to_ebjepa, _CONVERSION_SLIPS)
+@exercise(_vicreg_paper_to_ebjepa, _CONVERSION_SLIPS, name="vicreg_paper_to_ebjepa",
+          hints=_CONVERSION_HINTS)
 def check_vicreg_paper_to_ebjepa(fn: Callable) -> bool:
     """Notebook 01: ``vicreg_paper_to_ebjepa(inv, std, cov, dim)`` -> three floats."""
     name = getattr(fn, "__name__", "your function")

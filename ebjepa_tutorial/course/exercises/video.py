@@ -1,4 +1,4 @@
-"""Checker of chapter 03: the K-step rollout loss, its value and its gradients."""
+"""Checker of chapter 03: the K-step rollout loss, its value and its gradients, and its hints."""
 
 from __future__ import annotations
 
@@ -7,11 +7,11 @@ from collections.abc import Callable
 
 import torch
 
-from ...losses.rollout import Predictor, rollout_loss
+from ...losses.rollout import Predictor, parallel_rollout_loss, rollout, rollout_loss
 from .common import Case, compare, exercise
 
 
-def _toy_predictor(kind: str, weight: torch.Tensor | None = None) -> Predictor:
+def _toy_predictor(kind: str, weight: torch.Tensor) -> Predictor:
     """Toy predictors ``(N, context, C, H, W) -> (N, C, H, W)`` with rollouts easy to follow."""
     if kind == "shift":  # the last latent plus 0.5: order k of a rollout is z_last + 0.5 k
         return lambda window: window[:, -1] + 0.5
@@ -23,28 +23,24 @@ def _toy_predictor(kind: str, weight: torch.Tensor | None = None) -> Predictor:
     return lambda window: torch.tanh(torch.einsum("nkchw,kcd->ndhw", window, weight))
 
 
-def _rollout_case(what: str, kind: str, z: torch.Tensor, context: int, steps: int,
-                  tbptt: int | None = None, seed: int = 0):
-    """Arguments of one check: what to compare (loss ``value``, ``grad_z`` or ``grad_weight``)."""
+def _rollout_case(description: str, kind: str, z: torch.Tensor, context: int, steps: int,
+                  tbptt: int | None = None, seed: int = 0) -> Case:
+    """One test input: the predictor ``kind`` with its weights, the latents ``z`` split into
+    all frames but the last and the last, which is only ever a target (so that its gradient
+    is checked on its own), and the loss's options."""
     weight = torch.randn(context, z.shape[2], z.shape[2],
                          generator=torch.Generator().manual_seed(seed)) / z.shape[2] ** 0.5
-    return (what, kind, weight, z, context, steps, tbptt)
+    return Case(description, (kind, weight, z[:, :-1], z[:, -1], context, steps, tbptt))
 
 
-def _run_rollout_loss(loss_fn: Callable) -> Callable:
-    """Wrap a rollout loss so that one call returns the loss value or one of its gradients."""
-    def run(what, kind, weight, z, context, steps, tbptt):
-        weight, z = weight.clone().requires_grad_(), z.clone().requires_grad_()
+def _rollout_call(loss_fn: Callable) -> Callable:
+    """``loss_fn`` called on one of the cases above: returns the loss."""
+    def run(kind, weight, z_first, z_last, context, steps, tbptt):
         kwargs = {"context": context, "steps": steps}
         if tbptt is not None:
             kwargs["tbptt"] = tbptt
-        loss = loss_fn(_toy_predictor(kind, weight), z, **kwargs)
-        if what == "value" or not isinstance(loss, torch.Tensor):
-            return loss
-        wrt = z if what == "grad_z" else weight
-        grad = torch.autograd.grad(loss, wrt, allow_unused=True)[0]
-        grad = torch.zeros_like(wrt) if grad is None else grad
-        return grad[:, -1] if what == "grad_z" else grad  # z's last frame is only a target
+        z = torch.cat([z_first, z_last[:, None]], dim=1)
+        return loss_fn(_toy_predictor(kind, weight), z, **kwargs)
     run.__name__ = getattr(loss_fn, "__name__", "your function")
     return run
 
@@ -74,16 +70,41 @@ def _rollout_slip(**slip) -> Callable:
     return rollout_loss
 
 
+_ROLLOUT_HINTS = (
+    "From each start, give the predictor the true context, then let it run on its own "
+    "predictions for K steps, as it will have to when it imagines the future. Score every "
+    "prediction against the true latent of the frame it stands for; the loss is the average "
+    "score over all starts and steps.",
+    "For every start s from 0 to T - context - K: the window holds the true latents "
+    "s, ..., s + context - 1. Step k = 0, ..., K - 1 predicts the latent of frame "
+    "s + context + k from the window; then the window drops its oldest latent and takes the "
+    "prediction as its newest (a window stays (B, context, C, S, S), a prediction is "
+    "(B, C, S, S)). The error of one step is the mean squared difference over all its "
+    "elements; the loss is the mean of the n_starts * K errors. With tbptt = m, cut the "
+    "window's gradient before every step k > 0 that is a multiple of m; the targets keep "
+    "their gradient.",
+    "errors = []\n"
+    "for s in range(n_starts):\n"
+    "    window = <the true latents s .. s + context - 1, along the time axis>\n"
+    "    for k in range(steps):\n"
+    "        if <tbptt is set, k > 0 and k is a multiple of tbptt>: window = <window, detached>\n"
+    "        z_hat = predictor(window)\n"
+    "        errors.append(<the mean squared difference of z_hat and the latent of frame "
+    "s + context + k>)\n"
+    "        window = <the window without its oldest latent, z_hat appended as the newest>\n"
+    "return <the mean of the errors, stacked into one tensor>",
+)
+
 _ROLLOUT_SLIPS = [(words, _rollout_slip(**slip)) for words, slip in [
     ("no gradient reaches the target latents: did you .detach() them? The course keeps the "
      "targets' gradient, as the paper does.", {"detach_targets": True}),
-    ("you ignored tbptt: detach the window when k > 0 and k % tbptt == 0.",
-     {"ignore_tbptt": True}),
-    ("an off-by-one target: step k (k = 0 .. K-1) from start s predicts z[:, s + context + k], "
-     "the frame after the window; you compared it with z[:, s + context + k - 1].",
-     {"early": 1}),
+    ("you ignored tbptt: the window loses its gradient before every step k > 0 that is a "
+     "multiple of tbptt.", {"ignore_tbptt": True}),
+    ("an off-by-one target: step k (k = 0 .. K-1) from start s predicts the latent of frame "
+     "s + context + k, the frame just after the window; you compared it with the frame "
+     "before that.", {"early": 1}),
     ("teacher forcing: you gave the predictor the true latents at every step; a rollout feeds "
-     "it its own predictions: window = torch.cat([window[:, 1:], z_hat[:, None]], dim=1).",
+     "it its own predictions (the window drops its oldest latent and takes the prediction).",
      {"teacher_forcing": True}),
     ("the window never slides: every step predicts from the same true context; append each "
      "prediction and drop the oldest latent.", {"no_slide": True}),
@@ -91,9 +112,9 @@ _ROLLOUT_SLIPS = [(words, _rollout_slip(**slip)) for words, slip in [
      "T - context - K.", {"one_start": True}),
     ("you ignored the context argument (your window always holds 2 latents).", {"context": 2}),
     ("you summed the errors instead of averaging them.", {"sum": True}),
-    ("you summed the squared error over each latent's elements; average over them "
-     "(.pow(2).mean()).", {"error": lambda d: d.pow(2).flatten(1).sum(1).mean()}),
-    ("an unsquared distance: the loss is the mean *squared* error, (z_hat - z).pow(2).mean().",
+    ("you summed the squared error over each latent's elements; the error of a step is their "
+     "mean.", {"error": lambda d: d.pow(2).flatten(1).sum(1).mean()}),
+    ("an unsquared distance: the loss is the mean *squared* error.",
      {"error": lambda d: d.flatten(1).norm(dim=1).mean()}),
     ("an unsquared distance: the loss is the mean *squared* error, not its square root.",
      {"error": lambda d: d.pow(2).mean().sqrt()}),
@@ -102,44 +123,46 @@ _ROLLOUT_SLIPS = [(words, _rollout_slip(**slip)) for words, slip in [
 ]]
 
 
-@exercise(rollout_loss, _ROLLOUT_SLIPS)
+@exercise(rollout_loss, _ROLLOUT_SLIPS, name="rollout_loss", hints=_ROLLOUT_HINTS,
+          answers=(parallel_rollout_loss, rollout))
 def check_rollout_loss(fn: Callable) -> bool:
     """Notebook 03: ``rollout_loss(predictor, z, context=2, steps=4[, tbptt=None])`` -> 0-d tensor.
 
-    Compares the loss and its gradients with :func:`rollout_loss` on random
-    latents and toy predictors. The ``tbptt`` cases run only if ``fn`` takes a
-    ``tbptt`` argument.
+    Compares the loss and its gradients (with respect to the predictor's weights,
+    the last latent, a target only, and the other latents) with :func:`rollout_loss`
+    on random latents and toy predictors. The ``tbptt`` cases run only if ``fn``
+    takes a ``tbptt`` argument.
     """
     g = torch.Generator().manual_seed(7)
     drift = torch.arange(7.0)[None, :, None, None, None] * torch.randn(1, 1, 2, 3, 3, generator=g)
     cases = [
-        ("the predictor 'last latent + 0.5', random latents (2, 8, 3, 4, 4), context 2, K 3",
-         _rollout_case("value", "shift", torch.randn(2, 8, 3, 4, 4, generator=g), 2, 3)),
-        ("a constant-velocity predictor on latents moving in straight lines (the loss is 0)",
-         _rollout_case("value", "velocity", drift, 2, 4)),
-        ("a constant-velocity predictor, random latents (2, 9, 2, 4, 4), K 4",
-         _rollout_case("value", "velocity", torch.randn(2, 9, 2, 4, 4, generator=g), 2, 4)),
-        ("a nonlinear predictor, random latents (3, 10, 4, 4, 4), K 4",
-         _rollout_case("value", "mixer", torch.randn(3, 10, 4, 4, 4, generator=g), 2, 4)),
-        ("a predictor averaging its window, context 3 (not 2), K 2",
-         _rollout_case("value", "mean", torch.randn(2, 7, 2, 3, 3, generator=g), 3, 2)),
-        ("one step (K 1), latents (4, 5, 2, 2, 2)",
-         _rollout_case("value", "mixer", torch.randn(4, 5, 2, 2, 2, generator=g), 2, 1)),
-        ("the shortest clip, T = context + K = 5 frames",
-         _rollout_case("value", "velocity", torch.randn(2, 5, 2, 3, 3, generator=g), 2, 3)),
-        ("the gradient with respect to the last latent z[:, -1], a target (keep its gradient)",
-         _rollout_case("grad_z", "mixer", torch.randn(2, 8, 3, 3, 3, generator=g), 2, 4)),
-        ("the gradient with respect to the predictor's weights, K 4",
-         _rollout_case("grad_weight", "mixer", torch.randn(2, 8, 3, 3, 3, generator=g), 2, 4)),
+        _rollout_case("the predictor 'last latent + 0.5', random latents (2, 8, 3, 4, 4), "
+                      "context 2, K 3", "shift", torch.randn(2, 8, 3, 4, 4, generator=g), 2, 3),
+        _rollout_case("a constant-velocity predictor on latents moving in straight lines (the "
+                      "loss is 0)", "velocity", drift, 2, 4),
+        _rollout_case("a constant-velocity predictor, random latents (2, 9, 2, 4, 4), K 4",
+                      "velocity", torch.randn(2, 9, 2, 4, 4, generator=g), 2, 4),
+        _rollout_case("a nonlinear predictor, random latents (3, 10, 4, 4, 4), K 4", "mixer",
+                      torch.randn(3, 10, 4, 4, 4, generator=g), 2, 4),
+        _rollout_case("a predictor averaging its window, context 3 (not 2), K 2", "mean",
+                      torch.randn(2, 7, 2, 3, 3, generator=g), 3, 2),
+        _rollout_case("one step (K 1), latents (4, 5, 2, 2, 2)", "mixer",
+                      torch.randn(4, 5, 2, 2, 2, generator=g), 2, 1),
+        _rollout_case("the shortest clip, T = context + K = 5 frames", "velocity",
+                      torch.randn(2, 5, 2, 3, 3, generator=g), 2, 3),
+        _rollout_case("a nonlinear predictor, random latents (2, 8, 3, 3, 3), K 4", "mixer",
+                      torch.randn(2, 8, 3, 3, 3, generator=g), 2, 4, seed=1),
     ]
     if "tbptt" in inspect.signature(fn).parameters:
         z = torch.randn(2, 9, 3, 3, 3, generator=g)
-        cases += [(f"the gradient with respect to the predictor's weights, K 5, tbptt={m}",
-                   _rollout_case("grad_weight", "mixer", z, 2, 5, tbptt=m)) for m in (1, 2)]
-        cases.append(("the loss value with tbptt=2 (truncation must not change it)",
-                      _rollout_case("value", "mixer", z, 2, 5, tbptt=2)))
+        cases += [_rollout_case(f"a nonlinear predictor, K 5, tbptt={m}", "mixer", z, 2, 5,
+                                tbptt=m) for m in (1, 2)]
     else:
         print("(your function has no tbptt argument: the truncation cases are skipped)")
-    return compare(_run_rollout_loss(fn), _run_rollout_loss(rollout_loss),
-                   [Case(description, args) for description, args in cases],
-                   diagnoses=[(w, _run_rollout_loss(v)) for w, v in _ROLLOUT_SLIPS])
+    return compare(_rollout_call(fn), _rollout_call(rollout_loss), cases,
+                   diagnoses=[(w, _rollout_call(v)) for w, v in _ROLLOUT_SLIPS],
+                   labels=["the predictor", "the predictor's weights", "the latents z[:, :-1]",
+                           "the last latent z[:, -1]"],
+                   grad=[(1, "the predictor's weights"),
+                         (3, "the last latent z[:, -1] (only ever a target)"),
+                         (2, "the other latents z[:, :-1]")])

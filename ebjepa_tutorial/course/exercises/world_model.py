@@ -1,5 +1,5 @@
 """Checkers of chapter 05: the temporal-similarity and inverse-dynamics terms, their values
-and their gradients with respect to the latents."""
+and their gradients with respect to the latents, and their hints."""
 
 from __future__ import annotations
 
@@ -23,6 +23,8 @@ def _trajectory_latents(seed: int = 3) -> list[Case]:
         Case("the shortest sequences, 2 frames (3, 2, 5)", (torch.randn(3, 2, 5, generator=g),)),
         Case("latents with std about 4, shape (2, 10, 6)",
              (4 * torch.randn(2, 10, 6, generator=g),)),
+        Case("float64 latents (3, 5, 7)", (torch.randn(3, 5, 7, generator=g,
+                                                       dtype=torch.float64),)),
     ]
 
 
@@ -30,43 +32,55 @@ def _change(z: torch.Tensor) -> torch.Tensor:
     return z[:, 1:] - z[:, :-1]
 
 
+_TEMPORAL_HINTS = (
+    "An encoder watching a trajectory should move its latent only a little from one frame to "
+    "the next. Measure each step's change of latent and penalise its size, on average.",
+    "The T - 1 changes z_(t+1) - z_t run along axis 1, time; each is (B, D). Square every "
+    "element and average over all B (T - 1) D of them: L = (1 / (B (T - 1) D)) * sum over "
+    "b, t of ||z_(b,t+1) - z_(b,t)||^2, a 0-d tensor.",
+    "changes = <z at times 1 .. T-1 minus z at times 0 .. T-2, slicing axis 1>\n"
+    "return <the mean of changes squared, over every element>",
+)
+
 _TEMPORAL_SLIPS = [
-    ("you summed the squared change over the D dimensions (||z_t+1 - z_t||^2); the course "
-     "averages over dimensions too: .pow(2).mean() over every element.",
-     lambda z: _change(z).pow(2).sum(-1).mean()),
     ("an unsquared distance ||z_t+1 - z_t||: the term is the mean *squared* change.",
      lambda z: _change(z).norm(dim=-1).mean()),
-    ("you used the absolute change; square it: .pow(2).mean().",
+    ("you used the absolute change; the term squares it.",
      lambda z: _change(z).abs().mean()),
-    ("you took differences along the batch axis (z[1:] - z[:-1]); time is axis 1: "
-     "z[:, 1:] - z[:, :-1].", lambda z: (z[1:] - z[:-1]).pow(2).mean()),
-    ("you summed instead of averaging: .mean() over every element.",
+    ("you summed instead of averaging: the term is the mean over every element.",
      lambda z: _change(z).pow(2).sum()),
-    ("your loss has the right value, but no gradient reaches the latents z: did you "
-     ".detach() them? The term must pull the encoder's consecutive latents together.",
-     lambda z: _change(z.detach()).pow(2).mean()),
-    ("the gradient reaches z_t+1 but not z_t: you detached z[:, :-1]; both latents of a pair "
-     "must be pulled toward each other.", lambda z: (z[:, 1:] - z[:, :-1].detach()).pow(2).mean()),
-    ("the gradient reaches z_t but not z_t+1: you detached z[:, 1:]; both latents of a pair "
-     "must be pulled toward each other.", lambda z: (z[:, 1:].detach() - z[:, :-1]).pow(2).mean()),
+    ("the gradient reaches z_t+1 but not z_t: you detached the earlier latent of each pair; "
+     "both latents of a pair must be pulled toward each other.",
+     lambda z: (z[:, 1:] - z[:, :-1].detach()).pow(2).mean()),
+    ("the gradient reaches z_t but not z_t+1: you detached the later latent of each pair; "
+     "both latents of a pair must be pulled toward each other.",
+     lambda z: (z[:, 1:].detach() - z[:, :-1]).pow(2).mean()),
 ]
 
 
-@exercise(world_losses.temporal_similarity_loss, _TEMPORAL_SLIPS)
+@exercise(world_losses.temporal_similarity_loss, _TEMPORAL_SLIPS, name="temporal_similarity",
+          hints=_TEMPORAL_HINTS)
 def check_temporal_similarity(fn: Callable) -> bool:
     """Notebook 05: ``temporal_similarity(z)`` on latents ``(B, T, D)`` -> a 0-d tensor.
 
     Compares the value and the gradient with respect to ``z``.
     """
     return compare(fn, world_losses.temporal_similarity_loss, _trajectory_latents(),
-                   diagnoses=_TEMPORAL_SLIPS, grad=(0, "the latents z"))
+                   diagnoses=_TEMPORAL_SLIPS, grad=[(0, "the latents z")], dims={0: "BTD"},
+                   swap=(0, 0, 1, "the batch and the time axes of z exchanged",
+                         "Here z is (B, T, D): consecutive latents of one trajectory are "
+                         "neighbours along axis 1, time, not along axis 0"),
+                   factors={"D": "the change is averaged over the D dimensions too, not "
+                                 "summed over them",
+                            "T/(T - 1)": "T latents make T - 1 changes: average over those"})
 
 
-def _linear_inverse_model(latent_dim: int, action_dim: int, seed: int) -> Callable:
+def _linear_inverse_model(latent_dim: int, action_dim: int, seed: int,
+                          dtype=torch.float32) -> Callable:
     """A fixed random map ``g(z_t, z_next) = W [z_t, z_next] + b``: ``(..., D) x2 -> (..., A)``."""
     g = torch.Generator().manual_seed(seed)
-    weight = torch.randn(2 * latent_dim, action_dim, generator=g) / latent_dim**0.5
-    bias = torch.randn(action_dim, generator=g)
+    weight = torch.randn(2 * latent_dim, action_dim, generator=g, dtype=dtype) / latent_dim**0.5
+    bias = torch.randn(action_dim, generator=g, dtype=dtype)
 
     def predict_actions(z, z_next):
         return torch.cat([z, z_next], dim=-1) @ weight + bias
@@ -79,48 +93,65 @@ def _difference_model(z, z_next):
     return (z_next - z)[..., :2]
 
 
+_INVERSE_HINTS = (
+    "If the latent keeps what the agent did, a small head can read the action back from two "
+    "consecutive latents. The loss scores that reading against the actions that were really "
+    "taken, so that training makes the latent keep them.",
+    "The pairs are (z_t, z_(t+1)) for t = 0 .. T - 2: the first T - 1 latents and the last "
+    "T - 1 latents, each (B, T - 1, D). predict_actions takes all pairs in one call, the "
+    "earlier latent first, and gives (B, T - 1, A), one action per pair, like actions. "
+    "L = the mean over all B (T - 1) A elements of (predicted - a)^2.",
+    "predicted = predict_actions(<latents 0 .. T-2>, <latents 1 .. T-1>)  # (B, T-1, A)\n"
+    "return <the mean of (predicted - actions) squared>",
+)
+
 _INVERSE_SLIPS = [
-    ("you gave g the pair in the wrong order: the action is read as g(z_t, z_t+1), that is "
-     "predict_actions(z[:, :-1], z[:, 1:]).",
+    ("you gave g the pair in the wrong order: the action is read as g(z_t, z_t+1), the "
+     "earlier latent first.",
      lambda g, z, a: (g(z[:, 1:], z[:, :-1]) - a).pow(2).mean()),
-    ("you summed the squared error over the A action dimensions; average over them too "
-     "(.pow(2).mean() over every element).",
-     lambda g, z, a: (g(z[:, :-1], z[:, 1:]) - a).pow(2).sum(-1).mean()),
     ("an unsquared distance ||g - a||: the loss is the mean *squared* error.",
      lambda g, z, a: (g(z[:, :-1], z[:, 1:]) - a).norm(dim=-1).mean()),
     ("you used the absolute error; the loss is the mean squared error.",
      lambda g, z, a: (g(z[:, :-1], z[:, 1:]) - a).abs().mean()),
-    ("you summed instead of averaging: .mean() over every element.",
+    ("you summed instead of averaging: the loss is the mean over every element.",
      lambda g, z, a: (g(z[:, :-1], z[:, 1:]) - a).pow(2).sum()),
-    ("your loss has the right value, but no gradient reaches the latents z: did you "
-     ".detach() them? Chapter 05: this gradient is what makes the encoder keep the dot in "
-     "the latent (only the dot explains the action); without it only the head learns.",
-     lambda g, z, a: (g(z[:, :-1].detach(), z[:, 1:].detach()) - a).pow(2).mean()),
-    ("the gradient reaches z_t but not z_t+1: you detached z[:, 1:]; both latents must "
-     "receive it.", lambda g, z, a: (g(z[:, :-1], z[:, 1:].detach()) - a).pow(2).mean()),
-    ("the gradient reaches z_t+1 but not z_t: you detached z[:, :-1]; both latents must "
-     "receive it.", lambda g, z, a: (g(z[:, :-1].detach(), z[:, 1:]) - a).pow(2).mean()),
+    ("the gradient reaches z_t but not z_t+1: you detached the later latent of each pair; "
+     "both latents must receive it.",
+     lambda g, z, a: (g(z[:, :-1], z[:, 1:].detach()) - a).pow(2).mean()),
+    ("the gradient reaches z_t+1 but not z_t: you detached the earlier latent of each pair; "
+     "both latents must receive it.",
+     lambda g, z, a: (g(z[:, :-1].detach(), z[:, 1:]) - a).pow(2).mean()),
 ]
 
 
-@exercise(world_losses.inverse_dynamics_loss, _INVERSE_SLIPS)
+@exercise(world_losses.inverse_dynamics_loss, _INVERSE_SLIPS, name="inverse_dynamics",
+          hints=_INVERSE_HINTS)
 def check_inverse_dynamics(fn: Callable) -> bool:
     """Notebook 05: ``inverse_dynamics(predict_actions, z, actions)`` -> a 0-d tensor.
 
     ``z``: latents ``(B, T, D)``; ``actions``: ``(B, T-1, A)``; ``predict_actions``
     maps ``(z_t, z_next)``, each ``(..., D)``, to actions ``(..., A)``. Compares the
-    value and the gradient with respect to ``z``.
+    value and the gradient with respect to ``z``: this gradient is what makes the
+    encoder keep the dot in the latent (only the dot explains the action).
     """
     g = torch.Generator().manual_seed(4)
     cases = []
-    for b, t, d, a, kind in [(4, 17, 8, 2, "random"), (3, 2, 5, 2, "random"),
-                             (2, 9, 6, 3, "random"), (5, 7, 4, 2, "difference")]:
-        model = _difference_model if kind == "difference" else _linear_inverse_model(d, a, b)
+    for b, t, d, a, kind, dtype in [(4, 17, 8, 2, "random", torch.float32),
+                                    (3, 2, 5, 2, "random", torch.float32),
+                                    (2, 9, 6, 3, "random", torch.float32),
+                                    (5, 7, 4, 2, "difference", torch.float32),
+                                    (3, 6, 5, 3, "random", torch.float64)]:
+        model = (_difference_model if kind == "difference"
+                 else _linear_inverse_model(d, a, b, dtype))
         what = ("g(z_t, z_next) = (z_next - z_t)[:2]" if kind == "difference"
                 else f"a fixed linear g with {a}-d actions")
+        what += " in float64" if dtype == torch.float64 else ""
         cases.append(Case(
             f"{what}, latents ({b}, {t}, {d}) and actions ({b}, {t - 1}, {a})",
-            (model, torch.randn(b, t, d, generator=g), torch.randn(b, t - 1, a, generator=g)),
+            (model, torch.randn(b, t, d, generator=g, dtype=dtype),
+             torch.randn(b, t - 1, a, generator=g, dtype=dtype)),
         ))
     return compare(fn, world_losses.inverse_dynamics_loss, cases, diagnoses=_INVERSE_SLIPS,
-                   grad=(1, "the latents z"))
+                   grad=[(1, "the latents z")], dims={1: "BTD", 2: "__A"},
+                   factors={"A": "the error is averaged over the A action dimensions too, "
+                                 "not summed over them"})
