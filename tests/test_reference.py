@@ -59,3 +59,40 @@ def test_every_figure_a_notebook_prints_has_been_recorded():
     assert not missing, f"run the benchmarks with --record for {missing}"
     for key in keys & set(recorded):
         assert "--record" in recorded[key]["command"] and recorded[key]["threads"] >= 1
+
+
+# ---- every figure in the course's prose comes from reference.json ----------------------------
+
+
+def test_every_marked_figure_in_the_pages_agrees_with_the_recorded_one():
+    wrong = reference.check_pages()
+    assert not wrong, ("figures disagree with checkpoints/reference.json; run `python -m "
+                       "ebjepa_tutorial.course.reference render`:\n" + "\n".join(wrong))
+
+
+def test_the_results_page_and_the_readme_take_their_headlines_from_the_record():
+    root = Path(__file__).resolve().parents[1]
+    for page, keys in (("README.md", {"vicreg_probe_acc", "sigreg_probe_acc", "video_map_class_K4",
+                                      "planning_success_shipped_fresh", "planning_success_live"}),
+                       ("RESULTS.md", {"vicreg_shipped_probe_acc", "video_map_long_K4",
+                                       "world_probe_px", "beyond_three_rooms_two_level"})):
+        marked = {m[1] for m in reference.FIGURE.finditer((root / page).read_text())}
+        assert keys <= marked, f"{page} types {sorted(keys - marked)} instead of marking them"
+
+
+def test_a_planted_mismatch_is_caught_and_render_repairs_it(tmp_path):
+    figures = {"vicreg_probe_acc": {"value": 0.6256},
+               "planning_success_shipped_fresh": {"value": 0.9725, "spread": [0.951, 0.985]},
+               "world_probe_px": {"value": 2.4444, "spread": [2.3, 2.61]}}
+    text = ("VICReg <!--fig:vicreg_probe_acc-->62.6%<!--/fig--> and the planner "
+            "<!--fig:planning_success_shipped_fresh:spread-->95.1-98.5%<!--/fig-->, "
+            "probe <!--fig:world_probe_px:spread-->2.30-2.61 px<!--/fig-->")
+    assert reference.mismatches(text, figures) == []
+    planted = text.replace("62.6%", "63.6%")  # a figure typed by hand, and wrong
+    assert reference.mismatches(planted, figures) == [
+        "vicreg_probe_acc: written '63.6%', recorded '62.6%'"]
+    assert reference.render(planted, figures) == text
+    unknown = "<!--fig:made_up-->1<!--/fig-->"
+    assert "no recorded figure 'made_up'" in reference.mismatches(unknown, figures)[0]
+    no_spread = "<!--fig:vicreg_probe_acc:spread-->60-63%<!--/fig-->"
+    assert "has no recorded spread" in reference.mismatches(no_spread, figures)[0]

@@ -10,14 +10,26 @@ from a run: re-run the benchmark with ``--record`` to refresh a figure.
     print(reference.compare("vicreg_probe_acc", 0.551))
     # linear probe accuracy: yours 55.1% | the course's class run 55.4% (2 CPU threads, ...)
     #     | the paper 90.1% (ResNet-18, 300 epochs on a GPU)
+
+The same file is the one source of every measured figure in README.md,
+RESULTS.md, TEACHING.md and the notebooks' text: there a figure is written as
+``<!--fig:KEY-->62.6%<!--/fig-->`` (``<!--fig:KEY:spread-->`` for its range), the
+comments invisible once rendered. ``python -m ebjepa_tutorial.course.reference
+render`` rewrites every such figure from the file; ``check`` lists those that
+disagree (a test runs it).
 """
 
 from __future__ import annotations
 
+import argparse
 import datetime
 import json
+import re
+import sys
 from dataclasses import dataclass
 from pathlib import Path
+
+import nbformat
 
 from ..data.paths import atomic_file
 from ..training.checkpoints import SHIPPED_DIR
@@ -62,8 +74,31 @@ METRICS = {
                                      "benchmarks/planning.py", "the course's refitted model"),
 }
 
+_SHIPPED = "the course's shipped model"
+METRICS |= {  # figures of the longer runs, and class runs pooled over seeds or seed ranges
+    "vicreg_shipped_probe_acc": Metric("linear probe accuracy", "{:.1%}", 0.901, _CIFAR,
+                                       ours=_SHIPPED),
+    "sigreg_shipped_probe_acc": Metric("linear probe accuracy", "{:.1%}", 0.910, _CIFAR,
+                                       ours=_SHIPPED),
+    "video_map_class_K4": Metric("detection mAP, K = 4", "{:.3f}", 0.607,
+                                 "K = 4, trained on a GPU"),
+    "video_map_class_K1": Metric("detection mAP, K = 1", "{:.3f}", 0.383,
+                                 "K = 1, trained on a GPU"),
+    "video_ap3_lead": Metric("K = 4's lead over K = 1 in AP three steps ahead", "{:.2f}"),
+    "video_map_long_K4": Metric("detection mAP, K = 4", "{:.3f}", 0.607,
+                                "K = 4, trained on a GPU", ours=_SHIPPED),
+    "video_map_long_K1": Metric("detection mAP, K = 1", "{:.3f}", 0.383,
+                                "K = 1, trained on a GPU", ours=_SHIPPED),
+    "random_walk_success": Metric("random-walk success", "{:.1%}"),
+    "planning_success_live": Metric("planning success", "{:.0%}", 0.97, _MPPI,
+                                    ours="chapter 05's class model"),
+    "planning_success_shipped_fresh": Metric("planning success", "{:.1%}", 0.97, _MPPI,
+                                             ours=_SHIPPED),
+    "planning_cpu_s_shipped": Metric("CPU seconds per episode", "{:.1f} s", ours=_SHIPPED),
+}
+
 BEYOND_PLANNERS = ("flat", "short", "learned_cost", "two_level")  # notebook 07's comparison
-METRICS |= {f"beyond_{world}_{planner}": Metric("planning success", "{:.0%}",
+METRICS |= {f"beyond_{world}_{planner}": Metric("planning success", "{:.1%}",
                                                 benchmark="benchmarks/beyond.py")
             for world in ("two_rooms", "three_rooms") for planner in BEYOND_PLANNERS}
 
@@ -74,13 +109,20 @@ def load(path: Path = REFERENCE_FILE) -> dict:
 
 
 def record(key: str, value: float, command: str, protocol: str, threads: int,
-           path: Path = REFERENCE_FILE) -> None:
-    """Store a benchmark's measured ``value`` under ``key`` (atomically; other keys are kept)."""
+           path: Path = REFERENCE_FILE, spread: tuple[float, float] | None = None,
+           date: str | None = None) -> None:
+    """Store a measured ``value`` under ``key`` (atomically; other keys are kept).
+
+    ``spread``: (low, high), over seeds, runs or a 95% interval, which ``protocol``
+    names; ``date``: when it was measured (default today).
+    """
     if key not in METRICS:
         raise KeyError(f"unknown reference key {key!r}; known: {sorted(METRICS)}")
     figures = load(path)
     figures[key] = {"value": float(value), "command": command, "protocol": protocol,
-                    "threads": threads, "date": datetime.date.today().isoformat()}
+                    "threads": threads, "date": date or datetime.date.today().isoformat()}
+    if spread is not None:
+        figures[key]["spread"] = [float(spread[0]), float(spread[1])]
     with atomic_file(path) as f:
         f.write((json.dumps(figures, indent=1, sort_keys=True) + "\n").encode())
 
@@ -113,3 +155,104 @@ def compare(key: str, yours: float, scale: str | None = None, path: Path = REFER
 def show(key: str, path: Path = REFERENCE_FILE) -> str:
     """The references alone, for a figure the notebook does not compute itself."""
     return f"{METRICS[key].label}: " + " | ".join(references(key, path))
+
+
+# ---- the figures in the course's prose -------------------------------------------------------
+
+FIGURE = re.compile(r"<!--fig:(\w+)(:spread)?-->(.*?)<!--/fig-->", re.S)
+PAGES = ("README.md", "RESULTS.md", "TEACHING.md", "docs/*.md", "notebooks/*.ipynb")
+
+
+def figure_text(key: str, spread: bool = False, figures: dict | None = None) -> str:
+    """How the recorded figure ``key`` reads in prose: its value, or its range as low-high."""
+    figures = load() if figures is None else figures
+    if key not in METRICS or key not in figures:
+        raise KeyError(f"no recorded figure {key!r} in {REFERENCE_FILE.name}")
+    fmt, entry = METRICS[key].fmt, figures[key]
+    if not spread:
+        return fmt.format(entry["value"])
+    if "spread" not in entry:
+        raise KeyError(f"{key!r} has no recorded spread")
+    low, high = (fmt.format(v) for v in entry["spread"])
+    unit = re.search(r"[^\d.]*$", low).group()  # "%" or " px": written once, after the range
+    return f"{low[:len(low) - len(unit)]}-{high}" if unit and high.endswith(unit) else \
+        f"{low}-{high}"
+
+
+def render(text: str, figures: dict | None = None) -> str:
+    """``text`` with every marked figure rewritten from the recorded figures."""
+    figures = load() if figures is None else figures
+    return FIGURE.sub(lambda m: f"<!--fig:{m[1]}{m[2] or ''}-->"
+                                f"{figure_text(m[1], bool(m[2]), figures)}<!--/fig-->", text)
+
+
+def mismatches(text: str, figures: dict | None = None) -> list[str]:
+    """One line per marked figure in ``text`` that disagrees with the recorded one."""
+    figures = load() if figures is None else figures
+    wrong = []
+    for match in FIGURE.finditer(text):
+        try:
+            expected = figure_text(match[1], bool(match[2]), figures)
+        except KeyError as error:
+            wrong.append(f"{match[1]}: {error.args[0]}")
+            continue
+        if match[3] != expected:
+            wrong.append(f"{match[1]}{match[2] or ''}: written {match[3]!r}, "
+                         f"recorded {expected!r}")
+    return wrong
+
+
+def _texts(path: Path) -> list[str]:
+    if path.suffix != ".ipynb":
+        return [path.read_text(encoding="utf-8")]
+    cells = json.loads(path.read_text(encoding="utf-8"))["cells"]
+    return ["".join(cell["source"]) for cell in cells if cell["cell_type"] == "markdown"]
+
+
+def check_pages(root: Path = SHIPPED_DIR.parent, figures: dict | None = None) -> list[str]:
+    """Every marked figure in the course's pages that disagrees with the recorded figures."""
+    return [f"{path.relative_to(root)}: {line}" for pattern in PAGES
+            for path in sorted(root.glob(pattern))
+            for text in _texts(path) for line in mismatches(text, figures)]
+
+
+def render_pages(root: Path = SHIPPED_DIR.parent) -> list[Path]:
+    """Rewrite every marked figure in the course's pages; return the files changed."""
+    changed = []
+    for path in (p for pattern in PAGES for p in sorted(root.glob(pattern))):
+        if path.suffix == ".ipynb":
+            notebook = nbformat.read(path, as_version=4)
+            before = [cell.source for cell in notebook.cells]
+            for cell in notebook.cells:
+                if cell.cell_type == "markdown":
+                    cell.source = render(cell.source)
+            if [cell.source for cell in notebook.cells] != before:
+                nbformat.write(notebook, path)
+                changed.append(path)
+        elif (text := path.read_text(encoding="utf-8")) != (new := render(text)):
+            path.write_text(new, encoding="utf-8")
+            changed.append(path)
+    return changed
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``render`` the pages' figures from reference.json, or ``check`` that they agree."""
+    parser = argparse.ArgumentParser(prog="python -m ebjepa_tutorial.course.reference",
+                                     description=main.__doc__)
+    parser.add_argument("command", choices=("render", "check"))
+    if parser.parse_args(argv).command == "render":
+        try:
+            changed = render_pages()
+        except KeyError as error:  # a page marks a figure nobody has recorded yet
+            print(f"error: {error.args[0]}; record it first (its benchmark's --record)")
+            return 1
+        for path in changed:
+            print(f"rewrote the figures of {path}")
+        return 0
+    wrong = check_pages()
+    print("\n".join(wrong) or "every marked figure agrees with checkpoints/reference.json")
+    return 1 if wrong else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
