@@ -241,7 +241,7 @@ def test_first_chapter_renders_math_and_code(site):
     assert "\\(" not in visible and "\\[" not in visible, "raw TeX left on the page"
     assert "Math Processing Error" not in visible
     assert "shown as committed, without outputs" in (html / "index.html").read_text()
-    assert 'class="highlight-ipython3' in dom, "no code cell rendered on the page"
+    assert 'class="cell_input' in dom, "no code cell rendered on the page"
 
     shot = work / "chapter-00.png"
     run_browser(url + page, work / "profile-shot", f"--screenshot={shot}",
