@@ -43,10 +43,11 @@ lab-student: student
 # renders them without running them again); the student versions run to the end; the book
 # read in a browser. pytest-xdist spreads the files over one single-threaded worker per core
 # (at most 4): at ci scale a test waits on Python and kernels far more than on arithmetic.
+# -v names every item, so the log shows each notebook cell that nbval ran.
 NBVAL := --nbval-lax --nbval-current-env --nbval-cell-timeout=900
 test: setup
 	EBJEPA_SCALE=ci MPLBACKEND=agg OMP_WAIT_POLICY=PASSIVE OMP_NUM_THREADS=1 $(BIN)/python -m pytest \
-		-p no:cacheprovider -n auto --maxprocesses 4 --dist loadfile --durations=15 \
+		-p no:cacheprovider -v -n auto --maxprocesses 4 --dist loadfile --durations=15 \
 		tests notebooks $(NBVAL)
 
 # The fast unit tests (under 30 s on 2 idle cores), for quick edit-test loops; `slow` marks the rest.
