@@ -96,3 +96,28 @@ def test_a_planted_mismatch_is_caught_and_render_repairs_it(tmp_path):
     assert "no recorded figure 'made_up'" in reference.mismatches(unknown, figures)[0]
     no_spread = "<!--fig:vicreg_probe_acc:spread-->60-63%<!--/fig-->"
     assert "has no recorded spread" in reference.mismatches(no_spread, figures)[0]
+
+
+def test_render_pages_rewrites_only_the_figures_and_keeps_a_notebooks_layout(tmp_path):
+    (tmp_path / "checkpoints").mkdir()
+    figures = {"world_probe_px": {"value": 2.4444}}
+    (tmp_path / "checkpoints" / "reference.json").write_text(json.dumps(figures))
+    (tmp_path / "notebooks").mkdir()
+    source = NOTEBOOKS / "04_two_rooms_world.ipynb"
+    notebook = json.loads(source.read_text(encoding="utf-8"))
+    cell = notebook["cells"][0]["source"]  # a list of lines, each but the last ending in \n
+    cell[-1] += "\n"
+    cell.append("probe <!--fig:world_probe_px-->9.99 px<!--/fig-->")
+    page = tmp_path / "notebooks" / source.name
+    page.write_text(json.dumps(notebook, indent=1, ensure_ascii=False) + "\n", encoding="utf-8")
+    before = page.read_text(encoding="utf-8")
+    (tmp_path / "README.md").write_text("<!--fig:world_probe_px-->1 px<!--/fig-->\n")
+    path = tmp_path / "checkpoints" / "reference.json"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(reference, "REFERENCE_FILE", path)
+        mp.setattr(reference.load, "__defaults__", (path,))
+        assert len(reference.check_pages(tmp_path)) == 2
+        assert reference.render_pages(tmp_path) == [tmp_path / "README.md", page]
+        assert reference.check_pages(tmp_path) == []
+    assert page.read_text(encoding="utf-8") == before.replace("9.99 px", "2.44 px")
+    assert (tmp_path / "README.md").read_text() == "<!--fig:world_probe_px-->2.44 px<!--/fig-->\n"

@@ -29,8 +29,6 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-import nbformat
-
 from ..data.paths import atomic_file
 from ..training.checkpoints import SHIPPED_DIR
 from .presets import current_scale
@@ -202,36 +200,42 @@ def mismatches(text: str, figures: dict | None = None) -> list[str]:
     return wrong
 
 
-def _texts(path: Path) -> list[str]:
+def _pages(root: Path) -> list[Path]:
+    return [path for pattern in PAGES for path in sorted(root.glob(pattern))]
+
+
+def _markdown(path: Path) -> tuple[dict | None, list[dict]]:
+    """A page's Markdown as cells ``{"source": [...]}``: a notebook's markdown cells (with the
+    notebook, read as plain JSON so a rewrite keeps its layout), or a Markdown file as one."""
+    text = path.read_text(encoding="utf-8")
     if path.suffix != ".ipynb":
-        return [path.read_text(encoding="utf-8")]
-    cells = json.loads(path.read_text(encoding="utf-8"))["cells"]
-    return ["".join(cell["source"]) for cell in cells if cell["cell_type"] == "markdown"]
+        return None, [{"source": [text]}]
+    notebook = json.loads(text)
+    return notebook, [cell for cell in notebook["cells"] if cell["cell_type"] == "markdown"]
 
 
 def check_pages(root: Path = SHIPPED_DIR.parent, figures: dict | None = None) -> list[str]:
     """Every marked figure in the course's pages that disagrees with the recorded figures."""
-    return [f"{path.relative_to(root)}: {line}" for pattern in PAGES
-            for path in sorted(root.glob(pattern))
-            for text in _texts(path) for line in mismatches(text, figures)]
+    figures = load() if figures is None else figures
+    return [f"{path.relative_to(root)}: {line}" for path in _pages(root)
+            for cell in _markdown(path)[1]
+            for line in mismatches("".join(cell["source"]), figures)]
 
 
 def render_pages(root: Path = SHIPPED_DIR.parent) -> list[Path]:
     """Rewrite every marked figure in the course's pages; return the files changed."""
-    changed = []
-    for path in (p for pattern in PAGES for p in sorted(root.glob(pattern))):
-        if path.suffix == ".ipynb":
-            notebook = nbformat.read(path, as_version=4)
-            before = [cell.source for cell in notebook.cells]
-            for cell in notebook.cells:
-                if cell.cell_type == "markdown":
-                    cell.source = render(cell.source)
-            if [cell.source for cell in notebook.cells] != before:
-                nbformat.write(notebook, path)
-                changed.append(path)
-        elif (text := path.read_text(encoding="utf-8")) != (new := render(text)):
-            path.write_text(new, encoding="utf-8")
-            changed.append(path)
+    figures, changed = load(), []
+    for path in _pages(root):
+        notebook, cells = _markdown(path)
+        for cell in cells:
+            text = "".join(cell["source"])
+            if (new := render(text, figures)) != text:
+                cell["source"] = new.splitlines(keepends=True)
+                changed += [path] if path not in changed else []
+        if path in changed:
+            path.write_text("".join(cells[0]["source"]) if notebook is None else
+                            json.dumps(notebook, indent=1, ensure_ascii=False) + "\n",
+                            encoding="utf-8")
     return changed
 
 
