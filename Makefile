@@ -4,7 +4,7 @@
 # A learner starts with `make lab-student` (the exercises unsolved, in student/).
 #
 # torch and torchvision are installed first, on their own, so you choose the build
-# that fits your machine (README.md, "Installing torch"): the default takes them
+# that fits your machine (README.md, "Two commands"): the default takes them
 # from PyPI; on Linux a CPU-only build comes from PyTorch's CPU index,
 #   make lab TORCH="torch==2.14.1 torchvision==0.29.1 --index-url https://download.pytorch.org/whl/cpu"
 # Their versions are then written to .venv/constraints.txt and every later

@@ -124,11 +124,10 @@ def _read_tree(split_dir: Path) -> tuple[np.ndarray, np.ndarray]:
     """
     try:
         folder = datasets.ImageFolder(str(split_dir), transform=FIT, allow_empty=True)
-    except (FileNotFoundError, OSError) as err:
+    except OSError as err:
         raise DataNotFoundError(f"no class folders in {split_dir}: {err}") from err
-    counts = np.bincount([label for _, label in folder.samples], minlength=len(folder.classes))
-    if missing := [c for c in CIFAR10_CLASSES if c not in folder.classes
-                   or counts[folder.class_to_idx[c]] == 0]:  # fmt: skip
+    present = {folder.classes[label] for label in folder.targets}
+    if missing := [c for c in CIFAR10_CLASSES if c not in present]:
         raise DataNotFoundError(f"no images for class(es) {', '.join(missing)} in {split_dir}/")
     if extra := sorted(set(folder.classes) - set(CIFAR10_CLASSES)):
         raise CorruptDataError(f"{split_dir} holds folders that are not CIFAR-10 classes: {extra}")
