@@ -11,14 +11,13 @@ augmentation: two views of one point are a compatible pair ``(x, y)``.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 from torch import nn
 
 from ..losses import covariance_matrix, covariance_term, variance_term, vicreg_loss
-from .loop import History, fit
+from .loop import History
 
 
 def make_blobs(
@@ -59,42 +58,31 @@ class Coefficients:
     cov: float = 0.0  # covariance: decorrelate the dimensions
 
 
-def train_toy(
-    x: torch.Tensor,
-    coeffs: Coefficients,
-    *,
-    embed_dim: int = 8,
-    hidden: int = 64,
-    steps: int = 600,
-    lr: float = 3e-3,
-    noise: float = 0.2,
-    seed: int = 0,
-    progress: bool = False,
-    variance: Callable[[torch.Tensor], torch.Tensor] = variance_term,
-    covariance: Callable[[torch.Tensor], torch.Tensor] = covariance_term,
-) -> tuple[nn.Module, History]:
-    """Train an :func:`mlp_encoder` on the points ``x`` ``(N, 2)`` with VICReg ``coeffs``.
+def train_toy(x, coeffs, *, embed_dim=8, hidden=64, steps=600, lr=3e-3, noise=0.2, seed=0,
+              variance=variance_term, covariance=covariance_term):
+    """Train an :func:`mlp_encoder` on the points ``x (N, 2)`` with the VICReg ``coeffs``.
 
-    Full batch: every step sees all points, with fresh noise drawn from a
-    generator seeded by ``(seed, step)``, so a run is exactly reproducible.
-    ``variance`` and ``covariance``: the two regularisers, ``(B, D) -> 0-d`` (notebook 00
-    passes the learner's own once they pass their checks).
+    Full batch: every step sees all points, with fresh noise from a generator seeded by
+    ``(seed, step)``, so a run is exactly reproducible. ``variance``, ``covariance``: the two
+    regularisers ``(B, D) -> 0-d`` (notebook 00 passes the learner's own). Notebook 00
+    shows this loop as a cell; tests/test_one_source.py keeps the two the same.
+    Returns ``(encoder in eval mode, History)``.
     """
-    torch.manual_seed(seed)
+    torch.manual_seed(seed)  # the encoder's initial weights
     encoder = mlp_encoder(embed_dim, hidden, x.shape[1])
     optimizer = torch.optim.Adam(encoder.parameters(), lr=lr)
-
-    def batch(step: int) -> tuple[torch.Tensor, torch.Tensor]:
-        return two_views(x, noise, torch.Generator().manual_seed(seed * 100_003 + step))
-
-    def loss(views: tuple[torch.Tensor, torch.Tensor]):
-        z_a, z_b = encoder(views[0]), encoder(views[1])
-        return vicreg_loss(z_a, z_b, coeffs.inv, coeffs.var, coeffs.cov, variance=variance,
-                           covariance=covariance)
-
-    history = fit(encoder, optimizer, loss, batch, steps, progress=progress, desc=str(coeffs))
-    encoder.eval()
-    return encoder, history
+    history = History()
+    for step in range(steps):
+        generator = torch.Generator().manual_seed(seed * 100_003 + step)
+        x_a, x_b = two_views(x, noise, generator)  # two views of every point: (N, 2) each
+        z_a, z_b = encoder(x_a), encoder(x_b)  # their embeddings: (N, D) each
+        loss, terms = vicreg_loss(z_a, z_b, coeffs.inv, coeffs.var, coeffs.cov,
+                                  variance=variance, covariance=covariance)
+        optimizer.zero_grad()
+        loss.backward()  # gradients of the weighted sum of the three terms
+        optimizer.step()
+        history.log(step, loss=loss.item(), **{name: v.item() for name, v in terms.items()})
+    return encoder.eval(), history
 
 
 @torch.no_grad()

@@ -1,0 +1,82 @@
+"""Each chapter's algorithm is written in its notebook, and the package runs the same code.
+
+A notebook defines its chapter's training loop or step in a cell the learner reads and
+edits, and the rest of the notebook trains with that definition. The package holds the
+same function for the tests, the commands and the shipped checkpoints. These tests fail
+when the two differ in code (comments and docstrings may differ: the notebook explains in
+markdown what the package says in its docstring), and show that an edit to the cell
+changes what trains.
+"""
+
+import ast
+import inspect
+import json
+import textwrap
+from pathlib import Path
+
+import pytest
+import torch
+
+from ebjepa_tutorial.training import toy
+
+NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
+
+# (notebook, function defined in one of its code cells, the package's copy)
+PAIRS = [("00_energy_and_collapse.ipynb", "train_toy", toy.train_toy)]
+
+
+def notebook_function(notebook: str, name: str) -> str:
+    """The source of ``def name`` in the notebook's code cells (exactly one must define it)."""
+    found = []
+    for cell in json.loads((NOTEBOOKS / notebook).read_text())["cells"]:
+        if cell["cell_type"] != "code":
+            continue
+        source = "".join(cell["source"])
+        tree = ast.parse("\n".join(l for l in source.splitlines() if not l.startswith(("%", "!"))))
+        lines = source.splitlines()
+        for node in tree.body:
+            if isinstance(node, ast.FunctionDef) and node.name == name:
+                found.append("\n".join(lines[node.lineno - 1:node.end_lineno]))
+    assert len(found) == 1, f"{notebook} defines {name} {len(found)} times, not once"
+    return found[0]
+
+
+def code_of(source: str) -> str:
+    """The function's code as a syntax tree, without its docstring (comments are not in it)."""
+    function = ast.parse(textwrap.dedent(source)).body[0]
+    body = function.body
+    if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
+        function.body = body[1:]
+    return ast.dump(function)
+
+
+def test_code_of_ignores_words_and_sees_code():
+    plain = "def f(x):\n    return x + 1\n"
+    assert code_of('def f(x):\n    """Add one."""\n    return x + 1  # why\n') == code_of(plain)
+    assert code_of("def f(x):\n    return x + 2\n") != code_of(plain)
+
+
+@pytest.mark.parametrize("notebook, name, package", PAIRS, ids=[p[1] for p in PAIRS])
+def test_the_notebook_shows_the_code_the_package_runs(notebook, name, package):
+    assert code_of(notebook_function(notebook, name)) == code_of(inspect.getsource(package)), (
+        f"{name} in {notebook} and {package.__module__}.{name} differ: change both together")
+
+
+def test_an_edit_to_chapter_00s_loop_changes_what_trains():
+    source = notebook_function("00_energy_and_collapse.ipynb", "train_toy")
+    edited = source.replace("loss.backward()", "(2 * loss).backward()")
+    assert edited != source
+
+    def define(code):
+        space = dict(vars(toy))  # the names the notebook imports before the cell
+        exec(code, space)
+        return space["train_toy"]
+
+    x, _ = toy.make_blobs(64, seed=0)
+    coeffs = toy.Coefficients(inv=1.0, var=1.0, cov=1.0)
+    as_shown, _ = define(source)(x, coeffs, steps=3)
+    changed, _ = define(edited)(x, coeffs, steps=3)
+    package, _ = toy.train_toy(x, coeffs, steps=3)
+    with torch.no_grad():
+        assert torch.equal(as_shown(x), package(x))
+        assert not torch.allclose(changed(x), package(x))
