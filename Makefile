@@ -55,17 +55,18 @@ test-fast: setup
 	$(BIN)/python -m pytest tests -m "not slow and not browser"
 
 book: setup
-	$(BIN)/python -m ebjepa_tutorial.course.book build
+	$(BIN)/python -m tools.book build
 
 # Writes student/NN_*.ipynb for every chapter; one that exists (your work) is kept.
 student: setup
-	$(BIN)/python -m ebjepa_tutorial.course.student notebooks student
+	$(BIN)/python -m tools.student notebooks student
 
 bench: setup
-	for script in benchmarks/*.py; do $(BIN)/python $$script || exit 1; done
+	for script in research/benchmarks/[a-z]*.py; do \
+		$(BIN)/python -m research.benchmarks.$$(basename $$script .py) || exit 1; done
 
 lint: setup
-	$(BIN)/ruff check ebjepa_tutorial tests benchmarks notebooks
+	$(BIN)/ruff check ebjepa_tutorial research tools tests notebooks
 
 clean:
 	rm -rf build student .jupyter_cache

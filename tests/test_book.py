@@ -21,7 +21,7 @@ import nbformat
 import pytest
 from PIL import Image, ImageStat
 
-from ebjepa_tutorial.course import book as bk
+from tools import book as bk
 
 BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 BROWSER_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",

@@ -208,13 +208,13 @@ def test_calibration_sets_the_straight_distance_against_the_way_round_the_walls(
 
 @pytest.mark.slow  # trains a ci world model, then fits both
 def test_the_fit_command_writes_files_that_the_notebook_then_loads(tmp_path, monkeypatch, capsys):
-    from ebjepa_tutorial.commands import fit_beyond
     from ebjepa_tutorial.course.presets import preset
     from ebjepa_tutorial.planning import fit_coarse_with_visits
     from ebjepa_tutorial.training.cost import cost_head_or_load
     from ebjepa_tutorial.training.hierarchy import coarse_or_load
     from ebjepa_tutorial.training.runs import train_or_load
     from ebjepa_tutorial.training.world import identity
+    from research import fit_beyond
 
     monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))  # the world model trains here too
     fit_beyond.main(["--world", "three_rooms", "--scale", "ci",

@@ -23,7 +23,6 @@ import torch.multiprocessing as mp
 from torch import nn
 
 from ebjepa_tutorial import distributed
-from ebjepa_tutorial.commands import train_image, train_video, train_world
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.data.mnist import find_mnist, load_mnist
 from ebjepa_tutorial.data.moving_mnist import split_digits
@@ -36,6 +35,7 @@ from ebjepa_tutorial.models.world import WorldConfig, WorldModel
 from ebjepa_tutorial.training import image, video, world
 from ebjepa_tutorial.training.checkpoints import load_checkpoint
 from ebjepa_tutorial.training.loop import History, load_or_train
+from research import train_image, train_video, train_world
 
 REPO = Path(__file__).resolve().parents[1]
 WORLD = 2
@@ -213,10 +213,10 @@ def no_torchrun_nor_work(no_torchrun, monkeypatch):
 
 @pytest.mark.parametrize("command, flags, message", [
     (train_video, ["--ddp"], "Start it with `torchrun --nproc_per_node=N -m "
-                             "ebjepa_tutorial.commands.train_video ...`"),
+                             "research.train_video ...`"),
     (train_video, ["--sync-bn"], "--sync-bn needs several processes"),
     (train_world, ["--out", "x.pt", "--ddp"], "Start it with `torchrun --nproc_per_node=N -m "
-                                              "ebjepa_tutorial.commands.train_world ...`"),
+                                              "research.train_world ...`"),
     (train_world, ["--refit", "m.pt", "--out", "x.pt", "--ddp"], "--refit runs in one process"),
 ], ids=["video --ddp", "video --sync-bn", "world --ddp", "world --refit --ddp"])
 def test_a_distributed_flag_without_torchrun_stops_the_video_and_world_commands(
@@ -406,12 +406,12 @@ def shared_data() -> Path:
 
 
 def torchrun(command: str, *args: str, **env: str) -> subprocess.CompletedProcess:
-    """``python -m ebjepa_tutorial.commands.<command> args`` on two processes under torchrun."""
+    """``python -m research.<command> args`` on two processes under torchrun."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OMP_WAIT_POLICY": "PASSIVE", **env}
     launcher = Path(sys.executable).with_name("torchrun")
     line = [str(launcher), "--nnodes=1", "--nproc_per_node=2", "--master_addr=127.0.0.1",
-            f"--master_port={free_port()}", "-m", f"ebjepa_tutorial.commands.{command}", *args]
-    return subprocess.run(line, env=env, capture_output=True, text=True, timeout=600)
+            f"--master_port={free_port()}", "-m", f"research.{command}", *args]
+    return subprocess.run(line, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
 
 
 @pytest.mark.slow  # two processes; the first run also decodes CIFAR-10 into the cache (~20 s)

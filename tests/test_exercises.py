@@ -15,7 +15,7 @@ import torch.nn.functional as F
 from ebjepa_tutorial import losses
 from ebjepa_tutorial.course import exercises
 from ebjepa_tutorial.course.exercises import check_wall_collision, common
-from ebjepa_tutorial.course.student import MARKDOWN_SOLUTION, strip_solutions
+from tools.student import MARKDOWN_SOLUTION, strip_solutions
 
 NOTEBOOKS = sorted(Path(__file__).resolve().parents[1].glob("notebooks/*.ipynb"))
 CHECKERS = {
@@ -787,7 +787,7 @@ def test_unbalanced_markers_and_hint_lines_are_errors(source):
 def test_student_versions_are_valid_and_solution_free(tmp_path, capsys):
     import nbformat
 
-    from ebjepa_tutorial.course import student
+    from tools import student
 
     written = student.write_student_versions(NOTEBOOKS[0].parent, tmp_path)
     assert [p.name for p in written] == [p.name for p in NOTEBOOKS]
@@ -811,7 +811,7 @@ def test_student_versions_are_valid_and_solution_free(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_make_student_keeps_a_learners_work(tmp_path):
-    from ebjepa_tutorial.course import student
+    from tools import student
 
     student.write_student_versions(NOTEBOOKS[0].parent, tmp_path)
     mine = tmp_path / NOTEBOOKS[0].name

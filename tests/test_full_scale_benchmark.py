@@ -1,6 +1,7 @@
-"""What the GPU session (``benchmarks/gpu_session.sh``) runs works here first: a GPU's minutes
-are too few to find out there. ``benchmarks/full_scale.py`` ends with the line the session
-parses; the image command takes a warm-up short enough for a short run of the full preset."""
+"""What the GPU session (``research/benchmarks/gpu_session.sh``) runs works here first: a
+GPU's minutes are too few to find out there. ``research.benchmarks.full_scale`` ends with the
+line the session parses; the image command takes a warm-up short enough for a short run of
+the full preset."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from ebjepa_tutorial import distributed
-from ebjepa_tutorial.commands import train_image
+from research import train_image
 
 ROOT = Path(__file__).resolve().parents[1]
 CHAPTERS = ("image", "sigreg", "vit", "video", "world")
@@ -23,8 +24,9 @@ CHAPTERS = ("image", "sigreg", "vit", "video", "world")
 def test_full_scale_benchmark_times_a_step_and_prints_a_parseable_last_line():
     # two chapters of different training functions, at batch 2 (the video and ViT-S steps
     # take seconds each on one core); the others are left out and read nan
-    command = [sys.executable, "benchmarks/full_scale.py", "--device", "cpu", "--threads", "1",
-               "--batch", "2", "--steps", "1", "--warmup", "1", "--only", "image", "world"]
+    command = [sys.executable, "-m", "research.benchmarks.full_scale", "--device", "cpu",
+               "--threads", "1", "--batch", "2", "--steps", "1", "--warmup", "1",
+               "--only", "image", "world"]
     environment = {**os.environ, "OMP_NUM_THREADS": "1", "OMP_WAIT_POLICY": "PASSIVE"}
     done = subprocess.run(command, cwd=ROOT, env=environment, capture_output=True, text=True,
                           timeout=120)

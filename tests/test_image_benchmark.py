@@ -1,5 +1,5 @@
-"""``benchmarks/image_jepa.py``: the last line scripts parse, the seed it trains, what --record
-refuses (chapters 01-02's class target is measured by this script)."""
+"""``research.benchmarks.image_jepa``: the last line scripts parse, the seed it trains, what
+--record refuses (chapters 01-02's class target is measured by this script)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _benchmark(*arguments: str) -> subprocess.CompletedProcess:
-    command = [sys.executable, "benchmarks/image_jepa.py", *arguments]
+    command = [sys.executable, "-m", "research.benchmarks.image_jepa", *arguments]
     environment = {**os.environ, "OMP_NUM_THREADS": "1"}
     return subprocess.run(command, cwd=ROOT, env=environment, capture_output=True, text=True,
                           timeout=300)

@@ -9,11 +9,11 @@ import torch
 from torch import nn
 
 from ebjepa_tutorial import augment
-from ebjepa_tutorial.commands import train_image
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.evaluation import classify
 from ebjepa_tutorial.training import image
 from ebjepa_tutorial.training.image import ImageJEPAConfig
+from research import train_image
 
 TINY = ImageJEPAConfig(widths=(4, 4, 8, 8), projector=(16, 16), batch_size=8, steps=4,
                        warmup_steps=1, image_size=16)
@@ -261,13 +261,13 @@ def test_train_or_load_can_keep_only_the_encoder(tmp_path, monkeypatch, capsys):
 
 def test_long_run_command_writes_a_float16_encoder(tmp_path, monkeypatch, capsys):
     train = _images(40), torch.arange(40) % 4
-    monkeypatch.setattr("ebjepa_tutorial.commands.train_image.load_cifar10", lambda split: train)
+    monkeypatch.setattr("research.train_image.load_cifar10", lambda split: train)
     monkeypatch.setattr(
-        "ebjepa_tutorial.commands.train_image.preset", lambda notebook, scale: dataclasses.replace(
+        "research.train_image.preset", lambda notebook, scale: dataclasses.replace(
         preset("01", "ci"), config=TINY, long=TINY, train_images=40, test_images=40))
     # trains on the best device there is (a GPU: the full scale is the paper's run); the
     # stand-in "cpu:0" is a device of its own, the CPU by another name
-    monkeypatch.setattr("ebjepa_tutorial.commands.launch.get_device", lambda: torch.device("cpu:0"))
+    monkeypatch.setattr("research.launch.get_device", lambda: torch.device("cpu:0"))
     devices, real_train = [], train_image.train_image_jepa
 
     def recording_train(*args, device, **kwargs):
@@ -347,7 +347,7 @@ def test_long_run_command_refuses_bad_steps_before_loading_data(monkeypatch, cap
     def no_data(split):
         raise AssertionError("the data was loaded before the arguments were checked")
 
-    monkeypatch.setattr("ebjepa_tutorial.commands.train_image.load_cifar10", no_data)
+    monkeypatch.setattr("research.train_image.load_cifar10", no_data)
     with pytest.raises(SystemExit):
         train_image.main(["--steps", "100", "--out", "x.pt"])  # class warm-up is 200 steps
     assert "warmup_steps must be an int in 0..steps-1" in capsys.readouterr().err
@@ -355,7 +355,7 @@ def test_long_run_command_refuses_bad_steps_before_loading_data(monkeypatch, cap
 
 def test_long_run_command_takes_a_scale_and_counts_resumed_minutes(tmp_path, monkeypatch):
     train = _images(40), torch.arange(40) % 4
-    monkeypatch.setattr("ebjepa_tutorial.commands.train_image.load_cifar10", lambda split: train)
+    monkeypatch.setattr("research.train_image.load_cifar10", lambda split: train)
     asked = []
 
     def sizes(notebook, scale):
@@ -363,7 +363,7 @@ def test_long_run_command_takes_a_scale_and_counts_resumed_minutes(tmp_path, mon
         return dataclasses.replace(preset("01", "ci"), config=TINY, train_images=40,
                                    test_images=40)
 
-    monkeypatch.setattr("ebjepa_tutorial.commands.train_image.preset", sizes)
+    monkeypatch.setattr("research.train_image.preset", sizes)
     clock = iter(range(0, 10_000, 30))  # every reading of the clock: 30 s later
     monkeypatch.setattr("ebjepa_tutorial.training.loop.time.perf_counter", lambda: next(clock))
     out = tmp_path / "long.pt"

@@ -23,7 +23,7 @@ def test_the_student_version_runs_to_the_end_and_every_cell_twice(path, monkeypa
     import nbformat  # slow imports, kept out of the collection of the fast tests
     from nbclient import NotebookClient
 
-    from ebjepa_tutorial.course.student import student_notebook
+    from tools.student import student_notebook
 
     monkeypatch.setenv("EBJEPA_SCALE", "ci")
     monkeypatch.setenv("MPLBACKEND", "agg")

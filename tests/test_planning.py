@@ -265,12 +265,12 @@ def test_the_benchmark_prints_its_figures(tmp_path):
     model = WorldModel(WORLD_CONFIGS["ci"]).fit_input_stats(
         render(torch.tensor([[10.0, 10.0], [50.0, 40.0]]), torch.tensor([[30, 30], [30, 30]])))
     path = save_checkpoint(tmp_path / "ci.pt", model=model.state_dict())
-    script = Path(__file__).resolve().parents[1] / "benchmarks" / "planning.py"
+    root = Path(__file__).resolve().parents[1]
     out = subprocess.run(
-        [sys.executable, str(script), "--checkpoint", str(path), "--episodes", "3", "--batch", "2",
-         "--horizon", "4", "--samples", "8", "--elites", "2", "--iterations", "1",
-         "--threads", "1"],
-        capture_output=True, text=True, check=True).stdout
+        [sys.executable, "-m", "research.benchmarks.planning", "--checkpoint", str(path),
+         "--episodes", "3", "--batch", "2", "--horizon", "4", "--samples", "8", "--elites", "2",
+         "--iterations", "1", "--threads", "1"],
+        cwd=root, capture_output=True, text=True, check=True).stdout
     last = dict(item.split("=") for item in out.strip().splitlines()[-1].split())
     assert set(last) == {"success", "ci_low", "ci_high", "s_per_episode"}
     assert 0 <= float(last["ci_low"]) <= float(last["success"]) <= float(last["ci_high"]) <= 1

@@ -37,7 +37,7 @@ def test_record_keeps_other_figures_and_compare_prints_all_three(tmp_path):
 
 def test_a_missing_figure_names_the_benchmark_that_records_it(tmp_path):
     line = reference.compare("planning_success_class", 0.3, "class", tmp_path / "none.json")
-    assert "not recorded (run benchmarks/planning.py --record)" in line
+    assert "not recorded (run python -m research.benchmarks.planning --record)" in line
     with pytest.raises(KeyError, match="unknown reference key"):
         reference.record("made_up", 1.0, "", "", 2, tmp_path / "r.json")
 

@@ -14,7 +14,6 @@ from pathlib import Path
 import pytest
 import torch
 
-from ebjepa_tutorial.commands import fit_beyond
 from ebjepa_tutorial.course import presets
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.data import DataNotFoundError, load_mnist
@@ -22,6 +21,7 @@ from ebjepa_tutorial.data.moving_mnist import split_digits
 from ebjepa_tutorial.evaluation import sweeps
 from ebjepa_tutorial.training import image, video, world
 from ebjepa_tutorial.training.checkpoints import load_checkpoint, run_identity, stored_identity
+from research import fit_beyond
 
 SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints"
 
@@ -47,7 +47,7 @@ def test_long_world_model_matches_notebook_06():
 
 
 def test_paper_length_world_model_is_the_long_run_continued():
-    # benchmarks/planning.py's model with the paper's ~1.2 million training windows; no
+    # research.benchmarks.planning's model with the paper's ~1.2 million training windows; no
     # notebook trains it, so it is checked against the long model's config with 2x the steps
     config = preset("06", "class").long_world
     doubled = replace(config, steps=2 * config.steps)
@@ -56,7 +56,7 @@ def test_paper_length_world_model_is_the_long_run_continued():
 
 def test_refitted_model_matches_notebook_06():
     # the paper-length model with its predictor refitted (world --refit), which
-    # notebook 06 loads through refit_or_load and benchmarks/planning.py plays by default
+    # notebook 06 loads through refit_or_load and research.benchmarks.planning plays by default
     cfg = preset("06", "class")
     assert cfg.refit_base == replace(cfg.long_world, steps=2 * cfg.long_world.steps)
     assert cfg.refit == world.RefitConfig()  # the command's defaults
@@ -65,7 +65,7 @@ def test_refitted_model_matches_notebook_06():
 
 
 def test_course_long_model_matches_notebook_06():
-    # chapter 05's recipe trained longer in one stage: benchmarks/planning.py's default model
+    # chapter 05's recipe trained longer in one stage: research.benchmarks.planning's default model
     cfg = preset("06", "class")
     assert cfg.course_long.model.predictor == cfg.world.model.predictor == "mlp"
     assert cfg.course_long.steps > cfg.world.steps and cfg.course_long.grad_clip > 0

@@ -8,11 +8,11 @@ import pytest
 import torch
 from torch import nn
 
-from ebjepa_tutorial.commands import sweep
 from ebjepa_tutorial.course import presets
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.evaluation import sweeps
 from ebjepa_tutorial.training.image import ImageJEPAConfig
+from research import sweep
 
 TINY = ImageJEPAConfig(loss="sigreg", widths=(4, 4, 4, 4), projector=(8, 8), batch_size=8,
                        steps=2, warmup_steps=0, sigreg_slices=8)

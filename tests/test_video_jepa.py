@@ -8,7 +8,6 @@ import torch
 import torch.nn.functional as F
 
 from ebjepa_tutorial import viz
-from ebjepa_tutorial.commands import train_video
 from ebjepa_tutorial.course.exercises import ExerciseError
 from ebjepa_tutorial.course.exercises.video import check_rollout_loss
 from ebjepa_tutorial.data.moving_mnist import centres_to_grid, generate_moving_mnist
@@ -41,6 +40,7 @@ from ebjepa_tutorial.training.video import (
     train_or_load,
     train_video_jepa,
 )
+from research import train_video
 
 CI = VIDEO_CONFIGS["ci"]
 
@@ -440,7 +440,7 @@ def test_moving_mnist_figures(digits):
 def test_command_line_trains_and_reports(digits, tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
     stand_in = digits.repeat(20, 1, 1, 1)  # 160 "digits": the ci preset holds out all but 8000
-    monkeypatch.setattr("ebjepa_tutorial.commands.train_video.load_mnist",
+    monkeypatch.setattr("research.train_video.load_mnist",
                         lambda split: (stand_in, torch.zeros(len(stand_in), dtype=torch.long)))
     monkeypatch.setattr("ebjepa_tutorial.course.presets.PRESETS", {"03": {"ci": replace(
         video_jepa_preset(), n_train_digits=120, n_probe=8, n_eval=8, probe_steps=5)}})

@@ -534,7 +534,7 @@ def test_coeff_flag_sets_loss_weights_and_rejects_typos():
 
 
 def test_command_line_sets_steps_data_size_and_decay(tmp_path, monkeypatch, capsys):
-    from ebjepa_tutorial.commands import train_world
+    from research import train_world
 
     seen = {}
 
@@ -671,9 +671,9 @@ def test_refit_predictor_keeps_the_encoder_and_fits_a_new_step():
 
 @pytest.mark.slow  # the command encodes the wall test's 400 trajectories twice
 def test_refit_command_saves_the_base_config_and_refuses_training_options(tmp_path, capsys):
-    from ebjepa_tutorial.commands import train_world
     from ebjepa_tutorial.models.world import WORLD_CONFIGS
     from ebjepa_tutorial.training.checkpoints import save_checkpoint
+    from research import train_world
 
     torch.manual_seed(0)
     old = WorldModel(WORLD_CONFIGS["ci"]).fit_input_stats(
@@ -711,8 +711,8 @@ def test_the_two_recipes_differ_only_in_how_they_train():
 
 
 def test_command_line_trains_the_run_of_a_scale(tmp_path, monkeypatch):
-    from ebjepa_tutorial.commands import train_world
     from ebjepa_tutorial.course.presets import preset
+    from research import train_world
 
     seen = {}
 

@@ -203,7 +203,8 @@ class PlanningPreset:
     refit_base: WorldTrainConfig | None = None
     refit: RefitConfig = RefitConfig()  # class: past the class budget, so shipped
     # chapter 05's recipe trained longer in one stage with a wider predictor (class: shipped,
-    # the model benchmarks/planning.py plays by default); None: chapter 05's run is the long one
+    # the model research.benchmarks.planning plays by default); None: chapter 05's run is the
+    # long one
     course_long: WorldTrainConfig | None = None
 
 
@@ -321,7 +322,7 @@ PRESETS: dict[str, dict[str, object]] = {
                              refit=RefitConfig(hidden=32, n_trajectories=200, steps=100,
                                                batch_size=128)),
         # the shipped checkpoints, with episode counts sized to fit a class period
-        # (benchmarks/planning.py plays 100 per model for the results page)
+        # (research.benchmarks.planning plays 100 per model for the results page)
         "class": PlanningPreset(_WORLD_CLASS, PlannerConfig(), n_episodes=40, n_compare=10,
                                 long_world=_WORLD_CLASS_LONG, long_ablations=ABLATABLE_TERMS,
                                 refit_base=replace(_WORLD_CLASS_LONG, steps=20_000),

@@ -50,7 +50,8 @@ class Metric:
     ours: str = "the course's class run"
 
 
-_IMAGE = "benchmarks/image_jepa.py"
+_IMAGE = "python -m research.benchmarks.image_jepa"
+_PLANNING = "python -m research.benchmarks.planning"
 _CIFAR = "ResNet-18, 300 epochs on a GPU"
 _MPPI = "MPPI, a model trained on a GPU"
 METRICS = {
@@ -61,15 +62,15 @@ METRICS = {
     "sigreg_random_init_probe_acc": Metric("random-init probe accuracy", "{:.1%}",
                                            benchmark=_IMAGE),
     "video_map": Metric("detection mAP over horizons 1-7", "{:.3f}", 0.607,
-                        "K = 4, trained on a GPU", "benchmarks/video_jepa.py"),
+                        "K = 4, trained on a GPU", "python -m research.benchmarks.video_jepa"),
     "world_probe_px": Metric("position probe error", "{:.2f} px",
-                             benchmark="benchmarks/two_rooms.py"),
+                             benchmark="python -m research.benchmarks.two_rooms"),
     "planning_success_class": Metric("planning success", "{:.0%}", 0.97, _MPPI,
-                                     "benchmarks/planning.py"),
+                                     _PLANNING),
     "planning_success_shipped": Metric("planning success", "{:.0%}", 0.97, _MPPI,
-                                       "benchmarks/planning.py", "the course's shipped model"),
+                                       _PLANNING, "the course's shipped model"),
     "planning_success_refit": Metric("planning success", "{:.0%}", 0.97, _MPPI,
-                                     "benchmarks/planning.py", "the course's refitted model"),
+                                     _PLANNING, "the course's refitted model"),
 }
 
 _SHIPPED = "the course's shipped model"
@@ -97,7 +98,7 @@ METRICS |= {  # figures of the longer runs, and class runs pooled over seeds or 
 
 BEYOND_PLANNERS = ("flat", "short", "learned_cost", "two_level")  # notebook 07's comparison
 METRICS |= {f"beyond_{world}_{planner}": Metric("planning success", "{:.1%}",
-                                                benchmark="benchmarks/beyond.py")
+                                                benchmark="python -m research.benchmarks.beyond")
             for world in ("two_rooms", "three_rooms") for planner in BEYOND_PLANNERS}
 
 

@@ -14,7 +14,7 @@ protocol (:func:`ebjepa_tutorial.evaluation.classify.probe_encoder`, at the conf
 At ``class`` scale that is about twenty runs, too many for a class period, so
 the results come from a command and are stored in a small JSON file::
 
-    python -m ebjepa_tutorial.commands.sweep --scale class --out checkpoints/sweeps_class.json
+    python -m research.sweep --scale class --out checkpoints/sweeps_class.json
 
 The notebook reads that file if it holds its runs, and otherwise trains the
 missing ones live (seconds at ``ci`` scale). The file is rewritten after every

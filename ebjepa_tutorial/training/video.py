@@ -14,7 +14,7 @@ every order reaching the encoder.
 
 Evaluation lives in :mod:`ebjepa_tutorial.evaluation.detection`; the command
 that trains notebook 03's runs ahead of a class is
-``python -m ebjepa_tutorial.commands.train_video --scale class``.
+``python -m research.train_video --scale class``.
 
 Several processes (``torchrun``, see :mod:`ebjepa_tutorial.distributed`): the
 config's ``batch_size`` is the global batch (clips), and global batch = per-rank
@@ -192,7 +192,7 @@ def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
     writes ``checkpoint``, which resumes on any world size. Batch norm normalises
     over each rank's frames; ``sync_batchnorm`` (GPUs only) over the global batch.
     ``after_step(model, step)``, called after each optimiser step, can score the model
-    as it trains (``benchmarks/video_full.py``); its state is not checkpointed, so it
+    as it trains (``research.benchmarks.video_full``); its state is not checkpointed, so it
     takes no ``checkpoint``.
     ``handover``: ``(config, path)`` pairs of runs that are this one with another K; at the
     switch to the rollout, the state is saved to each ``path`` as that run's checkpoint, which

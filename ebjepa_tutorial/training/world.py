@@ -9,7 +9,7 @@ Two recipes train the same loss: the paper's (:class:`WorldTrainConfig`'s
 defaults, :func:`paper_recipe`) and the course's (:func:`course_recipe`, the
 class preset), which learns more per CPU-minute.
 
-Shipped checkpoint: ``python -m ebjepa_tutorial.commands.train_world --out PATH``
+Shipped checkpoint: ``python -m research.train_world --out PATH``
 trains the class-scale model and writes it. With ``--refit TRAINED.pt`` it
 instead fits a new MLP predictor on that model's frozen latents
 (:func:`refit_predictor`).
@@ -366,7 +366,7 @@ def load_world_model(path: str | Path, config: WorldConfig | None = None,
     weights = state.get("model") if isinstance(state, dict) else None
     if not isinstance(weights, dict) or "_extra_state" not in weights:
         raise ValueError(f"{path} holds no world model (expected a file written by "
-                         "python -m ebjepa_tutorial.commands.train_world --out PATH)")
+                         "python -m research.train_world --out PATH)")
     if config is None:
         model = WorldModel.from_state_dict(weights)
     else:

@@ -1,6 +1,6 @@
 """Image-JEPA benchmark: training speed and linear-probe / kNN accuracy on CIFAR-10.
 
-Run: ``python benchmarks/image_jepa.py [--scale class] [--loss vicreg] [--steps N]
+Run: ``python -m research.benchmarks.image_jepa [--scale class] [--loss vicreg] [--steps N]
 [--seed S] [--eval-size PX] [--split]``. Trains the notebook's configuration at that scale from
 scratch (no checkpoint), then evaluates the frozen encoder on un-augmented
 images at the preset's ``eval_image_size`` (32 px, CIFAR-10's native size, at
@@ -19,7 +19,6 @@ optimiser) and stops.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from dataclasses import replace
 
@@ -45,6 +44,7 @@ from ebjepa_tutorial.utils import (
     print_parts,
     time_parts,
 )
+from research.benchmarks import command_line
 
 
 def step_split(config, images: torch.Tensor) -> dict[str, float]:
@@ -125,7 +125,7 @@ def main() -> None:
     print(f"images_per_s={images_per_s:.1f} minutes={seconds / 60:.2f} "
           f"probe_acc={trained['probe_acc']:.4f} knn_acc={trained['knn_acc']:.4f}")
     if args.record and args.loss != "invariance":
-        where = dict(command=" ".join(["python", *sys.argv]), threads=args.threads,
+        where = dict(command=command_line(__spec__.name), threads=args.threads,
                      protocol=f"{config.steps} steps in {precision}; {protocol(config)}")
         reference.record(f"{args.loss}_probe_acc", trained["probe_acc"], **where)
         reference.record(f"{args.loss}_random_init_probe_acc", random_init["probe_acc"], **where)

@@ -1,7 +1,8 @@
 """Planning benchmark: success rate of a planner with a world-model checkpoint in Two Rooms.
 
-Run: ``python benchmarks/planning.py [--checkpoint checkpoints/world_model_class_course_long.pt]
-[--method mppi|cem] [--cost sum|last] [--episodes 100] [--batch 10] [--threads 2]``.
+Run: ``python -m research.benchmarks.planning
+[--checkpoint checkpoints/world_model_class_course_long.pt] [--method mppi|cem]
+[--cost sum|last] [--episodes 100] [--batch 10] [--threads 2]``.
 
 Protocol: one episode per seed ``first_seed .. first_seed + episodes - 1``
 (layout, start and goal in opposite rooms, and the planner's noise all come
@@ -21,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 from pathlib import Path
 
 import torch
@@ -30,6 +30,7 @@ from ebjepa_tutorial.course import reference
 from ebjepa_tutorial.envs.two_rooms import WALL_X_RANGES
 from ebjepa_tutorial.planning import PlannerConfig, run_episodes
 from ebjepa_tutorial.training.world import load_world_model
+from research.benchmarks import command_line
 
 # the checkpoints whose success rates notebook 06 prints beside the learner's
 RECORDED = {"world_model_class.pt": "planning_success_class",
@@ -85,7 +86,7 @@ def main() -> None:
           f"s_per_episode={result.cpu_seconds_per_episode:.2f}")
     if args.record:
         reference.record(key, result.success_rate, threads=args.threads,
-                         command=" ".join(["python", *sys.argv]),
+                         command=command_line(__spec__.name),
                          protocol=f"{args.checkpoint}; {len(seeds)} episodes, seeds "
                                   f"{seeds[0]}-{seeds[-1]}; 200 steps; success within 4.5 px; "
                                   f"{agent(config)}")

@@ -1,7 +1,7 @@
 """Chapter 03 benchmark: Moving MNIST generation speed, then notebook 03's class run and its AP.
 
-    python benchmarks/video_jepa.py [--rollout-steps 4] [--seed 0] [--steps N] [--threads 2]
-                                    [--clips 4000] [--frames 10] [--repeats 5] [--split]
+    python -m research.benchmarks.video_jepa [--rollout-steps 4] [--seed 0] [--steps N]
+        [--threads 2] [--clips 4000] [--frames 10] [--repeats 5] [--split]
 
 Prints one line per generator repeat; then trains the class-scale run exactly
 as notebook 03 does (``preset("03", "class")``: its clips, config and
@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
 from dataclasses import replace
 
@@ -50,6 +49,7 @@ from ebjepa_tutorial.utils import (
     print_parts,
     time_parts,
 )
+from research.benchmarks import command_line
 
 
 def load_digits() -> torch.Tensor | None:
@@ -179,7 +179,7 @@ def main() -> None:
                                              args.seed, args.steps, precision)
         mean_ap, ap3 = report["map"], float(report["ap"][2])
         if args.record:
-            reference.record("video_map", mean_ap, command=" ".join(["python", *sys.argv]),
+            reference.record("video_map", mean_ap, command=command_line(__spec__.name),
                              threads=args.threads,
                              protocol=f"K = {args.rollout_steps}, seed {args.seed}, "
                              f"{precision}; detection "

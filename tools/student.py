@@ -15,7 +15,7 @@ solutions), and all outputs. Each exercise's checker hands the course's
 implementation to the rest of the notebook while the stub is unsolved, so a
 student version runs to the end::
 
-    python -m ebjepa_tutorial.course.student notebooks student   # what `make student` runs
+    python -m tools.student notebooks student   # what `make student` runs
 
 A student notebook that already exists is kept (it holds the learner's work);
 ``--overwrite`` replaces it.
@@ -23,8 +23,8 @@ A student notebook that already exists is kept (it holds the learner's work);
 
 from __future__ import annotations
 
+import argparse
 import re
-import sys
 from pathlib import Path
 
 BEGIN = re.compile(r"^(\s*)### BEGIN SOLUTION\s*$")
@@ -116,9 +116,18 @@ def write_student_versions(src: str | Path, dst: str | Path, overwrite: bool = F
     return written
 
 
-if __name__ == "__main__":
-    args = [a for a in sys.argv[1:] if a != "--overwrite"]
-    source = args[0] if args else "notebooks"
-    target = args[1] if len(args) > 1 else "student"
-    for written in write_student_versions(source, target, "--overwrite" in sys.argv):
+def main(argv: list[str] | None = None) -> None:
+    """Command line: ``python -m tools.student [SOURCE] [TARGET] [--overwrite]``."""
+    parser = argparse.ArgumentParser(prog="python -m tools.student", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("source", nargs="?", default="notebooks", help="the notebooks' folder")
+    parser.add_argument("target", nargs="?", default="student", help="where to write them")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace student notebooks that exist (they may hold your work)")
+    args = parser.parse_args(argv)
+    for written in write_student_versions(args.source, args.target, args.overwrite):
         print(f"wrote {written}")
+
+
+if __name__ == "__main__":
+    main()

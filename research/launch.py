@@ -11,8 +11,8 @@ from typing import Any
 
 import torch
 
-from .. import distributed
-from ..utils import get_device
+from ebjepa_tutorial import distributed
+from ebjepa_tutorial.utils import get_device
 
 
 def add_flags(parser: argparse.ArgumentParser, sync_bn: bool = True) -> None:

@@ -1,10 +1,10 @@
 """Train notebook 01's or 02's CIFAR-10 run longer and save its encoder (float16).
 
-    python -m ebjepa_tutorial.commands.train_image --loss vicreg --out FILE.pt
+    python -m research.train_image --loss vicreg --out FILE.pt
 
 On several devices, one process each (DistributedDataParallel; nccl on GPUs, gloo on CPUs):
 
-    torchrun --nproc_per_node=N -m ebjepa_tutorial.commands.train_image --scale full --out FILE.pt
+    torchrun --nproc_per_node=N -m research.train_image --scale full --out FILE.pt
 
 The preset's batch size is the global batch: global batch = per-rank batch x N, so N must
 divide it. VICReg's variance and covariance and SIGReg's statistic are computed on the global
@@ -19,12 +19,13 @@ from pathlib import Path
 
 import torch
 
-from .. import distributed
-from ..course.presets import SCALES, preset
-from ..data import load_cifar10, random_subset
-from ..evaluation.classify import probe_encoder, protocol
-from ..training.checkpoints import float16_state, save_checkpoint
-from ..training.image import identity, train_image_jepa
+from ebjepa_tutorial import distributed
+from ebjepa_tutorial.course.presets import SCALES, preset
+from ebjepa_tutorial.data import load_cifar10, random_subset
+from ebjepa_tutorial.evaluation.classify import probe_encoder, protocol
+from ebjepa_tutorial.training.checkpoints import float16_state, save_checkpoint
+from ebjepa_tutorial.training.image import identity, train_image_jepa
+
 from . import launch
 
 
@@ -59,7 +60,7 @@ def main(argv: list[str] | None = None) -> None:
     except ValueError as error:
         parser.error(str(error))  # checked before the data is loaded
     device = launch.join(parser, args, config.batch_size, identity(config),
-                         "ebjepa_tutorial.commands.train_image")
+                         "research.train_image")
     try:
         _train_and_save(args, sizes, config, device)
     finally:

@@ -1,6 +1,6 @@
 """Chapter 03 at the paper's scale: clips per second and mAP after each epoch (for a GPU).
 
-    python benchmarks/video_full.py [--epochs 3] [--budget SECONDS] [--scale full]
+    python -m research.benchmarks.video_full [--epochs 3] [--budget SECONDS] [--scale full]
 
 Trains notebook 03's ``full`` preset (K = 4, seed 0: the paper's 18,000 clips of 10 frames,
 batch 64, Adam at a constant 1e-3) and, after each epoch, scores it by the notebook's

@@ -1,6 +1,6 @@
 """Run notebook 02's sensitivity and projector sweeps at a scale; store the results as JSON.
 
-    python -m ebjepa_tutorial.commands.sweep --scale class --out checkpoints/sweeps_class.json
+    python -m research.sweep --scale class --out checkpoints/sweeps_class.json
 """
 
 from __future__ import annotations
@@ -10,12 +10,12 @@ import time
 
 import torch
 
-from ..course.presets import SCALES, preset, sweep_plan
-from ..data import data_dir, load_cifar10, random_subset
-from ..data.cifar10 import find_cifar10
-from ..evaluation.classify import protocol
-from ..evaluation.sweeps import key, run_sweep
-from ..utils import get_device
+from ebjepa_tutorial.course.presets import SCALES, preset, sweep_plan
+from ebjepa_tutorial.data import data_dir, load_cifar10, random_subset
+from ebjepa_tutorial.data.cifar10 import find_cifar10
+from ebjepa_tutorial.evaluation.classify import protocol
+from ebjepa_tutorial.evaluation.sweeps import key, run_sweep
+from ebjepa_tutorial.utils import get_device
 
 
 def describe_data() -> str:
@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> None:
     unique = list({key(run.config, 0, 0): run for run in selected}.values())  # shared defaults
     only = f" --only {args.only}" if args.only else ""
     meta = {"scale": args.scale, "data": describe_data(), "protocol": protocol(sizes.config),
-            "command": f"python -m ebjepa_tutorial.commands.sweep --scale {args.scale} "
+            "command": f"python -m research.sweep --scale {args.scale} "
                        f"--out {args.out}"
                        f"{only}",
             "torch_threads": torch.get_num_threads()}

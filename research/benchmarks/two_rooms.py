@@ -1,6 +1,6 @@
 """Two Rooms benchmark: data generation speed, world-model training speed, probe error.
 
-Run: ``python benchmarks/two_rooms.py [--n 4096] [--batch 256] [--threads 2] [--steps N]
+Run: ``python -m research.benchmarks.two_rooms [--n 4096] [--batch 256] [--threads 2] [--steps N]
 [--prediction-starts first|all] [--out PATH] [--record]``.
 Prints trajectories per second (17 frames, 16 actions) for the states alone
 and with every 65x65x2 frame rendered (float32, in batches into one reused
@@ -10,7 +10,7 @@ under 10 minutes on 2 cores; ``--steps 0`` skips it) and reports training
 trajectories per second, the linear position probe's error on held-out
 trajectories (pixels) by notebook 05's protocol, and notebook 06's one-step
 wall test. ``--out PATH``
-saves the model for ``benchmarks/planning.py --checkpoint PATH``.
+saves the model for ``python -m research.benchmarks.planning --checkpoint PATH``.
 Last line: ``traj_per_s=... train_traj_per_s=... probe_px=...``.
 ``--record`` (class preset's steps) stores the probe error in
 ``checkpoints/reference.json``, which notebook 05 prints beside the learner's.
@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
 from dataclasses import replace
 
@@ -33,6 +32,7 @@ from ebjepa_tutorial.evaluation.position import middle_wall_test, probe_report
 from ebjepa_tutorial.losses.world import PREDICTION_STARTS
 from ebjepa_tutorial.training.checkpoints import save_checkpoint
 from ebjepa_tutorial.training.world import identity, train_world_model
+from research.benchmarks import command_line
 
 CLASS_RUN = preset("05", "class")  # notebook 05's run, and its probe: fit seed 101, test 102
 
@@ -109,13 +109,13 @@ def main() -> None:
     if args.out:
         save_checkpoint(args.out, model=model.state_dict(), history=dict(history),
                         config=identity(config), probe_px=report["probe_px"])
-        print(f"saved {args.out}: play it with python benchmarks/planning.py --checkpoint "
+        print(f"saved {args.out}: play it with python -m research.benchmarks.planning --checkpoint "
               f"{args.out}")
     print(f"traj_per_s={speed['traj_per_s']:.0f} train_traj_per_s={train_speed:.1f} "
           f"probe_px={report['probe_px']:.3f}")
     if args.record:
         reference.record("world_probe_px", report["probe_px"], threads=args.threads,
-                         command=" ".join(["python", *sys.argv]),
+                         command=command_line(__spec__.name),
                          protocol=f"{config.steps} steps; linear probe fitted on "
                                   f"{CLASS_RUN.n_probe} trajectories, scored on "
                                   f"{CLASS_RUN.n_test} held-out ones of {CLASS_RUN.horizon} steps")

@@ -1,8 +1,8 @@
 """Full-scale benchmark: what a training step of each chapter's ``full`` preset costs here.
 
-    python benchmarks/full_scale.py [--only image video ...] [--steps 5] [--warmup 1]
-                                    [--batch N | --batch-scale F] [--threads T] [--device cpu]
-    torchrun --nproc_per_node=N -m benchmarks.full_scale --ddp      # N GPUs of one machine
+    python -m research.benchmarks.full_scale [--only image video ...] [--steps 5] [--warmup 1]
+        [--batch N | --batch-scale F] [--threads T] [--device cpu]
+    torchrun --nproc_per_node=N -m research.benchmarks.full_scale --ddp      # N GPUs of one machine
 
 Each chapter's ``full`` preset (the paper's configuration) is trained by the package's own
 training function, unchanged but for the number of steps and the batch, on synthetic data of
@@ -45,12 +45,12 @@ from dataclasses import dataclass, replace
 import torch
 
 from ebjepa_tutorial import distributed
-from ebjepa_tutorial.commands import launch
 from ebjepa_tutorial.course.presets import image_preset, preset
 from ebjepa_tutorial.data.moving_mnist import generate_moving_mnist
 from ebjepa_tutorial.envs import generate_trajectories
 from ebjepa_tutorial.training import image, video, world
 from ebjepa_tutorial.utils import get_device
+from research import launch
 
 CHAPTERS = ("image", "sigreg", "vit", "video", "world")
 CPU_BATCH_SCALE = 1 / 32  # the default on a CPU: full batches there are for patient people
@@ -302,7 +302,7 @@ def main(argv: list[str] | None = None) -> None:
     ranks = int(os.environ.get("WORLD_SIZE", "1")) if several else 1
     batches = {name: chosen_batch(c, args, ranks) for name, c in wanted.items()}
     device = launch.join(parser, args, math.gcd(*batches.values()), batches,
-                         "benchmarks.full_scale")
+                         "research.benchmarks.full_scale")
     device = get_device(args.device) if args.device else device
     show = distributed.is_main()
     try:

@@ -1,13 +1,13 @@
 """Train (or load) and evaluate notebook 03's video JEPAs at a scale, printing AP per horizon.
 
-    python -m ebjepa_tutorial.commands.train_video --scale class [--K 4] [--seed 0] [--ship]
-    python -m ebjepa_tutorial.commands.train_video --scale class --long --K 4 --ship
-    python -m ebjepa_tutorial.commands.train_video --scale class --K 4 --seed 0 \
+    python -m research.train_video --scale class [--K 4] [--seed 0] [--ship]
+    python -m research.train_video --scale class --long --K 4 --ship
+    python -m research.train_video --scale class --K 4 --seed 0 \
         --unroll autoregressive --ship
 
 On several devices, one process each (DistributedDataParallel; nccl on GPUs, gloo on CPUs):
 
-    torchrun --nproc_per_node=N -m ebjepa_tutorial.commands.train_video --scale full
+    torchrun --nproc_per_node=N -m research.train_video --scale full
 
 The preset's batch size is the global batch: global batch = per-rank batch x N, so N must
 divide it. The variance and covariance are those of the global batch, as on one device; batch
@@ -23,15 +23,16 @@ from dataclasses import replace
 
 import torch
 
-from .. import distributed
-from ..course.presets import SCALES, preset
-from ..data.mnist import load_mnist
-from ..data.moving_mnist import split_digits
-from ..evaluation.detection import detection_report, evaluation_clips
-from ..losses.rollout import UNROLLS
-from ..models.video import VideoJEPA
-from ..training.checkpoints import checkpoint_paths, float16_state, save_checkpoint
-from ..training.video import ablation_configs, identity, run_name, train_or_load
+from ebjepa_tutorial import distributed
+from ebjepa_tutorial.course.presets import SCALES, preset
+from ebjepa_tutorial.data.mnist import load_mnist
+from ebjepa_tutorial.data.moving_mnist import split_digits
+from ebjepa_tutorial.evaluation.detection import detection_report, evaluation_clips
+from ebjepa_tutorial.losses.rollout import UNROLLS
+from ebjepa_tutorial.models.video import VideoJEPA
+from ebjepa_tutorial.training.checkpoints import checkpoint_paths, float16_state, save_checkpoint
+from ebjepa_tutorial.training.video import ablation_configs, identity, run_name, train_or_load
+
 from . import launch
 
 
@@ -58,7 +59,7 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> None:
     """Train (or load) and evaluate notebook 03's runs at a scale, printing AP per horizon.
 
-    ``python -m ebjepa_tutorial.commands.train_video --scale class`` trains the K ablation
+    ``python -m research.train_video --scale class`` trains the K ablation
     (K 1, 2, 4, 8 times three seeds, 4-10 minutes each on a CPU; ``--long``: the preset's
     long runs, K 1 and 4, about an hour each on one thread; a run of one seed hands its
     K = 1 half to the seed's other K, which train only their second half) into
@@ -78,7 +79,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.unroll not in (None, cfg.train.unroll):
         configs = [replace(c, unroll=args.unroll) for c in configs]
     device = launch.join(parser, args, cfg.train.batch_size, [identity(c) for c in configs],
-                         "ebjepa_tutorial.commands.train_video")
+                         "research.train_video")
     try:
         _train_and_report(args, cfg, configs, device)
     finally:

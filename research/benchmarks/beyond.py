@@ -1,6 +1,6 @@
 """Chapter 07 benchmark: flat, short-horizon, learned-cost and two-level planners.
 
-Run: ``python benchmarks/beyond.py [--walls 1 2] [--episodes 200] [--first-seed 12600]
+Run: ``python -m research.benchmarks.beyond [--walls 1 2] [--episodes 200] [--first-seed 12600]
 [--threads 2] [--batch 10] [--planners flat short learned_cost two_level] [--record]``.
 
 Protocol: for each world (``--walls 1``: Two Rooms with chapter 05's shipped
@@ -25,7 +25,6 @@ import argparse
 
 import torch
 
-from ebjepa_tutorial.commands import fit_beyond
 from ebjepa_tutorial.course import reference
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.models.cost import WithLearnedCost
@@ -34,6 +33,7 @@ from ebjepa_tutorial.training.cost import cost_head_or_load
 from ebjepa_tutorial.training.hierarchy import coarse_or_load
 from ebjepa_tutorial.training.runs import train_or_load
 from ebjepa_tutorial.training.world import identity
+from research import fit_beyond
 
 WORLDS = {walls: world for world, walls in fit_beyond.WORLDS.items()}  # 1: "two_rooms", ...
 NEW = ("learned_cost", "two_level")
@@ -81,7 +81,7 @@ def main() -> None:
             if args.record:
                 reference.record(
                     f"beyond_{name}_{planner}", result.success_rate, threads=args.threads,
-                    command="python benchmarks/beyond.py --record",
+                    command="python -m research.benchmarks.beyond --record",
                     protocol=f"{name}, {len(seeds)} episodes, seeds {seeds[0]}-{seeds[-1]}; "
                              "the world's step budget; success within 4.5 px; notebook 07's "
                              f"class planners; {cpu[planner]:.2f} s CPU per episode")

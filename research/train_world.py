@@ -1,12 +1,12 @@
 """Train the Two Rooms world model of a scale and save it, or refit a trained model's predictor.
 
-    python -m ebjepa_tutorial.commands.train_world --out FILE.pt [--steps N] [--without TERM]
-    python -m ebjepa_tutorial.commands.train_world --paper-recipe --steps 10000 --out FILE.pt
-    python -m ebjepa_tutorial.commands.train_world --refit TRAINED.pt --out FILE.pt
+    python -m research.train_world --out FILE.pt [--steps N] [--without TERM]
+    python -m research.train_world --paper-recipe --steps 10000 --out FILE.pt
+    python -m research.train_world --refit TRAINED.pt --out FILE.pt
 
 On several devices, one process each (DistributedDataParallel; nccl on GPUs, gloo on CPUs):
 
-    torchrun --nproc_per_node=N -m ebjepa_tutorial.commands.train_world --scale full --out FILE.pt
+    torchrun --nproc_per_node=N -m research.train_world --scale full --out FILE.pt
 
 The preset's batch size is the global batch: global batch = per-rank batch x N, so N must
 divide it. Every loss term is that of the global batch, as on one device (the model has no
@@ -22,15 +22,15 @@ from pathlib import Path
 
 import torch
 
-from .. import distributed
-from ..course.presets import SCALES, preset
-from ..envs import generate_trajectories
-from ..envs.two_rooms import WALL_X_RANGES
-from ..evaluation.position import middle_wall_test, probe_report
-from ..losses.world import PREDICTION_STARTS
-from ..models.world import PREDICTORS, WorldConfig
-from ..training.checkpoints import load_checkpoint, save_checkpoint, stored_identity
-from ..training.world import (
+from ebjepa_tutorial import distributed
+from ebjepa_tutorial.course.presets import SCALES, preset
+from ebjepa_tutorial.envs import generate_trajectories
+from ebjepa_tutorial.envs.two_rooms import WALL_X_RANGES
+from ebjepa_tutorial.evaluation.position import middle_wall_test, probe_report
+from ebjepa_tutorial.losses.world import PREDICTION_STARTS
+from ebjepa_tutorial.models.world import PREDICTORS, WorldConfig
+from ebjepa_tutorial.training.checkpoints import load_checkpoint, save_checkpoint, stored_identity
+from ebjepa_tutorial.training.world import (
     ABLATABLE_TERMS,
     RefitConfig,
     WorldTrainConfig,
@@ -44,7 +44,8 @@ from ..training.world import (
     upgrade_identity,
     with_coeffs,
 )
-from ..utils import get_device
+from ebjepa_tutorial.utils import get_device
+
 from . import launch
 
 
@@ -154,7 +155,7 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(str(error))  # a usage message, not a traceback
     config = ablation_config(config, *without)
     device = launch.join(parser, args, config.batch_size, identity(config),
-                         "ebjepa_tutorial.commands.train_world")
+                         "research.train_world")
     try:
         _train_and_save(args.out, config, device)
     finally:

@@ -3,7 +3,7 @@
 # left, a short full-scale image run with its linear probe. Prepared and tested on a CPU
 # (--cpu-smoke) so that the device minutes are spent measuring, not debugging.
 #
-#   benchmarks/gpu_session.sh [--budget SECONDS] [--data DIR] [--cpu-smoke]
+#   research/benchmarks/gpu_session.sh [--budget SECONDS] [--data DIR] [--cpu-smoke]
 #
 #   --budget     wall seconds for the whole session (default 480). Every part runs under
 #                `timeout` within what is left, so one that hangs or fails leaves the others
@@ -32,7 +32,7 @@ while (( $# )); do
     esac
 done
 
-root=$(cd "$(dirname "$0")/.." && pwd)
+root=$(cd "$(dirname "$0")/../.." && pwd)
 cd "$root" || exit 1
 out=${OUT:-build/gpu_session}
 work=build/gpu_session  # the encoder (too big to come back from a lent machine) and part logs
@@ -109,7 +109,7 @@ if torch.cuda.is_available():
 
 if ! part imports 120 "$PYTHON" -c "
 import ebjepa_tutorial.training.image, ebjepa_tutorial.training.video
-import ebjepa_tutorial.training.world, ebjepa_tutorial.commands.train_image
+import ebjepa_tutorial.training.world, research.train_image
 import torch
 assert torch.cuda.is_available() or $smoke, 'no CUDA device: this session is for a GPU (or --cpu-smoke)'
 "; then
@@ -122,7 +122,7 @@ fi
 # -- each chapter's full preset, its own process: a hang or an out-of-memory stops one part --
 device=nan times=""
 for chapter in image sigreg vit video world; do
-    part "bench_$chapter" 90 "$PYTHON" benchmarks/full_scale.py --only "$chapter" "${bench[@]}"
+    part "bench_$chapter" 90 "$PYTHON" -m research.benchmarks.full_scale --only "$chapter" "${bench[@]}"
     found=$(last_line "bench_$chapter" '^device=')
     [[ -n $found ]] && device=$(field device "$found")
     times+=" ${chapter}_s_per_step=$(field "${chapter}_s_per_step" "$found")"
@@ -130,7 +130,7 @@ done
 line="device=$device$times"  # full_scale.py's last line, one chapter from each part
 echo "$line" >> "$summary"
 # the world model trains in float32: would TF32 matrix products (a one-line switch) help?
-part bench_world_tf32 60 "$PYTHON" benchmarks/full_scale.py --only world "${bench[@]}" \
+part bench_world_tf32 60 "$PYTHON" -m research.benchmarks.full_scale --only world "${bench[@]}" \
     --matmul-precision high
 tf32=$(last_line bench_world_tf32 '^device=')
 echo "world_tf32_s_per_step=$(field world_s_per_step "$tf32")" >> "$summary"
@@ -153,7 +153,7 @@ sys.exit(0 if cifar10_sources(data_dir(), 'train') else 'no CIFAR-10 in ' + str(
 "; then
     echo "image run: $steps steps (warm-up $warmup) at ${seconds} s a step fit in ${available} s"
     rm -f "$work/image_run.pt" "$work/image_run.partial"  # a fresh run, not a resumed one
-    part image_run $(( budget - SECONDS )) "$PYTHON" -m ebjepa_tutorial.commands.train_image \
+    part image_run $(( budget - SECONDS )) "$PYTHON" -m research.train_image \
         "${image[@]}" --steps "$steps" --warmup-steps "$warmup" --out "$work/image_run.pt"
     echo "image_run: $(last_line image_run '^saved ' | sed 's/^saved [^:]*: //')" >> "$summary"
 else

@@ -1,7 +1,7 @@
 """Fit chapter 07's cost head and coarse model on a world model's frozen latents, and save them.
 
-    python -m ebjepa_tutorial.commands.fit_beyond --world two_rooms --out-dir checkpoints
-    python -m ebjepa_tutorial.commands.fit_beyond --world three_rooms --out-dir checkpoints
+    python -m research.fit_beyond --world two_rooms --out-dir checkpoints
+    python -m research.fit_beyond --world three_rooms --out-dir checkpoints
 
 The world model is notebook 07's at ``--scale`` (shipped, cached, or trained first); the
 fits are ``preset("07").cost`` and ``.coarse`` for that world. Writes
@@ -17,12 +17,12 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from ..course.presets import SCALES, preset
-from ..planning import fit_coarse_with_visits
-from ..training.checkpoints import run_identity, save_checkpoint
-from ..training.cost import fit_cost_head
-from ..training.runs import train_or_load
-from ..training.world import identity
+from ebjepa_tutorial.course.presets import SCALES, preset
+from ebjepa_tutorial.planning import fit_coarse_with_visits
+from ebjepa_tutorial.training.checkpoints import run_identity, save_checkpoint
+from ebjepa_tutorial.training.cost import fit_cost_head
+from ebjepa_tutorial.training.runs import train_or_load
+from ebjepa_tutorial.training.world import identity
 
 WORLDS = {"two_rooms": 1, "three_rooms": 2}
 FITS = {"cost_head": fit_cost_head, "coarse": fit_coarse_with_visits}
