@@ -1,13 +1,10 @@
-"""Device choice, precision, seeding and timing, used by every notebook and benchmark."""
+"""Device choice, precision, seeding and config checks, used by every notebook."""
 
 from __future__ import annotations
 
 import contextlib
 import math
 import random
-import statistics
-import time
-from collections.abc import Callable, Iterator
 
 import numpy as np
 import torch
@@ -41,11 +38,6 @@ def network_dtype(device: torch.device | str, cpu: bool = False) -> torch.dtype:
     return torch.bfloat16 if gpu_bf16 or kind == "cpu" and cpu and cpu_has_bf16() else torch.float32
 
 
-def precision_name(device: torch.device | str, cpu: bool = False) -> str:
-    """:func:`network_dtype` in words, for logs and recorded protocols."""
-    return "bf16 autocast" if network_dtype(device, cpu) == torch.bfloat16 else "float32"
-
-
 def mixed_precision(device: torch.device | str, cpu: bool = False
                     ) -> contextlib.AbstractContextManager:
     """bfloat16 autocast where :func:`network_dtype` says so; elsewhere, nothing.
@@ -72,50 +64,29 @@ def memory_format(device: torch.device | str) -> torch.memory_format:
     return torch.channels_last if torch.device(device).type == "cuda" else torch.contiguous_format
 
 
-def time_parts(step: Callable[[int], Iterator[str]], repeats: int = 5) -> dict[str, float]:
-    """Median seconds of each part of a step: ``{part: seconds}``, in the step's order.
-
-    ``step(repeat)`` is a generator that does one step and yields each part's
-    name as that part ends. It runs ``repeats + 1`` times; the first warms up.
-    """
-    times: dict[str, list[float]] = {}
-    for repeat in range(repeats + 1):
-        start = time.perf_counter()
-        for name in step(repeat):
-            end = time.perf_counter()
-            if repeat:
-                times.setdefault(name, []).append(end - start)
-            start = end
-    return {name: statistics.median(seconds) for name, seconds in times.items()}
-
-
-def print_parts(title: str, parts: dict[str, float]) -> None:
-    """Print :func:`time_parts`' result under ``title``: seconds and share of each part."""
-    total = sum(parts.values())
-    print(f"{title}: {total:.3f} s")
-    for name, seconds in parts.items():
-        print(f"  {name:22s} {seconds:.3f} s  {100 * seconds / total:4.1f}%")
-
-
 def seed_everything(seed: int) -> torch.Generator:
     """Seed Python, NumPy and torch; return a CPU ``torch.Generator`` seeded with ``seed``.
 
-    Same seed, same numbers: pass the returned generator (or one made by
-    :func:`make_generator`) to every function that draws random numbers.
+    Same seed, same numbers: pass the returned generator to every function that
+    draws random numbers.
     """
-    if not isinstance(seed, int) or isinstance(seed, bool):
-        raise TypeError(f"seed must be an int, got {type(seed).__name__}")
+    generator = make_generator(seed)
     random.seed(seed)
     np.random.seed(seed % 2**32)
     torch.manual_seed(seed)
-    return make_generator(seed)
+    return generator
 
 
 def make_generator(seed: int, device: str | torch.device = "cpu") -> torch.Generator:
-    """A fresh ``torch.Generator`` on ``device`` seeded with ``seed``."""
-    generator = torch.Generator(device=device)
-    generator.manual_seed(seed)
-    return generator
+    """A fresh ``torch.Generator`` on ``device`` seeded with the int ``seed``."""
+    if not isinstance(seed, int) or isinstance(seed, bool):
+        raise TypeError(f"seed must be an int (or a torch.Generator), got {type(seed).__name__}")
+    return torch.Generator(device=device).manual_seed(seed)
+
+
+def as_generator(seed: int | torch.Generator) -> torch.Generator:
+    """``seed`` itself if it is a ``torch.Generator``, else a fresh CPU one seeded with it."""
+    return seed if isinstance(seed, torch.Generator) else make_generator(seed)
 
 
 # --- checking configurations: a field that cannot work is named when the config is built ---

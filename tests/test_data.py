@@ -32,7 +32,6 @@ from ebjepa_tutorial.data import (
     load_cifar10,
     load_mnist,
     mnist,
-    to_float,
 )
 from ebjepa_tutorial.data.cifar10 import find_cifar10
 from ebjepa_tutorial.data.mnist import find_mnist
@@ -367,15 +366,6 @@ def test_cache_is_reused_and_survives_a_damaged_file(tmp_path, tmp_cache):
     cached[0].write_bytes(b"garbage")  # a damaged cache is rebuilt, not trusted
     again, _ = load_cifar10("test", root=tmp_path / "data")
     assert torch.equal(first, again) and leftovers(tmp_cache) == []
-
-
-def test_to_float():
-    images = torch.tensor([[[[0, 51, 255]]]], dtype=torch.uint8)
-    out = to_float(images)
-    assert out.dtype == torch.float32 and out.shape == images.shape
-    assert torch.allclose(out, torch.tensor([[[[0.0, 0.2, 1.0]]]]))
-    with pytest.raises(TypeError, match="uint8"):
-        to_float(out)
 
 
 def test_random_subset_mixes_classes_and_keeps_everything_when_asked():

@@ -14,12 +14,7 @@ import pytest
 import torch
 from test_data import leftovers, write_tree
 
-from ebjepa_tutorial.data import (
-    CorruptDataError,
-    load_cifar10,
-    paths,
-)
-from ebjepa_tutorial.data.moving_mnist import load_moving_mnist_file
+from ebjepa_tutorial.data import load_cifar10, paths
 
 HOUR = 3600.0
 
@@ -67,15 +62,6 @@ def test_read_cache_of_zero_byte_file_is_none(tmp_cache):
     paths.write_cache("x", np.zeros((2, 3), np.uint8), np.zeros(2, np.int64))
     (tmp_cache / "x-labels.npy").write_bytes(b"")
     assert paths.read_cache("x") is None
-
-
-@pytest.mark.parametrize("keep", [0, 50, 500], ids=["zero-byte", "cut-header", "cut-data"])
-def test_damaged_moving_mnist_file_is_a_clear_error(tmp_path, keep):
-    path = tmp_path / "mnist_test_seq.npy"
-    np.save(path, np.zeros((2, 3, 64, 64), np.uint8))
-    path.write_bytes(path.read_bytes()[:keep])
-    with pytest.raises(CorruptDataError, match="damaged or incomplete; delete it"):
-        load_moving_mnist_file(path)
 
 
 # --- (b) atomic writes are flushed to disk before the rename --------------------------------

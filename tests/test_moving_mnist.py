@@ -15,11 +15,9 @@ from ebjepa_tutorial.data.moving_mnist import (
     centres_to_grid,
     generate_moving_mnist,
     ink_boxes,
-    load_moving_mnist_file,
     paste_digits,
     split_digits,
 )
-from ebjepa_tutorial.data.paths import DataNotFoundError
 
 
 def synthetic_digits(n: int = 40, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -239,17 +237,3 @@ def test_real_mnist_digits_are_pasted_exactly():
         assert torch.equal(batch.clips[n, :, 0], expected)
     centre = batch.centres - batch.offsets  # within the 28x28 patch
     assert (centre > 4).all() and (centre < 24).all()  # MNIST ink is roughly centred
-
-
-def test_standard_file_is_read_into_our_layout(tmp_path):
-    seq = np.random.default_rng(0).integers(0, 256, size=(3, 5, 64, 64), dtype=np.uint8)
-    np.save(tmp_path / "seq.npy", seq)
-    clips = load_moving_mnist_file(tmp_path / "seq.npy")
-    assert clips.shape == (5, 3, 1, 64, 64) and clips.dtype == torch.uint8
-    assert torch.equal(clips[2, 1, 0], torch.from_numpy(seq[1, 2]))
-    assert load_moving_mnist_file(tmp_path / "seq.npy", n_clips=2).shape == (2, 3, 1, 64, 64)
-    np.save(tmp_path / "bad.npy", seq.astype(np.float32))
-    with pytest.raises(ValueError, match="uint8"):
-        load_moving_mnist_file(tmp_path / "bad.npy")
-    with pytest.raises(DataNotFoundError, match="mnist_test_seq.npy"):
-        load_moving_mnist_file(tmp_path / "missing.npy")

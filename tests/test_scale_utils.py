@@ -82,10 +82,10 @@ def test_planning_uses_the_world_model_of_notebook_05(name):
 
 
 def test_time_parts_takes_the_median_of_each_part_after_a_warm_up(monkeypatch):
-    from ebjepa_tutorial import utils
+    from research.benchmarks import timing
 
     clock = iter(range(0, 1000, 1))  # each reading of the clock is one second later
-    monkeypatch.setattr(utils.time, "perf_counter", lambda: next(clock))
+    monkeypatch.setattr(timing.time, "perf_counter", lambda: next(clock))
     lengths = {0: (50, 50), 1: (1, 3), 2: (2, 5), 3: (9, 4)}  # the warm-up is slow
 
     def step(repeat):
@@ -94,4 +94,4 @@ def test_time_parts_takes_the_median_of_each_part_after_a_warm_up(monkeypatch):
                 next(clock)  # the part reads the clock extra - 1 times: it lasts `extra`
             yield name
 
-    assert utils.time_parts(step, repeats=3) == {"load": 2, "train": 4}
+    assert timing.time_parts(step, repeats=3) == {"load": 2, "train": 4}

@@ -1,8 +1,8 @@
 """Datasets as uint8 tensors: CIFAR-10 and MNIST, through torchvision.datasets, cached.
 
-Images come back as uint8 ``(N, C, H, W)`` tensors with int64 labels ``(N,)``;
-:func:`to_float` turns a batch into float32 in ``[0, 1]``. Where the files are
-looked for, and how to bring your own, is described in ``data/README.md``.
+Images come back as uint8 ``(N, C, H, W)`` tensors with int64 labels ``(N,)``.
+Where the files are looked for, and how to bring your own, is described in
+``data/README.md``.
 """
 
 import torch
@@ -10,13 +10,6 @@ import torch
 from .cifar10 import CIFAR10_CLASSES, load_cifar10
 from .mnist import load_mnist
 from .paths import CorruptDataError, DataNotFoundError, cache_dir, data_dir
-
-
-def to_float(images: torch.Tensor) -> torch.Tensor:
-    """uint8 images (..., C, H, W) in 0..255 -> float32 in [0, 1], same shape and device."""
-    if images.dtype != torch.uint8:
-        raise TypeError(f"expected uint8 images, got {images.dtype}")
-    return images.to(torch.float32).div_(255.0)
 
 
 def random_subset(
@@ -43,5 +36,4 @@ __all__ = [
     "load_cifar10",
     "load_mnist",
     "random_subset",
-    "to_float",
 ]

@@ -31,18 +31,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
 
-from ebjepa_tutorial.data.paths import CorruptDataError, DataNotFoundError, cache_dir, data_dir
-from ebjepa_tutorial.utils import make_generator
+from ..utils import as_generator, make_generator
 
 FRAME_SIZE = 64
 DEFAULT_SPEED = 3.6  # px per frame: 0.1 of the free range 64 - 28 = 36
-MOVING_MNIST_URL = "http://www.cs.toronto.edu/~nitish/unsupervised_video/mnist_test_seq.npy"
-SEQ_FILE = "mnist_test_seq.npy"
 
 
 @dataclass
@@ -68,12 +64,6 @@ class MovingMNISTBatch:
 
     def __len__(self) -> int:
         return self.clips.shape[0]
-
-
-def _as_generator(seed: int | torch.Generator) -> torch.Generator:
-    if isinstance(seed, torch.Generator):
-        return seed
-    return make_generator(seed)
 
 
 def check_digits(digits) -> torch.Tensor:
@@ -179,6 +169,46 @@ def paste_digits(frames: torch.Tensor, patches: torch.Tensor, offsets: torch.Ten
     flat.scatter_reduce_(1, index, patches.reshape(m, k * h * w), reduce="amax")
 
 
+def _check_sizes(digits: torch.Tensor, size: int, speed: float, **counts) -> float:
+    """Raise a clear error for a count < 1, a digit that does not fit, or too high a speed;
+    return the free range ``size - h`` a digit's top-left corner moves in."""
+    for name, value in counts.items():
+        if not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be a positive int, got {value!r}")
+    h, w = digits.shape[1:]
+    if h != w or h > size:
+        raise ValueError(f"digits must be square and fit in {size}x{size} frames, got {h}x{w}")
+    limit = float(size - h)
+    if not 0 <= speed <= limit:
+        raise ValueError(f"speed must be in [0, {limit}] px/frame (the free range), got {speed}")
+    return limit
+
+
+def random_motion(n_clips: int, n_digits: int, speed: float, limit: float,
+                  generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Start corners uniform in ``[0, limit]^2`` and velocities of length ``speed`` in a
+    uniform direction: each ``(n_clips, n_digits, 2)``, as ``(x, y)``."""
+    start = torch.rand(n_clips, n_digits, 2, generator=generator) * limit
+    angle = torch.rand(n_clips, n_digits, generator=generator) * (2 * math.pi)
+    return start, speed * torch.stack([angle.cos(), angle.sin()], dim=-1)
+
+
+def paste_clips(digits: torch.Tensor, digit_ids: torch.Tensor, offsets: torch.Tensor,
+                size: int, chunk: int) -> torch.Tensor:
+    """uint8 clips ``(N, T, 1, size, size)``: digit ``digit_ids[n, k]`` ``(N, K)`` of
+    ``digits`` ``(D, h, w)`` pasted at ``offsets[n, t, k]`` ``(N, T, K, 2)``, ``chunk``
+    clips at a time (chunks bound the index memory and stay in cache)."""
+    (n_clips, n_frames, n_digits, _), (h, w) = offsets.shape, digits.shape[1:]
+    clips = torch.empty(n_clips, n_frames, 1, size, size, dtype=torch.uint8)
+    for lo in range(0, n_clips, chunk):
+        hi = min(lo + chunk, n_clips)
+        clips[lo:hi].zero_()
+        patches = digits[digit_ids[lo:hi]].unsqueeze(1).expand(-1, n_frames, -1, -1, -1)
+        paste_digits(clips[lo:hi].view(-1, size, size), patches.reshape(-1, n_digits, h, w),
+                     offsets[lo:hi].reshape(-1, n_digits, 2))
+    return clips
+
+
 def generate_moving_mnist(
     digits,
     n_clips: int,
@@ -195,51 +225,24 @@ def generate_moving_mnist(
     evaluation, pass the second half of :func:`split_digits`). Each clip shows
     ``n_digits`` digits drawn with replacement. ``seed`` is an int or a
     ``torch.Generator``; the same seed gives identical clips. Pasting works on
-    ``chunk`` clips at a time to bound memory. See the module docstring for
-    what each field of the returned :class:`MovingMNISTBatch` means.
+    ``chunk`` clips at a time to bound memory. The module docstring says what
+    each field of the returned :class:`MovingMNISTBatch` means.
     """
     digits = check_digits(digits)
-    h, w = digits.shape[1:]
-    counts = {"n_clips": n_clips, "n_frames": n_frames, "n_digits": n_digits, "chunk": chunk}
-    for name, value in counts.items():
-        if not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name} must be a positive int, got {value!r}")
-    if h != w or h > size:
-        raise ValueError(f"digits must be square and fit in {size}x{size} frames, got {h}x{w}")
-    limit = float(size - h)
-    if not 0 <= speed <= limit:
-        raise ValueError(f"speed must be in [0, {limit}] px/frame (the free range), got {speed}")
-    generator = _as_generator(seed)
-
+    limit = _check_sizes(digits, size, speed, n_clips=n_clips, n_frames=n_frames,
+                         n_digits=n_digits, chunk=chunk)
+    generator = as_generator(seed)
     digit_ids = torch.randint(len(digits), (n_clips, n_digits), generator=generator)
-    start = torch.rand(n_clips, n_digits, 2, generator=generator) * limit
-    angle = torch.rand(n_clips, n_digits, generator=generator) * (2 * math.pi)
-    velocity = speed * torch.stack([angle.cos(), angle.sin()], dim=-1)
+    start, velocity = random_motion(n_clips, n_digits, speed, limit, generator)
     positions, velocities = bounce_trajectories(start, velocity, n_frames, limit)
     offsets = positions.round().long().transpose(0, 1).contiguous()  # (N, T, K, 2)
-
-    clips = torch.empty(n_clips, n_frames, 1, size, size, dtype=torch.uint8)
-    for lo in range(0, n_clips, chunk):  # chunks bound the index memory and stay in cache
-        hi = min(lo + chunk, n_clips)
-        clips[lo:hi].zero_()
-        patches = digits[digit_ids[lo:hi]].unsqueeze(1).expand(-1, n_frames, -1, -1, -1)
-        paste_digits(
-            clips[lo:hi].view(-1, size, size),
-            patches.reshape(-1, n_digits, h, w),
-            offsets[lo:hi].reshape(-1, n_digits, 2),
-        )
-
+    clips = paste_clips(digits, digit_ids, offsets, size, chunk)
     ink = ink_boxes(digits[digit_ids.flatten()]).view(n_clips, 1, n_digits, 4)  # in the patch
     boxes = ink + offsets.repeat(1, 1, 1, 2)
     centres = (boxes[..., :2] + boxes[..., 2:]).float() / 2
-    return MovingMNISTBatch(
-        clips=clips,
-        centres=centres,
-        boxes=boxes,
-        offsets=offsets,
-        velocities=velocities.transpose(0, 1).contiguous(),
-        digit_ids=digit_ids,
-    )
+    return MovingMNISTBatch(clips=clips, centres=centres, boxes=boxes, offsets=offsets,
+                            velocities=velocities.transpose(0, 1).contiguous(),
+                            digit_ids=digit_ids)
 
 
 def centres_to_grid(centres: torch.Tensor, size: int = FRAME_SIZE, grid: int = 8) -> torch.Tensor:
@@ -254,37 +257,3 @@ def centres_to_grid(centres: torch.Tensor, size: int = FRAME_SIZE, grid: int = 8
     target = torch.zeros(*flat.shape[:-1], grid * grid)
     target.scatter_(-1, flat, 1.0)
     return target.view(*flat.shape[:-1], grid, grid)
-
-
-def load_moving_mnist_file(path: str | Path | None = None, n_clips: int | None = None):
-    """Read the standard ``mnist_test_seq.npy`` into our layout: uint8 ``(N, T, 1, 64, 64)``.
-
-    The file holds 10,000 clips of 20 frames stored time-first, ``(20, 10000,
-    64, 64)``. It has no digit positions, so it cannot give detection targets.
-    ``path`` defaults to ``mnist_test_seq.npy`` in the data directory
-    (``$EBJEPA_DATA`` or ``data/``), then in the cache directory.
-    ``n_clips`` keeps only the first clips (the file is memory-mapped).
-    """
-    candidates = (
-        [Path(path)] if path is not None else [data_dir() / SEQ_FILE, cache_dir() / SEQ_FILE]
-    )
-    found = [p for p in candidates if p.is_file()]
-    if not found:
-        raise DataNotFoundError(
-            f"no {SEQ_FILE} at {' or '.join(map(str, candidates))}. Download it from "
-            f"{MOVING_MNIST_URL} and save it there (or pass its path), or make clips "
-            "with generate_moving_mnist, which also gives digit positions."
-        )
-    try:
-        seq = np.load(found[0], mmap_mode="r")
-    except (OSError, ValueError, EOFError) as err:  # zero bytes, or cut short by a download
-        raise CorruptDataError(
-            f"cannot read {found[0]}: {type(err).__name__}: {err}. The file is damaged or "
-            f"incomplete; delete it and download {MOVING_MNIST_URL} again."
-        ) from err
-    if seq.ndim != 4 or seq.dtype != np.uint8:
-        raise ValueError(
-            f"{found[0]} should hold uint8 (T, N, H, W) frames, got {seq.dtype} {seq.shape}"
-        )
-    seq = seq[:, :n_clips] if n_clips is not None else seq
-    return torch.from_numpy(np.ascontiguousarray(seq.transpose(1, 0, 2, 3)))[:, :, None]
