@@ -37,14 +37,9 @@ from ebjepa_tutorial.training.image import (
     train_image_jepa,
     view_maker,
 )
-from ebjepa_tutorial.utils import (
-    at_least_float32,
-    mixed_precision,
-    precision_name,
-    print_parts,
-    time_parts,
-)
+from ebjepa_tutorial.utils import at_least_float32, mixed_precision
 from research.benchmarks import command_line
+from research.benchmarks.timing import precision_name, print_parts, time_parts
 
 
 def step_split(config, images: torch.Tensor) -> dict[str, float]:

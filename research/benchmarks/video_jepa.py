@@ -42,14 +42,9 @@ from ebjepa_tutorial.training.video import (
     make_clips,
     train_video_jepa,
 )
-from ebjepa_tutorial.utils import (
-    at_least_float32,
-    mixed_precision,
-    precision_name,
-    print_parts,
-    time_parts,
-)
+from ebjepa_tutorial.utils import at_least_float32, mixed_precision
 from research.benchmarks import command_line
+from research.benchmarks.timing import precision_name, print_parts, time_parts
 
 
 def load_digits() -> torch.Tensor | None:
