@@ -1,16 +1,11 @@
-"""Average precision: hand-computed cases, ties, errors, per-horizon mAP."""
+"""Average precision: hand-computed cases, ties, errors, the whole set ranked together."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from ebjepa_tutorial.evaluation.metrics import (
-    average_precision,
-    average_precision_per_horizon,
-    mean_average_precision,
-    precision_recall_curve,
-)
+from ebjepa_tutorial.evaluation.metrics import average_precision
 
 
 def brute_force_ap(scores: list[float], targets: list[int]) -> float:
@@ -32,15 +27,6 @@ def test_ap_by_hand():
     assert average_precision(scores, targets) == pytest.approx(34 / 45)
     shuffled = torch.tensor([3, 0, 4, 1, 2])  # input order does not matter, only the ranking
     assert average_precision(scores[shuffled], targets[shuffled]) == pytest.approx(34 / 45)
-
-
-def test_curve_by_hand():
-    precision, recall, thresholds = precision_recall_curve(
-        torch.tensor([0.1, 0.9, 0.5, 0.5]), torch.tensor([1, 0, 1, 0])
-    )
-    assert torch.equal(thresholds, torch.tensor([0.9, 0.5, 0.1]))
-    assert torch.allclose(precision, torch.tensor([0.0, 1 / 3, 2 / 4], dtype=torch.float64))
-    assert torch.allclose(recall, torch.tensor([0.0, 1 / 2, 1.0], dtype=torch.float64))
 
 
 def test_ties_enter_the_ranking_together():
@@ -87,21 +73,6 @@ def test_bad_input_is_a_clear_error():
         average_precision(torch.tensor([0.1, float("nan")]), torch.tensor([1, 0]))
     with pytest.raises(ValueError, match="empty"):
         average_precision(torch.zeros(0), torch.zeros(0))
-
-
-def test_per_horizon_ap_ranks_the_whole_set():
-    g = torch.Generator().manual_seed(1)
-    targets = (torch.rand(6, 3, 8, 8, generator=g) < 0.05).float()
-    targets[:, :, 0, 0] = 1
-    scores = torch.rand(6, 3, 8, 8, generator=g)
-    scores[:, 0] = targets[:, 0]  # horizon 0: perfect
-    aps = average_precision_per_horizon(scores, targets)
-    assert aps.shape == (3,) and aps[0] == 1.0
-    for h in (1, 2):
-        assert aps[h] == pytest.approx(average_precision(scores[:, h], targets[:, h]))
-    assert mean_average_precision(scores, targets) == pytest.approx(float(aps.mean()))
-    moved = average_precision_per_horizon(scores.movedim(1, 0), targets.movedim(1, 0), 0)
-    assert torch.equal(moved, aps)
 
 
 def test_whole_set_ap_is_not_the_mean_of_batch_aps():

@@ -16,7 +16,7 @@ order of tied cells cannot change the AP.
 
 The reference code averages AP over batches; an AP of a batch depends on
 what else happens to be in it, so we compute it over the whole set instead.
-mAP is the mean of the per-horizon APs.
+:func:`wilson_interval` gives the confidence interval of a success rate.
 """
 
 from __future__ import annotations
@@ -37,36 +37,9 @@ def _check_scores_targets(scores: torch.Tensor, targets: torch.Tensor) -> None:
         raise ValueError("scores contain NaN or infinity; check the model's outputs")
     if not ((targets == 0) | (targets == 1)).all():
         raise ValueError("targets must be binary (0/1 or bool), e.g. from centres_to_grid")
-
-
-def precision_recall_curve(
-    scores: torch.Tensor, targets: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Precision and recall at every distinct score threshold, highest first.
-
-    ``scores``, ``targets``: any equal shapes, flattened together. Returns
-    float64 ``precision`` and ``recall``, and the ``thresholds`` (scores, in
-    their own dtype), each ``(n_distinct,)``: entry ``k`` describes predicting positive every cell
-    with ``score >= thresholds[k]``. Raises if there is no positive target
-    (recall, hence AP, is then undefined).
-    """
-    _check_scores_targets(scores, targets)
-    scores = scores.detach().flatten().cpu()
-    targets = targets.detach().flatten().double().cpu()
-    n_positive = targets.sum()
-    if n_positive == 0:
-        raise ValueError(
-            "targets hold no positive cell, so recall and AP are undefined; "
-            "evaluate on clips that contain digits"
-        )
-    scores, order = torch.sort(scores, descending=True, stable=True)
-    true_pos = targets[order].cumsum(0)
-    seen = torch.arange(1, len(scores) + 1, dtype=torch.float64)
-    # The last cell of each run of tied scores closes a threshold: all ties count together.
-    last_of_tie = torch.ones(len(scores), dtype=torch.bool)
-    last_of_tie[:-1] = scores[1:] != scores[:-1]
-    true_pos, seen = true_pos[last_of_tie], seen[last_of_tie]
-    return true_pos / seen, true_pos / n_positive, scores[last_of_tie]
+    if not targets.any():
+        raise ValueError("targets hold no positive cell, so recall and AP are undefined; "
+                         "evaluate on clips that contain digits")
 
 
 def average_precision(scores: torch.Tensor, targets: torch.Tensor) -> float:
@@ -75,33 +48,18 @@ def average_precision(scores: torch.Tensor, targets: torch.Tensor) -> float:
     Shapes are any, equal; everything is ranked together. Perfect ranking
     gives 1; a random ranking gives about the fraction of positive cells.
     """
-    precision, recall, _ = precision_recall_curve(scores, targets)
+    _check_scores_targets(scores, targets)
+    scores, order = torch.sort(scores.detach().flatten().cpu(), descending=True, stable=True)
+    targets = targets.detach().flatten().double().cpu()[order]
+    true_pos = targets.cumsum(0)
+    seen = torch.arange(1, len(scores) + 1, dtype=torch.float64)
+    # The last cell of each run of tied scores closes a threshold: all ties count together.
+    last_of_tie = torch.ones(len(scores), dtype=torch.bool)
+    last_of_tie[:-1] = scores[1:] != scores[:-1]
+    true_pos, seen = true_pos[last_of_tie], seen[last_of_tie]
+    precision, recall = true_pos / seen, true_pos / targets.sum()  # P_k, R_k
     recall_step = torch.diff(recall, prepend=recall.new_zeros(1))
     return float((recall_step * precision).sum())
-
-
-def average_precision_per_horizon(
-    scores: torch.Tensor, targets: torch.Tensor, horizon_dim: int = 1
-) -> torch.Tensor:
-    """One AP per horizon: ``scores``, ``targets`` ``(N, H, ...)`` -> float64 ``(H,)``.
-
-    For horizon ``h`` the AP ranks every cell of every clip at that horizon
-    (``scores.select(horizon_dim, h)``), over the whole evaluation set.
-    """
-    _check_scores_targets(scores, targets)
-    n_horizons = scores.shape[horizon_dim]
-    aps = [
-        average_precision(scores.select(horizon_dim, h), targets.select(horizon_dim, h))
-        for h in range(n_horizons)
-    ]
-    return torch.tensor(aps, dtype=torch.float64)
-
-
-def mean_average_precision(
-    scores: torch.Tensor, targets: torch.Tensor, horizon_dim: int = 1
-) -> float:
-    """mAP: the mean over horizons of :func:`average_precision_per_horizon`."""
-    return float(average_precision_per_horizon(scores, targets, horizon_dim).mean())
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
