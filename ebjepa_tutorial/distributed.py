@@ -1,32 +1,30 @@
 """Several processes, one model: what DistributedDataParallel training needs beyond DDP itself.
 
-``torchrun --nproc_per_node=W`` starts W processes (the *ranks*, one per device) and tells each
-who it is through environment variables (``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``,
-``MASTER_ADDR``, ``MASTER_PORT``). Each rank holds a copy of the model and an equal share of
-every batch; DistributedDataParallel (DDP) averages the gradients over the ranks in
-``backward``, so the copies stay equal.
+``torchrun --nproc_per_node=W`` starts W processes (the *ranks*) and tells each who it is
+through environment variables (``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``, ``MASTER_ADDR``,
+``MASTER_PORT``). Each rank holds a copy of the model and an equal share of every batch; DDP
+averages the gradients over the ranks in ``backward``, so the copies stay equal.
 
-Averaging gradients is right for a loss that is an average of per-sample terms (VICReg's
-invariance). VICReg's variance and covariance and SIGReg's characteristic function are
-statistics of the whole batch: on one rank's share they would be other, noisier quantities.
-Two collectives that autograd can differentiate compute them on the global batch instead:
+The losses in :mod:`ebjepa_tutorial.losses` see one batch in one process. Averaging gradients
+is right for a mean of per-sample terms (an invariance), but VICReg's variance and covariance
+and SIGReg's characteristic function are statistics of the whole batch: on one rank's share
+they would be other, noisier quantities. So the training code wraps the losses with this
+module instead of changing them:
 
-- :func:`gather_rows`: every rank's embeddings, ``(b, D) -> (W b, D)`` (VICReg);
-- :func:`mean_across_ranks`: the mean over ranks of a per-rank mean (SIGReg's ECF, and the
-  sums behind a covariance when gathering the rows would move too much).
+- :func:`gather_rows`: every rank's embeddings, ``(b, D) -> (W b, D)``, before the loss
+  (or every rank's trajectories, ``(b, T, D) -> (W b, T, D)``);
+- :func:`variance_and_covariance`: VICReg's two terms from per-rank sums, for batches of
+  millions of rows (chapter 03) that would be too many to gather;
+- :func:`rand_rows`: a random draw for the global batch, cut to this rank's rows.
 
-DDP pairs each forward call with one backward: a loss that calls several methods of a
-model (encode, predict, ...) runs inside one forward call of :class:`Forward`.
-
-Why their backward sums over ranks: DDP minimises the mean of the ranks' losses,
+Why the collectives' backward sums over ranks: DDP minimises the mean of the ranks' losses,
 ``J = (1/W) sum_r L_r``, by averaging each rank's own gradient. Through a collective, every
 rank's loss depends on rank s's tensor ``x_s``, so ``dJ/dx_s = (1/W) sum_r dL_r/dx_s``: the
 backward all-reduces (sums) the incoming gradients before rank s keeps its part, and DDP's
 average supplies the 1/W. Keeping only the local gradient, a common mistake, makes the
 gradient of every batch statistic W times too small.
 
-Everything here is a no-op in a single process (torch.distributed not initialised, or a world
-of one): the single-device path computes exactly what it computed before.
+Everything here is a no-op in a single process (no process group, or a world of one).
 """
 
 from __future__ import annotations
@@ -40,6 +38,8 @@ from typing import Any
 import torch
 import torch.distributed as dist
 from torch import nn
+
+from .losses import vicreg
 
 TORCHRUN_ENV = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")
 
@@ -64,6 +64,9 @@ def is_main() -> bool:
     return rank() == 0
 
 
+# --- joining and leaving (the command-line launcher, research/launch.py) -------------------
+
+
 def launched_by_torchrun(environ: Mapping[str, str] | None = None) -> bool:
     """Whether torchrun (or another launcher of its kind) started this process."""
     environ = os.environ if environ is None else environ
@@ -71,14 +74,12 @@ def launched_by_torchrun(environ: Mapping[str, str] | None = None) -> bool:
 
 
 def init_from_env(environ: Mapping[str, str] | None = None,
-                  command: str = "ebjepa_tutorial.commands.train_image") -> torch.device:
+                  command: str = "research.train_image") -> torch.device:
     """Join the process group that torchrun described in the environment; return our device.
 
-    Backend ``nccl`` with one GPU per process (``cuda:LOCAL_RANK``) when CUDA is available,
-    else ``gloo`` on the CPU. Raises RuntimeError, naming what is missing and how to start
-    ``command`` (a module) under torchrun, when the process was not started by torchrun,
-    rather than waiting for peers that will never come.
-    ``environ`` (default ``os.environ``) is what is checked; torch itself reads ``os.environ``.
+    ``nccl`` with one GPU per process (``cuda:LOCAL_RANK``) when CUDA is available, else
+    ``gloo`` on the CPU. Raises RuntimeError, naming what is missing and how to start
+    ``command`` (a module) under torchrun, rather than waiting for peers that never come.
     """
     environ = os.environ if environ is None else environ
     missing = [name for name in TORCHRUN_ENV if not environ.get(name)]
@@ -109,6 +110,23 @@ def shutdown() -> None:
         dist.destroy_process_group()
 
 
+def check_same_on_all_ranks(value: Any, what: str = "config") -> None:
+    """Raise RuntimeError on every rank if the ranks hold different ``value`` (plain data):
+    ranks that disagree would train different models, or wait forever in a collective."""
+    if world_size() == 1:
+        return
+    digest = hashlib.sha1(json.dumps(value, sort_keys=True, default=repr).encode()).hexdigest()
+    prints: list[Any] = [None] * world_size()
+    dist.all_gather_object(prints, digest[:12])
+    if len(set(prints)) > 1:
+        listed = ", ".join(f"rank {r}: {p}" for r, p in enumerate(prints))
+        raise RuntimeError(f"the processes were started with different {what}s ({listed}); "
+                           "start every rank with the same arguments")
+
+
+# --- sharing a batch -------------------------------------------------------------------------
+
+
 def per_rank_batch(global_batch: int, world: int | None = None) -> int:
     """The rule: global batch = per-rank batch x world size. Raises ValueError if W does not
     divide the global batch, or if a rank would get fewer than 2 samples."""
@@ -124,49 +142,23 @@ def per_rank_batch(global_batch: int, world: int | None = None) -> int:
 
 
 def local_rows(x: torch.Tensor) -> torch.Tensor:
-    """This rank's share of a global batch: rows ``r b .. (r+1) b`` of ``(W b, ...)``;
-    ``x`` itself in a single process."""
+    """This rank's share of a global batch: rows ``r b .. (r+1) b`` of ``(W b, ...)``."""
     if world_size() == 1:
         return x
     share = per_rank_batch(x.shape[0])
     return x[rank() * share:(rank() + 1) * share]
 
 
-def _collective_device() -> torch.device:
-    # nccl moves CUDA tensors only; gloo, CPU tensors
-    if dist.get_backend() == "nccl":
-        return torch.device("cuda", torch.cuda.current_device())
-    return torch.device("cpu")
-
-
-def fingerprint(value: Any) -> str:
-    """A short hash of plain data (a config as a dict), the same in every process."""
-    text = json.dumps(value, sort_keys=True, default=repr)
-    return hashlib.sha1(text.encode()).hexdigest()[:12]
-
-
-def check_same_on_all_ranks(value: Any, what: str = "config") -> None:
-    """Raise RuntimeError on every rank if the ranks hold different ``value`` (plain data).
-
-    Call once at start-up: ranks that disagree on the config would train different models and
-    usually wait forever in a collective of another shape.
-    """
-    if world_size() == 1:
-        return
-    prints: list[Any] = [None] * world_size()
-    dist.all_gather_object(prints, fingerprint(value))
-    if len(set(prints)) > 1:
-        listed = ", ".join(f"rank {r}: {p}" for r, p in enumerate(prints))
-        raise RuntimeError(f"the processes were started with different {what}s ({listed}); "
-                           "start every rank with the same arguments")
+def rand_rows(rows: int, *size: int, generator: torch.Generator | None = None) -> torch.Tensor:
+    """``torch.rand(rows, *size)`` of this rank's rows of a global batch: the draw of
+    ``(W rows, *size)``, cut to our rows, so every rank consumes ``generator`` (seeded alike
+    on every rank) as one process would and its rows get the numbers they would get there."""
+    return local_rows(torch.rand(rows * world_size(), *size, generator=generator))
 
 
 def from_main(compute: Callable[[], Any]) -> Any:
-    """``compute()`` on rank 0 only (file reads and moves), its result sent to every rank.
-
-    The result must pickle; keep tensors on the CPU. An exception on rank 0 is raised on every
-    rank, so none waits for a result that will not come.
-    """
+    """``compute()`` on rank 0 only (file reads), its result (picklable) sent to every rank.
+    An exception on rank 0 is raised on every rank, so none waits for a result."""
     if world_size() == 1:
         return compute()
     box: list[Any] = [None]
@@ -185,17 +177,19 @@ def from_main(compute: Callable[[], Any]) -> Any:
 
 
 def mean_of_floats(values: list[float]) -> list[float]:
-    """The mean over ranks of each number in ``values`` (for logging): as is in one process."""
+    """The mean over ranks of each number in ``values`` (for logging)."""
     if world_size() == 1:
         return list(values)
-    packed = torch.tensor(values, dtype=torch.float64, device=_collective_device())
+    device = torch.device("cuda", torch.cuda.current_device()) \
+        if dist.get_backend() == "nccl" else torch.device("cpu")  # nccl moves CUDA tensors only
+    packed = torch.tensor(values, dtype=torch.float64, device=device)
     dist.all_reduce(packed)
     return (packed / world_size()).tolist()
 
 
 def average_gradients(parameters) -> None:
-    """Average each parameter's ``.grad`` over the ranks, in place (what DDP does in backward),
-    for updates made outside DDP's wrapper. A no-op in one process."""
+    """Average each parameter's ``.grad`` over the ranks, in place (what DDP does in
+    backward), for updates made outside DDP's wrapper."""
     if world_size() == 1:
         return
     for p in parameters:
@@ -204,20 +198,22 @@ def average_gradients(parameters) -> None:
             p.grad /= world_size()
 
 
+# --- the collectives that autograd differentiates --------------------------------------------
+
+
 class _GatherRows(torch.autograd.Function):
-    """All-gather along dim 0: ``(b, D) -> (W b, D)``, rank r's rows at ``r b .. (r+1) b``."""
+    """All-gather along dim 0: ``(b, ...) -> (W b, ...)``, rank r's rows at ``r b .. (r+1) b``."""
 
     @staticmethod
     def forward(ctx, x: torch.Tensor) -> torch.Tensor:
-        x = x.contiguous()
         parts = [torch.empty_like(x) for _ in range(world_size())]
-        dist.all_gather(parts, x)
+        dist.all_gather(parts, x.contiguous())
         return torch.cat(parts)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
-        # grad (W b, D) is dL_r/d(all rows) on rank r; our rows feed every rank's loss, so sum
-        # over ranks (see the module docstring), then keep our rows: (b, D)
+        # grad (W b, ...) is dL_r/d(all rows) on rank r; our rows feed every rank's loss, so sum
+        # over ranks (see the module docstring), then keep our rows: (b, ...)
         total = grad.clone(memory_format=torch.contiguous_format)
         dist.all_reduce(total)
         share = total.shape[0] // world_size()
@@ -235,45 +231,41 @@ class _MeanAcrossRanks(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
-        # d/dx_s of sum_r L_r(mean) = sum_r grad_r / W; DDP's average adds the other 1/W
-        total = grad.clone(memory_format=torch.contiguous_format)
-        dist.all_reduce(total)
-        return total / world_size()
+        return _MeanAcrossRanks.forward(ctx, grad)  # sum_r grad_r / W; DDP adds the other 1/W
 
 
-def gather_rows(*tensors: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """Every rank's rows of each ``(b, D_i)`` tensor, in rank order: ``(W b, D_i)`` each.
+def gather_rows(x: torch.Tensor) -> torch.Tensor:
+    """Every rank's rows of ``x`` ``(b, ...)``, in rank order: ``(W b, ...)``; ``x`` itself in
+    one process. Gradients flow back to each rank's own rows; every rank holds the same ``b``."""
+    return x if world_size() == 1 else _GatherRows.apply(x)
 
-    Gradients flow back to each rank's own rows (summed over ranks' losses). One collective
-    for all tensors; every rank must hold the same ``b``. Returns ``tensors`` unchanged in a
-    single process.
-    """
+
+def mean_across_ranks(x: torch.Tensor) -> torch.Tensor:
+    """The mean over ranks of ``x`` (same shape on every rank), differentiably: the global
+    mean when ``x`` is a per-rank mean and every rank holds as many samples."""
+    return x if world_size() == 1 else _MeanAcrossRanks.apply(x)
+
+
+def variance_and_covariance(z: torch.Tensor, gamma: float = 1.0, eps: float = 1e-4):
+    """:func:`ebjepa_tutorial.losses.variance_and_covariance` of the global batch, every rank
+    holding ``b`` rows ``(b, D)`` of ``(W b, D)``, from per-rank sums: two all-reduces of
+    ``D`` and ``D x D`` numbers, however many rows. Returns two 0-d tensors."""
     if world_size() == 1:
-        return tensors
-    widths = [t.shape[1] for t in tensors]
-    return _GatherRows.apply(torch.cat(tensors, dim=1)).split(widths, dim=1)
-
-
-def mean_across_ranks(*tensors: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """The mean over ranks of each tensor (same shapes on every rank), differentiably.
-
-    The mean of per-rank means is the global mean when every rank holds as many samples.
-    One collective for all tensors; returns ``tensors`` unchanged in a single process.
-    """
-    if world_size() == 1:
-        return tensors
-    flat = _MeanAcrossRanks.apply(torch.cat([t.reshape(-1) for t in tensors]))
-    pieces = flat.split([t.numel() for t in tensors])
-    return tuple(p.view_as(t) for p, t in zip(pieces, tensors))
+        return vicreg.variance_and_covariance(z, gamma, eps)
+    mean = mean_across_ranks(z.mean(dim=0))  # (D,): the global mean
+    centred = z - mean
+    scatter = mean_across_ranks(centred.T @ centred)  # (D, D): 1/W of the global sum
+    cov = scatter * (world_size() / (world_size() * z.shape[0] - 1))  # sample covariance
+    variance = torch.relu(gamma - torch.sqrt(torch.diagonal(cov) + eps)).mean()
+    return variance, vicreg.off_diagonal_term(cov)
 
 
 class Forward(nn.Module):
     """``fn(module, *args, **kwargs)`` as the one forward call of a wrapper around ``module``.
 
-    DistributedDataParallel pairs each forward call with one backward, so a loss that calls
-    several methods of a model (encode, predict, project, ...) must run inside a single
-    forward: wrap ``Forward(model, loss_fn)`` in DDP. The parameters are ``model``'s; save
-    ``model`` itself (the wrapper's state dict keys start with ``module.``).
+    DDP pairs each forward call with one backward, so a loss that calls several methods of a
+    model (encode, predict, project, ...) must run inside a single forward: wrap
+    ``Forward(model, loss_fn)`` in DDP. Save ``model`` itself, not the wrapper.
     """
 
     def __init__(self, module: nn.Module, fn: Callable[..., Any]):
@@ -288,10 +280,9 @@ def data_parallel(module: nn.Module, device: torch.device | str,
                   sync_batchnorm: bool = False) -> nn.Module:
     """``module`` wrapped in DDP inside a process group; ``module`` itself outside one.
 
-    ``sync_batchnorm`` (off by default) turns its batch norms into SyncBatchNorm, which
-    normalises over the global batch instead of each rank's share; torch runs it on GPUs only.
-    The conversion replaces the layers inside ``module`` and keeps their parameters, so build
-    the optimiser afterwards or before: it holds the same tensors. State dict keys do not change.
+    ``sync_batchnorm`` turns its batch norms into SyncBatchNorm (normalising over the global
+    batch, not each rank's share; CUDA only in torch). It keeps the parameters, so an
+    optimiser built before or after holds the same tensors; state dict keys do not change.
     """
     device = torch.device(device)
     if not running():

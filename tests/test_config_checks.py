@@ -9,7 +9,7 @@ from ebjepa_tutorial.course.presets import PRESETS
 from ebjepa_tutorial.losses.rollout import rollout
 from ebjepa_tutorial.losses.sigreg import sigreg_loss
 from ebjepa_tutorial.models.video import VideoJEPA
-from ebjepa_tutorial.training.image import ImageJEPAConfig
+from ebjepa_tutorial.training.image import ImageJEPAConfig, SIGReg, VICReg
 from ebjepa_tutorial.training.video import VIDEO_CONFIGS, VideoJEPAConfig
 from ebjepa_tutorial.training.world import RefitConfig, WorldTrainConfig
 
@@ -19,9 +19,9 @@ from ebjepa_tutorial.training.world import RefitConfig, WorldTrainConfig
     (ImageJEPAConfig, {"projector": (64,)}, "projector must be None or two positive ints"),
     (ImageJEPAConfig, {"batch_size": 0}, "batch_size must be an int >= 2"),
     (ImageJEPAConfig, {"steps": 100}, "warmup_steps must be an int in 0..steps-1 = 99, got 200"),
-    (ImageJEPAConfig, {"encoder": "vgg"}, "unknown encoder 'vgg'; choose one of resnet18"),
     (ImageJEPAConfig, {"widths": (16, 32)}, "widths must be four positive ints"),
-    (ImageJEPAConfig, {"cov_coeff": float("nan")}, "cov_coeff must be a number >= 0"),
+    (VICReg, {"cov_coeff": float("nan")}, "VICReg.cov_coeff must be a number >= 0"),
+    (SIGReg, {"lam": -1.0}, "SIGReg.lam must be a number >= 0"),
     (VideoJEPAConfig, {"batch_size": 0}, "VideoJEPAConfig.batch_size must be an int >= 1"),
     (VideoJEPAConfig, {"n_frames": 5}, "n_frames must be an int >= context \\+ rollout_steps = 6"),
     (VideoJEPAConfig, {"rollout_steps": 0}, "rollout_steps must be an int >= 1"),

@@ -1,16 +1,10 @@
-"""Linear probe and kNN on synthetic features; feature extraction from a frozen encoder."""
+"""Linear probe and kNN on synthetic features; features of a frozen encoder."""
 
 import pytest
 import torch
 
-from ebjepa_tutorial.evaluation.classify import (
-    extract_features,
-    holdout_split,
-    knn_accuracy,
-    knn_predict,
-    linear_probe,
-)
-from ebjepa_tutorial.models import build_encoder
+from ebjepa_tutorial.evaluation.classify import embed, knn_accuracy, knn_predict, linear_probe
+from ebjepa_tutorial.models import ResNet18
 from ebjepa_tutorial.utils import make_generator
 
 
@@ -29,7 +23,6 @@ def test_linear_probe_separable_data():
     x_test, y_test = _clusters(300, seed=1)
     result = linear_probe(x_train, y_train, x_test, y_test, epochs=10)
     assert result.test_accuracy > 0.98 and result.train_accuracy > 0.98
-    assert result.holdout_accuracy is None
     logits = result.head((x_test - result.mean) / result.std)
     assert logits.shape == (300, 4)
 
@@ -39,9 +32,8 @@ def test_linear_probe_random_labels_is_at_chance():
     x_train, x_test = torch.randn(1000, 16, generator=gen), torch.randn(1000, 16, generator=gen)
     y_train = torch.randint(0, 10, (1000,), generator=gen)
     y_test = torch.randint(0, 10, (1000,), generator=gen)
-    result = linear_probe(x_train, y_train, x_test, y_test, epochs=5, holdout_fraction=0.2)
+    result = linear_probe(x_train, y_train, x_test, y_test, epochs=5)
     assert 0.04 < result.test_accuracy < 0.17  # chance is 0.10
-    assert 0.03 < result.holdout_accuracy < 0.19
 
 
 def test_linear_probe_is_seeded():
@@ -77,29 +69,19 @@ def test_knn_votes_by_hand():
     assert knn_predict(train, labels, query, k=1, chunk_size=1).tolist() == [1, 0]
 
 
-def test_holdout_split_sizes_and_disjointness():
-    x = torch.arange(100.0).unsqueeze(1)
-    y = torch.arange(100)
-    fit_x, fit_y, hold_x, hold_y = holdout_split(x, y, 0.1, seed=0)
-    assert len(hold_y) == 10 and len(fit_y) == 90
-    assert set(fit_y.tolist()).isdisjoint(hold_y.tolist())
-    with pytest.raises(ValueError, match="fraction"):
-        holdout_split(x, y, 1.5)
-
-
-def test_extract_features_frozen_and_mode_restored():
+def test_embed_is_frozen_and_restores_the_mode():
     torch.manual_seed(0)
-    encoder = build_encoder("resnet18", widths=(4, 8, 8, 8))
+    encoder = ResNet18(widths=(4, 8, 8, 8))
     encoder.train()
     images = torch.randint(0, 256, (10, 3, 32, 32), dtype=torch.uint8, generator=make_generator(0))
-    feats = extract_features(encoder, images, batch_size=4)
+    feats = embed(encoder, images, 32, batch_size=4)
     assert feats.shape == (10, 8) and feats.dtype == torch.float32 and not feats.requires_grad
     assert encoder.training  # the caller's mode is restored
     # Eval mode: each image's features do not depend on the rest of its batch.
-    again = extract_features(encoder, images[:3], batch_size=1)
+    again = embed(encoder, images[:3], 32, batch_size=1)
     assert torch.allclose(feats[:3], again, atol=1e-5)
     with pytest.raises(TypeError, match="uint8"):
-        extract_features(encoder, images.float())
+        embed(encoder, images.float(), 32)
 
 
 def test_shape_errors_are_named():

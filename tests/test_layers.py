@@ -1,7 +1,7 @@
 """The package's layers follow the data: each imports only itself and layers below it.
 
-Read bottom to top: utilities, the helpers of multi-process training, data,
-worlds, augmentations, networks, losses, training, evaluation, planning,
+Read bottom to top: utilities, data, worlds, augmentations, networks, losses,
+the multi-process wrappers of the losses, training, evaluation, planning,
 pictures, then the teaching layer (course). No import cycle, and nothing below
 the course imports it. The research commands (``research/``) and the build
 tooling (``tools/``) sit beside the package: they import it, it never imports
@@ -18,7 +18,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "ebjepa_tutorial"
-LAYERS = ["utils", "distributed", "data", "envs", "augment", "models", "losses", "training",
+LAYERS = ["utils", "data", "envs", "augment", "models", "losses", "distributed", "training",
           "evaluation", "planning", "viz", "course"]
 BESIDE = ("research", "tools")  # import the package; never imported by it
 

@@ -57,30 +57,6 @@ def test_vicreg_loss_weights_the_terms():
     assert all(v.ndim == 0 and not v.requires_grad for v in terms.values())
 
 
-def test_multi_view_invariance_pairs_each_global_view_with_every_other_view():
-    z_a = torch.tensor([[0.0, 0.0]])
-    z_b = torch.tensor([[2.0, 0.0]])
-    local = torch.tensor([[0.0, 4.0]])
-    # pairs (a, b), (a, l), (b, l): squared distances 4, 16, 20 over D = 2 -> 2, 8, 10
-    assert losses.multi_view_invariance(z_a, z_b, [local]).item() == pytest.approx(20 / 3)
-    assert losses.multi_view_invariance(z_a, z_b).item() == losses.invariance_term(z_a, z_b)
-
-
-def test_vicreg_with_local_views_averages_its_regularisers_over_every_view():
-    g = torch.Generator().manual_seed(0)
-    z_a, z_b, l_1, l_2 = (torch.randn(16, 4, generator=g) for _ in range(4))
-    _, terms = losses.vicreg_loss(z_a, z_b, local=[l_1, l_2])
-    views = (z_a, z_b, l_1, l_2)
-    variance = sum(losses.variance_term(z) for z in views) / 4
-    covariance = sum(losses.covariance_term(z) for z in views) / 4
-    assert float(terms["variance"]) == pytest.approx(variance.item())
-    assert float(terms["covariance"]) == pytest.approx(covariance.item())
-    assert float(terms["invariance"]) == pytest.approx(
-        losses.multi_view_invariance(z_a, z_b, [l_1, l_2]).item())
-    # no local views: exactly the two-view loss, bit for bit
-    assert torch.equal(losses.vicreg_loss(z_a, z_b, local=())[0], losses.vicreg_loss(z_a, z_b)[0])
-
-
 def test_bad_inputs_give_clear_errors():
     with pytest.raises(ValueError, match="at least 2 samples"):
         losses.variance_term(torch.ones(1, 4))

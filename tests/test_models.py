@@ -5,7 +5,7 @@ import torch
 
 from ebjepa_tutorial.augment import two_views
 from ebjepa_tutorial.losses import vicreg_loss
-from ebjepa_tutorial.models import Projector, ResNet18, ViT, build_encoder, build_projector
+from ebjepa_tutorial.models import Projector, ResNet18, build_projector
 from ebjepa_tutorial.utils import make_generator
 
 SMALL = (8, 16, 32, 64)
@@ -13,14 +13,14 @@ SMALL = (8, 16, 32, 64)
 
 def test_resnet18_shapes_and_width():
     torch.manual_seed(0)
-    encoder = build_encoder("resnet18", widths=SMALL)
+    encoder = ResNet18(widths=SMALL)
     x = torch.randn(2, 3, 32, 32)
     assert encoder(x).shape == (2, 64) and encoder.out_dim == 64
     # The 3x3 stride-1 stem with padding 1 keeps 32x32 (padding 2 would give 34x34);
     # three stride-2 stages then give 4x4 maps.
     assert encoder.stem(x).shape == (2, 8, 32, 32)
-    assert encoder.feature_maps(x).shape == (2, 64, 4, 4)
-    assert build_encoder("resnet18").out_dim == 512
+    assert encoder.stages(encoder.stem(x)).shape == (2, 64, 4, 4)
+    assert ResNet18().out_dim == 512
 
 
 def test_resnet18_has_the_resnet18_layout():
@@ -31,15 +31,6 @@ def test_resnet18_has_the_resnet18_layout():
     assert not any(isinstance(m, torch.nn.MaxPool2d) for m in encoder.modules())
     params = sum(p.numel() for p in encoder.parameters())
     assert 11.0e6 < params < 11.3e6  # the CIFAR ResNet-18 has about 11.2 M parameters
-
-
-def test_vit_small_shapes():
-    torch.manual_seed(0)
-    vit = build_encoder("vit_s", patch_size=8, depth=2)
-    assert vit(torch.randn(2, 3, 32, 32)).shape == (2, 384)
-    tiny = ViT(patch_size=4, dim=32, depth=1, heads=2)
-    assert tiny(torch.randn(3, 3, 32, 32)).shape == (3, 32)
-    assert tiny.pos_embed.shape == (1, 64 + 1, 32)  # 8x8 patches and a class token
 
 
 def test_projector_layers_and_identity():
@@ -55,14 +46,8 @@ def test_projector_layers_and_identity():
         Projector(64, depth=-1)
 
 
-def test_unknown_encoder_name():
-    with pytest.raises(ValueError, match="unknown encoder 'resnet50'.*resnet18"):
-        build_encoder("resnet50")
-
-
-@pytest.mark.parametrize("name, kwargs", [("resnet18", {"widths": SMALL}), ("vit_s", {"depth": 1})])
-def test_bad_inputs_are_named(name, kwargs):
-    encoder = build_encoder(name, **kwargs)
+def test_bad_inputs_are_named():
+    encoder = ResNet18(widths=SMALL)
     with pytest.raises(ValueError, match="input channels"):
         encoder(torch.randn(2, 1, 32, 32))
     with pytest.raises(ValueError, match=r"\(batch, 3, height, width\)"):
@@ -71,14 +56,9 @@ def test_bad_inputs_are_named(name, kwargs):
         encoder(torch.zeros(2, 3, 32, 32, dtype=torch.uint8))
 
 
-def test_vit_rejects_the_wrong_image_size():
-    with pytest.raises(ValueError, match="32x32"):
-        ViT(depth=1)(torch.randn(1, 3, 16, 16))
-
-
 def test_one_vicreg_training_step_runs():
     torch.manual_seed(0)
-    encoder = build_encoder("resnet18", widths=SMALL)
+    encoder = ResNet18(widths=SMALL)
     projector = build_projector(encoder.out_dim, hidden_dim=64, out_dim=32)
     params = list(encoder.parameters()) + list(projector.parameters())
     optimizer = torch.optim.SGD(params, lr=0.01)

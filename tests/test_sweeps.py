@@ -11,11 +11,11 @@ from torch import nn
 from ebjepa_tutorial.course import presets
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.evaluation import sweeps
-from ebjepa_tutorial.training.image import ImageJEPAConfig
+from ebjepa_tutorial.training.image import ImageJEPAConfig, SIGReg, VICReg
 from research import sweep
 
-TINY = ImageJEPAConfig(loss="sigreg", widths=(4, 4, 4, 4), projector=(8, 8), batch_size=8,
-                       steps=2, warmup_steps=0, sigreg_slices=8)
+TINY = ImageJEPAConfig(loss=SIGReg(slices=8), widths=(4, 4, 4, 4), projector=(8, 8),
+                       batch_size=8, steps=2, warmup_steps=0)
 
 
 def _data(n, seed):
@@ -36,14 +36,14 @@ def test_class_plan_sweeps_each_coefficient_alone():
     for run in sensitivity + projector:
         assert run.config.steps == steps and run.config.warmup_steps <= steps // 10
     lambdas = [r for r in sensitivity if r.sweep == "sigreg_lambda"]
-    assert [r.config.sigreg_lambda for r in lambdas] == [0.001, 0.01, 0.1, 1.0, 10.0]
-    assert all(r.config.loss == "sigreg" for r in lambdas)
+    assert [r.config.loss.lam for r in lambdas] == [0.001, 0.01, 0.1, 1.0, 10.0]
+    assert all(isinstance(r.config.loss, SIGReg) for r in lambdas)
     vicreg = preset("01", "class").config  # each VICReg weight is swept around its default
     covs = [r for r in sensitivity if r.sweep == "cov_coeff"]
-    assert [r.config.cov_coeff for r in covs] == pytest.approx(
-        [f * vicreg.cov_coeff for f in sweeps.FACTORS["class"]])
-    assert all(r.config.std_coeff == vicreg.std_coeff and r.config.loss == "vicreg"
-               for r in covs)
+    assert [r.config.loss.cov_coeff for r in covs] == pytest.approx(
+        [f * vicreg.loss.cov_coeff for f in sweeps.FACTORS["class"]])
+    assert all(isinstance(r.config.loss, VICReg)
+               and r.config.loss.std_coeff == vicreg.loss.std_coeff for r in covs)
     assert [r.config.projector for r in projector[:4]] == [None, (1024, 64), (1024, 256),
                                                            (1024, 1024)]
     # the default VICReg run is shared by the two VICReg sweeps, the defaults by both plans
@@ -59,7 +59,8 @@ def test_ci_plan_is_small():
 
 def test_run_sweep_writes_each_run_and_reloads_instead_of_training(tmp_path, monkeypatch):
     train, test = _data(48, 0), _data(20, 1)
-    runs = sweeps.sensitivity_runs(TINY, TINY, factors=(0.5, 2.0))[:2]  # two lambdas
+    vicreg = dataclasses.replace(TINY, loss=VICReg())
+    runs = sweeps.sensitivity_runs(TINY, vicreg, factors=(0.5, 2.0))[:2]  # two lambdas
     path = tmp_path / "sweep.json"
     rows = sweeps.run_sweep(runs, train, test, path=path, progress=False)
     assert [r["value"] for r in rows] == [0.05, 0.2]

@@ -17,10 +17,10 @@ from dataclasses import dataclass, replace
 from ..envs import MAX_STEP
 from ..evaluation.sweeps import FACTORS, Run, projector_runs, sensitivity_runs, shorten
 from ..models.world import WORLD_CONFIGS
-from ..planning import CoarseFit, PlannerConfig
+from ..planning import PlannerConfig
 from ..training.cost import CostConfig
-from ..training.hierarchy import CoarseConfig
-from ..training.image import ImageJEPAConfig
+from ..training.hierarchy import CoarseConfig, CoarseFit
+from ..training.image import ImageJEPAConfig, SIGReg
 from ..training.video import VIDEO_CONFIGS, VideoJEPAConfig, ablation_configs
 from ..training.world import (
     ABLATABLE_TERMS,
@@ -105,7 +105,7 @@ class ImagePreset:
     test_images: int = 10_000  # CIFAR-10 test images the probe and kNN are scored on
     sweep_steps: int = 500  # steps per run of notebook 02's sweeps and ablations
     # the longer run that notebooks 01 and 02 load (class: shipped, made by
-    # commands.train_image); None: the main run is the long one (full scale)
+    # research.train_image); None: the main run is the long one (full scale)
     long: ImageJEPAConfig | None = None
 
     @property
@@ -123,33 +123,33 @@ _IMAGE_CI = ImageJEPAConfig(widths=(8, 8, 16, 16), blocks_per_stage=1, projector
 # CPU-second of the networks we measured (RESULTS.md, 01-02)
 _IMAGE_CLASS = ImageJEPAConfig(widths=(32, 64, 128, 256), blocks_per_stage=1, steps=1600,
                                warmup_steps=160)
-_IMAGE_FULL = ImageJEPAConfig(  # the paper: 300 epochs of batch 256 with LARS, all at 32 px
+_IMAGE_FULL = ImageJEPAConfig(  # the paper's network and 300 epochs of batch 256, all at 32 px
     widths=(64, 128, 256, 512), image_size=32, projector=(2048, 2048), batch_size=256,
-    steps=300 * 195, warmup_steps=10 * 195, optimizer="lars", lr=0.3, weight_decay=1e-4,
-)
+    steps=300 * 195, warmup_steps=10 * 195)
 
 
 # class: the shipped longer runs (checkpoints/README.md): the class recipe for 12,000 steps
 # (about 60 epochs); SIGReg at the lambda its longer runs preferred (RESULTS.md, 02)
 _LONG_STEPS = 12_000
 _LONG_SIGREG_LAMBDA = 0.05
+_SIGREG = {  # chapter 02's changes to chapter 01's run
+    # narrower than VICReg's, as at class, so that code mixing up the two widths fails in CI
+    "ci": dict(loss=SIGReg(), projector=(64, 16)),
+    "class": dict(loss=SIGReg(slices=1024), projector=(1024, 256)),  # (RESULTS.md, 02)
+    "full": dict(loss=SIGReg(10.0, scale_by_n=False), projector=(2048, 128)),  # the paper's
+}
 
 
 def image_preset(scale: str, loss: str) -> ImagePreset:
     """The preset of notebook 01 (``loss="vicreg"``) or 02 (``"sigreg"``) at ``scale``."""
-    base = {"ci": _IMAGE_CI, "class": _IMAGE_CLASS, "full": _IMAGE_FULL}[scale]
-    if loss == "sigreg" and scale == "full":  # the paper: lambda 10, 2048-128 projector
-        base = replace(base, projector=(2048, 128), sigreg_lambda=10.0, sigreg_scale_by_n=False)
-    if loss == "sigreg" and scale == "class":  # a narrower output and more slices (RESULTS.md, 02)
-        base = replace(base, projector=(1024, 256), sigreg_slices=1024)
-    if loss == "sigreg" and scale == "ci":  # narrower than VICReg's, as at class, so that code
-        base = replace(base, projector=(64, 16))  # mixing up the two widths fails in CI
-    config = replace(base, loss=loss)
+    config = {"ci": _IMAGE_CI, "class": _IMAGE_CLASS, "full": _IMAGE_FULL}[scale]
+    if loss == "sigreg":
+        config = replace(config, **_SIGREG[scale])
     if scale == "ci":
         return ImagePreset(config, train_images=2000, test_images=1000, sweep_steps=5,
                            long=replace(config, steps=30))
     if scale == "class":  # sweeps of 250 steps: about 2 minutes each on 2 cores
-        tuned = {"sigreg_lambda": _LONG_SIGREG_LAMBDA} if loss == "sigreg" else {}
+        tuned = {"loss": SIGReg(_LONG_SIGREG_LAMBDA, 1024)} if loss == "sigreg" else {}
         long = replace(config, steps=_LONG_STEPS, warmup_steps=_LONG_STEPS // 10, **tuned)
         return ImagePreset(config, sweep_steps=250, long=long)
     return ImagePreset(config)
@@ -266,7 +266,7 @@ _FLAT_07 = PlannerConfig(init_std=1.5)
 _SHORT = replace(_FLAT_07, horizon=16, samples=100, elites=10)
 _HIGH = PlannerConfig(horizon=16, samples=50, elites=5, warm_iterations=2, execute=1,
                       noise_period=2, action_bound=_STRIDE * MAX_STEP, init_std=_STRIDE * 1.5,
-                      max_std=_STRIDE * 2.0, stop_px=0)
+                      stop_px=0)
 _BEYOND_CLASS = BeyondPreset(
     _WORLD_CLASS, replace(_WORLD_CLASS, walls=2), CostConfig(), CoarseConfig(),
     flat=_FLAT_07, short=_SHORT,

@@ -1,9 +1,8 @@
 """How good is a frozen representation? Linear probe and k-nearest-neighbour accuracy.
 
 The standard offline protocol: run the encoder once, in eval mode, over the
-un-augmented train and test images (:func:`extract_features`), then fit a
-classifier on the frozen train features and report its accuracy on the test
-features. Two classifiers:
+un-augmented train and test images (:func:`embed`), then fit a classifier on
+the frozen train features and report its accuracy on the test features:
 
 - :func:`linear_probe`: a linear layer on standardised features, trained with
   mini-batch Adam and a cosine learning rate (seconds on a CPU for CIFAR-10).
@@ -12,9 +11,7 @@ features. Two classifiers:
   (the weighted kNN of Wu et al. 2018, InstDisc, also used by DINO), or one
   vote each with ``temperature=None``.
 
-Never choose hyper-parameters on the test split: pass ``holdout_fraction`` to
-:func:`linear_probe`, or use :func:`holdout_split`, to score choices on a
-slice of the train split. Features ``(N, D)``, labels ``(N,)`` int64.
+Features ``(N, D)``, labels ``(N,)`` int64.
 """
 
 from __future__ import annotations
@@ -28,57 +25,9 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 from torch import nn
-from tqdm.auto import tqdm
 
-from ..augment import normalize
 from ..data.paths import atomic_file, cache_dir
 from ..training.image import ImageJEPAConfig, resize
-
-
-@torch.no_grad()
-def extract_features(
-    encoder: nn.Module,
-    images_uint8: torch.Tensor,
-    batch_size: int = 512,
-    device: torch.device | str | None = None,
-    progress: bool = True,
-) -> torch.Tensor:
-    """Embed un-augmented images: uint8 ``(N, 3, H, W)`` -> float32 ``(N, D)`` on the CPU.
-
-    The images are normalised with the CIFAR-10 statistics (as the training
-    views were) and the encoder runs in eval mode (BatchNorm uses its running
-    statistics); its previous mode is restored afterwards.
-    """
-    if images_uint8.dtype != torch.uint8:
-        raise TypeError(
-            f"extract_features expects the stored uint8 images, got {images_uint8.dtype}; "
-            "pass the (N, 3, H, W) uint8 tensor of the data set"
-        )
-    device = torch.device(device) if device is not None else next(encoder.parameters()).device
-    was_training = encoder.training
-    encoder.eval()
-    chunks = []
-    batches = range(0, len(images_uint8), batch_size)
-    disable = not progress or len(batches) < 5
-    try:
-        for start in tqdm(batches, desc="features", leave=False, disable=disable):
-            batch = normalize(images_uint8[start : start + batch_size].to(device))
-            chunks.append(encoder(batch).float().cpu())
-    finally:
-        encoder.train(was_training)
-    return torch.cat(chunks)
-
-
-def holdout_split(
-    features: torch.Tensor, labels: torch.Tensor, fraction: float, seed: int = 0
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Split off a random ``fraction`` of the rows: ``(fit_x, fit_y, holdout_x, holdout_y)``."""
-    if not 0 < fraction < 1:
-        raise ValueError(f"holdout fraction must be in (0, 1), got {fraction}")
-    order = torch.randperm(len(features), generator=torch.Generator().manual_seed(seed))
-    n_holdout = max(1, round(fraction * len(features)))
-    hold, fit = order[:n_holdout], order[n_holdout:]
-    return features[fit], labels[fit], features[hold], labels[hold]
 
 
 def _check_pair(features: torch.Tensor, labels: torch.Tensor, name: str) -> None:
@@ -100,39 +49,23 @@ class ProbeResult:
 
     test_accuracy: float
     train_accuracy: float
-    holdout_accuracy: float | None  # None unless holdout_fraction > 0
     head: nn.Linear  # expects standardised features: (x - mean) / std
     mean: torch.Tensor  # (D,) train-feature mean used for standardising
     std: torch.Tensor  # (D,)
 
 
-def linear_probe(
-    train_features: torch.Tensor,
-    train_labels: torch.Tensor,
-    test_features: torch.Tensor,
-    test_labels: torch.Tensor,
-    epochs: int = 30,
-    batch_size: int = 512,
-    lr: float = 1e-3,
-    weight_decay: float = 1e-4,
-    holdout_fraction: float = 0.0,
-    seed: int = 0,
-) -> ProbeResult:
+def linear_probe(train_features: torch.Tensor, train_labels: torch.Tensor,
+                 test_features: torch.Tensor, test_labels: torch.Tensor, epochs: int = 30,
+                 batch_size: int = 512, lr: float = 1e-3, weight_decay: float = 1e-4,
+                 seed: int = 0) -> ProbeResult:
     """Train a linear classifier on frozen features; report its test accuracy.
 
-    Features are standardised with the (fit part of the) train split's mean and
-    std, then ``nn.Linear(D, C)`` is trained with mini-batch Adam, ``lr`` decaying
-    along a cosine to 0, for ``epochs`` passes. ``C`` is ``max(label) + 1``.
-    With ``holdout_fraction > 0`` that fraction of the train split is kept out
-    of training and scored separately (for choosing ``lr``, ``epochs``...).
+    Features are standardised with the train split's mean and std, then ``nn.Linear(D, C)``
+    is trained with mini-batch Adam, ``lr`` decaying along a cosine to 0, for ``epochs``
+    passes. ``C`` is ``max(label) + 1``. Never choose ``lr`` or ``epochs`` on the test split.
     """
     _check_pair(train_features, train_labels, "train")
     _check_pair(test_features, test_labels, "test")
-    holdout = None
-    if holdout_fraction > 0:
-        train_features, train_labels, *holdout = holdout_split(
-            train_features, train_labels, holdout_fraction, seed
-        )
     mean, std = train_features.mean(dim=0), train_features.std(dim=0) + 1e-6
     x_train = (train_features - mean) / std
     num_classes = int(max(train_labels.max(), test_labels.max())) + 1
@@ -142,12 +75,11 @@ def linear_probe(
         head.weight.copy_(torch.randn(head.weight.shape, generator=generator) * 0.01)
         head.bias.zero_()
     optimizer = torch.optim.Adam(head.parameters(), lr=lr, weight_decay=weight_decay)
-    steps_per_epoch = math.ceil(len(x_train) / batch_size)
-    scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, epochs * steps_per_epoch)
+    steps = epochs * math.ceil(len(x_train) / batch_size)
+    scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps)
     for _ in range(epochs):
         order = torch.randperm(len(x_train), generator=generator)
-        for start in range(0, len(x_train), batch_size):
-            rows = order[start : start + batch_size]
+        for rows in order.split(batch_size):
             loss = F.cross_entropy(head(x_train[rows]), train_labels[rows])
             optimizer.zero_grad()
             loss.backward()
@@ -156,8 +88,7 @@ def linear_probe(
     with torch.no_grad():
         train_acc = accuracy(head(x_train), train_labels)
         test_acc = accuracy(head((test_features - mean) / std), test_labels)
-        hold_acc = accuracy(head((holdout[0] - mean) / std), holdout[1]) if holdout else None
-    return ProbeResult(test_acc, train_acc, hold_acc, head, mean, std)
+    return ProbeResult(test_acc, train_acc, head, mean, std)
 
 
 @torch.no_grad()
@@ -215,18 +146,25 @@ def knn_accuracy(
 
 @torch.no_grad()
 def embed(encoder: nn.Module, images: torch.Tensor, size: int, batch_size: int = 256):
-    """Frozen features of un-augmented uint8 images ``(N, 3, 32, 32)`` at ``size``: ``(N, D)``.
+    """Frozen features of un-augmented uint8 images ``(N, 3, 32, 32)`` at ``size``: ``(N, D)``
+    float32 on the CPU.
 
-    The images are normalised and resized to ``size`` px (32: no resizing); the
-    protocol's size is ``config.eval_image_size``. (Batches of 256 ran about twice
-    as fast as batches of 1,000 at 32 px on a CPU: they stay in the cache.)
+    The images are normalised with the CIFAR-10 statistics (as the training views were) and
+    resized to ``size`` px (32: no resizing); the protocol's size is
+    ``config.eval_image_size``. The encoder runs in eval mode (batch norm uses its running
+    statistics); its mode is restored afterwards. (Batches of 256 ran about twice as fast as
+    batches of 1,000 at 32 px on a CPU: they stay in the cache.)
     """
+    if images.dtype != torch.uint8:
+        raise TypeError(f"embed expects the stored uint8 images, got {images.dtype}")
     device = next(encoder.parameters()).device
     was_training = encoder.training
     encoder.eval()
-    chunks = [encoder(resize(images[i:i + batch_size].to(device), size)).float().cpu()
-              for i in range(0, len(images), batch_size)]
-    encoder.train(was_training)
+    try:
+        chunks = [encoder(resize(images[i:i + batch_size].to(device), size)).float().cpu()
+                  for i in range(0, len(images), batch_size)]
+    finally:
+        encoder.train(was_training)
     return torch.cat(chunks)
 
 

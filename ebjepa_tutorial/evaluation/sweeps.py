@@ -25,11 +25,11 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from ..data.paths import atomic_file
-from ..training.image import ImageJEPAConfig, settings, train_image_jepa
+from ..training.image import ImageJEPAConfig, train_image_jepa
 from .classify import probe_encoder, protocol
 
 FACTORS = {"ci": (0.1, 1.0, 10.0), "class": (0.01, 0.1, 1.0, 10.0, 100.0),
@@ -67,12 +67,14 @@ def sensitivity_runs(sigreg_config: ImageJEPAConfig, vicreg_config: ImageJEPACon
                      factors=FACTORS["class"]) -> list[Run]:
     """SIGReg's ``sigreg_lambda``, VICReg's ``std_coeff`` and ``cov_coeff``, times ``factors``."""
     runs = []
-    for name, base in [("sigreg_lambda", sigreg_config), ("std_coeff", vicreg_config),
-                       ("cov_coeff", vicreg_config)]:
-        default = getattr(base, name)
+    for name, base, field in [("sigreg_lambda", sigreg_config, "lam"),
+                              ("std_coeff", vicreg_config, "std_coeff"),
+                              ("cov_coeff", vicreg_config, "cov_coeff")]:
+        default = getattr(base.loss, field)
         for factor in factors:
             value = float(f"{default * factor:.6g}")  # 0.1 * 0.1 is 0.01, not 0.010000000000000002
-            runs.append(Run(name, value, replace(base, **{name: value}), factor))
+            loss = replace(base.loss, **{field: value})
+            runs.append(Run(name, value, replace(base, loss=loss), factor))
     return runs
 
 
@@ -96,7 +98,7 @@ def key(config: ImageJEPAConfig | dict, n_train: int, n_test: int) -> str:
 
     The config includes ``eval_image_size``: a run probed at another size is another result.
     """
-    config = settings(config) if isinstance(config, ImageJEPAConfig) else config
+    config = asdict(config) if isinstance(config, ImageJEPAConfig) else config
     return json.dumps([config, n_train, n_test], sort_keys=True)
 
 
@@ -138,7 +140,7 @@ def train_and_probe(run: Run, train, test, device="cpu", progress: bool = True) 
     final = {name: values[-1] for name, values in history.items() if name != "step"}
     return {"sweep": run.sweep, "value": run.value, "factor": run.factor, **scores,
             "final_terms": final, "seconds": round(time.perf_counter() - start, 1),
-            "n_train": len(train[0]), "n_test": len(test[0]), "config": settings(run.config)}
+            "n_train": len(train[0]), "n_test": len(test[0]), "config": asdict(run.config)}
 
 
 def run_sweep(runs: list[Run], train, test, path: str | Path | None = None,

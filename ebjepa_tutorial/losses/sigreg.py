@@ -29,23 +29,16 @@ later releases multiply by N and use lambda 0.1 on CIFAR-10. Switching
 ``lam * N`` fixed when you switch. With the factor N, a lambda carries over
 from one batch size to another; without it, lambda must grow with the batch.
 
-Across several processes (``torchrun``), ``across_ranks=True`` makes the
-statistic that of the global batch: each rank's ECF (a mean over its b samples)
-is averaged over the W ranks, which is the ECF of all W b samples, and N is the
-global batch W b. Every rank must then project on the same directions: draw
-them from a generator seeded identically on every rank (the training loop
-seeds it with the step).
+Under ``torchrun`` the training code gathers every rank's embeddings first
+(:mod:`ebjepa_tutorial.distributed`), so the statistic is that of the global batch.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import torch
 
-from .. import distributed
 from ..utils import at_least_float32
-from .vicreg import _check_embeddings, multi_view_invariance
+from .vicreg import _check_embeddings, invariance_term
 
 
 def epps_pulley(
@@ -54,7 +47,6 @@ def epps_pulley(
     t_max: float = 3.0,
     sigma: float = 1.0,
     scale_by_n: bool = True,
-    across_ranks: bool = False,
 ) -> torch.Tensor:
     """Epps-Pulley statistic of 1-D samples against N(0, 1): ``(N,) -> ()`` or ``(N, M) -> (M,)``.
 
@@ -63,9 +55,7 @@ def epps_pulley(
     integrate over [0, t_max] with ``knots`` trapezoid knots and double it.
     ``sigma`` is the width of the Gaussian weight w(t); ``scale_by_n``
     multiplies by N (see the module docstring). Zero iff the empirical
-    characteristic function matches exp(-t^2/2) at every knot. With
-    ``across_ranks`` (a no-op in a single process), the ECF and N are those of
-    the samples of all ranks, each holding as many (see the module docstring).
+    characteristic function matches exp(-t^2/2) at every knot.
     """
     if x.ndim not in (1, 2) or x.shape[0] < 2:
         raise ValueError(
@@ -76,19 +66,15 @@ def epps_pulley(
     if knots < 2:
         raise ValueError(f"the trapezoid rule needs at least 2 knots, got {knots}")
     x = at_least_float32(x)  # cos(t x) of large arguments loses every digit in half precision
-    n = x.shape[0]
     t = torch.linspace(0.0, t_max, knots, device=x.device, dtype=x.dtype)  # (K,)
     ecf_real, ecf_imag = empirical_cf(x, t_max / (knots - 1), knots)  # (K,) or (M, K)
-    if across_ranks:  # the mean of equal-sized ranks' means: the ECF of the global batch
-        ecf_real, ecf_imag = distributed.mean_across_ranks(ecf_real, ecf_imag)
-        n = n * distributed.world_size()
     gaussian_cf = torch.exp(-(t**2) / 2)  # phi(t) of N(0, 1): real
     weight = torch.exp(-(t**2) / (2 * sigma**2))  # w(t)
 
     squared_gap = (ecf_real - gaussian_cf) ** 2 + ecf_imag**2  # |phi_N(t) - phi(t)|^2
     half_integral = torch.trapezoid(weight * squared_gap, t, dim=-1)  # over [0, t_max]
     statistic = 2 * half_integral  # over [-t_max, t_max], by symmetry
-    return statistic * n if scale_by_n else statistic
+    return statistic * x.shape[0] if scale_by_n else statistic
 
 
 _ANCHOR_EVERY = 8  # knots between exact cos/sin: bounds the angle-addition drift to ~8 ulp
@@ -175,14 +161,13 @@ def sigreg(
     t_max: float = 3.0,
     sigma: float = 1.0,
     scale_by_n: bool = True,
-    across_ranks: bool = False,
 ) -> torch.Tensor:
     """Sliced Epps-Pulley statistic of embeddings ``z`` ``(B, D)``, averaged over slices: ``()``.
 
     Fresh directions are drawn from ``generator`` on every call (so a training
     loop tests new directions each step), unless ``directions`` ``(D, M)`` are
-    given. ``knots``, ``t_max``, ``sigma``, ``scale_by_n`` and ``across_ranks``
-    go to :func:`epps_pulley`.
+    given. ``knots``, ``t_max``, ``sigma`` and ``scale_by_n`` go to
+    :func:`epps_pulley`.
     The cost is O(B * num_slices * knots); the reference uses 1024 slices, and so
     does chapter 02's class run: 256 cost it 2 points of probe (RESULTS.md, 01-02).
     """
@@ -195,7 +180,7 @@ def sigreg(
         )
     z = at_least_float32(z)
     projected = z @ directions.to(z.device, z.dtype)  # (B, M)
-    return epps_pulley(projected, knots, t_max, sigma, scale_by_n, across_ranks).mean()
+    return epps_pulley(projected, knots, t_max, sigma, scale_by_n).mean()
 
 
 def sigreg_loss(
@@ -204,12 +189,7 @@ def sigreg_loss(
     lam: float = 0.1,
     num_slices: int = 256,
     generator: torch.Generator | None = None,
-    knots: int = 17,
-    t_max: float = 3.0,
-    sigma: float = 1.0,
     scale_by_n: bool = True,
-    across_ranks: bool = False,
-    local: Sequence[torch.Tensor] = (),
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Invariance + ``lam`` * SIGReg on two views ``(B, D)``: returns ``(total, terms)``.
 
@@ -218,16 +198,11 @@ def sigreg_loss(
     applied to each view with the same random directions and averaged.
     ``terms`` holds the unweighted terms as detached 0-d tensors, like ``losses.vicreg_loss``.
     The default ``lam = 0.1`` is the EB-JEPA CIFAR-10 setting for ``scale_by_n=True``.
-    ``across_ranks``: SIGReg of the global batch (module docstring); the invariance
-    stays a local mean over pairs, which DDP averages over ranks. ``local``: more views of
-    the same images (multi-crop), as in :func:`ebjepa_tutorial.losses.vicreg_loss`.
     """
-    inv = multi_view_invariance(z_a, z_b, local)
+    inv = invariance_term(z_a, z_b)
     _check_embeddings(z_a, "z_a", min_batch=2)
     directions = random_directions(z_a.shape[1], num_slices, generator, z_a.device)
-    options = dict(directions=directions, knots=knots, t_max=t_max, sigma=sigma)
-    options.update(scale_by_n=scale_by_n, across_ranks=across_ranks)
-    views = (z_a, z_b, *local)
-    reg = sum(sigreg(z, **options) for z in views) / len(views)
+    reg = (sigreg(z_a, directions=directions, scale_by_n=scale_by_n)
+           + sigreg(z_b, directions=directions, scale_by_n=scale_by_n)) / 2
     total = inv + lam * reg
     return total, {"invariance": inv.detach(), "sigreg": reg.detach()}

@@ -1,6 +1,6 @@
 """Networks: encoders (images -> embeddings) and heads (embeddings -> projections)."""
 
-from .encoders import ResNet18, ViT, build_encoder
+from .encoders import ResNet18
 from .heads import Projector, build_projector
 
-__all__ = ["ResNet18", "ViT", "build_encoder", "Projector", "build_projector"]
+__all__ = ["ResNet18", "Projector", "build_projector"]

@@ -1,7 +1,7 @@
 """Training: the loop with its checkpoints, the optimisers, and one recipe per chapter.
 
 - ``loop``: :func:`fit`, resuming, :func:`load_or_train`, seeded batches
-- ``optim``: LARS and the warm-up-then-cosine schedule
+- ``optim``: the warm-up-then-cosine schedule and AdamW's parameter groups
 - ``checkpoints``: safe files, run identities, where runs are cached and shipped
 - ``toy`` (chapter 00), ``image`` (01-02), ``video`` (03), ``world`` (05, with the refit)
 - ``cost`` and ``hierarchy`` (07): a cost head and a coarse model on frozen latents

@@ -1,12 +1,6 @@
-"""Optimiser and learning-rate schedule for self-supervised training: LARS and warm-up + cosine.
-
-LARS (You et al., 2017) scales each weight matrix's step by a "trust ratio"
-``eta * ||w|| / ||g + wd * w||``, so every layer moves by about the same
-*relative* amount whatever its gradient scale. That lets SSL methods train
-with large batches and a large base learning rate (EB-JEPA: 0.3 at batch 256).
-As in the usual SSL implementations (Barlow Twins, VICReg), biases and
-normalisation parameters (every 1-D parameter) get neither weight decay nor
-the trust ratio.
+"""The learning-rate schedule of self-supervised training, warm-up + cosine, and AdamW's
+parameter groups (as in the usual SSL implementations, biases and normalisation parameters,
+every 1-D parameter, get no weight decay).
 
 The schedule warms up linearly from the very first step: step 0 uses
 ``base_lr / warmup_steps``, step ``warmup_steps - 1`` the full ``base_lr``,
@@ -20,60 +14,6 @@ import math
 
 import torch
 from torch.optim.lr_scheduler import LambdaLR
-
-
-class LARS(torch.optim.Optimizer):
-    """SGD with momentum, weight decay and LARS trust ratios for parameters with ndim > 1.
-
-    For each parameter ``w`` with gradient ``g``:
-
-        if w.ndim > 1:  u = g + weight_decay * w
-                        u = u * eta * ||w|| / ||u||   (unchanged if either norm is 0)
-        else:           u = g                          (biases, BatchNorm / LayerNorm)
-        m = momentum * m + u      (m starts at 0, so the first step uses m = u)
-        w = w - lr * m
-    """
-
-    def __init__(
-        self,
-        params,
-        lr: float = 0.3,
-        weight_decay: float = 1e-4,
-        momentum: float = 0.9,
-        eta: float = 0.001,
-    ):
-        if lr < 0 or weight_decay < 0 or not 0 <= momentum < 1 or eta <= 0:
-            raise ValueError(
-                f"need lr >= 0, weight_decay >= 0, 0 <= momentum < 1, eta > 0; got lr={lr}, "
-                f"weight_decay={weight_decay}, momentum={momentum}, eta={eta}"
-            )
-        defaults = dict(lr=lr, weight_decay=weight_decay, momentum=momentum, eta=eta)
-        super().__init__(params, defaults)
-
-    @torch.no_grad()
-    def step(self, closure=None):
-        loss = None
-        if closure is not None:
-            with torch.enable_grad():
-                loss = closure()
-        for group in self.param_groups:
-            for w in group["params"]:
-                if w.grad is None:
-                    continue
-                update = w.grad
-                if w.ndim > 1:
-                    update = update.add(w, alpha=group["weight_decay"])
-                    w_norm, u_norm = torch.norm(w), torch.norm(update)
-                    ratio = group["eta"] * w_norm / u_norm
-                    ratio = torch.where((w_norm > 0) & (u_norm > 0), ratio, torch.ones_like(ratio))
-                    update = update * ratio
-                state = self.state[w]
-                if "momentum_buffer" not in state:
-                    state["momentum_buffer"] = torch.zeros_like(w)
-                buffer = state["momentum_buffer"]
-                buffer.mul_(group["momentum"]).add_(update)
-                w.add_(buffer, alpha=-group["lr"])
-        return loss
 
 
 def warmup_cosine(
