@@ -18,7 +18,6 @@ from ebjepa_tutorial.envs import (
     render,
     room_of,
     sample_positions,
-    step,
     transition,
     wall_collision,
 )
@@ -237,7 +236,7 @@ def test_good_layouts_and_other_errors():
     with pytest.raises(ValueError, match=r"pass wall=0\.\.1"):
         wall_bounds(LAYOUT)
     with pytest.raises(ValueError, match="inside the wall"):
-        step(torch.tensor([[44.0, 30.0]]), torch.zeros(1, 2), LAYOUT)
+        check_positions(torch.tensor([[44.0, 30.0]]), LAYOUT)
 
 
 # ----------------------------------------------------------------- data and episodes
@@ -254,7 +253,7 @@ def test_trajectories_cross_both_walls():
     assert data.changes_room()[data.door].float().mean() > 0.5
     positions = data.positions[:200, 0]
     for t in range(16):  # one transition function
-        positions = step(positions, data.actions[:200, t], data.layouts[:200])
+        positions = transition(positions, data.actions[:200, t], data.layouts[:200])
         assert torch.equal(positions, data.positions[:200, t + 1])
 
 

@@ -7,6 +7,7 @@ import torch
 
 from ebjepa_tutorial.course.exercises import ExerciseError, check_wall_collision
 from ebjepa_tutorial.envs import (
+    Episodes,
     TwoRoomsEnv,
     clip_actions,
     generate_trajectories,
@@ -16,7 +17,6 @@ from ebjepa_tutorial.envs import (
     room_of,
     sample_positions,
     sample_von_mises,
-    step,
     transition,
     wall_collision,
 )
@@ -214,20 +214,24 @@ def test_checker_accepts_reference_and_explains_mistakes(capsys):
 
 
 def test_bad_inputs_give_clear_errors():
-    layouts = torch.tensor([[30, 30]])
-    pos = torch.tensor([[10.0, 10.0]])
+    env = TwoRoomsEnv()
+
+    def reset(layouts, start=(10.0, 10.0)):
+        start = torch.tensor([start])
+        return env.reset(episodes=Episodes(torch.tensor(layouts), start, start))
+
+    reset([[30, 30]])
     with pytest.raises(ValueError, match=r"shape \(1, 2\)"):
-        step(pos, torch.zeros(1, 3), layouts)
+        env.step(torch.zeros(1, 3))
     with pytest.raises(ValueError, match="NaN"):
-        step(pos, torch.tensor([[float("nan"), 0.0]]), layouts)
-    with pytest.raises(ValueError, match="wall_x=50 is outside"):
-        step(pos, torch.zeros(1, 2), torch.tensor([[50, 30]]))
-    with pytest.raises(ValueError, match="door_y=5 is outside"):
-        step(pos, torch.zeros(1, 2), torch.tensor([[30, 5]]))
-    with pytest.raises(ValueError, match="whole pixel"):
-        step(pos, torch.zeros(1, 2), torch.tensor([[30.5, 30.0]]))
+        env.step(torch.tensor([[float("nan"), 0.0]]))
+    for layouts, message in (([[50, 30]], "wall_x=50 is outside"),
+                             ([[30, 5]], "door_y=5 is outside"),
+                             ([[30.5, 30.0]], "whole pixel")):
+        with pytest.raises(ValueError, match=message):
+            reset(layouts)
     with pytest.raises(ValueError, match="inside the wall"):
-        check_positions(torch.tensor([[30.0, 10.0]]), layouts)
+        reset([[30, 30]], start=(30.0, 10.0))
     for seed in ("3", 1.5, True, None):
         with pytest.raises(TypeError, match="seed must be an int"):
             make_episodes(4, seed=seed)
@@ -292,10 +296,11 @@ def test_door_trajectories_change_rooms(data):
 
 def test_data_replays_through_the_environment_step(data):
     few = data[:500]
-    pos = few.positions[:, 0]
+    env = TwoRoomsEnv()
+    env.reset(episodes=Episodes(few.layouts, few.positions[:, 0], few.positions[:, -1]))
     for t in range(16):
-        pos = step(pos, few.actions[:, t], few.layouts)
-        assert torch.equal(pos, few.positions[:, t + 1])  # one transition function
+        env.step(few.actions[:, t])
+        assert torch.equal(env.positions, few.positions[:, t + 1])  # one transition function
     frames = few.frames(slice(0, 3))
     assert frames.shape == (3, 17, 2, 65, 65)
 
@@ -357,9 +362,10 @@ def test_environment_steps_and_scores():
     goal_px = env.goals.round().long()
     assert torch.equal(goal_dot, goal_px[:, 1] * 65 + goal_px[:, 0])
     start = env.positions.clone()
-    env.step(torch.tensor([[0.6, 0.8]] * 8))
+    action = torch.tensor([[0.6, 0.8]] * 8)
+    env.step(action)
     assert env.steps_taken == 1
-    assert torch.allclose(env.positions, step(start, torch.tensor([[0.6, 0.8]] * 8), env.layouts))
+    assert torch.allclose(env.positions, transition(start, action, env.layouts))
     assert not env.success().any()  # goals are in the other room, far away
     env.positions = env.goals.clone()
     assert env.success().all() and torch.equal(env.distance_to_goal(), torch.zeros(8))

@@ -28,7 +28,6 @@ from .two_rooms import (
     room_of,
     sample_positions,
     shortest_path_length,
-    step,
     transition,
     wall_collision,
 )
@@ -51,7 +50,6 @@ __all__ = [
     "sample_positions",
     "sample_von_mises",
     "shortest_path_length",
-    "step",
     "step_budget",
     "transition",
     "wall_collision",

@@ -33,8 +33,8 @@ from dataclasses import dataclass
 
 import torch
 
+from ..utils import as_generator
 from .two_rooms import (
-    as_generator,
     check_actions,
     check_layouts,
     check_positions,

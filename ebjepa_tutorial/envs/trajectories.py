@@ -33,12 +33,12 @@ from dataclasses import dataclass
 
 import torch
 
+from ..utils import as_generator
 from .two_rooms import (
     DOT_MARGIN,
     HIGH,
     LOW,
     WALL_WIDTH,
-    as_generator,
     check_layouts,
     random_layouts,
     render,
@@ -48,6 +48,8 @@ from .two_rooms import (
     wall_count,
     walls_of,
 )
+
+STEP_STD, STEP_RANGE = 0.4, (0.2, 1.8)  # the step length's normal: std and truncation, px
 
 
 def sample_von_mises(kappa: float, shape, generator: torch.Generator) -> torch.Tensor:
@@ -188,8 +190,6 @@ def generate_trajectories(
     wall_fraction: float = 0.0,
     kappa: float = 5.0,
     step_mean: float = 1.0,
-    step_std: float = 0.4,
-    step_range: tuple[float, float] = (0.2, 1.8),
     walls: int = 1,
     layouts: torch.Tensor | None = None,
 ) -> Trajectories:
@@ -201,6 +201,8 @@ def generate_trajectories(
     ``walls``: 1 for Two Rooms, 2 for Three Rooms (a door or wall start then
     faces one of the two walls, picked at random per trajectory). ``layouts``: one
     layout per trajectory ``(n, 2W)`` instead of fresh random ones (then ``walls`` is theirs).
+    The draws come in a fixed order (layouts, starts, turns, step lengths): the
+    shipped models were trained on these exact trajectories.
     """
     if not isinstance(n, int) or n < 1 or not isinstance(steps, int) or steps < 1:
         raise ValueError(f"n and steps must be positive ints, got n={n!r}, steps={steps!r}")
@@ -215,6 +217,20 @@ def generate_trajectories(
                          f"{tuple(layouts.shape)}")
     else:
         check_layouts(layouts)
+    start, heading, door = random_starts(layouts, door_fraction, wall_fraction, generator)
+    actions = random_walk(heading, steps, kappa, step_mean, generator)
+    return Trajectories(roll_out(start, actions, layouts), actions, layouts, door)
+
+
+def random_starts(layouts: torch.Tensor, door_fraction: float, wall_fraction: float,
+                  generator: torch.Generator):
+    """Start positions (n, 2), first headings (n,) and which start at a door (n,) bool.
+
+    Uniform on the floor with a uniform heading, except ``round(door_fraction * n)``
+    door starts (:func:`door_starts`) and ``round(wall_fraction * n)`` of the others
+    wall starts (:func:`wall_starts`).
+    """
+    n = len(layouts)
     door = torch.zeros(n, dtype=torch.bool)
     door[torch.randperm(n, generator=generator)[: round(door_fraction * n)]] = True
     start = sample_positions(layouts, generator)
@@ -225,14 +241,26 @@ def generate_trajectories(
     if wall_fraction:  # drawn last, so that without it the data is unchanged
         others = (~door).nonzero().squeeze(1)
         wall = others[torch.randperm(len(others), generator=generator)[: round(wall_fraction * n)]]
-        wall_start, wall_heading = wall_starts(layouts[wall], generator)
-        start[wall], heading[wall] = wall_start, wall_heading
+        start[wall], heading[wall] = wall_starts(layouts[wall], generator)
+    return start, heading, door
+
+
+def random_walk(heading: torch.Tensor, steps: int, kappa: float, step_mean: float,
+                generator: torch.Generator) -> torch.Tensor:
+    """The policy's actions (n, steps, 2) from first headings (n,): each heading turns
+    by a von Mises(0, ``kappa``) increment, each step length is a truncated normal."""
+    n = len(heading)
     turns = sample_von_mises(kappa, (n, steps - 1), generator)
     headings = heading[:, None] + torch.cat([torch.zeros(n, 1), turns.cumsum(dim=1)], dim=1)
-    lengths = sample_truncated_normal(step_mean, step_std, *step_range, (n, steps), generator)
-    actions = lengths[..., None] * torch.stack([headings.cos(), headings.sin()], dim=-1)
-    positions = torch.empty(n, steps + 1, 2)
+    lengths = sample_truncated_normal(step_mean, STEP_STD, *STEP_RANGE, (n, steps), generator)
+    return lengths[..., None] * torch.stack([headings.cos(), headings.sin()], dim=-1)
+
+
+def roll_out(start: torch.Tensor, actions: torch.Tensor, layouts: torch.Tensor) -> torch.Tensor:
+    """Positions (n, T+1, 2) from ``start`` (n, 2) under ``actions`` (n, T, 2), by
+    :func:`transition`, the one rule of motion the environment uses too."""
+    positions = torch.empty(len(start), actions.shape[1] + 1, 2)
     positions[:, 0] = start
-    for t in range(steps):
+    for t in range(actions.shape[1]):
         positions[:, t + 1] = transition(positions[:, t], actions[:, t], layouts)
-    return Trajectories(positions, actions, layouts, door)
+    return positions

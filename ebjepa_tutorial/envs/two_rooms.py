@@ -210,17 +210,9 @@ def transition(positions: torch.Tensor, actions: torch.Tensor, layouts: torch.Te
     """THE transition of Two Rooms: clip the action to ``MAX_STEP``, then move.
 
     positions (B, 2), actions (B, 2), layouts (B, 2W) -> next positions (B, 2).
-    No input checks (the data generator calls it in a loop); see :func:`step`.
+    No input checks (the data generator calls it in a loop); ``TwoRoomsEnv.step`` checks.
     """
     return wall_collision(positions, clip_actions(actions), layouts)
-
-
-def step(positions: torch.Tensor, actions: torch.Tensor, layouts: torch.Tensor):
-    """:func:`transition` with checked inputs: clear errors for wrong shapes or NaN."""
-    check_layouts(layouts)
-    check_positions(positions, layouts)
-    check_actions(actions, len(positions), positions.dtype)
-    return transition(positions, actions.to(positions.dtype), layouts)
 
 
 def shortest_path_length(starts: torch.Tensor, goals: torch.Tensor, layouts: torch.Tensor,
@@ -307,17 +299,6 @@ def render(positions: torch.Tensor, layouts: torch.Tensor, out: torch.Tensor | N
     torch.matmul(gy[..., :, None], gx[..., None, :], out=frames[:, :, 0])
     frames[:, :, 1] = wall_images(layouts.to(pos.device))[:, None]
     return out
-
-
-def as_generator(seed) -> torch.Generator:
-    """A ``torch.Generator`` from an int seed, or the generator itself."""
-    if isinstance(seed, torch.Generator):
-        return seed
-    if not isinstance(seed, int) or isinstance(seed, bool):
-        raise TypeError(
-            f"seed must be an int (or a torch.Generator), got {type(seed).__name__} {seed!r}"
-        )
-    return torch.Generator().manual_seed(seed)
 
 
 def random_layouts(n: int, generator: torch.Generator, walls: int = 1) -> torch.Tensor:
