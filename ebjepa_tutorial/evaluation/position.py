@@ -73,16 +73,25 @@ def fit_position_probe(
     y = positions.detach().float().to(x.device)
     mean, std = x.mean(dim=0), x.std(dim=0).clamp_min(1e-6)
     x = (x - mean) / std
-    if hidden == 0:
-        head = nn.Linear(x.shape[1], y.shape[1]).to(x.device)  # its weights are solved for
-        y_mean = y.mean(dim=0)
-        # Normal equations on centred data: (X^T X + N ridge I) W = X^T (Y - mean Y).
-        gram = x.T @ x + len(x) * ridge * torch.eye(x.shape[1], device=x.device)
-        weight = torch.linalg.solve(gram, x.T @ (y - y_mean))  # (D, 2)
-        with torch.no_grad():
-            head.weight.copy_(weight.T)
-            head.bias.copy_(y_mean)  # x is centred, so the bias is the mean position
-        return PositionProbe(mean, std, head)
+    head = _ridge_head(x, y, ridge) if hidden == 0 else _mlp_head(x, y, hidden, steps, lr, seed)
+    return PositionProbe(mean, std, head)
+
+
+@torch.no_grad()
+def _ridge_head(x: torch.Tensor, y: torch.Tensor, ridge: float) -> nn.Linear:
+    """The linear head of centred ``x`` (N, D) -> ``y`` (N, 2), solved in closed form."""
+    head = nn.Linear(x.shape[1], y.shape[1]).to(x.device)
+    y_mean = y.mean(dim=0)
+    # Normal equations on centred data: (X^T X + N ridge I) W = X^T (Y - mean Y).
+    gram = x.T @ x + len(x) * ridge * torch.eye(x.shape[1], device=x.device)
+    head.weight.copy_(torch.linalg.solve(gram, x.T @ (y - y_mean)).T)  # (2, D)
+    head.bias.copy_(y_mean)  # x is centred, so the bias is the mean position
+    return head
+
+
+def _mlp_head(x: torch.Tensor, y: torch.Tensor, hidden: int, steps: int, lr: float,
+              seed: int) -> nn.Sequential:
+    """An MLP ``D -> hidden -> 2`` fitted to ``x`` (N, D) -> ``y`` (N, 2) by full-batch Adam."""
     generator = torch.Generator().manual_seed(seed)
     head = nn.Sequential(nn.Linear(x.shape[1], hidden), nn.ReLU(), nn.Linear(hidden, y.shape[1]))
     with torch.no_grad():
@@ -98,7 +107,7 @@ def fit_position_probe(
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
-    return PositionProbe(mean, std, head)
+    return head
 
 
 @torch.no_grad()
