@@ -2,53 +2,34 @@
 
 A batch of B worlds, each a 65x65 arena cut in two by a vertical wall with a
 door, after the Two Rooms environment of PLDM (Sobal et al., 2025) that the
-EB-JEPA paper plans in. The same code runs rooms in a row: W walls, each with
-its own door, make W+1 rooms (W=2: Three Rooms, a harder world for a later
-chapter).
+EB-JEPA paper plans in. W walls in a row, each with its own door, make W+1
+rooms (W=2: Three Rooms, chapter 07's harder world).
 
 Coordinates. A position is ``(x, y)`` in pixels, float32: ``x`` is the column
 and ``y`` the row of the image (``y`` grows downwards). Pixel ``(row i, column
 j)`` has its centre at ``(x=j, y=i)`` and covers ``[j-0.5, j+0.5] x [i-0.5, i+0.5]``.
 
-Walls (image channel 1, value 1 on a wall pixel):
-
-- border: rows and columns 0 and 64;
-- the middle wall: columns ``wall_x-1, wall_x, wall_x+1`` (3 px), ``wall_x`` an
-  integer in 20..44;
-- the door: rows ``door_y-4 .. door_y+4`` (9 px) of the middle wall are open,
-  ``door_y`` an integer in 10..54.
-
-A layout is the pair ``(wall_x, door_y)``; a batch of layouts is a long
-tensor ``(B, 2)``. The agent (channel 0) is a Gaussian dot of std 1.3 px and
-peak 1 at its centre.
+Walls (image channel 1, value 1 on a wall pixel): the border, rows and columns
+0 and 64; a wall, columns ``wall_x-1 .. wall_x+1`` (3 px), ``wall_x`` in 20..44;
+its door, rows ``door_y-4 .. door_y+4`` (9 px) left open, ``door_y`` in 10..54.
+A layout is ``(wall_x, door_y)``, a batch of them a long tensor ``(B, 2)``; with
+W walls, ``(B, 2W)`` = ``(wall_x_0, door_y_0, wall_x_1, door_y_1, ...)``, sorted
+left to right. The agent (channel 0) is a Gaussian dot of std 1.3 px, peak 1.
 
 Where the dot centre may be: at least ``DOT_MARGIN`` = 1 px from every wall
-pixel's edge, so the centre never sits on a wall pixel:
+pixel's edge, so in the arena ``1.5 <= x, y <= 62.5`` and outside each wall's
+slab ``wall_x-2.5 < x < wall_x+2.5``, except in its doorway,
+``door_y-3.5 <= y <= door_y+3.5`` (the 9 px door less the margin).
 
-- the arena ``1.5 <= x, y <= 62.5``;
-- outside the wall's slab ``wall_x-2.5 < x < wall_x+2.5``, except in the
-  doorway, ``door_y-3.5 <= y <= door_y+3.5`` (the 9 px door less the margin).
+Three Rooms draws ``wall_x_0`` in 14..25 and ``wall_x_1`` in 39..50 (mirror
+images about the centre column 32), doors in 10..54 independently: the walls
+stand at least ``MIN_WALL_GAP`` = 14 px apart, so the middle room's floor (the
+span of x its dot centre may take, ``gap - 5`` px) is 9..31 px wide: the dot
+fits with room to turn, and a step of at most 1.8 px meets at most one wall.
+The outer rooms' floors are 10..21 px wide (Two Rooms: 16..40).
 
-Rooms in a row. A layout of W walls is ``(B, 2W)``: ``(wall_x_0, door_y_0,
-wall_x_1, door_y_1, ...)``, walls sorted left to right, each wall and door
-exactly as above; ``(B, 2)`` is Two Rooms. A room's free floor is the span of x
-its dot centre may take: ``wall_x - 4`` px left of the first wall (from x=1.5 to
-the slab), ``60 - wall_x`` right of the last, and ``gap - 5`` between two walls
-``gap`` px apart. Three Rooms (W=2) draws ``wall_x_0`` in 14..25 and ``wall_x_1``
-in 39..50, mirror images about the arena's centre column 32, doors in 10..54
-independently:
-
-- between the walls at least ``MIN_WALL_GAP`` = 39 - 25 = 14 px, so the middle
-  room's floor is 9..31 px wide (``MIN_FLOOR`` = 9: the dot, std 1.3 px, fits
-  with room to turn, and every step of at most 1.8 px meets at most one wall);
-- the outer rooms' floors are 10..21 px wide (Two Rooms: 16..40).
-
-:func:`check_layouts` accepts for W >= 2 any walls in 14..50, sorted, at least
-14 px apart; :func:`random_layouts` draws only the ranges above.
-
-The rule of motion is :func:`wall_collision`; :func:`transition` adds the
-action bound and is the ONE transition function that both the offline data
-(``trajectories.py``) and the evaluation environment (``episodes.py``) use.
+:func:`transition` (the action bound, then :func:`wall_collision`) is the ONE
+transition function of both the offline data and the evaluation environment.
 """
 
 from __future__ import annotations
@@ -121,22 +102,14 @@ def wall_collision(positions: torch.Tensor, moves: torch.Tensor, layouts: torch.
     """Move each dot by its displacement, stopping at walls.
 
     positions (B, 2) allowed dot centres, moves (B, 2), layouts (B, 2W) -> (B, 2).
-
-    1. Border: each coordinate of ``positions + moves`` is clamped to the arena
-       (the dot slides along the border).
-    2. Each wall in turn, in the order the move meets them (left to right for a
-       move to the right): :func:`stop_at_wall` cuts the segment from the start
-       to the target, and what it returns is the next wall's target.
-    The blocked coordinate is clamped, the other one moves freely: a move
-    never gets longer, and a move that touches no wall is unchanged.
-
-    Exact (the one-wall rule at the one wall the move meets) for every move
-    whose x-extent is at most the floor between two neighbouring walls (gap - 5
-    px, >= 9 px in Three Rooms), so for every step of :func:`transition` (at
-    most ``MAX_STEP`` = 1.8 px), and for any move with one wall. A longer move
-    that meets two walls is approximated (the second wall judges the straight
-    line from the start to what the first left), but still never ends inside
-    a wall or outside the arena.
+    1. The border: ``positions + moves`` is clamped to the arena (the dot slides).
+    2. Each wall in the order the move meets them: :func:`stop_at_wall` cuts the
+       segment from the start to the target, giving the next wall's target.
+    The blocked coordinate is clamped, the other moves freely: a move never gets
+    longer, and one that touches no wall is unchanged. Exact for every move whose
+    x-extent is at most the floor between two walls (>= 9 px), so for every step
+    of :func:`transition`; a longer move that meets two walls is approximated,
+    but never ends inside a wall or outside the arena.
     """
     target = (positions + moves).clamp(LOW, HIGH)
     walls = walls_of(layouts)  # (B, W, 2)
@@ -183,24 +156,17 @@ def clip_actions(actions: torch.Tensor, bound: float = MAX_STEP) -> torch.Tensor
     """Shrink every action longer than ``bound`` to length ``bound``, same direction.
 
     actions (..., 2) -> (..., 2). Clipping is on the Euclidean norm (a disc),
-    because the data policy's steps fill exactly that disc; a planner that
-    samples in a box should clip with this too, to stay where the data was.
-    A finite action whose length overflows the dtype (its squares are infinite)
-    still becomes a step of length ``bound`` in its direction.
+    because the data policy's steps fill exactly that disc. A finite action whose
+    length overflows the dtype still becomes a step of length ``bound``.
     """
     norm = actions.norm(dim=-1, keepdim=True)
     scale = (bound / norm.clamp_min(1e-12)).clamp(max=1.0)
-    # Only rows whose length overflowed take the slower rescaled path, so every
-    # other action is clipped exactly as before.
     return torch.where(norm.isinf(), _step_of_length(actions, bound), actions * scale)
 
 
 def _step_of_length(actions: torch.Tensor, length: float) -> torch.Tensor:
-    """Each action (..., 2) rescaled to ``length``, safe for huge finite components.
-
-    Dividing by the largest component first keeps the norm in [1, sqrt(2)], so
-    squaring cannot overflow; the clamp keeps a zero action from giving 0 / 0.
-    """
+    """Each action (..., 2) rescaled to ``length``: divided first by its largest component,
+    its norm is in [1, sqrt(2)] and cannot overflow; the clamps keep 0 / 0 away."""
     largest = actions.abs().amax(dim=-1, keepdim=True)
     unit = actions / largest.clamp_min(torch.finfo(actions.dtype).tiny)
     return unit * (length / unit.norm(dim=-1, keepdim=True).clamp_min(1e-12))
@@ -365,38 +331,33 @@ def check_layouts(layouts) -> None:
     if not isinstance(layouts, torch.Tensor):
         raise TypeError(f"layouts must be a torch tensor (B, 2W), got {type(layouts).__name__}")
     if layouts.dim() != 2 or layouts.shape[1] == 0 or layouts.shape[1] % 2:
-        raise ValueError(
-            "layouts must have shape (B, 2W) = (wall_x, door_y) for each of W walls, e.g. "
-            f"(B, 2) for Two Rooms, (B, 4) for Three Rooms; got {tuple(layouts.shape)}"
-        )
+        raise ValueError("layouts must have shape (B, 2W) = (wall_x, door_y) for each of W "
+                         "walls, e.g. (B, 2) for Two Rooms, (B, 4) for Three Rooms; got "
+                         f"{tuple(layouts.shape)}")
     if layouts.is_floating_point() and not torch.equal(layouts, layouts.round()):
         raise ValueError("layouts must hold whole pixel numbers; use random_layouts(n, generator)")
     walls = wall_count(layouts)
-    x_range = WALL_X_RANGE if walls == 1 else WALLS_X_LIMITS
-    for column in range(2 * walls):
+    for column, values in enumerate(layouts.T):
         name = ("wall_x", "door_y")[column % 2]
-        if walls > 1:
-            name = f"wall {column // 2}: {name}"
-        _check_range(layouts[:, column], name, DOOR_Y_RANGE if column % 2 else x_range)
+        name = f"wall {column // 2}: {name}" if walls > 1 else name
+        lo, hi = DOOR_Y_RANGE if column % 2 else WALL_X_RANGE if walls == 1 else WALLS_X_LIMITS
+        if (i := _first((values < lo) | (values > hi))) is not None:
+            raise ValueError(f"{name}={values[i].item()} is outside the allowed range {lo}..{hi}")
     for k in range(walls - 1):
-        gap = layouts[:, 2 * k + 2] - layouts[:, 2 * k]
-        if len(gap) and gap.min() < MIN_WALL_GAP:
-            i = int((gap < MIN_WALL_GAP).nonzero()[0])
-            row, gap_i = layouts[i].tolist(), gap[i].item()
-            if gap_i <= 0:
-                raise ValueError(f"layout {i} = {row}: walls must be sorted left to right, but "
-                                 f"wall {k + 1} (wall_x={row[2 * k + 2]}) is not right of wall "
-                                 f"{k} (wall_x={row[2 * k]})")
-            raise ValueError(f"layout {i} = {row}: walls {k} and {k + 1} are {gap_i:g} px apart; "
-                             f"a dot needs at least {MIN_WALL_GAP} px between them")
+        left, right = layouts[:, 2 * k], layouts[:, 2 * k + 2]
+        if (i := _first(right <= left)) is not None:
+            raise ValueError(f"layout {i} = {layouts[i].tolist()}: walls must be sorted left to "
+                             f"right, but wall {k + 1} (wall_x={right[i].item()}) is not right "
+                             f"of wall {k} (wall_x={left[i].item()})")
+        if (i := _first(right - left < MIN_WALL_GAP)) is not None:
+            raise ValueError(f"layout {i} = {layouts[i].tolist()}: walls {k} and {k + 1} are "
+                             f"{(right - left)[i].item():g} px apart; a dot needs at least "
+                             f"{MIN_WALL_GAP} px between them")
 
 
-def _check_range(values: torch.Tensor, name: str, allowed: tuple[int, int]) -> None:
-    """Raise ``"{name}=v is outside the allowed range lo..hi"`` for the first bad value."""
-    lo, hi = allowed
-    if len(values) and (values.min() < lo or values.max() > hi):
-        bad = values[(values < lo) | (values > hi)][0].item()
-        raise ValueError(f"{name}={bad} is outside the allowed range {lo}..{hi}")
+def _first(mask: torch.Tensor) -> int | None:
+    """The index of the first True of a (B,) bool mask, or None."""
+    return int(mask.nonzero()[0]) if mask.any() else None
 
 
 def check_positions(positions, layouts: torch.Tensor) -> None:
@@ -406,36 +367,23 @@ def check_positions(positions, layouts: torch.Tensor) -> None:
         raise ValueError(f"positions must be a tensor of shape ({len(layouts)}, 2), got {shape}")
     x, y = positions.unbind(-1)
     outside = ~torch.isfinite(positions).all(-1) | (x < LOW) | (x > HIGH) | (y < LOW) | (y > HIGH)
-    problems = ((outside, f"outside the arena [{LOW}, {HIGH}]"),
-                (in_wall(positions, layouts), "inside the wall"))
-    for mask, where in problems:
-        if mask.any():
-            i = int(mask.nonzero()[0])
+    for mask, where in ((outside, f"outside the arena [{LOW}, {HIGH}]"),
+                        (in_wall(positions, layouts), "inside the wall")):
+        if (i := _first(mask)) is not None:
             raise ValueError(f"position {i} = {positions[i].tolist()} is {where}")
 
 
-def check_actions(actions, batch: int, dtype: torch.dtype | None = None) -> None:
-    """Raise a clear error unless ``actions`` is a finite (batch, 2) tensor.
-
-    ``dtype``: the type the world will move in (the positions'). Finiteness is
-    checked after the cast to it, because a float64 action can be finite and
-    still overflow to infinity in float32.
-    """
-    if not isinstance(actions, torch.Tensor):
-        kind = type(actions).__name__
-        raise TypeError(f"actions must be a torch tensor ({batch}, 2), got {kind}")
-    if actions.shape != (batch, 2):
-        raise ValueError(
-            f"actions must have shape ({batch}, 2), one (dx, dy) per world; "
-            f"got {tuple(actions.shape)}"
-        )
+def check_actions(actions, batch: int, dtype: torch.dtype) -> None:
+    """Raise a clear error unless ``actions`` is a finite (batch, 2) tensor, also once cast to
+    ``dtype``, the positions' (a finite float64 action may overflow to infinity in float32)."""
+    if not isinstance(actions, torch.Tensor) or actions.shape != (batch, 2):
+        got = tuple(actions.shape) if isinstance(actions, torch.Tensor) else type(actions).__name__
+        raise ValueError(f"actions must be a tensor of shape ({batch}, 2), one (dx, dy) per "
+                         f"world; got {got}")
     if not torch.isfinite(actions).all():
         raise ValueError("actions contain NaN or infinite values; check the planner's output")
-    overflow = ~torch.isfinite(actions.to(dtype)).all(-1) if dtype is not None else None
-    if overflow is not None and overflow.any():
-        i = int(overflow.nonzero()[0])
-        raise ValueError(
-            f"action {i} = {actions[i].tolist()} is too large for {dtype} (largest "
-            f"{torch.finfo(dtype).max:.3g}) and would become infinite; any step longer than "
-            f"{MAX_STEP} px is clipped to it, so send a smaller action in the same direction"
-        )
+    if (i := _first(~torch.isfinite(actions.to(dtype)).all(-1))) is not None:
+        raise ValueError(f"action {i} = {actions[i].tolist()} is too large for {dtype} (largest "
+                         f"{torch.finfo(dtype).max:.3g}) and would become infinite; any step "
+                         f"longer than {MAX_STEP} px is clipped to it, so send a smaller action "
+                         "in the same direction")
