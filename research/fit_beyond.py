@@ -18,14 +18,16 @@ from dataclasses import replace
 from pathlib import Path
 
 from ebjepa_tutorial.course.presets import SCALES, preset
-from ebjepa_tutorial.planning import fit_coarse_with_visits
+from ebjepa_tutorial.planning import two_level_episodes
 from ebjepa_tutorial.training.checkpoints import run_identity, save_checkpoint
 from ebjepa_tutorial.training.cost import fit_cost_head
+from ebjepa_tutorial.training.hierarchy import fit_coarse_with_visits
 from ebjepa_tutorial.training.runs import train_or_load
 from ebjepa_tutorial.training.world import identity
 
 WORLDS = {"two_rooms": 1, "three_rooms": 2}
-FITS = {"cost_head": fit_cost_head, "coarse": fit_coarse_with_visits}
+FITS = {"cost_head": fit_cost_head,
+        "coarse": lambda model, fit: fit_coarse_with_visits(model, fit, two_level_episodes)}
 
 
 def world_run(world: str, scale: str):
@@ -36,7 +38,7 @@ def world_run(world: str, scale: str):
 
 
 def fit_configs(world: str, scale: str):
-    """``(CostConfig, planning.CoarseFit)``: notebook 07's fits for ``world`` at ``scale``."""
+    """``(CostConfig, CoarseFit)``: notebook 07's fits for ``world`` at ``scale``."""
     cfg, walls = preset("07", scale), WORLDS[world]
     return replace(cfg.cost, walls=walls), cfg.coarse_fit(walls)
 

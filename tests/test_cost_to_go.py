@@ -209,7 +209,7 @@ def test_calibration_sets_the_straight_distance_against_the_way_round_the_walls(
 @pytest.mark.slow  # trains a ci world model, then fits both
 def test_the_fit_command_writes_files_that_the_notebook_then_loads(tmp_path, monkeypatch, capsys):
     from ebjepa_tutorial.course.presets import preset
-    from ebjepa_tutorial.planning import fit_coarse_with_visits
+    from ebjepa_tutorial.planning import two_level_episodes
     from ebjepa_tutorial.training.cost import cost_head_or_load
     from ebjepa_tutorial.training.hierarchy import coarse_or_load
     from ebjepa_tutorial.training.runs import train_or_load
@@ -226,5 +226,5 @@ def test_the_fit_command_writes_files_that_the_notebook_then_loads(tmp_path, mon
     cost_head_or_load(model, identity(config), replace(cfg.cost, walls=2),
                       "cost_head_three_rooms_ci")
     coarse_or_load(model, identity(config), cfg.coarse_fit(2), "coarse_three_rooms_ci",
-                   fit_coarse_with_visits)
+                   two_level_episodes)
     assert capsys.readouterr().out.count("Loaded a trained model") == 2  # nothing refitted

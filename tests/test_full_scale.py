@@ -184,7 +184,7 @@ def test_full_planner_replans_once_with_a_full_world_model(monkeypatch):
         plans.append(real_plan(*args, **kwargs, record=True))
         return plans[-1]
 
-    monkeypatch.setattr(planning, "plan", recording_plan)
+    monkeypatch.setattr(planning.mpc, "plan", recording_plan)
     result = planning.run_episodes(model, [sizes.first_seed], config, steps=config.execute)
     assert len(plans) == 1  # execute = 1 step, so one re-plan
     made = plans[0]
@@ -195,7 +195,7 @@ def test_full_planner_replans_once_with_a_full_world_model(monkeypatch):
         assert actions.shape == (1, config.samples, config.horizon, 2)
         assert actions.norm(dim=-1).max() <= config.action_bound + 1e-5
         assert costs.std() > 0  # the energy tells the plans apart
-    assert ((made.std >= config.min_std) & (made.std <= config.max_std)).all()
+    assert ((made.std >= planning.MIN_STD) & (made.std <= config.action_bound)).all()
     assert result.paths.shape == (1, config.execute + 1, 2)
     moved = transition(result.paths[:, 0], made.mean[:, 0], result.episodes.layouts)
     torch.testing.assert_close(result.paths[:, 1], moved)  # the plan's first action was taken

@@ -71,21 +71,35 @@ def test_low_temperature_mppi_picks_the_best_elite():
     assert torch.allclose(mean, actions[torch.arange(2), best])
 
 
+class Offset(nn.Module):
+    """A "world" whose imagined latent at step k is the action minus ``target[k]``."""
+
+    def __init__(self, target):
+        super().__init__()
+        self.config, self.target = SimpleNamespace(action_dim=2), target
+
+    def rollout(self, z0, actions):
+        return z0[:, None] + actions - self.target
+
+
 @pytest.mark.parametrize("method", ["mppi", "cem"])
-def test_the_loop_finds_the_optimum_of_a_quadratic(method):
-    # Cost ||a - target||^2 summed over the plan: the optimum is the target itself.
+def test_the_iterations_find_the_optimum_of_a_known_energy(method):
+    # Cost sum_k ||a_k - target_k|| to the goal 0: the optimum is the target itself.
     target = torch.tensor([[0.7, -0.4], [1.2, 0.3], [-0.5, -1.0]])
-    mean, std = torch.zeros(1, 3, 2), torch.ones(1, 3, 2)
-    gens = generators(1)
-    for _ in range(30):
-        actions = planning.sample_plans(mean, std, 300, gens, bound=2.0)
-        costs = (actions - target).pow(2).sum(dim=(2, 3))
-        if method == "mppi":
-            mean, std = planning.mppi_update(actions, costs, elites=30, temperature=1.0)
-        else:
-            mean, std = planning.cem_update(actions, costs, elites=30)
-        std = std.clamp_min(1e-3)
-    assert torch.allclose(mean[0], target, atol=0.05)
+    config = PlannerConfig(method=method, horizon=3, samples=300, elites=30, iterations=30,
+                           temperature=1.0, init_std=1.0, execute=1, noise_period=1,
+                           action_bound=2.0)
+    result = planning.plan(Offset(target), torch.zeros(1, 2), torch.zeros(1, 2), config,
+                           generators(1))
+    assert torch.allclose(result.mean[0], target, atol=0.05)
+
+
+def first_samples(mean, std, samples, gens, bound=1.8):
+    """The plans that one iteration samples around ``mean`` (B, H, A) with spread ``std``."""
+    config = PlannerConfig(horizon=mean.shape[1], samples=samples, elites=1, iterations=1,
+                           init_std=std, execute=1, noise_period=1, action_bound=bound)
+    z = torch.zeros(len(mean), 2)
+    return planning.plan(LinearLatentModel(), z, z, config, gens, mean, record=True).history[0][0]
 
 
 def test_smooth_noise_carries_a_plan_farther_than_white_noise():
@@ -100,7 +114,7 @@ def test_smooth_noise_carries_a_plan_farther_than_white_noise():
 
 def test_sampled_plans_are_clipped_and_keep_the_mean():
     mean = torch.full((2, 5, 2), 1.0)
-    actions = planning.sample_plans(mean, torch.full_like(mean, 3.0), 50, generators(2), bound=1.8)
+    actions = first_samples(mean, 3.0, 50, generators(2), bound=1.8)
     lengths = actions.norm(dim=-1)  # clipped on the step's length, as the world clips it
     assert lengths.max() <= 1.8 + 1e-5
     assert (lengths > 1.79).float().mean() > 0.5  # std 3 sends most samples to the bound
@@ -109,8 +123,8 @@ def test_sampled_plans_are_clipped_and_keep_the_mean():
 
 def test_sampling_does_not_depend_on_the_batch():
     mean = torch.zeros(3, 4, 2)
-    together = planning.sample_plans(mean, torch.ones_like(mean), 10, generators(3), 1.8)
-    alone = planning.sample_plans(mean[1:2], torch.ones(1, 4, 2), 10, generators(1, seed=1), 1.8)
+    together = first_samples(mean, 1.0, 10, generators(3))
+    alone = first_samples(mean[1:2], 1.0, 10, generators(1, seed=1))
     assert torch.equal(together[1], alone[0])
 
 
@@ -276,35 +290,39 @@ def test_the_benchmark_prints_its_figures(tmp_path):
     assert 0 <= float(last["ci_low"]) <= float(last["success"]) <= float(last["ci_high"]) <= 1
 
 
-def test_a_fixed_spread_keeps_exploring():
-    model = LinearLatentModel()
-    config = PlannerConfig(horizon=6, samples=50, elites=5, iterations=3, update_std=False,
-                           init_std=0.7, noise_period=1)  # white noise: std 0.7 at every step
-    result = planning.plan(model, torch.zeros(1, 2), torch.full((1, 2), 5.0), config,
-                           generators(1), record=True)
-    assert torch.equal(result.std, torch.full((1, 6, 2), 0.7))
-    spread = result.history[-1][0][0, 1:].std(dim=0)  # the last iteration still samples widely
-    assert spread.mean() > 0.5
+def test_a_collapsed_spread_is_held_at_the_smallest_spread():
+    # One elite: its weighted spread is 0, and a search that stops exploring stays stuck.
+    config = PlannerConfig(horizon=6, samples=50, elites=1, iterations=3, noise_period=1)
+    result = planning.plan(LinearLatentModel(), torch.zeros(1, 2), torch.full((1, 2), 5.0),
+                           config, generators(1), record=True)
+    assert torch.equal(result.std, torch.full((1, 6, 2), planning.MIN_STD))
+    spread = result.history[-1][0][0, 1:].std(dim=0)  # the last iteration still samples
+    assert (spread > 0).all()
 
 
 def test_true_dynamics_moves_each_row_in_its_own_episode_layout():
     layouts = torch.tensor([[30, 50], [30, 15]])  # same wall, doors far apart
-    imagine = planning.TrueDynamics(layouts)  # model=None: the "latent" is the position
-    start = torch.tensor([[27.0, 15.0]]).repeat(6, 1)  # left of the wall, level with door 2
+    imagine = planning.TrueDynamics(layouts)  # model=None: the energy is in pixels
+    episode = torch.tensor([0.0, 0, 0, 1, 1, 1])[:, None]  # rows 0-2: episode 0, 3-5: 1
+    start = torch.cat([episode, torch.tensor([[27.0, 15.0]]).repeat(6, 1)], dim=1)
     actions = torch.tensor([1.5, 0.0]).repeat(6, 4, 1)  # walk right for 4 steps
-    path = imagine.rollout(start, actions)  # rows 0-2: episode 0, rows 3-5: episode 1
-    expected, per_row = [start], layouts.repeat_interleave(3, dim=0)
+    path = imagine.rollout(start, actions)  # (6, 4, 3): [episode, x, y]
+    expected, per_row = [start[:, 1:]], layouts.repeat_interleave(3, dim=0)
     for k in range(4):
         expected.append(transition(expected[-1], actions[:, k], per_row))
-    assert (path - torch.stack(expected[1:], dim=1)).abs().max() <= 0.5  # 1-px grid
-    assert path[:3, -1, 0].max() < 28 and path[3:, -1, 0].min() > 32  # wall vs door
+    assert torch.equal(path[..., 1:], torch.stack(expected[1:], dim=1))
+    assert torch.equal(path[..., 0], episode.expand(6, 4))
+    assert path[:3, -1, 1].max() < 28 and path[3:, -1, 1].min() > 32  # wall vs door
 
 
 def test_true_dynamics_looks_up_the_model_encoding_on_the_grid():
     model, layout = LinearLatentModel(), torch.tensor([[40, 20]])
     imagine = planning.TrueDynamics(layout, model)
     on_grid = torch.tensor([[10.5, 33.5]])  # LOW = 1.5, spacing 1
-    assert torch.equal(imagine.embed(on_grid), model.encode(render(on_grid, layout)))
+    state = torch.tensor([[0.0, 10.6, 33.4]])  # episode 0, nearest grid point on_grid
+    assert torch.equal(imagine.embed(state), model.encode(render(on_grid, layout)))
+    goal = torch.tensor([[0.0, 20.5, 33.5]])
+    assert imagine.distance(state, goal).item() == pytest.approx(10.0, abs=1e-3)
 
 
 SMALL_PLANNER = PlannerConfig(samples=32, elites=6, iterations=2, execute=8)
@@ -452,7 +470,7 @@ def test_an_arrived_agent_stands_still_and_plans_no_more(monkeypatch):
         return planning_plan(imagine, z0, *args, **kwargs)
 
     planning_plan = planning.plan
-    monkeypatch.setattr(planning, "plan", counting_plan)
+    monkeypatch.setattr(planning.mpc, "plan", counting_plan)
     model, seeds = LinearLatentModel(), range(6)
     config = PlannerConfig(horizon=16, samples=64, elites=8, iterations=3, execute=4, stop_px=2.0)
     result = planning.run_episodes(model, seeds, config, steps=120, world="learned")
@@ -481,7 +499,7 @@ def test_warm_replans_refine_the_plan_warm_iterations_times(monkeypatch):
         return planning_plan(imagine, z0, z_goal, config, *args, **kwargs)
 
     planning_plan = planning.plan
-    monkeypatch.setattr(planning, "plan", recording_plan)
+    monkeypatch.setattr(planning.mpc, "plan", recording_plan)
     config = PlannerConfig(horizon=8, samples=16, elites=4, iterations=5, warm_iterations=2)
     planning.run_episodes(LinearLatentModel(), [3, 4], config, steps=12)
     assert iterations == [5, 2, 2]  # the cold first plan, then one per re-plan

@@ -58,7 +58,7 @@ def test_episode_generators_and_the_arrival_distance_use_the_walls(monkeypatch):
         calls.append(kwargs)
         return 2.0
 
-    monkeypatch.setattr(planning, "arrival_distance", recording)
+    monkeypatch.setattr(planning.mpc, "arrival_distance", recording)
     planning.run_episodes(model, [5], TINY, 4, world="learned", walls=2)
     assert calls == [{"walls": 2}]  # a Three Rooms model is calibrated on Three Rooms frames
 
@@ -66,14 +66,15 @@ def test_episode_generators_and_the_arrival_distance_use_the_walls(monkeypatch):
 # -- true dynamics and energy maps ----------------------------------------------------------
 def test_true_dynamics_moves_each_row_in_its_own_three_room_layout():
     layouts = torch.tensor([[20, 50, 44, 15], [20, 15, 44, 50]])  # the doors swapped
-    imagine = planning.TrueDynamics(layouts)  # model=None: the "latent" is the position
-    start = torch.tensor([[17.0, 15.0]]).repeat(6, 1)  # left room, level with row 15
+    imagine = planning.TrueDynamics(layouts)  # model=None: the energy is in pixels
+    episode = torch.tensor([0.0, 0, 0, 1, 1, 1])[:, None]  # rows 0-2: episode 0, 3-5: 1
+    start = torch.cat([episode, torch.tensor([[17.0, 15.0]]).repeat(6, 1)], dim=1)
     actions = torch.tensor([1.5, 0.0]).repeat(6, 24, 1)  # walk right for 24 steps (36 px)
-    path = imagine.rollout(start, actions)  # rows 0-2: episode 0, rows 3-5: episode 1
-    expected, per_row = [start], layouts.repeat_interleave(3, dim=0)
+    path = imagine.rollout(start, actions)[..., 1:]  # (6, 24, 2) positions
+    expected, per_row = [start[:, 1:]], layouts.repeat_interleave(3, dim=0)
     for k in range(24):
         expected.append(transition(expected[-1], actions[:, k], per_row))
-    assert (path - torch.stack(expected[1:], dim=1)).abs().max() <= 0.5  # 1-px grid
+    assert torch.equal(path, torch.stack(expected[1:], dim=1))
     assert path[:3, -1, 0].max() < 18.5  # episode 0: stopped by the first wall
     assert 40.5 < path[3:, -1, 0].min() < 42.5  # episode 1: through door 0, stopped by wall 1
 
@@ -82,7 +83,8 @@ def test_true_dynamics_tables_encode_the_three_room_frames():
     model = LinearLatentModel()
     imagine = planning.TrueDynamics(LAYOUT, model, spacing=4.0)
     on_grid = torch.tensor([[33.5, 25.5]])  # LOW = 1.5, spacing 4
-    assert torch.equal(imagine.embed(on_grid), model.encode(render(on_grid, LAYOUT)))
+    state = torch.cat([torch.zeros(1, 1), on_grid], dim=1)  # episode 0
+    assert torch.equal(imagine.embed(state), model.encode(render(on_grid, LAYOUT)))
 
 
 def test_energy_map_of_three_rooms_marks_both_walls_and_opens_both_doors():

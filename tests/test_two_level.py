@@ -11,7 +11,6 @@ from ebjepa_tutorial.envs import MAX_STEP, clip_actions
 from ebjepa_tutorial.losses.world import windows
 from ebjepa_tutorial.models.hierarchy import CoarseModel, macro_actions
 from ebjepa_tutorial.planning import (
-    CoarseFit,
     PlannerConfig,
     TwoLevel,
     plan,
@@ -20,6 +19,7 @@ from ebjepa_tutorial.planning import (
 )
 from ebjepa_tutorial.training.hierarchy import (
     CoarseConfig,
+    CoarseFit,
     coarse_or_load,
     fit_coarse_on,
 )
@@ -40,7 +40,7 @@ class Drift(nn.Module):
 LOW = PlannerConfig(horizon=8, samples=64, elites=8, iterations=4, warm_iterations=2,
                     execute=4, stop_px=0)
 HIGH = PlannerConfig(horizon=8, samples=64, elites=8, iterations=4, warm_iterations=2,
-                     execute=1, action_bound=4 * MAX_STEP, init_std=6.0, max_std=8.0,
+                     execute=1, action_bound=4 * MAX_STEP, init_std=6.0,
                      noise_period=2, stop_px=0)
 
 
@@ -128,5 +128,5 @@ def test_settings_a_two_level_planner_cannot_use_are_refused():
         CoarseConfig(step_mean=0)
     with pytest.raises(ValueError, match="every"):
         CoarseFit(CoarseConfig(), LOW, HIGH, lookahead=2, reach_px=4.5, every=0)
-    with pytest.raises(TypeError, match="fit=planning.fit_coarse_with_visits"):
+    with pytest.raises(TypeError, match="play=planning.two_level_episodes"):
         coarse_or_load(Drift(), {}, CoarseFit(CoarseConfig(), LOW, HIGH, 2, 4.5), "unused")

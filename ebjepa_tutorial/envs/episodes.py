@@ -116,7 +116,8 @@ class TwoRoomsEnv:
     >>> env.success()                           # (100,) bool
 
     State: ``positions`` (B, 2), ``goals`` (B, 2), ``layouts`` (B, 2W),
-    ``steps_taken`` (int). Steps use :func:`transition`, the same function
+    ``steps_taken`` (int); the episode so far: ``path`` (the positions (B, 2), start
+    first) and ``actions`` (each step's (B, 2)). Steps use :func:`transition`, the same function
     that made the training data. ``reset(n, seed, walls=2)`` runs Three Rooms;
     ``step_budget`` is the steps its episodes allow (the caller stops there).
     """
@@ -125,7 +126,7 @@ class TwoRoomsEnv:
         self.device = torch.device(device)
         self.episodes: Episodes | None = None
         self.positions: torch.Tensor | None = None
-        self.steps_taken = 0
+        self.steps_taken, self.path, self.actions = 0, [], []
 
     def reset(self, n: int = 1, seed=0, episodes: Episodes | None = None,
               walls: int = 1) -> torch.Tensor:
@@ -138,7 +139,7 @@ class TwoRoomsEnv:
         check_positions(episodes.starts, episodes.layouts)
         self.episodes = episodes.to(self.device)
         self.positions = self.episodes.starts.clone()
-        self.steps_taken = 0
+        self.steps_taken, self.path, self.actions = 0, [self.positions], []
         return self.observe()
 
     def _require_reset(self) -> Episodes:
@@ -170,9 +171,11 @@ class TwoRoomsEnv:
     def step(self, actions: torch.Tensor) -> torch.Tensor:
         """Move every world by its action (B, 2); returns the new observations."""
         check_actions(actions, len(self.layouts), self.positions.dtype)
+        self.actions.append(actions.clone())  # the caller may reuse its tensor
         actions = actions.to(device=self.device, dtype=self.positions.dtype)
         self.positions = transition(self.positions, actions, self.layouts)
         self.steps_taken += 1
+        self.path.append(self.positions)
         return self.observe()
 
     def distance_to_goal(self) -> torch.Tensor:

@@ -1,7 +1,8 @@
 """Fit a coarse model (``models.hierarchy``) on a frozen world model's latents (notebook 07).
 
-Fitted on the data policy's random walks here; ``planning.fit_coarse_with_visits``
-fits it again with its own planner's episodes added (a layer up: it plays the planner).
+Fitted on the data policy's random walks (:func:`fit_coarse_model`), or fitted
+again with its own two-level planner's episodes added (:func:`fit_coarse_with_visits`,
+handed the function that plays them, ``planning.two_level_episodes``: a layer up).
 """
 
 from __future__ import annotations
@@ -11,8 +12,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ..envs import generate_trajectories
-from ..losses.world import multistep_prediction_loss
+from ..envs import Trajectories, generate_trajectories
+from ..losses.world import multistep_prediction_loss, windows
 from ..models.hierarchy import CoarseModel, macro_actions
 from ..models.world import WorldModel, trajectory_latents
 from ..utils import check_fields, is_int_at_least, is_positive
@@ -90,21 +91,68 @@ def fit_coarse_on(latents: torch.Tensor, actions: torch.Tensor, config: CoarseCo
     return coarse.eval(), history
 
 
+@dataclass(frozen=True)
+class CoarseFit:
+    """The coarse model's fit on ``coarse``'s random walks, then again with the episodes of
+    the two-level planner built on the first fit added (DAgger, Ross et al., 2011).
+
+    A planner seeks out what its model gets wrong, a long macro-action into a wall beside
+    a door, and random walks rarely go there; the planner's own episodes show the model
+    what really happens where it is asked. The planner: ``low`` and, over the coarse model,
+    ``high``, ``lookahead`` and ``reach_px`` (``planning.TwoLevel``). It plays ``episodes``
+    episodes of ``steps`` steps (seeds from ``first_seed``, a range no evaluation uses),
+    cut into windows as long as the walks, one starting every ``every`` steps.
+    """
+
+    coarse: CoarseConfig
+    low: object  # planning.PlannerConfig of the flat level
+    high: object  # planning.PlannerConfig of the coarse level
+    lookahead: int
+    reach_px: float
+    episodes: int = 300
+    steps: int = 200
+    every: int = 8
+    first_seed: int = 40_000
+    batch: int = 10  # episodes played at once
+
+    def __post_init__(self):
+        check_fields(self, {name: (is_int_at_least(1), "an int >= 1") for name in
+                            ("lookahead", "episodes", "steps", "every", "batch")})
+
+
+def fit_coarse_with_visits(model: WorldModel, config: CoarseFit,
+                           play: Callable[[WorldModel, CoarseModel, CoarseFit], Trajectories],
+                           progress: bool = True) -> tuple[CoarseModel, History]:
+    """A coarse model fitted on ``model``'s frozen latents of random walks and of its own
+    planner's episodes: ``(coarse, history of the second fit)``. ``play(model, coarse,
+    config)``: the two-level planner's episodes on a first fit (``planning.two_level_episodes``)."""
+    latents, actions = coarse_data(model, config.coarse)
+    first, _ = fit_coarse_on(latents, actions, config.coarse, progress)
+    played = play(model, first, config)
+    length = actions.shape[1]  # windows as long as the random walks
+    z = windows(trajectory_latents(model, played), length + 1, config.every)
+    a = windows(played.actions, length, config.every)
+    return fit_coarse_on(torch.cat([latents, z]), torch.cat([actions, a]), config.coarse,
+                         progress)
+
+
 def coarse_or_load(model: WorldModel, base: dict, config, name: str,
-                   fit: Callable | None = None) -> CoarseModel:
+                   play: Callable | None = None) -> CoarseModel:
     """The coarse model of ``config`` on ``model`` (trained by the run whose identity is
     ``base``): loaded from ``checkpoints/<name>.pt`` or the cache if it was saved, else
-    fitted by ``fit(model, config)`` and saved to the cache. In eval mode, on the CPU.
+    fitted and saved to the cache. In eval mode, on the CPU.
 
-    ``config``: a :class:`CoarseConfig` (``fit`` defaults to :func:`fit_coarse_model`), or
-    a fit one layer up that holds one as ``config.coarse`` (``planning.CoarseFit``, with
-    ``fit=planning.fit_coarse_with_visits``).
+    ``config``: a :class:`CoarseConfig` (:func:`fit_coarse_model`), or a :class:`CoarseFit`
+    (:func:`fit_coarse_with_visits`, whose planner ``play`` plays: ``planning.two_level_episodes``).
     """
-    if fit is None and not isinstance(config, CoarseConfig):
-        raise TypeError(f"a {type(config).__name__} needs its own fit: coarse_or_load(..., "
-                        "fit=planning.fit_coarse_with_visits)")
-    fit = fit or fit_coarse_model
+    if isinstance(config, CoarseFit):
+        if play is None:
+            raise TypeError("a CoarseFit plays its planner: coarse_or_load(..., "
+                            "play=planning.two_level_episodes)")
+        fit = lambda: fit_coarse_with_visits(model, config, play)  # noqa: E731
+    else:
+        fit = lambda: fit_coarse_model(model, config)  # noqa: E731
     shape = getattr(config, "coarse", config)
     return load_or_fit(name, CoarseModel(model.latent_dim, shape.stride, shape.hidden),
-                       lambda: fit(model, config), run_identity(config, base=base),
+                       fit, run_identity(config, base=base),
                        upgrade=upgrade_base)

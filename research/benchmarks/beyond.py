@@ -28,7 +28,7 @@ import torch
 from ebjepa_tutorial.course import reference
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.models.cost import WithLearnedCost
-from ebjepa_tutorial.planning import TwoLevel, fit_coarse_with_visits, run_episodes
+from ebjepa_tutorial.planning import TwoLevel, run_episodes, two_level_episodes
 from ebjepa_tutorial.training.cost import cost_head_or_load
 from ebjepa_tutorial.training.hierarchy import coarse_or_load
 from ebjepa_tutorial.training.runs import train_or_load
@@ -48,7 +48,7 @@ def planners(walls: int) -> dict:
     cost, coarse = fit_beyond.fit_configs(world, "class")
     head = cost_head_or_load(model, identity(config), cost, f"cost_head_{world}_class")
     coarse = coarse_or_load(model, identity(config), coarse, f"coarse_{world}_class",
-                            fit_coarse_with_visits)
+                            two_level_episodes)
     return {"flat": (model, cfg.flat, None), "short": (model, cfg.short, None),
             "learned_cost": (WithLearnedCost(model, head), cfg.learned, None),
             "two_level": (model, cfg.low, TwoLevel(coarse, cfg.high[walls - 1], cfg.lookahead,

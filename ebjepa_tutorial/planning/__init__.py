@@ -1,0 +1,53 @@
+"""Goal-conditioned planning with a world model (notebooks 06 and 07).
+
+- ``mppi``: the planning energy, the MPPI and CEM updates, one iteration, a whole re-plan
+- ``mpc``: the agent's re-planning loop and the batched episode runner
+- ``two_level``: a coarse model that picks subgoals (notebook 07)
+- ``diagnosis``: the energy's pictures and a planner that imagines with the true motion
+"""
+
+from .diagnosis import (
+    StateEnv,
+    TrueDynamics,
+    dot_grid,
+    energy_by_distance,
+    energy_map,
+    latent_distance,
+)
+from .mpc import (
+    WORLDS,
+    EpisodeResults,
+    arrival_distance,
+    episode_generators,
+    mpc_loop,
+    run_episodes,
+)
+from .mppi import (
+    COSTS,
+    METHODS,
+    MIN_STD,
+    Plan,
+    PlannerConfig,
+    cem_update,
+    check_start_and_goal,
+    distance,
+    mppi_iteration,
+    mppi_update,
+    mppi_weights,
+    plan,
+    planning_cost,
+    select_elites,
+    shift_plan,
+    smooth_noise,
+    weighted_mean_std,
+)
+from .two_level import TwoLevel, two_level_episodes
+
+__all__ = [
+    "COSTS", "METHODS", "MIN_STD", "WORLDS", "EpisodeResults", "Plan", "PlannerConfig",
+    "StateEnv", "TrueDynamics", "TwoLevel", "arrival_distance", "cem_update",
+    "check_start_and_goal", "distance", "dot_grid", "energy_by_distance", "energy_map",
+    "episode_generators", "latent_distance", "mpc_loop", "mppi_iteration", "mppi_update",
+    "mppi_weights", "plan", "planning_cost", "run_episodes", "select_elites", "shift_plan",
+    "smooth_noise", "two_level_episodes", "weighted_mean_std",
+]

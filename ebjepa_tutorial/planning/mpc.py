@@ -1,0 +1,230 @@
+"""The agent: model-predictive control in Two Rooms, and the batched episode runner (notebook 06).
+
+:func:`mpc_loop` is the re-planning loop: encode the observation and the goal,
+plan ``H`` actions (:func:`~ebjepa_tutorial.planning.mppi.plan`), execute the
+first ``m``, observe, re-plan from the previous plan shifted by ``m`` steps
+(warm start). :func:`run_episodes` plays one episode per seed with it, in
+batches, and returns what happened (:class:`EpisodeResults`).
+
+Each episode has its own seed, which fixes its task and its planner's noise,
+and nothing couples the episodes of a batch. What the batch does change is
+floating-point rounding: a network's batched kernels may sum in an order that
+depends on the batch size (as on the number of torch threads), so an
+episode's latents can differ in their last bits when it is encoded alone, and
+after a few re-plans that can change which samples are the elites. So an
+episode is reproduced exactly by rerunning its whole batch with the same
+thread count; alone or in another batch it agrees up to that rounding. With
+exact per-row dynamics (``world="true_xy"``) an episode is the same alone and
+in any batch.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import torch
+
+from ..envs import SUCCESS_RADIUS, Episodes, Trajectories, TwoRoomsEnv, make_episodes
+from ..envs.two_rooms import random_layouts, render, sample_positions, wall_collision
+from ..evaluation.metrics import wilson_interval
+from .diagnosis import StateEnv, TrueDynamics
+from .mppi import PlannerConfig, distance, mppi_iteration, plan, shift_plan
+
+WORLDS = ("learned", "true", "true_xy")  # what run_episodes imagines with
+
+
+@dataclass
+class EpisodeResults:
+    """What happened in a batch of episodes (one row per seed)."""
+
+    seeds: list[int]
+    episodes: Episodes
+    paths: torch.Tensor  # (B, steps + 1, 2) dot positions, start first
+    actions: torch.Tensor  # (B, steps, 2) what the agent asked; action t moved paths[:, t]
+    success: torch.Tensor  # (B,) bool: within SUCCESS_RADIUS of the goal at the end
+    first_arrival: torch.Tensor  # (B,) long: first step within the radius, -1 if never
+    cpu_seconds: float  # process CPU time of the whole batch
+    wall_seconds: float
+
+    @classmethod
+    def of(cls, seeds: list[int], episodes: Episodes, env: TwoRoomsEnv, cpu: float,
+           wall: float) -> EpisodeResults:
+        """The ``episodes`` that ``env`` has played (its recorded path), timed from ``cpu`` and
+        ``wall``."""
+        paths, actions = torch.stack(env.path, dim=1).cpu(), torch.stack(env.actions, dim=1).cpu()
+        within = (paths[:, 1:] - episodes.goals[:, None]).norm(dim=-1) <= SUCCESS_RADIUS  # (B, T)
+        first = torch.where(within.any(dim=1), within.long().argmax(dim=1) + 1, -1)
+        return cls(seeds, episodes, paths, actions, within[:, -1], first,
+                   time.process_time() - cpu, time.perf_counter() - wall)
+
+    @classmethod
+    def concat(cls, parts: Sequence[EpisodeResults]) -> EpisodeResults:
+        """One result from batches run one after the other (times add up)."""
+        def cat(name):
+            return torch.cat([getattr(p, name) for p in parts])
+
+        episodes = Episodes.concat([p.episodes for p in parts])
+        return cls([s for p in parts for s in p.seeds], episodes, cat("paths"), cat("actions"),
+                   cat("success"), cat("first_arrival"), sum(p.cpu_seconds for p in parts),
+                   sum(p.wall_seconds for p in parts))
+
+    def first(self, n: int) -> EpisodeResults:
+        """The first ``n`` episodes (times: this batch's, pro rata)."""
+        share = n / len(self.seeds)
+        return EpisodeResults(self.seeds[:n], self.episodes[:n], self.paths[:n],
+                              self.actions[:n], self.success[:n], self.first_arrival[:n],
+                              self.cpu_seconds * share, self.wall_seconds * share)
+
+    def as_trajectories(self) -> Trajectories:
+        """The episodes as offline data: what the agent saw and did, as
+        :func:`~ebjepa_tutorial.envs.generate_trajectories` stores a random walk."""
+        return Trajectories(self.paths, self.actions, self.episodes.layouts,
+                            torch.zeros(len(self.seeds), dtype=torch.bool))
+
+    @property
+    def success_rate(self) -> float:
+        return self.success.float().mean().item()
+
+    def interval(self, z: float = 1.96) -> tuple[float, float]:
+        """The Wilson 95% interval of the success rate."""
+        return wilson_interval(int(self.success.sum()), len(self.seeds), z)
+
+    def mean_first_arrival(self) -> float:
+        """Mean first-arrival step over the episodes that arrived (nan if none did)."""
+        arrived = self.first_arrival[self.first_arrival >= 0]
+        return arrived.float().mean().item() if len(arrived) else math.nan
+
+    @property
+    def cpu_seconds_per_episode(self) -> float:
+        return self.cpu_seconds / len(self.seeds)
+
+    def summary(self) -> str:
+        low, high = self.interval()
+        arrival = self.mean_first_arrival()
+        arrived = ("no episode reached the goal" if arrival != arrival  # NaN: none arrived
+                   else f"mean first arrival {arrival:.0f} steps")
+        return (f"success {self.success_rate:.0%} (95% CI {low:.0%}-{high:.0%}) over "
+                f"{len(self.seeds)} episodes, {arrived}, "
+                f"{self.cpu_seconds_per_episode:.2f} s CPU per episode")
+
+
+def episode_generators(seeds: Sequence[int],
+                       walls: int = 1) -> tuple[Episodes, list[torch.Generator]]:
+    """The task of each seed and the generator its planner continues with.
+
+    ``walls``: 1 for Two Rooms, 2 for Three Rooms (layouts ``(B, 2 * walls)``,
+    start and goal in the outer rooms; see :func:`~ebjepa_tutorial.envs.make_episodes`).
+    """
+    if len(seeds) < 1:
+        raise ValueError("need at least one episode seed")
+    generators = [torch.Generator().manual_seed(int(seed)) for seed in seeds]
+    return Episodes.concat([make_episodes(1, g, walls) for g in generators]), generators
+
+
+@torch.no_grad()
+def arrival_distance(model, px: float, n: int = 512, seed: int = 0, walls: int = 1) -> float:
+    """The latent distance that means "within ``px`` of the goal" to ``model``.
+
+    The median of ``||Enc(o') - Enc(o)||`` over ``n`` random frames ``o`` (fresh
+    layouts of ``walls`` walls, dots anywhere on the floor) and ``o'``, the same
+    frame with the dot moved ``px`` in a random direction (a wall may cut the
+    move short). The agent that stops below it still decides from its
+    observation and the goal image alone.
+    """
+    generator = torch.Generator().manual_seed(seed)
+    layouts = random_layouts(n, generator, walls)
+    here = sample_positions(layouts, generator)
+    angle = 2 * math.pi * torch.rand(n, generator=generator)
+    there = wall_collision(here, px * torch.stack([angle.cos(), angle.sin()], dim=-1), layouts)
+    device = next(model.parameters()).device
+    z_here, z_there = (model.encode(render(p, layouts).to(device)) for p in (here, there))
+    return (z_there - z_here).norm(dim=-1).median().item()
+
+
+# Notebook 06 shows this function in a code cell and runs its own copy (a test keeps the two equal).
+def mpc_loop(model, env, config, generators, steps, arrived=None, aim=None):
+    """Play the B episodes of ``env`` for ``steps`` steps, re-planning every m = config.execute.
+
+    generators: one per episode (its planner's noise). arrived: the latent distance to the
+    goal below which an episode stands still and plans nothing (None: always plan).
+    aim(z, z_goal, moving): nearer targets (B, D) to plan towards (notebook 07's two levels).
+    """
+    z_goal = model.encode(env.goal_images())  # (B, D): each goal image, encoded once
+    mean = z_goal.new_zeros(len(generators), config.horizon, 2)  # (B, H, A): stand still
+    while env.steps_taken < steps:
+        z = model.encode(env.observe())  # (B, D): where each dot is, as the model sees it
+        moving = torch.ones(len(z), dtype=torch.bool, device=z.device)  # (B,) still under way
+        if arrived is not None:
+            moving = distance(model, z, z_goal) >= arrived
+        mean[~moving] = 0  # the arrived stand still
+        target = z_goal if aim is None else aim(z, z_goal, moving)  # (B, D)
+        rows = moving.nonzero()[:, 0]
+        if len(rows):  # plan H steps ahead, from the previous plan (J iterations the first time)
+            mine = [generators[i] for i in rows.tolist()]
+            mean[rows] = plan(model, z[rows], target[rows], config, mine, mean[rows],
+                              iteration=mppi_iteration).mean
+        for action in mean[:, : config.execute].unbind(1)[: steps - env.steps_taken]:
+            env.step(action)  # execute the first m actions in the world
+        mean = shift_plan(mean, config.execute)  # warm start: the rest of the plan, then zeros
+        config = config.warm()  # later re-plans refine warm_iterations times
+
+
+@torch.no_grad()
+def run_episodes(model, seeds: Sequence[int], config: PlannerConfig | None = None,
+                 steps: int | None = None, batch: int | None = None, world: str = "learned",
+                 walls: int = 1, two_level=None, loop=mpc_loop) -> EpisodeResults:
+    """Plan and act in one episode per seed with ``loop`` (default :func:`mpc_loop`) and
+    ``config`` (default: notebook 06's class-scale planner).
+
+    Episode ``seed`` draws its layout, start and goal (the two outer rooms) and
+    then its planner's noise from ``torch.Generator().manual_seed(seed)``.
+    ``walls``: 1 for Two Rooms, 2 for Three Rooms. ``steps``: the episode's
+    length; None gives the world's step budget (200 steps with one wall, 120
+    with two). ``batch`` episodes run at once (default: all). ``world``: what the
+    planner imagines with: ``"learned"``, the world model (the real task);
+    ``"true"`` and ``"true_xy"``, the diagnoses of
+    :class:`~ebjepa_tutorial.planning.diagnosis.TrueDynamics`. With
+    ``config.stop_px`` the model's :func:`arrival_distance` is calibrated once, its
+    CPU time counted. ``two_level``: a :class:`~ebjepa_tutorial.planning.two_level.TwoLevel`
+    that picks subgoals (a learned world only; ``config.execute`` must be its stride).
+    """
+    seeds, batch, config = list(seeds), batch or len(seeds), config or PlannerConfig()
+    if world not in WORLDS:
+        raise ValueError(f"world must be one of {WORLDS}, got {world!r}")
+    if two_level is not None and (world != "learned"
+                                  or config.execute != two_level.coarse.stride):
+        raise ValueError(f"a two-level planner needs world='learned' and execute equal to its "
+                         f"stride ({two_level.coarse.stride}); got world={world!r}, "
+                         f"execute={config.execute}")
+    model.eval()
+    cpu, wall = time.process_time(), time.perf_counter()
+    arrived = None  # the energy below which the agent stands still: pixels for "true_xy"
+    if config.stop_px:
+        arrived = (config.stop_px if world == "true_xy"
+                   else arrival_distance(model, config.stop_px, walls=walls))
+    if two_level is not None:
+        two_level = two_level.calibrate(model, walls)
+    cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
+    result = EpisodeResults.concat([
+        _run_batch(model, seeds[i:i + batch], config, steps, world, arrived, walls, two_level,
+                   loop) for i in range(0, len(seeds), batch)])
+    return replace(result, cpu_seconds=result.cpu_seconds + cpu,
+                   wall_seconds=result.wall_seconds + wall)
+
+
+def _run_batch(model, seeds: list[int], config: PlannerConfig, steps: int | None, world: str,
+               arrived: float | None, walls: int, two_level, loop) -> EpisodeResults:
+    """:func:`run_episodes` for one batch, all at once; ``arrived``: the stopping distance."""
+    episodes, generators = episode_generators(seeds, walls)
+    env = (TwoRoomsEnv if world == "learned" else StateEnv)(next(model.parameters()).device)
+    cpu, wall = time.process_time(), time.perf_counter()
+    env.reset(episodes=episodes)
+    if world != "learned":  # the diagnosis imagines with the true motion
+        model = TrueDynamics(env.layouts, model if world == "true" else None)
+    aim = None if two_level is None else two_level.aim(generators)
+    loop(model, env, config, generators, env.step_budget if steps is None else steps,
+         arrived, aim)
+    return EpisodeResults.of(seeds, episodes, env, cpu, wall)

@@ -1,0 +1,308 @@
+"""MPPI and CEM on a latent energy: one re-plan of notebook 06's agent.
+
+The planner never sees positions. From the start latent ``z0 = Enc(o_t)`` it
+imagines ``N`` action sequences of ``H`` steps with the world model's
+predictor and scores each with the planning energy (the paper's Eq. 13):
+
+    S(a_1..a_H) = sum_{k=1..H} || zhat_k - z_goal ||       (cost="sum", the paper's)
+    S(a_1..a_H) =               || zhat_H - z_goal ||       (cost="last", its ablation)
+    S(a_1..a_H) =               d(zhat_H, z_goal)           (cost="learned", notebook 07)
+
+where ``d`` is a learned cost-to-go (``models.cost.WithLearnedCost``). MPPI (the
+paper's Algorithm 1) keeps the ``Q`` cheapest sequences (the elites), weights
+them by ``exp(-(S_i - S_min) / tau)`` and moves the mean plan and its spread to
+their weighted average; :func:`plan` repeats that ``J`` times. CEM is the same
+with equal weights.
+
+Two choices differ from the paper's code: the sampling noise is drawn every
+``noise_period`` steps and joined by straight lines (the paper: i.i.d. per
+step), so a sampled plan can wander far enough to find the door; and each
+sampled step is clipped on its length, as the world and the data clip it.
+
+Each episode ``b`` of a batch draws its noise from its own generator and its
+elites, weights, mean and spread come from its own samples alone, so nothing
+couples the episodes of a batch except floating-point rounding in the
+network's batched kernels (see :mod:`~ebjepa_tutorial.planning.mpc`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import torch
+
+from ..envs import MAX_STEP, clip_actions
+from ..utils import check_fields, is_int_at_least, is_positive
+
+METHODS = ("mppi", "cem")
+COSTS = ("sum", "last", "learned")
+# The smallest spread after an update, px: a search whose elites agree keeps exploring a little.
+# (Elites are clipped to the step bound, so their spread never exceeds it: no upper clamp.)
+MIN_STD = 0.05
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    """One planner. The defaults are the class-scale MPPI of notebook 06."""
+
+    method: str = "mppi"  # "mppi" (weighted elites) or "cem" (plain mean of elites)
+    cost: str = "sum"  # "sum" over the horizon, "last" step only, "learned" cost-to-go
+    horizon: int = 64  # H, imagined steps per plan
+    samples: int = 200  # N, action sequences per iteration
+    elites: int = 20  # Q, the best of them that move the plan
+    iterations: int = 6  # J, refinements per re-plan
+    # refinements (at most J) of every re-plan after an episode's first, which starts from
+    # the previous plan rather than from standing still; 0: J, as the paper's agent
+    warm_iterations: int = 3
+    temperature: float = 0.05  # tau, MPPI's softness (latent-distance units)
+    # spread of the sampled actions at the start of a re-plan, px: wide enough that some
+    # samples of a plan pressed against the wall slide along it to the door
+    init_std: float = 2.0
+    execute: int = 4  # m, actions executed before re-planning
+    # 1: i.i.d. noise per step (Algorithm 1); p > 1: smooth noise, a fresh draw every p steps.
+    # White noise averages out over a plan and does not explore far enough around the wall.
+    noise_period: int = 8
+    action_bound: float = MAX_STEP  # sampled steps are clipped to the longest in the data, px
+    # Arrived: while the current state is within stop_px of the goal as the model sees it
+    # (mpc.arrival_distance), the agent stands still and plans nothing. 0: plan at every
+    # re-plan until the step budget ends, as the paper's agent does.
+    stop_px: float = 2.0
+
+    def __post_init__(self):
+        if self.method not in METHODS or self.cost not in COSTS:
+            raise ValueError(f"method must be one of {METHODS} and cost one of {COSTS}, "
+                             f"got method={self.method!r}, cost={self.cost!r}")
+        check_fields(self, {name: (is_int_at_least(1), "an int >= 1") for name in
+                            ("horizon", "samples", "elites", "iterations", "execute",
+                             "noise_period")})
+        if not is_int_at_least(0)(self.warm_iterations):
+            raise ValueError(f"warm_iterations must be an int >= 0 (0: iterations), got "
+                             f"{self.warm_iterations!r}")
+        if self.elites > self.samples:
+            raise ValueError(f"elites (Q={self.elites}) cannot exceed samples (N={self.samples})")
+        if self.execute > self.horizon:
+            raise ValueError(f"execute (m={self.execute}) cannot exceed horizon "
+                             f"(H={self.horizon})")
+        check_fields(self, {name: (is_positive, "a finite number > 0", meaning)
+                            for name, meaning in _POSITIVE_FIELDS.items()})
+        if not (math.isfinite(self.stop_px) and self.stop_px >= 0):
+            raise ValueError(f"stop_px must be a finite number >= 0 (0: never stop), got "
+                             f"{self.stop_px!r}")
+
+    def warm(self) -> PlannerConfig:
+        """This planner for the re-plans after an episode's first: warm_iterations (at most J)."""
+        return replace(self, iterations=min(self.warm_iterations or self.iterations,
+                                            self.iterations))
+
+
+# Each must be > 0: a zero spread samples N copies of the mean, a zero bound clips every
+# step to nothing (the agent never moves), a zero temperature divides by zero.
+_POSITIVE_FIELDS = {
+    "temperature": "MPPI's softness in latent-distance units",
+    "init_std": "the spread of the first samples of a re-plan, px",
+    "action_bound": f"the longest sampled step, px (the world allows {MAX_STEP})",
+}
+
+
+# -- the energy ------------------------------------------------------------------------------
+def check_start_and_goal(z0, z_goal) -> None:
+    """Raise a clear error unless ``z0`` is ``(B, D)`` and ``z_goal`` is ``(B, D)``.
+
+    One goal row per episode: a goal batch of 1 for ``B > 1`` starts would
+    broadcast silently, every episode planning towards the first goal.
+    """
+    for name, z in (("z0", z0), ("z_goal", z_goal)):
+        if not isinstance(z, torch.Tensor):
+            raise TypeError(f"{name} must be a tensor of latents (B, D), got {type(z).__name__}")
+    if z0.ndim != 2:
+        raise ValueError(f"z0 must be start latents of shape (B, D), got {tuple(z0.shape)}")
+    if z_goal.ndim != 2 or len(z_goal) != len(z0):
+        raise ValueError(f"z_goal must be goal latents of shape ({len(z0)}, D), one per start "
+                         f"in z0 {tuple(z0.shape)}; got {tuple(z_goal.shape)}"
+                         f"{_goal_hint(len(z0), z_goal)}")
+
+
+def _goal_hint(batch: int, z_goal: torch.Tensor) -> str:
+    """What a wrongly shaped goal most likely is, and what to pass instead."""
+    if z_goal.ndim in (4, 5):
+        return "; that looks like images: encode them first with model.encode"
+    if z_goal.ndim == 1:
+        return "; a single latent needs its batch dimension: z_goal[None]"
+    if z_goal.ndim == 2 and len(z_goal) == 1:
+        return f"; for one goal shared by all episodes pass z_goal.expand({batch}, -1)"
+    return ""
+
+
+def distance(model, z: torch.Tensor, z_goal: torch.Tensor) -> torch.Tensor:
+    """The energy of single states, ``||z - z_goal||`` over the last dimension: ``(...)``.
+
+    A stand-in model with a ``distance`` of its own (the diagnosis's
+    :class:`~ebjepa_tutorial.planning.diagnosis.TrueDynamics`) measures its way.
+    """
+    if hasattr(model, "distance"):
+        return model.distance(z, z_goal)
+    return (z - z_goal).norm(dim=-1)
+
+
+def planning_cost(model, z0: torch.Tensor, z_goal: torch.Tensor, actions: torch.Tensor,
+                  cost: str = "sum") -> torch.Tensor:
+    """Energy of each imagined plan: ``z0 (B, D), z_goal (B, D), actions (B, N, H, A) -> (B, N)``.
+
+    ``model.rollout`` imagines the ``H`` latents of each of the ``B x N`` plans in
+    one batch; the cost is the latent distance to the goal, summed over the
+    horizon (``"sum"``) or at the last step (``"last"``); or (``"learned"``)
+    ``model.cost_to_go`` from the last latent.
+    """
+    if cost not in COSTS:
+        raise ValueError(f"cost must be one of {COSTS}, got {cost!r}")
+    if cost == "learned" and not hasattr(model, "cost_to_go"):
+        raise ValueError("cost='learned' needs a model with a cost-to-go head: "
+                         "models.cost.WithLearnedCost(world_model, head)")
+    check_start_and_goal(z0, z_goal)
+    if actions.ndim != 4 or len(actions) != len(z0):
+        raise ValueError(f"actions must be plans of shape ({len(z0)}, N, H, A), one batch of N "
+                         f"per start in z0 {tuple(z0.shape)}; got {tuple(actions.shape)}")
+    b, n, h, _ = actions.shape
+    z = model.rollout(z0.repeat_interleave(n, dim=0), actions.flatten(0, 1)).view(b, n, h, -1)
+    if z_goal.shape[1] != z.shape[-1]:
+        raise ValueError(f"z_goal has latents of size {z_goal.shape[1]} but the model imagines "
+                         f"latents of size {z.shape[-1]}: z_goal {tuple(z_goal.shape)}, z0 "
+                         f"{tuple(z0.shape)}; encode the goal with the planning model")
+    if cost == "learned":
+        return model.cost_to_go(z[:, :, -1], z_goal[:, None])
+    energy = distance(model, z, z_goal[:, None, None])  # (B, N, H)
+    return energy.sum(dim=-1) if cost == "sum" else energy[..., -1]
+
+
+# -- one update of the plan: MPPI and CEM ----------------------------------------------------
+def select_elites(actions: torch.Tensor, costs: torch.Tensor, elites: int):
+    """The ``Q`` cheapest plans of each episode, cheapest first: ``(B, Q, H, A), (B, Q)``."""
+    if actions.ndim != 4 or costs.shape != actions.shape[:2]:
+        raise ValueError(f"need actions (B, N, H, A) and costs (B, N), got "
+                         f"{tuple(actions.shape)} and {tuple(costs.shape)}")
+    if not 1 <= elites <= actions.shape[1]:
+        raise ValueError(f"elites must be in 1..N={actions.shape[1]}, got {elites}")
+    elite_costs, index = costs.topk(elites, dim=1, largest=False)
+    elite_actions = actions.gather(1, index[:, :, None, None].expand(-1, -1, *actions.shape[2:]))
+    return elite_actions, elite_costs
+
+
+def mppi_weights(elite_costs: torch.Tensor, temperature: float) -> torch.Tensor:
+    """``w_i = exp(-(S_i - S_min) / tau) / sum_j exp(-(S_j - S_min) / tau)``: ``(B, Q) -> (B, Q)``.
+
+    Subtracting ``S_min`` changes nothing mathematically (it cancels in the
+    ratio) but keeps ``exp`` from underflowing to 0/0 when costs are large.
+    """
+    shifted = elite_costs - elite_costs.min(dim=1, keepdim=True).values
+    return torch.softmax(-shifted / temperature, dim=1)
+
+
+def weighted_mean_std(elite_actions: torch.Tensor, weights: torch.Tensor):
+    """Mean and std of the elites under ``weights`` (B, Q): two ``(B, H, A)`` tensors."""
+    w = weights[:, :, None, None]
+    mean = (w * elite_actions).sum(dim=1)
+    std = (w * (elite_actions - mean[:, None]).pow(2)).sum(dim=1).sqrt()
+    return mean, std
+
+
+def mppi_update(actions: torch.Tensor, costs: torch.Tensor, elites: int, temperature: float):
+    """One MPPI update: sampled plans ``(B, N, H, A)`` and costs ``(B, N)`` -> new mean, std."""
+    elite_actions, elite_costs = select_elites(actions, costs, elites)
+    return weighted_mean_std(elite_actions, mppi_weights(elite_costs, temperature))
+
+
+def cem_update(actions: torch.Tensor, costs: torch.Tensor, elites: int):
+    """One CEM update: the plain mean and std of the ``Q`` elites."""
+    elite_actions, _ = select_elites(actions, costs, elites)
+    uniform = elite_actions.new_full(elite_actions.shape[:2], 1.0 / elites)
+    return weighted_mean_std(elite_actions, uniform)
+
+
+# -- one iteration, and a whole re-plan ------------------------------------------------------
+def smooth_noise(samples: int, horizon: int, dims: int, period: int,
+                 generator: torch.Generator) -> torch.Tensor:
+    """Standard normal noise ``(samples, horizon, dims)``, correlated over ``period`` steps.
+
+    Independent draws at steps ``0, period, 2 period, ...`` joined by straight
+    lines (``period=1``: i.i.d. per step). Smooth perturbations move a plan
+    coherently, so a few iterations explore much farther than white noise,
+    whose displacement grows only as the square root of the horizon.
+    """
+    knots = torch.randn(samples, dims, horizon // period + 2, generator=generator)
+    if period == 1:
+        return knots[..., :horizon].transpose(1, 2)
+    line = torch.nn.functional.interpolate(knots, scale_factor=period, mode="linear",
+                                           align_corners=True)[..., :horizon]
+    return (line / line.std(dim=(0, 2), keepdim=True).clamp_min(1e-6)).transpose(1, 2)
+
+
+# Notebook 06 shows this function in a code cell and runs its own copy (a test keeps the two equal).
+def mppi_iteration(model, z0, z_goal, mean, std, config, generators):
+    """One MPPI (or CEM) iteration for B episodes: sample, imagine, score, update.
+
+    z0 (B, D), z_goal (B, D); mean, std (B, H, A): the plan and its spread.
+    Returns the new mean and std (B, H, A), the samples (B, N, H, A) and their costs (B, N).
+    """
+    # 1. Sample N plans around the mean: a_i = mean + std * eps_i, each episode with its own
+    # generator; eps is smooth noise (a fresh draw every noise_period steps).
+    eps = torch.stack([smooth_noise(config.samples, config.horizon, mean.shape[-1],
+                                    config.noise_period, g) for g in generators])
+    eps[:, 0] = 0  # sample 0 is the mean itself: a good plan is never lost to bad luck
+    actions = clip_actions(mean[:, None] + std[:, None] * eps.to(mean.device),
+                           config.action_bound)  # (B, N, H, A), no step longer than the data's
+    # 2. Imagine each plan with the predictor, 3. score it: S_i = sum_k ||zhat_k - z_goal||
+    costs = planning_cost(model, z0, z_goal, actions, config.cost)  # (B, N)
+    # 4. Keep the Q cheapest, weight them by exp(-(S_i - S_min) / tau): the new mean and spread
+    if config.method == "mppi":
+        mean, std = mppi_update(actions, costs, config.elites, config.temperature)
+    else:  # CEM: every elite counts the same
+        mean, std = cem_update(actions, costs, config.elites)
+    return mean, std.clamp_min(MIN_STD), actions, costs
+
+
+@dataclass
+class Plan:
+    """The result of :func:`plan`: the mean plan ``(B, H, A)``, its spread, the cost history.
+
+    ``costs``: ``(B, J)``, the cost of the cheapest sampled plan at each
+    iteration. ``history`` (when recorded): per iteration, the sampled plans
+    ``(B, N, H, A)`` and their costs ``(B, N)``, for pictures.
+    """
+
+    mean: torch.Tensor
+    std: torch.Tensor
+    costs: torch.Tensor
+    history: list[tuple[torch.Tensor, torch.Tensor]] | None = None
+
+
+@torch.no_grad()
+def plan(model, z0: torch.Tensor, z_goal: torch.Tensor, config: PlannerConfig,
+         generators: Sequence[torch.Generator], mean: torch.Tensor | None = None,
+         record: bool = False, iteration=mppi_iteration) -> Plan:
+    """Run ``J`` iterations from latents ``z0`` to goals ``z_goal`` (both ``(B, D)``).
+
+    ``mean``: a warm start ``(B, H, A)`` (default zeros: stand still);
+    ``iteration``: one iteration (default :func:`mppi_iteration`; notebook 06 passes its own).
+    """
+    check_start_and_goal(z0, z_goal)
+    b, h = z0.shape[0], config.horizon
+    if mean is None:
+        mean = z0.new_zeros(b, h, model.config.action_dim)
+    if mean.shape != (b, h, model.config.action_dim) or len(generators) != b:
+        raise ValueError(f"need a mean plan ({b}, {h}, {model.config.action_dim}) and {b} "
+                         f"generators, got {tuple(mean.shape)} and {len(generators)}")
+    std = torch.full_like(mean, config.init_std)
+    best, history = [], [] if record else None
+    for _ in range(config.iterations):
+        mean, std, actions, costs = iteration(model, z0, z_goal, mean, std, config, generators)
+        best.append(costs.min(dim=1).values)
+        if record:
+            history.append((actions.cpu(), costs.cpu()))
+    return Plan(mean, std, torch.stack(best, dim=1), history)
+
+
+def shift_plan(mean: torch.Tensor, executed: int) -> torch.Tensor:
+    """The warm start for the next re-plan: drop the executed actions, pad with zeros."""
+    return torch.cat([mean[:, executed:], torch.zeros_like(mean[:, :executed])], dim=1)
