@@ -16,15 +16,12 @@ def _axes(ax):
     return plt.subplots(figsize=(4.5, 3.2))[1] if ax is None else ax
 
 
-def plot_history(history: dict, names: list[str] | None = None, ax=None, log: bool = True):
-    """Curves of the logged terms of a :class:`~ebjepa_tutorial.training.loop.History`
-    against step."""
+def plot_history(history: dict, names: list[str], ax=None):
+    """Curves of the ``names`` logged in a ``training.loop.History`` against step."""
     ax = _axes(ax)
-    names = [n for n in history if n != "step"] if names is None else names
     for name in names:
         ax.plot(history["step"], history[name], label=name)
-    if log:
-        ax.set_yscale("symlog", linthresh=1e-3)
+    ax.set_yscale("symlog", linthresh=1e-3)
     ax.set(xlabel="step", ylabel="loss term")
     ax.legend(fontsize=8)
     return ax
@@ -41,17 +38,11 @@ def plot_spectrum(eigenvalues: dict[str, torch.Tensor], ax=None):
     return ax
 
 
-def pca_2d(z: torch.Tensor) -> torch.Tensor:
-    """Project ``z`` ``(N, D)`` onto its two principal directions: ``(N, 2)``."""
-    centred = z - z.mean(dim=0)
-    _, _, v = torch.linalg.svd(centred, full_matrices=False)
-    return centred @ v[:2].T
-
-
 def plot_embedding(z: torch.Tensor, labels: torch.Tensor, ax=None, title: str = ""):
     """Scatter the first two principal components of ``z`` ``(N, D)``, coloured by label."""
     ax = _axes(ax)
-    xy = pca_2d(z.detach().cpu())
+    centred = z.detach().cpu() - z.detach().cpu().mean(dim=0)
+    xy = centred @ torch.linalg.svd(centred, full_matrices=False)[2][:2].T  # (N, 2)
     ax.scatter(xy[:, 0], xy[:, 1], c=labels, cmap="tab10", s=6, vmin=0, vmax=9)
     ax.set(title=title, xlabel="PC 1", ylabel="PC 2")
     return ax
@@ -70,20 +61,14 @@ def plot_energy_map(coords, energy, anchor, points=None, ax=None, title: str = "
     return ax
 
 
-# -- Two Rooms (notebooks 04 to 06) ---------------------------------------------------------
-TWO_ROOMS_WALL_RGB = torch.tensor([0.35, 0.4, 0.5])
-TWO_ROOMS_DOT_RGB = torch.tensor([0.85, 0.1, 0.1])
-
-
+# -- Two Rooms (notebooks 04 to 07) ---------------------------------------------------------
 def two_rooms_rgb(obs: torch.Tensor):
-    """One Two Rooms observation ``(2, H, W)`` -> an ``(H, W, 3)`` picture for ``imshow``.
-
-    White floor, grey walls, a red dot (channel 0 is the dot, channel 1 the walls).
-    """
+    """One Two Rooms observation ``(2, H, W)`` (dot, walls) -> an ``(H, W, 3)`` picture:
+    white floor, grey walls, a red dot."""
     obs = obs.detach().cpu().float()
     dot, wall = obs[0, ..., None], obs[1, ..., None]
-    floor = 1 - wall * (1 - TWO_ROOMS_WALL_RGB)
-    return (floor * (1 - dot) + TWO_ROOMS_DOT_RGB * dot).numpy()
+    floor = 1 - wall * (1 - torch.tensor([0.35, 0.4, 0.5]))
+    return (floor * (1 - dot) + torch.tensor([0.85, 0.1, 0.1]) * dot).numpy()
 
 
 # Matplotlib's HTML animation player takes its button icons from a web font on
@@ -118,13 +103,12 @@ def _gray(frame: torch.Tensor):
     return frame.reshape(frame.shape[-2:]).numpy()
 
 
-def animate_clips(clips: torch.Tensor, centres: torch.Tensor | None = None, grid: int = 0,
-                  interval: int = 250):
+def animate_clips(clips: torch.Tensor, centres: torch.Tensor, grid: int = 0):
     """Clips side by side as an animation for :func:`play`; closes its own figure.
 
     ``clips``: ``(N, T, 1, H, W)`` uint8 or float in [0, 1]; ``centres``:
-    optional ``(N, T, K, 2)`` ``(x, y)`` pixels, drawn as red crosses; ``grid``:
-    if > 0, the ``grid x grid`` cells of the detection targets, drawn as lines.
+    ``(N, T, K, 2)`` ``(x, y)`` pixels, drawn as red crosses; ``grid``: if > 0,
+    the ``grid x grid`` cells of the detection targets, drawn as lines.
     """
     from matplotlib.animation import FuncAnimation
 
@@ -144,25 +128,24 @@ def animate_clips(clips: torch.Tensor, centres: torch.Tensor | None = None, grid
     def draw(frame: int):
         for i in range(n):
             images[i].set_data(_gray(clips[i, frame]))
-            if centres is not None:  # a pixel i covers [i, i + 1): its centre is drawn at i
-                marks[i].set_data(centres[i, frame, :, 0] - 0.5, centres[i, frame, :, 1] - 0.5)
+            # a pixel i covers [i, i + 1): imshow draws its centre at i
+            marks[i].set_data(centres[i, frame, :, 0] - 0.5, centres[i, frame, :, 1] - 0.5)
             axes[0, i].set_title(f"clip {i}, frame {frame}", fontsize=9)
         return images + marks
 
-    animation = FuncAnimation(fig, draw, frames=t, interval=interval)
+    animation = FuncAnimation(fig, draw, frames=t, interval=250)
     plt.close(fig)
     return animation
 
 
-def show_frame_rows(rows: dict[str, tuple[int, torch.Tensor]], n_frames: int,
-                    cell: float = 0.95):
+def show_frame_rows(rows: dict[str, tuple[int, torch.Tensor]], n_frames: int):
     """A grid of frames: one labelled row per entry, column ``t`` is frame ``t``.
 
     ``rows``: ``{label: (first, frames)}``, ``frames`` ``(n, 1, H, W)`` or
     ``(n, H, W)`` shown in columns ``first .. first + n - 1`` (earlier columns
     stay blank). Returns the axes ``(len(rows), n_frames)``.
     """
-    fig, axes = plt.subplots(len(rows), n_frames, figsize=(cell * n_frames, cell * len(rows)),
+    fig, axes = plt.subplots(len(rows), n_frames, figsize=(0.95 * n_frames, 0.95 * len(rows)),
                              squeeze=False)
     for row, (label, (first, frames)) in zip(axes, rows.items()):
         for t, ax in enumerate(row):
@@ -204,20 +187,17 @@ def plot_ap_curves(curves: dict[str, torch.Tensor], ax=None, spread: dict | None
 
 
 # -- CIFAR-10 (notebooks 01 and 02) ---------------------------------------------------------
-def show_views(images: torch.Tensor, views, normalized: bool = True, max_images: int = 8):
+def show_views(images: torch.Tensor, views):
     """A grid of images and their augmented views: one column per image, one row per view.
 
     ``images``: ``(N, 3, H, W)`` uint8 or float in ``[0, 1]``; ``views``: a list of
-    tensors ``(N, 3, S, S)``, as the augmentation pipeline returns them
-    (standardised with the CIFAR-10 statistics when ``normalized``, else in
-    ``[0, 1]``). Shows the first ``max_images``; returns the axes, ``(1 + len(views), n)``.
+    tensors ``(N, 3, S, S)``, standardised as the augmentation pipeline returns
+    them. Returns the axes, ``(1 + len(views), N)``.
     """
     from .augment import denormalize, to_float_images
 
-    n = min(len(images), max_images)
-    rows = [to_float_images(images[:n])]
-    rows += [denormalize(v[:n].float()) if normalized else v[:n].float().clamp(0, 1)
-             for v in views]
+    n = len(images)
+    rows = [to_float_images(images)] + [denormalize(v.float()) for v in views]
     fig, axes = plt.subplots(len(rows), n, figsize=(1.2 * n, 1.25 * len(rows)), squeeze=False)
     for r, (row, batch) in enumerate(zip(axes, rows)):
         for ax, image in zip(row, batch):
@@ -246,21 +226,19 @@ def plot_dimension_std(stds: dict[str, torch.Tensor], ax=None, target: float | N
 
 
 # -- SIGReg (notebook 02) -------------------------------------------------------------------
-def plot_characteristic_functions(samples: dict[str, torch.Tensor], t_max: float = 3.0,
-                                  sigma: float = 1.0, axes=None):
-    """Three panels per call: the samples, their characteristic functions, the weighted gap.
+def plot_characteristic_functions(samples: dict[str, torch.Tensor]):
+    """Three panels: the samples, their characteristic functions, the weighted gap.
 
     ``samples``: ``{label: (N,) tensor}``, 1-D samples to test against N(0, 1).
     Left: histograms and the N(0, 1) density. Middle: Re and |phi_N(t)| of each
-    sample against exp(-t^2/2). Right: ``N w(t) |phi_N(t) - phi(t)|^2``, whose
-    area over [-t_max, t_max] is the Epps-Pulley statistic (printed in the legend).
-    Returns the three axes.
+    sample against exp(-t^2/2). Right: ``N w(t) |phi_N(t) - phi(t)|^2`` with
+    ``w(t) = exp(-t^2 / 2)``, whose area over [-3, 3] is the Epps-Pulley
+    statistic (printed in the legend). Returns the three axes.
     """
     from .losses.sigreg import epps_pulley
 
-    if axes is None:
-        axes = plt.subplots(1, 3, figsize=(13, 3.4))[1]
-    t = torch.linspace(-t_max, t_max, 241)
+    axes = plt.subplots(1, 3, figsize=(13, 3.4))[1]
+    t = torch.linspace(-3.0, 3.0, 241)
     gaussian_cf = torch.exp(-(t**2) / 2)
     grid = torch.linspace(-4, 4, 161)
     axes[0].plot(grid, torch.exp(-(grid**2) / 2) / (2 * torch.pi) ** 0.5, "k--", label="N(0, 1)")
@@ -274,8 +252,8 @@ def plot_characteristic_functions(samples: dict[str, torch.Tensor], t_max: float
         real, imag = torch.cos(xt).mean(dim=0), torch.sin(xt).mean(dim=0)
         axes[1].plot(t, real, color=color, label=label)
         axes[1].plot(t, torch.sqrt(real**2 + imag**2), color=color, ls=":")
-        gap = len(x) * torch.exp(-(t**2) / (2 * sigma**2)) * ((real - gaussian_cf) ** 2 + imag**2)
-        statistic = epps_pulley(x, t_max=t_max, sigma=sigma).item()
+        gap = len(x) * torch.exp(-(t**2) / 2) * ((real - gaussian_cf) ** 2 + imag**2)
+        statistic = epps_pulley(x).item()
         gap = gap.clamp_min(1e-4)  # log scale
         axes[2].semilogy(t, gap, color=color, label=f"{label}: EP = {statistic:.3g}")
         axes[2].fill_between(t, 1e-4, gap, color=color, alpha=0.15)
@@ -332,8 +310,7 @@ def plot_projector_ablation(rows: list[dict], ax=None, baseline: float | None = 
 
 
 def plot_success_rates(rows: dict[str, tuple[float, float, float]], ax=None,
-                       reference: dict[str, float] | None = None, colors=None,
-                       reference_label: str = "the paper"):
+                       reference: dict[str, float] | None = None, colors=None):
     """Bars of success rates with their 95% intervals, one per ``name: (rate, low, high)``.
 
     ``reference``: rates to compare with (e.g. the paper's), drawn as black
@@ -349,7 +326,7 @@ def plot_success_rates(rows: dict[str, tuple[float, float, float]], ax=None,
     if marked:
         xs, ys = zip(*marked)
         ax.hlines(ys, [x - 0.4 for x in xs], [x + 0.4 for x in xs], colors="k", lw=2,
-                  label=reference_label)
+                  label="the paper")
         ax.legend(fontsize=8, loc="upper right")
     ax.set_xticks(range(len(names)), names, rotation=25, ha="right", fontsize=8)
     ax.set(ylim=(0, 1.15), yticks=[0, 0.2, 0.4, 0.6, 0.8, 1.0], ylabel="success rate")
