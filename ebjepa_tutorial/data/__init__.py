@@ -28,12 +28,6 @@ def random_subset(
 
 
 __all__ = [
-    "CIFAR10_CLASSES",
-    "CorruptDataError",
-    "DataNotFoundError",
-    "cache_dir",
-    "data_dir",
-    "load_cifar10",
-    "load_mnist",
-    "random_subset",
-]
+    "CIFAR10_CLASSES", "CorruptDataError", "DataNotFoundError", "cache_dir", "data_dir",
+    "load_cifar10", "load_mnist", "random_subset",
+]  # fmt: skip

@@ -64,23 +64,16 @@ class Source:
     path: Path
 
 
-def cifar10_sources(directory: Path, split: str) -> list[Source]:
-    """Every CIFAR-10 source for ``split`` in ``directory``, best first (search order above)."""
-    sources = []
+def find_cifar10(directory: Path, split: str) -> Source | None:
+    """The first CIFAR-10 source for ``split`` in ``directory`` (search order above), or None."""
     if (directory / datasets.CIFAR10.base_folder).is_dir():
-        sources.append(Source("official", directory))
+        return Source("official", directory)
     for name in TREE_DIRS:
         split_dir = directory / name / split
         if any((split_dir / c).is_dir() for c in CIFAR10_CLASSES):
-            sources.append(Source("tree", split_dir))
+            return Source("tree", split_dir)
     packed = sorted([*directory.glob("cifar10*.tar.gz"), *directory.glob("cifar10*.tgz")])
-    return sources + [Source("packed", path) for path in packed]
-
-
-def find_cifar10(directory: Path, split: str) -> Source | None:
-    """The first CIFAR-10 source for ``split`` in ``directory`` (search order above), or None."""
-    sources = cifar10_sources(directory, split)
-    return sources[0] if sources else None
+    return Source("packed", packed[0]) if packed else None
 
 
 def _missing_message(directory: Path, split: str) -> str:

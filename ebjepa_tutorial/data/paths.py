@@ -55,16 +55,14 @@ def data_dir(root: str | os.PathLike | None = None) -> Path:
         return Path(root).expanduser()
     if os.environ.get("EBJEPA_DATA"):
         return Path(os.environ["EBJEPA_DATA"]).expanduser()
-    project = project_root()
-    return (project if project is not None else Path.cwd()) / "data"
+    return (project_root() or Path.cwd()) / "data"
 
 
 def cache_dir() -> Path:
     """Where decoded arrays are cached: ``$EBJEPA_CACHE``, else ``<project>/data/cache``."""
     if os.environ.get("EBJEPA_CACHE"):
         return Path(os.environ["EBJEPA_CACHE"]).expanduser()
-    project = project_root()
-    return (project if project is not None else Path.cwd()) / "data" / "cache"
+    return (project_root() or Path.cwd()) / "data" / "cache"
 
 
 def check_split(split: str, choices: Sequence[str]) -> None:

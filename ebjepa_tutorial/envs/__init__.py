@@ -20,7 +20,6 @@ from .episodes import (
 )
 from .trajectories import Trajectories, generate_trajectories, sample_von_mises
 from .two_rooms import (
-    IMAGE_SIZE,
     MAX_STEP,
     clip_actions,
     random_layouts,
@@ -33,24 +32,8 @@ from .two_rooms import (
 )
 
 __all__ = [
-    "EPISODE_STEPS",
-    "IMAGE_SIZE",
-    "MAX_STEP",
-    "SUCCESS_RADIUS",
-    "THREE_ROOMS_EPISODE_STEPS",
-    "Episodes",
-    "Trajectories",
-    "TwoRoomsEnv",
-    "clip_actions",
-    "generate_trajectories",
-    "make_episodes",
-    "random_layouts",
-    "render",
-    "room_of",
-    "sample_positions",
-    "sample_von_mises",
-    "shortest_path_length",
-    "step_budget",
-    "transition",
-    "wall_collision",
-]
+    "EPISODE_STEPS", "MAX_STEP", "SUCCESS_RADIUS", "THREE_ROOMS_EPISODE_STEPS", "Episodes",
+    "Trajectories", "TwoRoomsEnv", "clip_actions", "generate_trajectories", "make_episodes",
+    "random_layouts", "render", "room_of", "sample_positions", "sample_von_mises",
+    "shortest_path_length", "step_budget", "transition", "wall_collision",
+]  # fmt: skip

@@ -6,16 +6,8 @@ it next to :func:`mean_baseline_px`, the error of predicting the mean
 position (about 20 px in Two Rooms): a latent that ignores the dot (for
 example one that only encodes the walls) lands there.
 
-- :func:`fit_position_probe`: ridge regression in closed form (linear, the
-  default: exact and instant), or a small MLP trained with Adam (``hidden > 0``).
-- :func:`probe_error_px`: mean ``||probe(z) - position||`` in pixels.
-- :func:`encode_trajectories`: latents and positions of every frame of a set
-  of trajectories, in batches, without gradients.
-- :func:`middle_wall_test`: does the *predictor* know the walls (Two Rooms'
-  middle wall, or both walls of Three Rooms)? One step at a time, on the steps
-  of real trajectories that a wall stopped.
-- :func:`wall_test_by_door_distance`: the same, split by how far along the
-  wall from its door each stopped step was.
+:func:`middle_wall_test` asks whether the *predictor* knows the walls, one
+step at a time, on the steps of real trajectories that a wall stopped.
 """
 
 from __future__ import annotations
@@ -159,25 +151,15 @@ def _nearer(model, trajectories, steps, max_steps: int | None, through_wall: boo
 def middle_wall_test(model, trajectories, min_stop: float = 0.8, max_steps: int = 1000) -> dict:
     """Does the predictor stop the dot at a wall, and move it elsewhere? Step by step.
 
-    Stopped steps: every step of ``trajectories`` in which a wall (Two Rooms'
-    middle wall; either wall of Three Rooms, layouts ``(B, 4)``) cut the move
-    short by more than ``min_stop`` px (steps whose action would
-    leave the arena are skipped: the outer frame may be what stopped them).
-    For each, the one-step prediction ``Pred(Enc(o_t), a_t)`` is compared with
-    the real next latent ``Enc(o_{t+1})`` and with ``Enc`` of the frame where
-    the action alone would have put the dot, inside the wall. ``stopped`` is
-    the fraction nearer the real one: 1 for a predictor that knows the wall,
-    about 0 for one that moves the dot as if there were none.
-
-    A predictor that never moves anything also scores 1 there, so the control
-    is ``moved``: on steps that touched no wall and moved the dot at least
-    ``min_stop`` px, the fraction of predictions nearer the real next latent
-    than the current one. A good predictor scores near 1 on both. Each score
-    is taken over the first ``max_steps`` steps of its kind.
-
-    Returns ``stopped``, ``moved`` and how many steps each is over
-    (``n_stopped``, ``n_moved``). ``model``: encode ``(B, 2, 65, 65) -> (B, D)``,
-    predict ``(B, D), (B, 2) -> (B, D)``.
+    ``stopped``: on the steps a wall (any wall of the layouts) cut short by more
+    than ``min_stop`` px, the fraction of one-step predictions ``Pred(Enc(o_t), a_t)``
+    nearer the real ``Enc(o_{t+1})`` than ``Enc`` of the dot moved by the action
+    alone, into the wall: 1 for a predictor that knows the wall, about 0 for one
+    that ignores it. A predictor that never moves anything also scores 1, so the
+    control is ``moved``: on free steps of at least ``min_stop`` px, the fraction
+    of predictions nearer the real next latent than the current one. Each is over
+    the first ``max_steps`` steps of its kind (``n_stopped``, ``n_moved``).
+    ``model``: encode ``(B, 2, 65, 65) -> (B, D)``, predict ``(B, D), (B, 2) -> (B, D)``.
     """
     stopped_steps, moved_steps = _wall_steps(trajectories, min_stop)
     stopped = _nearer(model, trajectories, stopped_steps, max_steps, through_wall=True)[0]
@@ -191,13 +173,11 @@ def wall_test_by_door_distance(model, trajectories, edges=(0, 8, 12, 16, 24, 65)
                                min_stop: float = 0.8) -> list[dict]:
     """:func:`middle_wall_test`'s ``stopped``, split by where along the wall the dot was.
 
-    Every wall-stopped step is put in a bin by ``|y_t - door_y|``, its
-    distance along the wall from the door's centre (the door is open within
-    4.5 px of it, the dot passes within 3.5 px; nearer than that, its sides
-    are what stops the dot). With several walls, ``door_y`` is the door of
-    the wall that stopped the step (:func:`stopping_doors`). Returns one dict
-    per bin ``[lo, hi)`` of ``edges``: ``lo``, ``hi``, ``stopped`` (NaN for an
-    empty bin) and ``n``.
+    Every wall-stopped step goes in a bin by ``|y_t - door_y|``, its distance
+    along the wall from the door's centre of the wall that stopped it
+    (:func:`stopping_doors`; the dot passes within 3.5 px of it, nearer than
+    that the door's sides stop it). One dict per bin ``[lo, hi)`` of ``edges``:
+    ``lo``, ``hi``, ``stopped`` (NaN for an empty bin) and ``n``.
     """
     flags, b, t = _nearer(model, trajectories, _wall_steps(trajectories, min_stop)[0], None,
                           through_wall=True)
@@ -225,15 +205,12 @@ def stopping_doors(positions: torch.Tensor, layouts: torch.Tensor) -> torch.Tens
 
 def probe_report(model: WorldModel, n_fit: int = 1000, n_test: int = 300, seed: int = 12345,
                  test_steps: int = 16, walls: int = 1):
-    """Position-probe error (px) of frozen latents on held-out trajectories, with baselines.
+    """Position-probe error (px) of frozen latents on held-out trajectories, and the baseline.
 
     A linear probe is fitted on every frame of ``n_fit`` fresh 17-frame
-    trajectories (seed ``seed``) and scored on every frame of ``n_test``
-    others of ``test_steps`` actions (seed ``seed + 1``); no seed is one the
-    training used. ``walls``: 1 for Two Rooms, 2 for Three Rooms. The baseline
-    always answers the mean position. The model encodes on its device; the
-    latents, and so the probe, are on the CPU (a ``(D, D)`` solve is instant,
-    and what a probe reads is plotted).
+    trajectories (seed ``seed``) and scored on every frame of ``n_test`` others
+    of ``test_steps`` actions (seed ``seed + 1``), no seed the training used;
+    ``walls``: 1 for Two Rooms, 2 for Three Rooms. The probe is on the CPU.
     """
     fit_trajectories = generate_trajectories(n_fit, seed=seed, walls=walls)
     test_trajectories = generate_trajectories(n_test, steps=test_steps, seed=seed + 1,

@@ -147,9 +147,9 @@ print(min(most, fits) if fits >= least else 0)
 warmup=$(( steps / 30 > 0 ? steps / 30 : 1 ))  # the paper's 10 of 300 epochs
 if (( steps > 0 )) && "$PYTHON" -c "
 import sys
-from ebjepa_tutorial.data.cifar10 import cifar10_sources
+from ebjepa_tutorial.data.cifar10 import find_cifar10
 from ebjepa_tutorial.data.paths import data_dir
-sys.exit(0 if cifar10_sources(data_dir(), 'train') else 'no CIFAR-10 in ' + str(data_dir()))
+sys.exit(0 if find_cifar10(data_dir(), 'train') else 'no CIFAR-10 in ' + str(data_dir()))
 "; then
     echo "image run: $steps steps (warm-up $warmup) at ${seconds} s a step fit in ${available} s"
     rm -f "$work/image_run.pt" "$work/image_run.partial"  # a fresh run, not a resumed one
