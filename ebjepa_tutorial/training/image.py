@@ -200,19 +200,10 @@ def train_image_jepa(config: ImageJEPAConfig, images: torch.Tensor,
     net = distributed.data_parallel(AllViews(model), device, sync_batchnorm)
     optimizer = make_optimizer(model, config)
     scheduler = warmup_cosine_scheduler(optimizer, config.steps, config.warmup_steps)
-    pipeline = augment.build_augmentation(augment.AugmentConfig(size=config.image_size))
     start, history = (0, History())
     if checkpoint is not None:
         start, history = resume(checkpoint, model, optimizer, scheduler, identity(config))
-    images = images.to(device)  # CIFAR-10 is 150 MB as uint8: it stays on the GPU
-
-    def batch(step: int):
-        generator = step_generator(config.seed, step)
-        index = torch.randint(0, len(images), (config.batch_size,), generator=generator)
-        views = augment.two_views(images[index.to(images.device)], pipeline, generator)
-        # every rank made the same global batch; each keeps its rows (all of them on one)
-        views = [distributed.local_rows(v).contiguous(memory_format=layout) for v in views]
-        return views, generator
+    batch = _batches(config, images.to(device), layout)  # CIFAR-10 stays on the GPU (150 MB)
 
     def loss(views_and_generator):
         views, generator = views_and_generator
@@ -226,6 +217,22 @@ def train_image_jepa(config: ImageJEPAConfig, images: torch.Tensor,
         start_step=start, checkpoint=checkpoint, checkpoint_every=checkpoint_every, log_every=10,
         desc=f"{config.method} training", progress=progress, config=identity(config))
     return model, history
+
+
+def _batches(config: ImageJEPAConfig, images: torch.Tensor, layout):
+    """``batch(step)``: the step's two views of this rank's rows, ``(b, 3, S, S)`` each, and
+    the step's generator (SIGReg draws its directions from it)."""
+    pipeline = augment.build_augmentation(augment.AugmentConfig(size=config.image_size))
+
+    def batch(step: int):
+        generator = step_generator(config.seed, step)
+        index = torch.randint(0, len(images), (config.batch_size,), generator=generator)
+        views = augment.two_views(images[index.to(images.device)], pipeline, generator)
+        # every rank made the same global batch; each keeps its rows (all of them on one)
+        views = [distributed.local_rows(v).contiguous(memory_format=layout) for v in views]
+        return views, generator
+
+    return batch
 
 
 def seconds_per_step(config: ImageJEPAConfig, images: torch.Tensor, steps: int = 5,
