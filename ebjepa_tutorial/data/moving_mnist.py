@@ -32,7 +32,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 
 from ..utils import as_generator, make_generator
@@ -67,15 +66,10 @@ class MovingMNISTBatch:
 
 
 def check_digits(digits) -> torch.Tensor:
-    """Return ``digits`` as a uint8 ``(N, H, W)`` tensor, or raise a clear error.
-
-    Accepts uint8 ``(N, 1, H, W)`` (our image layout) or ``(N, H, W)``, as a
-    tensor or a NumPy array.
-    """
-    if isinstance(digits, np.ndarray):
-        digits = torch.from_numpy(digits)
+    """Return uint8 ``digits`` ``(N, 1, H, W)`` (our image layout) or ``(N, H, W)`` as
+    ``(N, H, W)``, or raise a clear error."""
     if not isinstance(digits, torch.Tensor):
-        raise TypeError(f"digits must be a tensor or array, got {type(digits).__name__}")
+        raise TypeError(f"digits must be a tensor, got {type(digits).__name__}")
     if digits.ndim == 4 and digits.shape[1] == 1:
         digits = digits[:, 0]
     if digits.ndim != 3 or digits.shape[0] == 0:
