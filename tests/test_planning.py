@@ -1,7 +1,12 @@
 """MPPI and CEM: the update against its formula, optima of known costs, goals in known dynamics."""
 
+import ast
+import inspect
+import json
 import math
+import textwrap
 from dataclasses import replace
+from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
@@ -9,6 +14,7 @@ import torch
 from torch import nn
 
 from ebjepa_tutorial import planning
+from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.envs import SUCCESS_RADIUS, clip_actions, render
 from ebjepa_tutorial.envs.two_rooms import transition
 from ebjepa_tutorial.evaluation.metrics import wilson_interval
@@ -511,3 +517,64 @@ def test_warm_replans_refine_the_plan_warm_iterations_times(monkeypatch):
     planning.run_episodes(LinearLatentModel(), [3, 4], replace(config, warm_iterations=9),
                           steps=12)
     assert iterations == [5, 5, 5]  # never more than J
+
+
+# -- one source of truth: notebook 06 shows the package's iteration and loop, and runs its copy
+NOTEBOOK_06 = Path(__file__).resolve().parents[1] / "notebooks" / "06_planning.ipynb"
+
+
+def notebook_cell(name: str) -> str:
+    """The source of notebook 06's cell (tagged package-source) that defines ``name``."""
+    cells = json.loads(NOTEBOOK_06.read_text())["cells"]
+    found = [cell for cell in cells if "package-source" in cell["metadata"].get("tags", [])
+             and f"def {name}(" in "".join(cell["source"])]
+    assert len(found) == 1, f"notebook 06 has {len(found)} package-source cells defining {name}"
+    return "".join(found[0]["source"])
+
+
+def normalised(source: str) -> list[str]:
+    """The lines of a function's source with trailing spaces and blank lines dropped."""
+    return [line.rstrip() for line in textwrap.dedent(source).splitlines() if line.strip()]
+
+
+@pytest.mark.parametrize("function", [planning.mppi_iteration, planning.mpc_loop])
+def test_notebook_06_shows_the_package_copy_of_the_iteration_and_the_loop(function):
+    source = notebook_cell(function.__name__)
+    tree = ast.parse(source)
+    [definition] = [node for node in tree.body if isinstance(node, ast.FunctionDef)]
+    shown = "\n".join(source.splitlines()[definition.lineno - 1:])  # to the cell's end
+    assert normalised(shown) == normalised(inspect.getsource(function)), (
+        f"notebook 06's {function.__name__} differs from planning.{function.__name__}: "
+        "edit both, or copy the package's into the notebook")
+
+
+def notebook_functions(edit=lambda name, source: source) -> dict:
+    """Run notebook 06's iteration and loop cells (after ``edit``), as the notebook does."""
+    namespace = {"torch": torch, "mppi_update": planning.mppi_update}
+    for name in ("mppi_iteration", "mpc_loop"):
+        exec(edit(name, notebook_cell(name)), namespace)  # noqa: S102 - the notebook's own code
+    return namespace
+
+
+def ci_episodes(loop):
+    config = preset("06", "ci").planner
+    return planning.run_episodes(LinearLatentModel(), range(3), config, steps=24, loop=loop)
+
+
+def test_the_notebooks_loop_plays_the_packages_episodes_and_an_edit_changes_them():
+    package = ci_episodes(planning.mpc_loop)
+    assert torch.equal(ci_episodes(notebook_functions()["mpc_loop"]).paths, package.paths)
+
+    def every_two_steps(name, source):  # re-plan after 2 actions instead of m = 4
+        return source.replace("config.execute", "2") if name == "mpc_loop" else source
+
+    def equal_weights(name, source):  # the update line of the iteration: CEM's instead
+        old = "mean, std = mppi_update(actions, costs, config.elites, config.temperature)"
+        if name != "mppi_iteration":
+            return source
+        assert old in source
+        return source.replace(old, "mean, std = cem_update(actions, costs, config.elites)")
+
+    for edit in (every_two_steps, equal_weights):
+        edited = ci_episodes(notebook_functions(edit)["mpc_loop"])
+        assert not torch.equal(edited.paths, package.paths), edit.__name__

@@ -30,7 +30,7 @@ from .mppi import (
     PlannerConfig,
     cem_update,
     check_start_and_goal,
-    distance,
+    goal_distance,
     mppi_iteration,
     mppi_update,
     mppi_weights,
@@ -46,8 +46,8 @@ from .two_level import TwoLevel, two_level_episodes
 __all__ = [
     "COSTS", "METHODS", "MIN_STD", "WORLDS", "EpisodeResults", "Plan", "PlannerConfig",
     "StateEnv", "TrueDynamics", "TwoLevel", "arrival_distance", "cem_update",
-    "check_start_and_goal", "distance", "dot_grid", "energy_by_distance", "energy_map",
-    "episode_generators", "latent_distance", "mpc_loop", "mppi_iteration", "mppi_update",
-    "mppi_weights", "plan", "planning_cost", "run_episodes", "select_elites", "shift_plan",
-    "smooth_noise", "two_level_episodes", "weighted_mean_std",
+    "check_start_and_goal", "dot_grid", "energy_by_distance", "energy_map",
+    "episode_generators", "goal_distance", "latent_distance", "mpc_loop", "mppi_iteration",
+    "mppi_update", "mppi_weights", "plan", "planning_cost", "run_episodes", "select_elites",
+    "shift_plan", "smooth_noise", "two_level_episodes", "weighted_mean_std",
 ]

@@ -31,7 +31,7 @@ from ..envs import SUCCESS_RADIUS, Episodes, Trajectories, TwoRoomsEnv, make_epi
 from ..envs.two_rooms import random_layouts, render, sample_positions, wall_collision
 from ..evaluation.metrics import wilson_interval
 from .diagnosis import StateEnv, TrueDynamics
-from .mppi import PlannerConfig, distance, mppi_iteration, plan, shift_plan
+from .mppi import PlannerConfig, goal_distance, mppi_iteration, plan, shift_plan
 
 WORLDS = ("learned", "true", "true_xy")  # what run_episodes imagines with
 
@@ -158,7 +158,7 @@ def mpc_loop(model, env, config, generators, steps, arrived=None, aim=None):
         z = model.encode(env.observe())  # (B, D): where each dot is, as the model sees it
         moving = torch.ones(len(z), dtype=torch.bool, device=z.device)  # (B,) still under way
         if arrived is not None:
-            moving = distance(model, z, z_goal) >= arrived
+            moving = goal_distance(model, z, z_goal) >= arrived
         mean[~moving] = 0  # the arrived stand still
         target = z_goal if aim is None else aim(z, z_goal, moving)  # (B, D)
         rows = moving.nonzero()[:, 0]

@@ -135,7 +135,7 @@ def _goal_hint(batch: int, z_goal: torch.Tensor) -> str:
     return ""
 
 
-def distance(model, z: torch.Tensor, z_goal: torch.Tensor) -> torch.Tensor:
+def goal_distance(model, z: torch.Tensor, z_goal: torch.Tensor) -> torch.Tensor:
     """The energy of single states, ``||z - z_goal||`` over the last dimension: ``(...)``.
 
     A stand-in model with a ``distance`` of its own (the diagnosis's
@@ -172,7 +172,7 @@ def planning_cost(model, z0: torch.Tensor, z_goal: torch.Tensor, actions: torch.
                          f"{tuple(z0.shape)}; encode the goal with the planning model")
     if cost == "learned":
         return model.cost_to_go(z[:, :, -1], z_goal[:, None])
-    energy = distance(model, z, z_goal[:, None, None])  # (B, N, H)
+    energy = goal_distance(model, z, z_goal[:, None, None])  # (B, N, H)
     return energy.sum(dim=-1) if cost == "sum" else energy[..., -1]
 
 
