@@ -29,7 +29,7 @@ from ebjepa_tutorial.envs.two_rooms import WALL_X_RANGES
 from ebjepa_tutorial.evaluation.position import middle_wall_test, probe_report
 from ebjepa_tutorial.losses.world import PREDICTION_STARTS
 from ebjepa_tutorial.models.world import PREDICTORS, WorldConfig
-from ebjepa_tutorial.training.checkpoints import load_checkpoint, save_checkpoint, stored_identity
+from ebjepa_tutorial.training.checkpoints import load_checkpoint, save_checkpoint
 from ebjepa_tutorial.training.world import (
     ABLATABLE_TERMS,
     RefitConfig,
@@ -41,7 +41,6 @@ from ebjepa_tutorial.training.world import (
     refit_identity,
     refit_predictor,
     train_world_model,
-    upgrade_identity,
     with_coeffs,
 )
 from ebjepa_tutorial.utils import get_device
@@ -189,7 +188,7 @@ def refit_main(trained: str, out: str, config: RefitConfig) -> None:
         before, after = middle_wall_test(model, walls), middle_wall_test(new, walls)
     base = load_checkpoint(trained)
     save_checkpoint(out, model=new.state_dict(), history=dict(history),
-                    config=refit_identity(config, stored_identity(base, upgrade_identity)),
+                    config=refit_identity(config, base["config"]),
                     probe_px=base.get("probe_px"))
     print(f"saved {out}: the wall test stops {after['stopped']:.0%} of the wall's steps and "
           f"moves {after['moved']:.0%} of the free ones (before: {before['stopped']:.0%} and "

@@ -17,7 +17,7 @@ from ebjepa_tutorial import distributed
 from research import train_image
 
 ROOT = Path(__file__).resolve().parents[1]
-CHAPTERS = ("image", "sigreg", "vit", "video", "world")
+CHAPTERS = ("image", "sigreg", "video", "world")
 
 
 @pytest.mark.slow
@@ -51,7 +51,7 @@ def test_a_short_full_image_run_takes_a_shorter_warmup(monkeypatch, capsys):
     monkeypatch.setattr(train_image, "_train_and_save", lambda args, sizes, config, device:
                         ran.append(config))
     train_image.main(["--scale", "full", "--steps", "300", "--warmup-steps", "10", "--out", "x"])
-    assert (ran[0].steps, ran[0].warmup_steps, ran[0].optimizer) == (300, 10, "lars")
+    assert (ran[0].steps, ran[0].warmup_steps) == (300, 10)
     with pytest.raises(SystemExit):  # the preset's 1,950 warm-up steps do not fit in 300
         train_image.main(["--scale", "full", "--steps", "300", "--out", "x"])
     assert "warmup_steps" in capsys.readouterr().err

@@ -1,6 +1,5 @@
 """The warm-up + cosine schedule and AdamW's parameter groups."""
 
-import math
 
 import pytest
 import torch

@@ -397,17 +397,12 @@ def test_run_names_and_ablation_configs():
     assert len({run_name("class", r) for r in runs}) == len(runs)
 
 
-def test_runs_from_before_the_parallel_unroll_load_as_what_they_trained():
-    def older(config):  # an identity stored before the unroll fields existed
-        new_fields = ("unroll", "detach_later_orders")
-        return {k: v for k, v in video_training.identity(config).items() if k not in new_fields}
-
+def test_an_unroll_other_than_the_default_is_another_run():
     k4, k1 = replace(CI, rollout_steps=4), replace(CI, rollout_steps=1)
-    upgraded = video_training.upgrade_identity(older(k4))
-    then = replace(k4, unroll="autoregressive", detach_later_orders=False)
-    assert upgraded == video_training.identity(then)
-    assert upgraded != video_training.identity(k4)  # the parallel run is another run
-    assert video_training.upgrade_identity(older(k1)) == video_training.identity(k1)
+    autoregressive = replace(k4, unroll="autoregressive")
+    assert video_training.identity(autoregressive) != video_training.identity(k4)
+    assert video_training.identity(autoregressive)["unroll"] == "autoregressive"
+    assert "unroll" not in video_training.identity(k1)  # left at its default: not stored
 
 
 def test_evaluation_clips_use_their_own_digits_and_seeds(digits):

@@ -2,7 +2,7 @@
 
 import io
 import math
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 
 import pytest
 import torch
@@ -233,21 +233,13 @@ def test_sigreg_joins_the_world_model_loss_when_weighted(data):
     assert "sigreg" not in off  # off by default: the paper's recipe costs nothing more
 
 
-def test_a_sigreg_world_model_trains_and_older_runs_read_as_without_it():
-    from ebjepa_tutorial.training.world import (
-        WorldTrainConfig,
-        identity,
-        train_world_model,
-        upgrade_identity,
-    )
+def test_a_sigreg_world_model_trains():
+    from ebjepa_tutorial.training.world import WorldTrainConfig, train_world_model
 
     config = WorldTrainConfig(model=tiny_model().config, n_trajectories=16, batch_size=4,
                               steps=2, coeffs=wl.WorldLossCoeffs(sigreg=0.05))
     _, history = train_world_model(config, progress=False)
     assert len(history["sigreg"]) == 2 and all(math.isfinite(v) for v in history["sigreg"])
-    before = identity(WorldTrainConfig())
-    del before["coeffs"]["sigreg"]
-    assert upgrade_identity(before) == identity(WorldTrainConfig())
 
 
 def test_training_windows_are_consecutive_frames_of_one_trajectory_at_any_offset():
@@ -267,36 +259,26 @@ def test_training_windows_are_consecutive_frames_of_one_trajectory_at_any_offset
     assert (positions[:, -1] == data.positions[index, -1]).all(-1).any()
 
 
-def test_a_windowed_channels_last_run_trains_and_older_runs_read_as_whole_trajectories():
-    from ebjepa_tutorial.training.world import (
-        WorldTrainConfig,
-        identity,
-        train_world_model,
-        upgrade_identity,
-    )
+def test_a_windowed_channels_last_run_trains():
+    from ebjepa_tutorial.training.world import WorldTrainConfig, train_world_model
 
     config = WorldTrainConfig(model=tiny_model().config, n_trajectories=16, batch_size=4,
                               steps=2, window=9, channels_last=True, wall_fraction=0.25)
     _, history = train_world_model(config, progress=False, device="cpu")
     assert len(history["loss"]) == 2 and all(math.isfinite(v) for v in history["loss"])
-    before = identity(WorldTrainConfig())
-    for name in ("window", "channels_last", "wall_fraction"):
-        del before[name]
-    assert upgrade_identity(before) == identity(WorldTrainConfig())
     with pytest.raises(ValueError, match="rollout_steps"):
         WorldTrainConfig(window=5)
     with pytest.raises(ValueError, match="wall_fraction"):
         WorldTrainConfig(wall_fraction=0.9)
 
 
-def test_a_three_rooms_run_trains_on_three_rooms_data_and_older_runs_read_as_two_rooms():
+def test_a_three_rooms_run_trains_on_three_rooms_data_and_is_another_run():
     from ebjepa_tutorial.envs import room_of
     from ebjepa_tutorial.training.world import (
         WorldTrainConfig,
         identity,
         make_data,
         train_world_model,
-        upgrade_identity,
     )
 
     config = WorldTrainConfig(model=tiny_model().config, n_trajectories=16, batch_size=4,
@@ -306,10 +288,8 @@ def test_a_three_rooms_run_trains_on_three_rooms_data_and_older_runs_read_as_two
     assert (room_of(data.positions[:, 0], data.layouts) == 1).any()  # some start in the middle
     _, history = train_world_model(config, progress=False, device="cpu")
     assert len(history["loss"]) == 2 and all(math.isfinite(v) for v in history["loss"])
-    before = identity(WorldTrainConfig())
-    del before["walls"]
-    assert upgrade_identity(before) == identity(WorldTrainConfig())
-    assert upgrade_identity(before) != identity(WorldTrainConfig(walls=2))
+    assert identity(WorldTrainConfig()) != identity(WorldTrainConfig(walls=2))
+    assert identity(WorldTrainConfig(walls=2))["wall_x_ranges"]  # the geometry is recorded
     with pytest.raises(ValueError, match="walls"):
         WorldTrainConfig(walls=3)
 
@@ -363,16 +343,12 @@ def test_a_replay_restored_from_its_state_continues_exactly():
                                                   second.model.predictor.parameters()))
 
 
-def test_a_replay_run_trains_and_older_runs_read_as_without_replay():
+def test_a_replay_run_trains():
     config = world.WorldTrainConfig(model=replace(TINY, predictor="mlp"), n_trajectories=16,
                                     batch_size=4, steps=2, window=9, replay_steps=2,
                                     replay_batch=8, replay_capacity=8, stay_probability=0.2)
     _, history = world.train_world_model(config, progress=False, device="cpu")
     assert len(history["loss"]) == 2 and all(math.isfinite(v) for v in history["loss"])
-    before = world.identity(world.WorldTrainConfig())
-    for name in ("replay_steps", "replay_batch", "replay_capacity", "replay_lr"):
-        del before[name]
-    assert world.upgrade_identity(before) == world.identity(world.WorldTrainConfig())
     with pytest.raises(ValueError, match="replay_capacity"):
         world.WorldTrainConfig(batch_size=64, replay_capacity=32)
     with pytest.raises(ValueError, match="replay_steps"):
@@ -747,39 +723,44 @@ def test_command_line_trains_the_run_of_a_scale(tmp_path, monkeypatch):
             train_world.main(["--out", "y.pt", *wrong])
 
 
-def test_identities_saved_before_versions_are_upgraded():
-    from ebjepa_tutorial.training.checkpoints import same_run
+def test_an_identity_holds_the_fields_that_define_the_run():
+    from ebjepa_tutorial.training.checkpoints import run_identity, same_run
     from ebjepa_tutorial.training.world import (
         RefitConfig,
         WorldTrainConfig,
         identity,
         refit_identity,
-        upgrade_identity,
-        upgrade_refit_identity,
     )
 
-    # a version-1 identity left decay_steps out when it was 0 and the predictor's fields
-    # for the GRU; today's identity holds every field and the schema version
-    legacy = identity(WorldTrainConfig())
-    del legacy["schema"], legacy["decay_steps"]
-    del legacy["model"]["predictor"], legacy["model"]["predictor_hidden"]
-    assert same_run({"config": legacy}, identity(WorldTrainConfig()), upgrade_identity)
-    assert not same_run({"config": legacy}, identity(WorldTrainConfig(decay_steps=4)),
-                        upgrade_identity)
-    refit = {"refit": asdict(RefitConfig()), "base": legacy}
-    today = refit_identity(RefitConfig(), identity(WorldTrainConfig()))
-    assert same_run({"config": refit}, today, upgrade_refit_identity)
-    assert today["schema"] == today["base"]["schema"] == 2
-    # runs saved before prediction_starts existed rolled out from the first frame only
-    before = identity(WorldTrainConfig())
-    del before["prediction_starts"]
-    assert same_run({"config": before}, identity(WorldTrainConfig()), upgrade_identity)
-    assert not same_run({"config": before}, identity(WorldTrainConfig(prediction_starts="all")),
-                        upgrade_identity)
-    del before["stay_probability"]
-    assert same_run({"config": before}, identity(WorldTrainConfig()), upgrade_identity)
-    refit_before = {**today, "base": before}
-    assert same_run({"config": refit_before}, today, upgrade_refit_identity)
+    default = identity(WorldTrainConfig())
+    # the fields named always, and nothing left at its default
+    assert set(default) == {"steps", "batch_size", "lr", "n_trajectories", "rollout_steps",
+                            "seed"}
+    changed = identity(WorldTrainConfig(decay_steps=4, coeffs=wl.WorldLossCoeffs(sigreg=0.05)))
+    assert changed == {**default, "decay_steps": 4, "coeffs": {"sigreg": 0.05}}
+    assert not same_run({"config": default}, changed)
+    refit = refit_identity(RefitConfig(), default)
+    assert refit["base"] == default and same_run({"config": refit}, refit)
+
+
+def test_a_new_option_with_a_default_leaves_stored_identities_alone():
+    from ebjepa_tutorial.training.checkpoints import run_identity
+
+    @dataclass(frozen=True)
+    class Before:
+        steps: int = 10
+        lr: float = 1e-3
+
+    @dataclass(frozen=True)
+    class After:  # Before with an option added since
+        steps: int = 10
+        lr: float = 1e-3
+        new_option: bool = False
+
+    assert run_identity(Before(steps=20), ("steps",)) == run_identity(After(steps=20), ("steps",))
+    assert run_identity(After(steps=20, new_option=True), ("steps",))["new_option"] is True
+    # a field named always is stored at its default too, so changing that default is seen
+    assert run_identity(Before(), ("steps",)) == {"steps": 10}
 
 
 # -- the device asked for ------------------------------------------------------------------
@@ -884,11 +865,9 @@ def test_a_clipped_update_moves_the_weights_by_at_most_the_clip():
     assert torch.allclose(layer.weight, torch.full((1, 3), -0.5 / 3 ** 0.5))
 
 
-def test_a_clipped_replay_run_trains_and_older_runs_read_as_unclipped():
+def test_a_clipped_replay_run_trains():
     config = replace(world.course_recipe(world.WorldTrainConfig(
         model=WORLD_CONFIGS["ci"], n_trajectories=16, batch_size=4, steps=2,
         replay_batch=8, replay_capacity=8)), grad_clip=0.1)
     _, history = world.train_world_model(config, progress=False, device="cpu")
     assert len(history["loss"]) == 2
-    stored = {key: value for key, value in world.identity(config).items() if key != "grad_clip"}
-    assert world.upgrade_identity(stored)["grad_clip"] == 0.0

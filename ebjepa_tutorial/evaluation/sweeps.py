@@ -25,11 +25,11 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from ..data.paths import atomic_file
-from ..training.image import ImageJEPAConfig, train_image_jepa
+from ..training.image import ImageJEPAConfig, identity, train_image_jepa
 from .classify import probe_encoder, protocol
 
 FACTORS = {"ci": (0.1, 1.0, 10.0), "class": (0.01, 0.1, 1.0, 10.0, 100.0),
@@ -93,12 +93,16 @@ def projector_runs(sigreg_config: ImageJEPAConfig, vicreg_config: ImageJEPAConfi
     return runs
 
 
-def key(config: ImageJEPAConfig | dict, n_train: int, n_test: int) -> str:
-    """What identifies a result: the config as JSON (tuples become lists) and the data sizes.
+def run_identity(config: ImageJEPAConfig) -> dict:
+    """What a result row stores of its run: the run's identity (``training.image.identity``:
+    the fields that define the training) and the size its probe saw."""
+    return {**identity(config), "eval_image_size": config.eval_image_size}
 
-    The config includes ``eval_image_size``: a run probed at another size is another result.
-    """
-    config = asdict(config) if isinstance(config, ImageJEPAConfig) else config
+
+def key(config: ImageJEPAConfig | dict, n_train: int, n_test: int) -> str:
+    """What identifies a result: :func:`run_identity` as JSON (tuples become lists) and the
+    data sizes. An option added to the config with a default leaves stored rows valid."""
+    config = run_identity(config) if isinstance(config, ImageJEPAConfig) else config
     return json.dumps([config, n_train, n_test], sort_keys=True)
 
 
@@ -140,7 +144,7 @@ def train_and_probe(run: Run, train, test, device="cpu", progress: bool = True) 
     final = {name: values[-1] for name, values in history.items() if name != "step"}
     return {"sweep": run.sweep, "value": run.value, "factor": run.factor, **scores,
             "final_terms": final, "seconds": round(time.perf_counter() - start, 1),
-            "n_train": len(train[0]), "n_test": len(test[0]), "config": asdict(run.config)}
+            "n_train": len(train[0]), "n_test": len(test[0]), "config": run_identity(run.config)}
 
 
 def run_sweep(runs: list[Run], train, test, path: str | Path | None = None,

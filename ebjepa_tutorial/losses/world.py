@@ -18,11 +18,9 @@ inverse-dynamics head forces the latent to keep what the action changed
 (the dot), which the static walls cannot explain. Every term averages over
 its elements, so each coefficient does not depend on ``B``, ``T`` or ``D``.
 
-Across several processes (``torchrun``), ``across_ranks=True`` gives every rank
-the terms of the global batch: the prediction, temporal and inverse-dynamics
-terms are means over trajectories (DDP averages them over ranks), the variance
-and covariance see every rank's latents (gathered), SIGReg the global batch's
-characteristic function, and the still steps are drawn for the global batch.
+Under ``torchrun`` the training code passes :func:`latent_loss` two functions of
+:mod:`ebjepa_tutorial.distributed` (``batch_rows``, ``rand``) so that the batch
+statistics and the still steps are those of the global batch.
 """
 
 from __future__ import annotations
@@ -33,7 +31,6 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from .. import distributed
 from ..utils import at_least_float32, mixed_precision
 from .sigreg import sigreg
 from .vicreg import covariance_term, variance_term
@@ -91,16 +88,10 @@ def with_still_steps(z: torch.Tensor, actions: torch.Tensor, stay: torch.Tensor)
 
 
 def draw_still_steps(windows: int, steps: int, probability: float,
-                     generator: torch.Generator | None, across_ranks: bool = False):
-    """Which steps are still: ``(windows, steps)`` bool, each True with ``probability``.
-
-    With ``across_ranks`` the draw is that of the global batch ``(W windows, steps)``, cut
-    to this rank's rows: every rank consumes the generator as one process would, and its
-    windows get the steps that they would get there.
-    """
-    drawn = windows * (distributed.world_size() if across_ranks else 1)
-    stay = torch.rand(drawn, steps, generator=generator) < probability
-    return distributed.local_rows(stay) if across_ranks else stay
+                     generator: torch.Generator | None, rand: Callable = torch.rand):
+    """Which steps are still: ``(windows, steps)`` bool, each True with ``probability``,
+    drawn with ``rand`` (``torch.rand``'s signature)."""
+    return rand(windows, steps, generator=generator) < probability
 
 
 def windows(x: torch.Tensor, length: int, every: int) -> torch.Tensor:
@@ -120,7 +111,7 @@ def multistep_prediction_loss(
     starts: str = "first",
     stay_probability: float = 0.0,
     generator: torch.Generator | None = None,
-    across_ranks: bool = False,
+    rand: Callable = torch.rand,
 ) -> torch.Tensor:
     """Mean squared error of ``steps``-step autoregressive rollouts under the true actions.
 
@@ -133,8 +124,7 @@ def multistep_prediction_loss(
     every start ``t = 0 .. T-1-K`` that has ``K`` frames after it (the paper's Eq. 8 sums
     over start frames), several times the prediction signal for the predictor's cost.
     With ``stay_probability > 0`` each step is, with that probability, a still step
-    (:func:`with_still_steps`), drawn from ``generator`` (for the global batch with
-    ``across_ranks``: :func:`draw_still_steps`).
+    (:func:`with_still_steps`), drawn from ``generator`` by ``rand``.
 
     ``predict(z (B, D), a (B, A)) -> (B, D)``; ``z``: ``(B, T, D)`` encoded
     frames; ``actions``: ``(B, T-1, A)``; ``1 <= steps <= T-1``.
@@ -154,7 +144,7 @@ def multistep_prediction_loss(
         z, actions = windows(z, steps + 1, 1), windows(actions, steps, 1)
     if stay_probability:
         z, actions = z[:, : steps + 1], actions[:, :steps]
-        stay = draw_still_steps(len(z), steps, stay_probability, generator, across_ranks)
+        stay = draw_still_steps(len(z), steps, stay_probability, generator, rand)
         z, actions = with_still_steps(z, actions, stay.to(z.device))
     targets = z.detach() if detach_targets else z
     zhat, total = z[:, 0], z.new_zeros(())
@@ -164,22 +154,17 @@ def multistep_prediction_loss(
     return total / steps
 
 
-def variance_covariance_loss(
-    z: torch.Tensor, across_ranks: bool = False
-) -> tuple[torch.Tensor, torch.Tensor]:
+def variance_covariance_loss(z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Variance hinge ``v`` and covariance ``c`` over every frame: ``(B, T, D)`` -> two 0-d tensors.
 
     The latents are flattened to ``(B*T, D)``, so the statistics are taken over
     all frames of all trajectories together (the paper's setting): a dimension
     that varies only along time, like the dot's position, counts as varied.
     ``v(Z) = (1/D) sum_d max(0, 1 - sqrt(Var(z_d) + eps))``,
-    ``c(Z) = sum_{i != j} C_ij^2 / (D (D - 1))``. With ``across_ranks`` (a no-op in
-    one process), every rank's ``(b*T, D)`` rows are gathered to the global ``(W b*T, D)``.
+    ``c(Z) = sum_{i != j} C_ij^2 / (D (D - 1))``.
     """
     _check_sequence(z)
     flat = z.reshape(-1, z.shape[-1])
-    if across_ranks:  # the statistics of the global batch; gradients reach each rank's rows
-        (flat,) = distributed.gather_rows(flat)
     return variance_term(flat), covariance_term(flat)
 
 
@@ -247,7 +232,8 @@ def latent_loss(
     starts: str = "first",
     generator: torch.Generator | None = None,
     stay_probability: float = 0.0,
-    across_ranks: bool = False,
+    batch_rows: Callable[[torch.Tensor], torch.Tensor] = lambda z: z,
+    rand: Callable = torch.rand,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """:func:`world_model_loss` on latents already encoded, ``z (B, T, D)``.
 
@@ -257,20 +243,20 @@ def latent_loss(
     terms)``: a 0-d tensor to back-propagate and a dict of detached 0-d tensors
     (``prediction``, ``variance``, ``covariance``, ``temporal``,
     ``inverse_dynamics``, and ``sigreg`` when it is on) for the history.
-    ``across_ranks`` (a no-op in one process): the terms of the global batch of all
-    ranks, every rank drawing from an identically seeded ``generator`` (module docstring).
+    ``batch_rows`` ``(b, T, D) -> (B, T, D)``: the trajectories the variance, covariance and
+    SIGReg see; ``rand`` draws the still steps (under torchrun: all ranks' rows and the
+    global batch's draw, every rank's ``generator`` seeded alike).
     """
     _check_sequence(z, actions)
     terms = {
         "prediction": multistep_prediction_loss(model.predict, z, actions, steps, detach_targets,
-                                                starts, stay_probability, generator,
-                                                across_ranks),
+                                                starts, stay_probability, generator, rand),
         "temporal": temporal_similarity_loss(z),
         "inverse_dynamics": inverse_dynamics_loss(model.predict_actions, z, actions),
     }
-    terms["variance"], terms["covariance"] = variance_covariance_loss(z, across_ranks)
+    everyone = batch_rows(z)
+    terms["variance"], terms["covariance"] = variance_covariance_loss(everyone)
     if coeffs.sigreg:  # the statistics over every frame of every trajectory, like v and c
-        terms["sigreg"] = sigreg(z.reshape(-1, z.shape[-1]), generator=generator,
-                                 across_ranks=across_ranks)
+        terms["sigreg"] = sigreg(everyone.reshape(-1, z.shape[-1]), generator=generator)
     total = sum(getattr(coeffs, name) * value for name, value in terms.items())
     return total, {name: value.detach() for name, value in terms.items()}

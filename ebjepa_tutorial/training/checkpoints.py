@@ -4,8 +4,8 @@
   crash leaves the previous file intact; :func:`load_checkpoint` reads with
   ``weights_only=True``, so a crafted file cannot run code.
 - :func:`run_identity` is what a file stores to say which run made it (the
-  config as plain data, with a schema version); a file of another run is
-  never loaded in its place, nor overwritten (it is kept under :func:`kept_path`).
+  fields that define the run); a file of another run is never loaded in its
+  place, nor overwritten (it is kept under :func:`kept_path`).
 - :func:`checkpoint_paths`: where a notebook's run is cached, and where a
   shipped copy would be.
 """
@@ -17,8 +17,7 @@ import json
 import os
 import pickle
 import warnings
-from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import MISSING, Field, asdict, fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
@@ -99,39 +98,41 @@ def float16_state(module: torch.nn.Module) -> dict[str, torch.Tensor]:
             for name, value in module.state_dict().items()}
 
 
-IDENTITY_SCHEMA = 2  # 1: the plain config dicts that checkpoints stored before versions
-Upgrade = Callable[[dict], dict]  # a stored identity (any version) -> the same run's identity today
+def run_identity(config: Any, always: tuple[str, ...] = (), **extra: Any) -> dict:
+    """What a checkpoint stores to recognise its run: the fields of ``config`` (a dataclass)
+    named in ``always``, every other field only where it differs from its default (inside
+    nested dataclasses too), and the ``extra`` fields that also define the run.
 
-
-def run_identity(config: Any, **extra: Any) -> dict:
-    """What a checkpoint stores to recognise its run: ``config`` (a dataclass) as plain
-    data, the ``extra`` fields that also define the run, and the schema version.
-
-    Two files hold the same run exactly when their identities are equal.
+    Two files hold the same run exactly when their identities are equal. A new option with
+    a default leaves every stored identity as it was; a run that sets it is another run.
+    Changing a default that is not in ``always`` changes what the files mean: re-save the
+    shipped ones (``python -m research.resave_checkpoints``, checkpoints/README.md).
     """
-    return {"schema": IDENTITY_SCHEMA, **asdict(config), **extra}
+    return {**_changed(config, always), **extra}
 
 
-def stored_identity(state: dict, upgrade: Upgrade | None = None) -> Any:
-    """The identity stored in ``state``, brought up to date by ``upgrade`` (older runs lack
-    fields added since; without ``upgrade`` a version-1 identity gains only its version)."""
-    stored = state.get("config")
-    if not isinstance(stored, dict):
-        return stored
-    if upgrade is not None:
-        return upgrade(stored)
-    return stored if "schema" in stored else {"schema": IDENTITY_SCHEMA, **stored}
+def _changed(config: Any, always: tuple[str, ...] = ()) -> dict:
+    out = {}
+    for field in fields(config):
+        value, base = getattr(config, field.name), _default(field)
+        if is_dataclass(value) and field.name not in always:  # a nested config: what changed
+            value = _changed(value)
+            if value or base is MISSING:
+                out[field.name] = value
+        elif field.name in always or base is MISSING or value != base:
+            out[field.name] = asdict(value) if is_dataclass(value) else value
+    return out
 
 
-def same_run(state: dict, identity: Any, upgrade: Upgrade | None = None) -> bool:
-    """Whether ``state`` was saved by the run of ``identity`` (a plain dict, versioned or not)."""
-    if state.get("config") == identity:
-        return True
-    return _versioned(identity) and stored_identity(state, upgrade) == identity
+def _default(field: Field) -> Any:
+    if field.default is not MISSING:
+        return field.default
+    return field.default_factory() if field.default_factory is not MISSING else MISSING
 
 
-def _versioned(identity: Any) -> bool:
-    return isinstance(identity, dict) and "schema" in identity
+def same_run(state: dict, identity: Any) -> bool:
+    """Whether ``state`` was saved by the run of ``identity``."""
+    return state.get("config") == identity
 
 
 def config_key(config: Any) -> str:
@@ -187,21 +188,21 @@ def save_or_warn(path: Path, **state: Any) -> bool:
         return False
 
 
-def claim(path: Path, identity: Any, device, upgrade: Upgrade | None = None) -> dict | None:
+def claim(path: Path, identity: Any, device) -> dict | None:
     """The state of the run of ``identity`` stored at ``path``, or None if there is none.
 
     Another run's file at ``path`` is renamed to its own :func:`kept_path`, so
     nothing trained is ever overwritten; a kept file of this run is moved back.
     """
     state = read_run(path, device, movable=True)
-    if state is not None and same_run(state, identity, upgrade):
+    if state is not None and same_run(state, identity):
         return state
     if state is not None:
-        other = stored_identity(state, upgrade) if _versioned(identity) else state.get("config")
-        _move_aside(path, kept_path(path, other), "belongs to a run with another configuration")
+        _move_aside(path, kept_path(path, state.get("config")),
+                    "belongs to a run with another configuration")
     kept = kept_path(path, identity)
     state = read_run(kept, device, movable=True)
-    if state is None or not same_run(state, identity, upgrade):
+    if state is None or not same_run(state, identity):
         return None
     os.replace(kept, path)
     print(f"Found this configuration's earlier run at {kept}; moved it back to {path}.")

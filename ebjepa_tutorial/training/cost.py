@@ -29,7 +29,7 @@ from ..models.world import WorldModel, trajectory_latents
 from ..utils import check_fields, is_int_at_least, is_positive
 from .checkpoints import run_identity
 from .loop import History, fit, load_or_fit, step_generator
-from .world import WALL_FRACTION_RULE, upgrade_base
+from .world import WALL_FRACTION_RULE
 
 
 @dataclass(frozen=True)
@@ -171,5 +171,4 @@ def cost_head_or_load(model: WorldModel, base: dict, config: CostConfig,
     loaded from ``checkpoints/<name>.pt`` or the cache if it was saved, else fitted and
     saved to the cache. In eval mode, on the CPU."""
     return load_or_fit(name, CostToGo(model.latent_dim, config.hidden, config.dims),
-                       lambda: fit_cost_head(model, config), run_identity(config, base=base),
-                       upgrade=upgrade_base)
+                       lambda: fit_cost_head(model, config), run_identity(config, base=base))

@@ -19,7 +19,7 @@ from ..models.world import WorldModel, trajectory_latents
 from ..utils import check_fields, is_int_at_least, is_positive
 from .checkpoints import run_identity
 from .loop import History, fit, load_or_fit, step_generator
-from .world import WALL_FRACTION_RULE, upgrade_base
+from .world import WALL_FRACTION_RULE
 
 
 @dataclass(frozen=True)
@@ -154,5 +154,4 @@ def coarse_or_load(model: WorldModel, base: dict, config, name: str,
         fit = lambda: fit_coarse_model(model, config)  # noqa: E731
     shape = getattr(config, "coarse", config)
     return load_or_fit(name, CoarseModel(model.latent_dim, shape.stride, shape.hidden),
-                       fit, run_identity(config, base=base),
-                       upgrade=upgrade_base)
+                       fit, run_identity(config, base=base))

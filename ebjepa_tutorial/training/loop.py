@@ -27,7 +27,7 @@ import torch
 from tqdm.auto import tqdm
 
 from .. import distributed
-from .checkpoints import Upgrade, checkpoint_paths, claim, read_run, same_run, save_or_warn
+from .checkpoints import checkpoint_paths, claim, read_run, same_run, save_or_warn
 
 LossFn = Callable[[Any], tuple[torch.Tensor, dict[str, torch.Tensor | float]]]
 
@@ -173,7 +173,6 @@ def resume(
     optimizer: torch.optim.Optimizer,
     scheduler: Any = None,
     config: dict[str, Any] | None = None,
-    upgrade: Upgrade | None = None,
     after_step: Any = None,
 ) -> tuple[int, History]:
     """Restore the state saved by :func:`fit`; return ``(step, history)`` to continue from.
@@ -187,7 +186,7 @@ def resume(
     """
     device = "cpu" if distributed.world_size() > 1 else next(model.parameters()).device
     # rank 0 alone reads (and may move) the files; every rank gets its state, on the CPU
-    state = distributed.from_main(lambda: claim(Path(path), config, device, upgrade))
+    state = distributed.from_main(lambda: claim(Path(path), config, device))
     if state is None:
         return 0, History()
     model.load_state_dict(state["model"])
@@ -212,13 +211,11 @@ def load_or_train(
     config: dict[str, Any],
     shipped: str | Path | None = None,
     partial: str | Path | None = None,
-    upgrade: Upgrade | None = None,
 ) -> History:
     """Load ``model`` from a checkpoint of the run ``config``, else train it and save to ``path``.
 
     ``config`` is the run's identity
-    (:func:`~ebjepa_tutorial.training.checkpoints.run_identity`); ``upgrade``
-    brings identities stored before versions existed up to date. ``shipped`` (a
+    (:func:`~ebjepa_tutorial.training.checkpoints.run_identity`). ``shipped`` (a
     checkpoint that comes with the course) is tried first, then ``path``.
     ``train()`` trains ``model`` in place and returns its history. A file of
     another run is not loaded; at ``path`` it is kept under another name.
@@ -230,8 +227,7 @@ def load_or_train(
     start = time.perf_counter()
     device = "cpu" if distributed.world_size() > 1 else next(model.parameters()).device
     # rank 0 alone reads (and may move) the files; every rank gets the state, on the CPU
-    found = distributed.from_main(lambda: _saved_run(Path(path), config, device, shipped,
-                                                     upgrade))
+    found = distributed.from_main(lambda: _saved_run(Path(path), config, device, shipped))
     if found is not None:
         state, source = found
         model.load_state_dict(state["model"])
@@ -249,20 +245,20 @@ def load_or_train(
     return history
 
 
-def _saved_run(path: Path, config, device, shipped, upgrade) -> tuple[dict, Path] | None:
+def _saved_run(path: Path, config, device, shipped) -> tuple[dict, Path] | None:
     """The stored state of the run ``config`` and where it was: ``shipped`` first, then
     ``path`` (see :func:`~ebjepa_tutorial.training.checkpoints.claim`); None if neither."""
     state = None if shipped is None else read_run(Path(shipped), device, movable=False)
-    if state is not None and same_run(state, config, upgrade):
+    if state is not None and same_run(state, config):
         return state, shipped
     if state is not None:
         print(f"{shipped} was trained with another configuration; not using it.")
-    state = claim(path, config, device, upgrade)
+    state = claim(path, config, device)
     return None if state is None else (state, path)
 
 
 def load_or_fit(name: str, module: torch.nn.Module, fit_module: Callable[[], tuple],
-                config: dict[str, Any], upgrade: Upgrade | None = None) -> torch.nn.Module:
+                config: dict[str, Any]) -> torch.nn.Module:
     """``module`` loaded from ``checkpoints/<name>.pt`` or the cache if the run ``config`` (its
     identity) was saved, else ``fit_module() -> (fitted, history)`` copied into it and saved to
     the cache (:func:`load_or_train`). Returns ``module`` in eval mode."""
@@ -273,5 +269,5 @@ def load_or_fit(name: str, module: torch.nn.Module, fit_module: Callable[[], tup
         module.load_state_dict(fitted.state_dict())
         return history
 
-    load_or_train(cache_path, module, train, config, shipped, upgrade=upgrade)
+    load_or_train(cache_path, module, train, config, shipped)
     return module.eval()

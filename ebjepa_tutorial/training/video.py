@@ -152,14 +152,15 @@ def check_clips(clips: torch.Tensor, min_frames: int) -> None:
 
 
 def video_jepa_loss(model: VideoJEPA, frames: torch.Tensor, config: VideoJEPAConfig,
-                    across_ranks: bool = False, rollout_steps: int | None = None):
+                    rollout_steps: int | None = None, statistics=None):
     """Total loss of a batch of clips ``(B, T, 1, 64, 64)`` and its unweighted terms.
 
     ``rollout_steps``: K for this batch (default ``config.rollout_steps``; training
     passes :meth:`VideoJEPAConfig.rollout_steps_at` of the step).
 
-    ``across_ranks`` (a no-op in one process): the variance and covariance of the global
-    batch of all ranks (:func:`~ebjepa_tutorial.losses.variance_and_covariance`).
+    ``statistics``: the variance and covariance terms (default
+    :func:`~ebjepa_tutorial.losses.variance_and_covariance`; under torchrun, training passes
+    :func:`ebjepa_tutorial.distributed.variance_and_covariance`, those of the global batch).
     """
     with mixed_precision(frames.device, cpu=True):  # bf16 networks where fast; statistics in fp32
         z = model.encode(frames)
@@ -167,8 +168,7 @@ def video_jepa_loss(model: VideoJEPA, frames: torch.Tensor, config: VideoJEPACon
                                             rollout_steps or config.rollout_steps, config.tbptt,
                                             config.detach_later_orders)
         projected = model.project(z)  # (B*T*S*S, D): every location of every frame is a sample
-    variance, covariance = variance_and_covariance(at_least_float32(projected),
-                                                   across_ranks=across_ranks)
+    variance, covariance = (statistics or variance_and_covariance)(at_least_float32(projected))
     total = prediction + config.std_coeff * variance + config.cov_coeff * covariance
     terms = {"prediction": prediction, "variance": variance, "covariance": covariance}
     return total, {name: value.detach() for name, value in terms.items()}
@@ -213,7 +213,7 @@ def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
     model = VideoJEPA(config.model).to(device, memory_format=layout)
 
     def loss(module: VideoJEPA, frames: torch.Tensor, k: int):  # one forward (DDP)
-        return video_jepa_loss(module, frames, config, across_ranks=True, rollout_steps=k)
+        return video_jepa_loss(module, frames, config, k, distributed.variance_and_covariance)
 
     net = distributed.data_parallel(distributed.Forward(model, loss), device, sync_batchnorm)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
@@ -244,20 +244,11 @@ def identity(config: VideoJEPAConfig, train_digits: torch.Tensor | None = None) 
     """What a checkpoint stores to recognise its run: ``config`` and, for a finished
     run, the digits its clips were made from (:func:`digits_fingerprint`)."""
     if train_digits is None:  # a run in progress: its clips are fixed by the caller
-        return run_identity(config)
-    return run_identity(config, train_digits=digits_fingerprint(train_digits))
+        return run_identity(config, VIDEO_ALWAYS)
+    return run_identity(config, VIDEO_ALWAYS, train_digits=digits_fingerprint(train_digits))
 
 
-def upgrade_identity(stored: dict) -> dict:
-    """An older identity in today's form: runs from before ``unroll`` existed trained the
-    autoregressive rollout with every order reaching the encoder. At K = 1 neither field
-    changes the loss, so an older K = 1 run is today's default one."""
-    if "unroll" in stored:
-        return stored
-    one_step = stored["rollout_steps"] == 1
-    default = VideoJEPAConfig()
-    return {**stored, "unroll": default.unroll if one_step else "autoregressive",
-            "detach_later_orders": default.detach_later_orders if one_step else False}
+VIDEO_ALWAYS = ("steps", "batch_size", "lr", "rollout_steps", "seed")
 
 
 def digits_fingerprint(digits: torch.Tensor) -> str:
@@ -301,7 +292,7 @@ def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor
         return history
 
     history = load_or_train(cache_path, model, train, identity(config, train_digits), shipped,
-                            partial=partial, upgrade=upgrade_identity)
+                            partial=partial)
     return model.eval(), history
 
 

@@ -45,7 +45,7 @@ from ..losses.world import (
 )
 from ..models.world import WORLD_CONFIGS, WorldConfig, WorldModel, trajectory_latents
 from ..utils import check_fields, get_device, is_int_at_least, is_non_negative, is_positive
-from .checkpoints import IDENTITY_SCHEMA, checkpoint_paths, load_checkpoint, run_identity
+from .checkpoints import checkpoint_paths, load_checkpoint, run_identity
 from .loop import History, fit, load_or_fit, load_or_train, resume, step_generator
 
 TRAJECTORY_ACTIONS = 16  # per training trajectory (17 frames, the paper's clips)
@@ -203,9 +203,7 @@ class LatentReplay:
         self.filled, self.head = 0, 0
 
     def add(self, z: torch.Tensor, actions: torch.Tensor) -> None:
-        shapes = self.latents.shape[1:], self.actions.shape[1:]
-        z, actions = distributed.gather_rows(z.detach().flatten(1), actions.flatten(1))
-        z, actions = z.view(-1, *shapes[0]), actions.view(-1, *shapes[1])  # the global batch's
+        z, actions = distributed.gather_rows(z.detach()), distributed.gather_rows(actions)
         rows = (self.head + torch.arange(len(z), device=z.device)) % len(self.latents)
         self.latents[rows], self.actions[rows] = z, actions
         self.head = (self.head + len(z)) % len(self.latents)
@@ -222,7 +220,7 @@ class LatentReplay:
             loss = multistep_prediction_loss(
                 self.model.predict, self.latents[pick], self.actions[pick], config.rollout_steps,
                 starts=config.prediction_starts, stay_probability=config.stay_probability,
-                generator=generator, across_ranks=True)
+                generator=generator, rand=distributed.rand_rows)
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             distributed.average_gradients(self.parameters)
@@ -293,7 +291,7 @@ def train_world_model(
     start, history = (0, History())
     if checkpoint is not None:
         start, history = resume(checkpoint, model, optimizer, scheduler, identity(config),
-                                upgrade_identity, after_step=replay)
+                                after_step=replay)
     buffer = torch.empty(per_rank, frames, 2, 65, 65)
 
     def loss(module, frames, actions, generator):  # the whole model in one forward (DDP)
@@ -302,7 +300,8 @@ def train_world_model(
             replay.add(z, actions)
         return latent_loss(module, z, actions, config.coeffs, config.rollout_steps,
                            starts=config.prediction_starts, generator=generator,
-                           stay_probability=config.stay_probability, across_ranks=True)
+                           stay_probability=config.stay_probability,
+                           batch_rows=distributed.gather_rows, rand=distributed.rand_rows)
 
     net = distributed.data_parallel(distributed.Forward(model, loss), device)
 
@@ -349,7 +348,7 @@ def train_or_load(config: WorldTrainConfig, name: str,
         return history
 
     history = load_or_train(cache_path, model, train, identity(config), shipped,
-                            partial=partial, upgrade=upgrade_identity)
+                            partial=partial)
     return model.eval(), history
 
 
@@ -485,19 +484,6 @@ def refit_identity(config: RefitConfig, base: dict) -> dict:
     return run_identity(config, base=base)
 
 
-def upgrade_refit_identity(stored: dict) -> dict:
-    """A refit's older identity (version 1: ``{"refit": ..., "base": ...}``) in today's form."""
-    if "refit" in stored:
-        stored = {"schema": IDENTITY_SCHEMA, **stored["refit"], "base": stored["base"]}
-    return upgrade_base(stored)
-
-
-def upgrade_base(stored: dict) -> dict:
-    """The identity of a fit on a world model (a refit, a cost head, a coarse model) with the
-    world model's identity, ``base``, brought up to date by :func:`upgrade_identity`."""
-    return {**stored, "base": upgrade_identity(stored["base"])} if "base" in stored else stored
-
-
 def refit_or_load(model: WorldModel, base: WorldTrainConfig, config: RefitConfig,
                   name: str, device: torch.device | str | None = None) -> WorldModel:
     """``model`` (trained with ``base``) with its predictor refitted by ``config``: loaded
@@ -507,7 +493,7 @@ def refit_or_load(model: WorldModel, base: WorldTrainConfig, config: RefitConfig
     device = get_device(device)
     return load_or_fit(name, refitted_model(model, config).to(device),
                        lambda: refit_predictor(model, config, device=device),
-                       refit_identity(config, identity(base)), upgrade=upgrade_refit_identity)
+                       refit_identity(config, identity(base)))
 
 
 ABLATABLE_TERMS = ("variance", "covariance", "temporal", "inverse_dynamics")
@@ -540,38 +526,12 @@ def with_coeffs(config: WorldTrainConfig, pairs: list[str]) -> WorldTrainConfig:
     return replace(config, coeffs=replace(config.coeffs, **values))
 
 
-# The ranges Three Rooms' walls were drawn from before identities recorded them
-FIRST_THREE_ROOMS = ((14, 25), (39, 50))
-
-
 def identity(config: WorldTrainConfig) -> dict:
     """What a checkpoint stores to recognise the run of ``config``. With several walls it
     records the ranges the walls are drawn from too, so that a model of one geometry never
     loads as the model of another."""
+    always = ("steps", "batch_size", "lr", "n_trajectories", "rollout_steps", "seed")
     if config.walls == 1:
-        return run_identity(config)
-    return run_identity(config, wall_x_ranges=[list(r) for r in WALL_X_RANGES[config.walls]])
-
-
-REPLAY_OFF = {name: getattr(WorldTrainConfig, name) for name in
-              ("replay_steps", "replay_batch", "replay_capacity", "replay_lr")}
-
-
-def upgrade_identity(stored: dict) -> dict:
-    """An older identity in today's form: version-1 runs left ``decay_steps`` out when
-    it was 0, and the predictor's fields out for the GRU; runs from before
-    ``prediction_starts``, ``wall_fraction``, ``window``, ``channels_last``, the replay
-    and the ``sigreg`` weight existed rolled out from the first frame of whole trajectories of
-    the paper's data, in the default memory layout, without SIGReg or replay; runs from
-    before ``walls`` were Two Rooms, and from before ``grad_clip`` unclipped; Three Rooms runs
-    from before ``wall_x_ranges`` drew their walls from :data:`FIRST_THREE_ROOMS`."""
-    stored = {"walls": 1, "grad_clip": 0.0, "prediction_starts": "first", "stay_probability": 0.0,
-              "wall_fraction": 0.0, "window": 0, "channels_last": False, **REPLAY_OFF, **stored,
-              "coeffs": {"sigreg": 0.0, **stored["coeffs"]}}
-    if stored["walls"] == 2 and "wall_x_ranges" not in stored:
-        stored["wall_x_ranges"] = [list(r) for r in FIRST_THREE_ROOMS]
-    if "schema" in stored:
-        return stored
-    model = {"predictor": "gru", "predictor_hidden": WorldConfig.predictor_hidden,
-             **stored["model"]}
-    return {"schema": IDENTITY_SCHEMA, "decay_steps": 0, **stored, "model": model}
+        return run_identity(config, always)
+    return run_identity(config, always,
+                        wall_x_ranges=[list(r) for r in WALL_X_RANGES[config.walls]])

@@ -121,7 +121,7 @@ fi
 
 # -- each chapter's full preset, its own process: a hang or an out-of-memory stops one part --
 device=nan times=""
-for chapter in image sigreg vit video world; do
+for chapter in image sigreg video world; do
     part "bench_$chapter" 90 "$PYTHON" -m research.benchmarks.full_scale --only "$chapter" "${bench[@]}"
     found=$(last_line "bench_$chapter" '^device=')
     [[ -n $found ]] && device=$(field device "$found")

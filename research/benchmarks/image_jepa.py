@@ -24,6 +24,7 @@ from dataclasses import replace
 
 import torch
 
+from ebjepa_tutorial.augment import AugmentConfig, build_augmentation, two_views
 from ebjepa_tutorial.course import reference
 from ebjepa_tutorial.course.presets import SCALES, image_preset
 from ebjepa_tutorial.data import load_cifar10, random_subset
@@ -35,7 +36,6 @@ from ebjepa_tutorial.training.image import (
     jepa_loss,
     make_optimizer,
     train_image_jepa,
-    view_maker,
 )
 from ebjepa_tutorial.utils import at_least_float32, mixed_precision
 from research.benchmarks import command_line
@@ -46,17 +46,17 @@ def step_split(config, images: torch.Tensor) -> dict[str, float]:
     """Median seconds of each part of one training step of ``config`` on uint8 ``images``."""
     model = AllViews(ImageJEPA(config))
     optimizer = make_optimizer(model, config)
-    make_views = view_maker(config)
+    pipeline = build_augmentation(AugmentConfig(size=config.image_size))
 
     def step(repeat: int):
         generator = torch.Generator().manual_seed(repeat)
         index = torch.randint(0, len(images), (config.batch_size,), generator=generator)
-        views = make_views(images[index], generator)
+        views = two_views(images[index], pipeline, generator)
         yield "augmentation"
         with mixed_precision("cpu", cpu=True):  # as train_image_jepa computes it
-            z_a, z_b, *local = map(at_least_float32, model(*views))
+            z_a, z_b = map(at_least_float32, model(*views))
         yield "forward"
-        loss, _ = jepa_loss(config, z_a, z_b, generator, local=local)
+        loss, _ = jepa_loss(config, z_a, z_b, generator)
         yield "loss"
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -90,6 +90,8 @@ def main() -> None:
 
     preset = image_preset(args.scale, args.loss)
     config = preset.config if args.steps is None else shorten(preset.config, args.steps)
+    if args.loss == "invariance":  # no regulariser: the run that collapses
+        config = replace(config, loss=None)
     if args.seed is not None:
         config = replace(config, seed=args.seed)
     if args.eval_size is not None:
@@ -98,10 +100,8 @@ def main() -> None:
     test = random_subset(*load_cifar10("test"), preset.test_images)
     print(f"{args.scale} scale, {config}")
     if args.split:
-        local = (f" + {config.local_views} of {config.local_size} px" if config.local_views
-                 else "")
         print_parts(f"one step of {config.batch_size} images x 2 views of {config.image_size} "
-                    f"px{local}", step_split(config, train[0]))
+                    "px", step_split(config, train[0]))
         return
     precision = precision_name("cpu", cpu=True)  # what train_image_jepa does
     print(f"evaluation: {protocol(config)}; training networks in {precision}")
