@@ -29,10 +29,7 @@ Everything here is a no-op in a single process (no process group, or a world of 
 
 from __future__ import annotations
 
-import hashlib
-import json
-import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -40,8 +37,6 @@ import torch.distributed as dist
 from torch import nn
 
 from .losses import vicreg
-
-TORCHRUN_ENV = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")
 
 
 def running() -> bool:
@@ -62,66 +57,6 @@ def rank() -> int:
 def is_main() -> bool:
     """Whether this is rank 0, the one that prints, shows progress and writes files."""
     return rank() == 0
-
-
-# --- joining and leaving (the command-line launcher, research/launch.py) -------------------
-
-
-def launched_by_torchrun(environ: Mapping[str, str] | None = None) -> bool:
-    """Whether torchrun (or another launcher of its kind) started this process."""
-    environ = os.environ if environ is None else environ
-    return "RANK" in environ or "WORLD_SIZE" in environ
-
-
-def init_from_env(environ: Mapping[str, str] | None = None,
-                  command: str = "research.train_image") -> torch.device:
-    """Join the process group that torchrun described in the environment; return our device.
-
-    ``nccl`` with one GPU per process (``cuda:LOCAL_RANK``) when CUDA is available, else
-    ``gloo`` on the CPU. Raises RuntimeError, naming what is missing and how to start
-    ``command`` (a module) under torchrun, rather than waiting for peers that never come.
-    """
-    environ = os.environ if environ is None else environ
-    missing = [name for name in TORCHRUN_ENV if not environ.get(name)]
-    if missing:
-        raise RuntimeError(
-            f"distributed training needs torchrun's environment, and {', '.join(missing)} "
-            f"{'is' if len(missing) == 1 else 'are'} not set. Start it with "
-            f"`torchrun --nproc_per_node=N -m {command} ...`, or "
-            "drop --ddp to train in one process.")
-    if running():
-        raise RuntimeError("torch.distributed is already initialised in this process")
-    if not torch.cuda.is_available():
-        dist.init_process_group("gloo")
-        return torch.device("cpu")
-    local = int(environ["LOCAL_RANK"])
-    if local >= torch.cuda.device_count():
-        raise RuntimeError(f"LOCAL_RANK {local} but only {torch.cuda.device_count()} GPU(s): "
-                           "start at most one process per GPU (--nproc_per_node)")
-    device = torch.device("cuda", local)
-    torch.cuda.set_device(device)
-    dist.init_process_group("nccl")
-    return device
-
-
-def shutdown() -> None:
-    """Leave the process group, if this process is in one."""
-    if running():
-        dist.destroy_process_group()
-
-
-def check_same_on_all_ranks(value: Any, what: str = "config") -> None:
-    """Raise RuntimeError on every rank if the ranks hold different ``value`` (plain data):
-    ranks that disagree would train different models, or wait forever in a collective."""
-    if world_size() == 1:
-        return
-    digest = hashlib.sha1(json.dumps(value, sort_keys=True, default=repr).encode()).hexdigest()
-    prints: list[Any] = [None] * world_size()
-    dist.all_gather_object(prints, digest[:12])
-    if len(set(prints)) > 1:
-        listed = ", ".join(f"rank {r}: {p}" for r, p in enumerate(prints))
-        raise RuntimeError(f"the processes were started with different {what}s ({listed}); "
-                           "start every rank with the same arguments")
 
 
 # --- sharing a batch -------------------------------------------------------------------------

@@ -24,8 +24,12 @@ from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.data import load_mnist
 from ebjepa_tutorial.data.moving_mnist import split_digits
 from ebjepa_tutorial.training import image, video, world
-from ebjepa_tutorial.training.checkpoints import SHIPPED_DIR, load_checkpoint, save_checkpoint
-from ebjepa_tutorial.training.checkpoints import run_identity
+from ebjepa_tutorial.training.checkpoints import (
+    SHIPPED_DIR,
+    load_checkpoint,
+    run_identity,
+    save_checkpoint,
+)
 
 from . import fit_beyond
 

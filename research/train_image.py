@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         _train_and_save(args, sizes, config, device)
     finally:
-        distributed.shutdown()
+        launch.shutdown()
 
 
 def _train_and_save(args, sizes, config, device) -> None:

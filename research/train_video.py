@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         _train_and_report(args, cfg, configs, device)
     finally:
-        distributed.shutdown()
+        launch.shutdown()
 
 
 def _say(text: str) -> None:

@@ -136,7 +136,7 @@ def main(argv: list[str] | None = None) -> None:
         if refused:
             parser.error(f"--refit keeps the trained model's encoder, so {', '.join(refused)} "
                          "cannot apply: they choose how a new model trains")
-        if args.ddp or distributed.launched_by_torchrun():
+        if args.ddp or launch.launched_by_torchrun():
             parser.error("--refit runs in one process (a small MLP on precomputed latents): "
                          "start it with python -m, without torchrun or --ddp")
         return refit_main(args.refit, args.out, RefitConfig(**given))
@@ -158,7 +158,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         _train_and_save(args.out, config, device)
     finally:
-        distributed.shutdown()
+        launch.shutdown()
 
 
 def _train_and_save(out: str, config: WorldTrainConfig, device) -> None:

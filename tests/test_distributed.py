@@ -35,7 +35,7 @@ from ebjepa_tutorial.models.world import WorldConfig, WorldModel
 from ebjepa_tutorial.training import image, video, world
 from ebjepa_tutorial.training.checkpoints import load_checkpoint
 from ebjepa_tutorial.training.loop import History, load_or_train
-from research import train_image, train_video, train_world
+from research import launch, train_image, train_video, train_world
 
 REPO = Path(__file__).resolve().parents[1]
 WORLD = 2
@@ -184,13 +184,13 @@ def test_the_global_batch_must_split_evenly():
 
 def test_init_names_the_missing_torchrun_variables():
     with pytest.raises(RuntimeError, match="MASTER_ADDR, MASTER_PORT are not set.*torchrun"):
-        distributed.init_from_env({"RANK": "0", "WORLD_SIZE": "2", "LOCAL_RANK": "0"})
+        launch.init_from_env({"RANK": "0", "WORLD_SIZE": "2", "LOCAL_RANK": "0"})
     assert not distributed.running()
 
 
 @pytest.fixture
 def no_torchrun(monkeypatch):
-    for name in distributed.TORCHRUN_ENV:
+    for name in launch.TORCHRUN_ENV:
         monkeypatch.delenv(name, raising=False)
 
     def no_data(split):
@@ -324,9 +324,9 @@ def test_two_ranks_give_the_video_and_world_terms_and_gradients_of_one_process()
 
 
 def _refuse_bad_setups(rank):
-    distributed.check_same_on_all_ranks({"lr": 0.1, "steps": 4})  # agreeing ranks pass
+    launch.check_same_on_all_ranks({"lr": 0.1, "steps": 4})  # agreeing ranks pass
     with pytest.raises(RuntimeError, match="different configs"):
-        distributed.check_same_on_all_ranks({"lr": 0.1, "steps": 4 + rank})
+        launch.check_same_on_all_ranks({"lr": 0.1, "steps": 4 + rank})
     with pytest.raises(ValueError, match="multiple of the world size 2"):
         image.train_image_jepa(replace(TINY, batch_size=9), _images(), progress=False)
     with pytest.raises(ValueError, match="multiple of the world size 2"):

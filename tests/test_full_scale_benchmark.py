@@ -13,8 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from ebjepa_tutorial import distributed
-from research import train_image
+from research import launch, train_image
 
 ROOT = Path(__file__).resolve().parents[1]
 CHAPTERS = ("image", "sigreg", "video", "world")
@@ -45,7 +44,7 @@ def test_full_scale_benchmark_times_a_step_and_prints_a_parseable_last_line():
 
 
 def test_a_short_full_image_run_takes_a_shorter_warmup(monkeypatch, capsys):
-    for name in distributed.TORCHRUN_ENV:
+    for name in launch.TORCHRUN_ENV:
         monkeypatch.delenv(name, raising=False)
     ran = []
     monkeypatch.setattr(train_image, "_train_and_save", lambda args, sizes, config, device:

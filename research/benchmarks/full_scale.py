@@ -281,7 +281,7 @@ def parse(argv: list[str] | None = None) -> tuple[argparse.ArgumentParser, argpa
     args = parser.parse_args(argv)
     if args.steps < 1 or args.warmup < 1:
         parser.error("--steps and --warmup must be at least 1")
-    if args.device and (args.ddp or distributed.launched_by_torchrun()):
+    if args.device and (args.ddp or launch.launched_by_torchrun()):
         parser.error("--device picks one device; under torchrun each process takes its own")
     if args.batch_scale is None:  # on a CPU, a small share of the batch unless told
         cpu = get_device(args.device).type == "cpu"
@@ -296,7 +296,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.matmul_precision:
         torch.set_float32_matmul_precision(args.matmul_precision)
     wanted = {name: c for name, c in chapters().items() if name in args.only}
-    several = args.ddp or distributed.launched_by_torchrun()
+    several = args.ddp or launch.launched_by_torchrun()
     ranks = int(os.environ.get("WORLD_SIZE", "1")) if several else 1
     batches = {name: chosen_batch(c, args, ranks) for name, c in wanted.items()}
     device = launch.join(parser, args, math.gcd(*batches.values()), batches,
@@ -306,7 +306,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         results = run(wanted, batches, args, device)
     finally:
-        distributed.shutdown()
+        launch.shutdown()
     if show:
         fields = " ".join(f"{name}_s_per_step={results.get(name, math.nan):.4g}"
                           for name in CHAPTERS)
