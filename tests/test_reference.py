@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from ebjepa_tutorial.course import reference
+from tools import figures as figs
 
 NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
 USED = re.compile(r"reference\.(?:compare|show)\(\s*\"(\w+)\"")
@@ -21,8 +22,8 @@ def notebook_code(path: Path) -> str:
 
 def test_record_keeps_other_figures_and_compare_prints_all_three(tmp_path):
     path = tmp_path / "reference.json"
-    reference.record("vicreg_probe_acc", 0.554, "python b.py --record", "2,000 steps", 2, path)
-    reference.record("world_probe_px", 1.063, "python c.py --record", "probe", 2, path)
+    figs.record("vicreg_probe_acc", 0.554, "python b.py --record", "2,000 steps", 2, path)
+    figs.record("world_probe_px", 1.063, "python c.py --record", "probe", 2, path)
     assert set(reference.load(path)) == {"vicreg_probe_acc", "world_probe_px"}
     line = reference.compare("vicreg_probe_acc", 0.5512, scale="class", path=path)
     assert line.startswith("linear probe accuracy: yours 55.1% | the course's class run 55.4% "
@@ -31,7 +32,7 @@ def test_record_keeps_other_figures_and_compare_prints_all_three(tmp_path):
     assert "smoke test" in reference.compare("vicreg_probe_acc", 0.1, scale="ci", path=path)
     assert reference.show("world_probe_px", path).startswith(
         "position probe error: the course's class run 1.06 px")
-    reference.record("world_probe_px", 1.063, "python c.py --record", "probe", 1, path)
+    figs.record("world_probe_px", 1.063, "python c.py --record", "probe", 1, path)
     assert "(1 CPU thread, " in reference.show("world_probe_px", path)
 
 
@@ -39,7 +40,7 @@ def test_a_missing_figure_names_the_benchmark_that_records_it(tmp_path):
     line = reference.compare("planning_success_class", 0.3, "class", tmp_path / "none.json")
     assert "not recorded (run python -m research.benchmarks.planning --record)" in line
     with pytest.raises(KeyError, match="unknown reference key"):
-        reference.record("made_up", 1.0, "", "", 2, tmp_path / "r.json")
+        figs.record("made_up", 1.0, "", "", 2, tmp_path / "r.json")
 
 
 @pytest.mark.parametrize("chapter", ["01", "02", "03", "05", "06"])
@@ -65,9 +66,9 @@ def test_every_figure_a_notebook_prints_has_been_recorded():
 
 
 def test_every_marked_figure_in_the_pages_agrees_with_the_recorded_one():
-    wrong = reference.check_pages()
+    wrong = figs.check_pages()
     assert not wrong, ("figures disagree with checkpoints/reference.json; run `python -m "
-                       "ebjepa_tutorial.course.reference render`:\n" + "\n".join(wrong))
+                       "tools.figures render`:\n" + "\n".join(wrong))
 
 
 def test_the_results_page_and_the_readme_take_their_headlines_from_the_record():
@@ -76,7 +77,7 @@ def test_the_results_page_and_the_readme_take_their_headlines_from_the_record():
                                       "planning_success_shipped_fresh", "planning_success_live"}),
                        ("RESULTS.md", {"vicreg_shipped_probe_acc", "video_map_long_K4",
                                        "world_probe_px", "beyond_three_rooms_two_level"})):
-        marked = {m[1] for m in reference.FIGURE.finditer((root / page).read_text())}
+        marked = {m[1] for m in figs.FIGURE.finditer((root / page).read_text())}
         assert keys <= marked, f"{page} types {sorted(keys - marked)} instead of marking them"
 
 
@@ -87,15 +88,15 @@ def test_a_planted_mismatch_is_caught_and_render_repairs_it(tmp_path):
     text = ("VICReg <!--fig:vicreg_probe_acc-->62.6%<!--/fig--> and the planner "
             "<!--fig:planning_success_shipped_fresh:spread-->95.1-98.5%<!--/fig-->, "
             "probe <!--fig:world_probe_px:spread-->2.30-2.61 px<!--/fig-->")
-    assert reference.mismatches(text, figures) == []
+    assert figs.mismatches(text, figures) == []
     planted = text.replace("62.6%", "63.6%")  # a figure typed by hand, and wrong
-    assert reference.mismatches(planted, figures) == [
+    assert figs.mismatches(planted, figures) == [
         "vicreg_probe_acc: written '63.6%', recorded '62.6%'"]
-    assert reference.render(planted, figures) == text
+    assert figs.render(planted, figures) == text
     unknown = "<!--fig:made_up-->1<!--/fig-->"
-    assert "no recorded figure 'made_up'" in reference.mismatches(unknown, figures)[0]
+    assert "no recorded figure 'made_up'" in figs.mismatches(unknown, figures)[0]
     no_spread = "<!--fig:vicreg_probe_acc:spread-->60-63%<!--/fig-->"
-    assert "has no recorded spread" in reference.mismatches(no_spread, figures)[0]
+    assert "has no recorded spread" in figs.mismatches(no_spread, figures)[0]
 
 
 def test_render_pages_rewrites_only_the_figures_and_keeps_a_notebooks_layout(tmp_path):
@@ -116,8 +117,8 @@ def test_render_pages_rewrites_only_the_figures_and_keeps_a_notebooks_layout(tmp
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(reference, "REFERENCE_FILE", path)
         mp.setattr(reference.load, "__defaults__", (path,))
-        assert len(reference.check_pages(tmp_path)) == 2
-        assert reference.render_pages(tmp_path) == [tmp_path / "README.md", page]
-        assert reference.check_pages(tmp_path) == []
+        assert len(figs.check_pages(tmp_path)) == 2
+        assert figs.render_pages(tmp_path) == [tmp_path / "README.md", page]
+        assert figs.check_pages(tmp_path) == []
     assert page.read_text(encoding="utf-8") == before.replace("9.99 px", "2.44 px")
     assert (tmp_path / "README.md").read_text() == "<!--fig:world_probe_px-->2.44 px<!--/fig-->\n"

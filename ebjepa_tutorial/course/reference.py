@@ -14,22 +14,16 @@ from a run: re-run the benchmark with ``--record`` to refresh a figure.
 The same file is the one source of every measured figure in README.md,
 RESULTS.md, TEACHING.md and the notebooks' text: there a figure is written as
 ``<!--fig:KEY-->62.6%<!--/fig-->`` (``<!--fig:KEY:spread-->`` for its range), the
-comments invisible once rendered. ``python -m ebjepa_tutorial.course.reference
-render`` rewrites every such figure from the file; ``check`` lists those that
-disagree (a test runs it).
+comments invisible once rendered; ``python -m tools.figures render`` rewrites them
+from the file and ``check`` lists those that disagree (a test runs it).
 """
 
 from __future__ import annotations
 
-import argparse
-import datetime
 import json
-import re
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..data.paths import atomic_file
 from ..training.checkpoints import SHIPPED_DIR
 from .presets import current_scale
 
@@ -107,25 +101,6 @@ def load(path: Path = REFERENCE_FILE) -> dict:
     return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {}
 
 
-def record(key: str, value: float, command: str, protocol: str, threads: int,
-           path: Path = REFERENCE_FILE, spread: tuple[float, float] | None = None,
-           date: str | None = None) -> None:
-    """Store a measured ``value`` under ``key`` (atomically; other keys are kept).
-
-    ``spread``: (low, high), over seeds, runs or a 95% interval, which ``protocol``
-    names; ``date``: when it was measured (default today).
-    """
-    if key not in METRICS:
-        raise KeyError(f"unknown reference key {key!r}; known: {sorted(METRICS)}")
-    figures = load(path)
-    figures[key] = {"value": float(value), "command": command, "protocol": protocol,
-                    "threads": threads, "date": date or datetime.date.today().isoformat()}
-    if spread is not None:
-        figures[key]["spread"] = [float(spread[0]), float(spread[1])]
-    with atomic_file(path) as f:
-        f.write((json.dumps(figures, indent=1, sort_keys=True) + "\n").encode())
-
-
 def references(key: str, path: Path = REFERENCE_FILE) -> list[str]:
     """The course's recorded class run (where a benchmark records it) and the paper's figure."""
     metric, parts = METRICS[key], []
@@ -154,110 +129,3 @@ def compare(key: str, yours: float, scale: str | None = None, path: Path = REFER
 def show(key: str, path: Path = REFERENCE_FILE) -> str:
     """The references alone, for a figure the notebook does not compute itself."""
     return f"{METRICS[key].label}: " + " | ".join(references(key, path))
-
-
-# ---- the figures in the course's prose -------------------------------------------------------
-
-FIGURE = re.compile(r"<!--fig:(\w+)(:spread)?-->(.*?)<!--/fig-->", re.S)
-PAGES = ("README.md", "RESULTS.md", "TEACHING.md", "docs/*.md", "notebooks/*.ipynb")
-
-
-def figure_text(key: str, spread: bool = False, figures: dict | None = None) -> str:
-    """How the recorded figure ``key`` reads in prose: its value, or its range as low-high."""
-    figures = load() if figures is None else figures
-    if key not in METRICS or key not in figures:
-        raise KeyError(f"no recorded figure {key!r} in {REFERENCE_FILE.name}")
-    fmt, entry = METRICS[key].fmt, figures[key]
-    if not spread:
-        return fmt.format(entry["value"])
-    if "spread" not in entry:
-        raise KeyError(f"{key!r} has no recorded spread")
-    low, high = (fmt.format(v) for v in entry["spread"])
-    unit = re.search(r"[^\d.]*$", low).group()  # "%" or " px": written once, after the range
-    return f"{low[:len(low) - len(unit)]}-{high}" if unit and high.endswith(unit) else \
-        f"{low}-{high}"
-
-
-def render(text: str, figures: dict | None = None) -> str:
-    """``text`` with every marked figure rewritten from the recorded figures."""
-    figures = load() if figures is None else figures
-    return FIGURE.sub(lambda m: f"<!--fig:{m[1]}{m[2] or ''}-->"
-                                f"{figure_text(m[1], bool(m[2]), figures)}<!--/fig-->", text)
-
-
-def mismatches(text: str, figures: dict | None = None) -> list[str]:
-    """One line per marked figure in ``text`` that disagrees with the recorded one."""
-    figures = load() if figures is None else figures
-    wrong = []
-    for match in FIGURE.finditer(text):
-        try:
-            expected = figure_text(match[1], bool(match[2]), figures)
-        except KeyError as error:
-            wrong.append(f"{match[1]}: {error.args[0]}")
-            continue
-        if match[3] != expected:
-            wrong.append(f"{match[1]}{match[2] or ''}: written {match[3]!r}, "
-                         f"recorded {expected!r}")
-    return wrong
-
-
-def _pages(root: Path) -> list[Path]:
-    return [path for pattern in PAGES for path in sorted(root.glob(pattern))]
-
-
-def _markdown(path: Path) -> tuple[dict | None, list[dict]]:
-    """A page's Markdown as cells ``{"source": [...]}``: a notebook's markdown cells (with the
-    notebook, read as plain JSON so a rewrite keeps its layout), or a Markdown file as one."""
-    text = path.read_text(encoding="utf-8")
-    if path.suffix != ".ipynb":
-        return None, [{"source": [text]}]
-    notebook = json.loads(text)
-    return notebook, [cell for cell in notebook["cells"] if cell["cell_type"] == "markdown"]
-
-
-def check_pages(root: Path = SHIPPED_DIR.parent, figures: dict | None = None) -> list[str]:
-    """Every marked figure in the course's pages that disagrees with the recorded figures."""
-    figures = load() if figures is None else figures
-    return [f"{path.relative_to(root)}: {line}" for path in _pages(root)
-            for cell in _markdown(path)[1]
-            for line in mismatches("".join(cell["source"]), figures)]
-
-
-def render_pages(root: Path = SHIPPED_DIR.parent) -> list[Path]:
-    """Rewrite every marked figure in the course's pages; return the files changed."""
-    figures, changed = load(), []
-    for path in _pages(root):
-        notebook, cells = _markdown(path)
-        for cell in cells:
-            text = "".join(cell["source"])
-            if (new := render(text, figures)) != text:
-                cell["source"] = new.splitlines(keepends=True)
-                changed += [path] if path not in changed else []
-        if path in changed:
-            path.write_text("".join(cells[0]["source"]) if notebook is None else
-                            json.dumps(notebook, indent=1, ensure_ascii=False) + "\n",
-                            encoding="utf-8")
-    return changed
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``render`` the pages' figures from reference.json, or ``check`` that they agree."""
-    parser = argparse.ArgumentParser(prog="python -m ebjepa_tutorial.course.reference",
-                                     description=main.__doc__)
-    parser.add_argument("command", choices=("render", "check"))
-    if parser.parse_args(argv).command == "render":
-        try:
-            changed = render_pages()
-        except KeyError as error:  # a page marks a figure nobody has recorded yet
-            print(f"error: {error.args[0]}; record it first (its benchmark's --record)")
-            return 1
-        for path in changed:
-            print(f"rewrote the figures of {path}")
-        return 0
-    wrong = check_pages()
-    print("\n".join(wrong) or "every marked figure agrees with checkpoints/reference.json")
-    return 1 if wrong else 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -25,7 +25,6 @@ import argparse
 
 import torch
 
-from ebjepa_tutorial.course import reference
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.models.cost import WithLearnedCost
 from ebjepa_tutorial.planning import TwoLevel, run_episodes, two_level_episodes
@@ -34,6 +33,7 @@ from ebjepa_tutorial.training.hierarchy import coarse_or_load
 from ebjepa_tutorial.training.runs import train_or_load
 from ebjepa_tutorial.training.world import identity
 from research import fit_beyond
+from tools import figures
 
 WORLDS = {walls: world for world, walls in fit_beyond.WORLDS.items()}  # 1: "two_rooms", ...
 NEW = ("learned_cost", "two_level")
@@ -79,7 +79,7 @@ def main() -> None:
             rates[planner], cpu[planner] = result.success_rate, result.cpu_seconds_per_episode
             print(f"{name:11s} {planner:12s} {result.summary()}", flush=True)
             if args.record:
-                reference.record(
+                figures.record(
                     f"beyond_{name}_{planner}", result.success_rate, threads=args.threads,
                     command="python -m research.benchmarks.beyond --record",
                     protocol=f"{name}, {len(seeds)} episodes, seeds {seeds[0]}-{seeds[-1]}; "

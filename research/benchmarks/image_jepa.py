@@ -25,7 +25,6 @@ from dataclasses import replace
 import torch
 
 from ebjepa_tutorial.augment import AugmentConfig, build_augmentation, two_views
-from ebjepa_tutorial.course import reference
 from ebjepa_tutorial.course.presets import SCALES, image_preset
 from ebjepa_tutorial.data import load_cifar10, random_subset
 from ebjepa_tutorial.evaluation.classify import probe_encoder, protocol
@@ -40,6 +39,7 @@ from ebjepa_tutorial.training.image import (
 from ebjepa_tutorial.utils import at_least_float32, mixed_precision
 from research.benchmarks import command_line
 from research.benchmarks.timing import precision_name, print_parts, time_parts
+from tools import figures
 
 
 def step_split(config, images: torch.Tensor) -> dict[str, float]:
@@ -122,8 +122,8 @@ def main() -> None:
     if args.record and args.loss != "invariance":
         where = dict(command=command_line(__spec__.name), threads=args.threads,
                      protocol=f"{config.steps} steps in {precision}; {protocol(config)}")
-        reference.record(f"{args.loss}_probe_acc", trained["probe_acc"], **where)
-        reference.record(f"{args.loss}_random_init_probe_acc", random_init["probe_acc"], **where)
+        figures.record(f"{args.loss}_probe_acc", trained["probe_acc"], **where)
+        figures.record(f"{args.loss}_random_init_probe_acc", random_init["probe_acc"], **where)
 
 
 if __name__ == "__main__":

@@ -26,11 +26,11 @@ from pathlib import Path
 
 import torch
 
-from ebjepa_tutorial.course import reference
 from ebjepa_tutorial.envs.two_rooms import WALL_X_RANGES
 from ebjepa_tutorial.planning import PlannerConfig, run_episodes
 from ebjepa_tutorial.training.world import load_world_model
 from research.benchmarks import command_line
+from tools import figures
 
 # the checkpoints whose success rates notebook 06 prints beside the learner's
 RECORDED = {"world_model_class.pt": "planning_success_class",
@@ -85,7 +85,7 @@ def main() -> None:
     print(f"success={result.success_rate:.3f} ci_low={low:.3f} ci_high={high:.3f} "
           f"s_per_episode={result.cpu_seconds_per_episode:.2f}")
     if args.record:
-        reference.record(key, result.success_rate, threads=args.threads,
+        figures.record(key, result.success_rate, threads=args.threads,
                          command=command_line(__spec__.name),
                          protocol=f"{args.checkpoint}; {len(seeds)} episodes, seeds "
                                   f"{seeds[0]}-{seeds[-1]}; 200 steps; success within 4.5 px; "

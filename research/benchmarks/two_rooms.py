@@ -25,7 +25,6 @@ from dataclasses import replace
 
 import torch
 
-from ebjepa_tutorial.course import reference
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.envs import generate_trajectories
 from ebjepa_tutorial.evaluation.position import middle_wall_test, probe_report
@@ -33,6 +32,7 @@ from ebjepa_tutorial.losses.world import PREDICTION_STARTS
 from ebjepa_tutorial.training.checkpoints import save_checkpoint
 from ebjepa_tutorial.training.world import identity, train_world_model
 from research.benchmarks import command_line
+from tools import figures
 
 CLASS_RUN = preset("05", "class")  # notebook 05's run, and its probe: fit seed 101, test 102
 
@@ -114,7 +114,7 @@ def main() -> None:
     print(f"traj_per_s={speed['traj_per_s']:.0f} train_traj_per_s={train_speed:.1f} "
           f"probe_px={report['probe_px']:.3f}")
     if args.record:
-        reference.record("world_probe_px", report["probe_px"], threads=args.threads,
+        figures.record("world_probe_px", report["probe_px"], threads=args.threads,
                          command=command_line(__spec__.name),
                          protocol=f"{config.steps} steps; linear probe fitted on "
                                   f"{CLASS_RUN.n_probe} trajectories, scored on "

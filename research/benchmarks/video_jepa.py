@@ -28,7 +28,6 @@ from dataclasses import replace
 
 import torch
 
-from ebjepa_tutorial.course import reference
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.data.mnist import load_mnist
 from ebjepa_tutorial.data.moving_mnist import generate_moving_mnist, split_digits
@@ -45,6 +44,7 @@ from ebjepa_tutorial.training.video import (
 from ebjepa_tutorial.utils import at_least_float32, mixed_precision
 from research.benchmarks import command_line
 from research.benchmarks.timing import precision_name, print_parts, time_parts
+from tools import figures
 
 
 def load_digits() -> torch.Tensor | None:
@@ -174,7 +174,7 @@ def main() -> None:
                                              args.seed, args.steps, precision)
         mean_ap, ap3 = report["map"], float(report["ap"][2])
         if args.record:
-            reference.record("video_map", mean_ap, command=command_line(__spec__.name),
+            figures.record("video_map", mean_ap, command=command_line(__spec__.name),
                              threads=args.threads,
                              protocol=f"K = {args.rollout_steps}, seed {args.seed}, "
                              f"{precision}; detection "
