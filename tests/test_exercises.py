@@ -28,14 +28,14 @@ CHECKERS = {
     "vicreg": exercises.check_vicreg,
     "vicreg_paper_to_ebjepa": exercises.check_vicreg_paper_to_ebjepa,
     "epps_pulley_1d": exercises.check_epps_pulley,
-    "rollout_loss": exercises.check_rollout_loss,
+    "parallel_rollout_loss": exercises.check_parallel_rollout_loss,
     "mppi_update": exercises.check_mppi_update,
     "step_violation": exercises.check_step_violation,
     "spread_loss": exercises.check_spread_loss,
 }
 # the exercises whose output trains something, and the argument it trains
 TRAINED = {"variance_term": 0, "covariance_term": 0, "vicreg": 0, "epps_pulley_1d": 0,
-           "rollout_loss": 1, "temporal_similarity": 0, "inverse_dynamics": 1,
+           "parallel_rollout_loss": 1, "temporal_similarity": 0, "inverse_dynamics": 1,
            "step_violation": 0, "spread_loss": 0}
 BEGIN, END = "### BEGIN SOLUTION", "### END SOLUTION"
 
@@ -157,37 +157,47 @@ def _epps_pulley_real_part_only(x, knots=17, t_max=3.0, scale_by_n=True):
     return 2 * torch.trapezoid(gaussian * (real - gaussian) ** 2, t) * n
 
 
-def _rollout(predictor, z, context, steps, tbptt, *, early=0, teacher=False, reduce=torch.mean,
-             target=lambda z: z):
-    """A notebook-style rollout loss; the keywords make one mistake each."""
-    errors = []
-    for s in range(z.shape[1] - context - steps + 1):
-        window = z[:, s:s + context]
-        for k in range(steps):
-            if tbptt is not None and k > 0 and k % tbptt == 0:
-                window = window.detach()
-            if teacher:
-                window = z[:, s + k:s + k + context]
-            z_hat = predictor(window)
-            errors.append((z_hat - target(z)[:, s + context + k - early]).pow(2).mean())
-            window = torch.cat([window[:, 1:], z_hat[:, None]], dim=1)
+def _parallel(predictor, z, context=2, steps=4, detach_later=False, *, per_frame=False,
+              axis=1, reduce=torch.mean):
+    """A learner's parallel unroll, written another way than the course's: one predictor call
+    per frame (``per_frame``) or windows by ``unfold``; ``axis`` and ``reduce`` make a mistake."""
+    z = z.transpose(0, 1) if axis == 0 else z
+    errors, sequence = [], z
+    for k in range(steps):
+        source = z.detach() if detach_later and k > 0 else z
+        if detach_later and k == 1:  # unroll again from the detached latents
+            sequence = torch.cat([source[:, :context], _step(predictor, source, context,
+                                                             per_frame)], dim=1)
+        predictions = _step(predictor, sequence, context, per_frame)
+        errors.append(F.mse_loss(predictions, source[:, context:]))
+        sequence = torch.cat([source[:, :context], predictions], dim=1)
     return reduce(torch.stack(errors))
 
 
-def _rollout_off_by_one(predictor, z, context=2, steps=4, tbptt=None):
-    return _rollout(predictor, z, context, steps, tbptt, early=1)
+def _step(predictor, sequence, context, per_frame):
+    """Every frame's prediction from the ``context`` frames before it: (B, T - context, ...)."""
+    if per_frame:
+        return torch.stack([predictor(sequence[:, t - context:t])
+                            for t in range(context, sequence.shape[1])], dim=1)
+    windows = sequence.unfold(1, context, 1)[:, :-1]  # (B, T - context, C, H, W, context)
+    windows = windows.permute(0, 1, 5, 2, 3, 4)
+    return predictor(windows.flatten(0, 1)).unflatten(0, windows.shape[:2])
 
 
-def _rollout_teacher_forcing(predictor, z, context=2, steps=4, tbptt=None):
-    return _rollout(predictor, z, context, steps, tbptt, teacher=True)
+def _parallel_summed_over_steps(predictor, z, context=2, steps=4, detach_later=False):
+    return _parallel(predictor, z, context, steps, detach_later, reduce=torch.sum)
 
 
-def _rollout_summed(predictor, z, context=2, steps=4, tbptt=None):
-    return _rollout(predictor, z, context, steps, tbptt, reduce=torch.sum)
+def _parallel_along_the_batch(predictor, z, context=2, steps=4, detach_later=False):
+    return _parallel(predictor, z, context, steps, detach_later, axis=0)
 
 
-def _rollout_detached_targets(predictor, z, context=2, steps=4, tbptt=None):
-    return _rollout(predictor, z, context, steps, tbptt, target=torch.Tensor.detach)
+def _autoregressive_given(predictor, z, context=2, steps=4, detach_later=False):
+    return losses.rollout.rollout_loss(predictor, z, context, steps, detach_later)
+
+
+def _parallel_every_step_to_the_encoder(predictor, z, context=2, steps=4, detach_later=False):
+    return _parallel(predictor, z, context, steps, False)
 
 
 def _mppi(actions, costs, elites, temperature, *, scale=None, std=None, shift=True):
@@ -282,11 +292,19 @@ def _slab_crossing_unordered(x0, x1, x_lo, x_hi):
     (exercises.check_covariance_term, _covariance_with_diagonal,
      "but the answer is .*kept the diagonal"),
     (exercises.check_covariance_term, _covariance_not_centred, "did not centre z"),
-    (exercises.check_rollout_loss, _rollout_off_by_one, "off-by-one target"),
-    (exercises.check_rollout_loss, _rollout_teacher_forcing, "teacher forcing"),
-    (exercises.check_rollout_loss, _rollout_summed, "summed the errors instead of averaging"),
-    (exercises.check_rollout_loss, _rollout_detached_targets,
-     "does not flow to the last latent.*no gradient reaches the target latents"),
+    (exercises.check_parallel_rollout_loss, _autoregressive_given,
+     "this is the autoregressive rollout loss.*the paper's parallel unroll"),
+    (exercises.check_parallel_rollout_loss, _parallel_summed_over_steps,
+     r"too large by a factor of K = 3 on .*a sum over the K steps where their mean belongs"),
+    (exercises.check_parallel_rollout_loss, _parallel_along_the_batch,
+     "unrolled along the batch axis: time is axis 1"),
+    (exercises.check_parallel_rollout_loss, _parallel_every_step_to_the_encoder,
+     r"not the right gradient with respect to the other latents.*steps 2\.\.K still reach "
+     "the encoder"),
+    (exercises.check_parallel_rollout_loss,
+     lambda predictor, z, context=2, steps=4, detach_later=False: _parallel(
+         predictor, z.detach(), context, steps, detach_later),
+     r"does not flow to the other latents z\[:, :-1\].*Found in your function: \.detach\(\)"),
     (exercises.check_slab_crossing, _slab_crossing_unordered,
      "your t_in .* but the answer is .*a move to the left reaches x_hi first"),
     (exercises.check_wall_collision, _wall_stay_put, "cancel the whole move"),
@@ -354,7 +372,8 @@ def _sign_flipped(right):
 
 LABELS = {  # how a message names the input that stops receiving a gradient
     "vicreg": "the first view z_a", "epps_pulley_1d": "the sample x",
-    "rollout_loss": r"the (predictor's weights|last latent z\[:, -1\] \(only ever a target\))",
+    "parallel_rollout_loss":
+        r"the (predictor's weights|other latents z\[:, :-1\])",
     "temporal_similarity": "the latents z", "inverse_dynamics": "the latents z",
     "step_violation": "the step distances", "spread_loss": "the distances"}
 
@@ -534,6 +553,16 @@ def test_checkers_accept_other_valid_conventions(capsys):
                         (exercises.check_slab_crossing, slab_crossing)]:
         assert checker(fn) is fn
     assert capsys.readouterr().out.count("Correct") == 4
+
+
+@pytest.mark.parametrize("per_frame", [False, True], ids=["unfold", "one call per frame"])
+def test_the_video_checker_accepts_other_ways_to_unroll(per_frame, capsys):
+    def parallel_rollout_loss(predictor, z, context=2, steps=4, detach_later=False):
+        return _parallel(predictor, z, context, steps, detach_later, per_frame=per_frame)
+
+    assert exercises.check_parallel_rollout_loss(parallel_rollout_loss) is parallel_rollout_loss
+    out = capsys.readouterr().out
+    assert "Correct" in out and "Note" not in out
 
 
 @pytest.mark.parametrize("covariance_term", [
@@ -736,7 +765,8 @@ ANSWERS = {"variance_term": ["losses.variance_term", "variance_and_covariance", 
            "covariance_term": ["losses.covariance_term", "covariance_matrix", "vicreg_loss"],
            "vicreg": ["vicreg_loss"], "vicreg_paper_to_ebjepa": [],
            "epps_pulley_1d": ["sigreg.epps_pulley", "import epps_pulley", "sigreg_loss"],
-           "rollout_loss": ["rollout.rollout_loss", "parallel_rollout_loss"],
+           "parallel_rollout_loss": ["rollout.parallel_rollout_loss", "parallel_unroll",
+                                     "losses.rollout"],
            "slab_crossing": ["stop_at_wall"],
            "wall_collision": ["envs.wall_collision", "two_rooms.wall_collision", "stop_at_wall"],
            "temporal_similarity": ["temporal_similarity_loss"],

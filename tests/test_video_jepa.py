@@ -1,4 +1,4 @@
-"""Video JEPA (chapter 03): shapes, the rollout loss by hand, tbptt, the checker, probe, errors."""
+"""Video JEPA (chapter 03): shapes, the multistep losses by hand, the checker, probe, errors."""
 
 import copy
 from dataclasses import replace
@@ -9,7 +9,7 @@ import torch.nn.functional as F
 
 from ebjepa_tutorial import viz
 from ebjepa_tutorial.course.exercises import ExerciseError
-from ebjepa_tutorial.course.exercises.video import check_rollout_loss
+from ebjepa_tutorial.course.exercises.video import check_parallel_rollout_loss
 from ebjepa_tutorial.data.moving_mnist import centres_to_grid, generate_moving_mnist
 from ebjepa_tutorial.evaluation.detection import (
     detection_report,
@@ -196,62 +196,27 @@ def test_rollout_feeds_predictions_back():
     assert out.flatten().tolist() == [2.0, 3.0, 4.0]
 
 
-def test_tbptt_changes_gradients_not_the_loss():
-    g = torch.Generator().manual_seed(0)
-    z = torch.randn(2, 9, 3, 2, 2, generator=g)
-    weight0 = torch.randn(2, 3, 3, generator=g) / 2
+def test_checker_accepts_the_loss_and_rejects_wrong_answers(capsys):
+    def mine(predictor, z, context=2, steps=4, detach_later=False):  # a learner's correct copy
+        return parallel_rollout_loss(predictor, z, context, steps, detach_later)
 
-    def loss_and_grad(tbptt):
-        weight = weight0.clone().requires_grad_()
-        predictor = lambda w: torch.tanh(torch.einsum("nkchw,kcd->ndhw", w, weight))  # noqa: E731
-        loss = rollout_loss(predictor, z, context=2, steps=5, tbptt=tbptt)
-        return loss.detach(), torch.autograd.grad(loss, weight)[0]
-
-    full_loss, full_grad = loss_and_grad(None)
-    for m in (1, 2):
-        loss, grad = loss_and_grad(m)
-        assert torch.allclose(loss, full_loss)
-        assert not torch.allclose(grad, full_grad)
-    assert torch.allclose(loss_and_grad(5)[1], full_grad)  # truncating beyond K changes nothing
-
-
-def test_checker_accepts_reference_and_rejects_wrong_answers(capsys):
-    def mine(predictor, z, context=2, steps=4, tbptt=None):  # a learner's correct copy
-        return rollout_loss(predictor, z, context, steps, tbptt)
-
-    assert check_rollout_loss(mine) is mine
+    assert check_parallel_rollout_loss(mine) is mine
     assert "Correct" in capsys.readouterr().out
 
-    def teacher_forcing(predictor, z, context=2, steps=4, tbptt=None):
-        n = z.shape[1] - context - steps + 1
-        errors = [F.mse_loss(predictor(z[:, s + k:s + k + context]), z[:, s + k + context])
-                  for s in range(n) for k in range(steps)]
-        return torch.stack(errors).mean()
+    def teacher_forcing(predictor, z, context=2, steps=4, detach_later=False):
+        return parallel_rollout_loss(predictor, z, context, 1)  # K copies of step 1
 
-    def context_two(predictor, z, context=2, steps=4, tbptt=None):
-        return rollout_loss(predictor, z, 2, steps, tbptt)
+    def context_two(predictor, z, context=2, steps=4, detach_later=False):
+        return parallel_rollout_loss(predictor, z, 2, steps, detach_later)
 
-    def detached_targets(predictor, z, context=2, steps=4, tbptt=None):
-        return rollout_loss(predictor, torch.cat([z[:, :-1], z[:, -1:].detach()], 1),
-                            context, steps, tbptt)
-
-    def ignores_tbptt(predictor, z, context=2, steps=4, tbptt=None):
-        return rollout_loss(predictor, z, context, steps)
+    def ignores_detach_later(predictor, z, context=2, steps=4, detach_later=False):
+        return parallel_rollout_loss(predictor, z, context, steps)
 
     for wrong, mistake in [(teacher_forcing, "teacher forcing"),
                            (context_two, "ignored the context argument"),
-                           (detached_targets, r"no gradient reaches the target latents"),
-                           (ignores_tbptt, "ignored tbptt")]:
+                           (ignores_detach_later, "steps 2..K still reach the encoder")]:
         with pytest.raises(ExerciseError, match=mistake):
-            check_rollout_loss(wrong)
-
-
-def test_checker_without_tbptt_argument(capsys):
-    def no_tbptt(predictor, z, context=2, steps=4):
-        return rollout_loss(predictor, z, context, steps)
-
-    assert check_rollout_loss(no_tbptt)
-    assert "skipped" in capsys.readouterr().out
+            check_parallel_rollout_loss(wrong)
 
 
 def test_detection_probe_on_separable_latents():
@@ -271,8 +236,6 @@ def test_bad_inputs_raise_clear_errors():
         rollout_loss(shift_predictor(0.0), z, context=2, steps=4)
     with pytest.raises(ValueError, match="steps"):
         rollout_loss(shift_predictor(0.0), z, steps=0)
-    with pytest.raises(ValueError, match="tbptt"):
-        rollout_loss(shift_predictor(0.0), z, steps=2, tbptt=0)
     with pytest.raises(ValueError, match="batch, time"):
         rollout_loss(shift_predictor(0.0), z[:, 0], steps=2)
     with pytest.raises(ValueError, match="latent side"):
@@ -325,11 +288,11 @@ def test_the_curriculum_trains_one_step_first_then_k_steps(digits, monkeypatch):
     assert {paper.rollout_steps_at(s) for s in (0, 2399)} == {4}
     seen = []  # K of every loss the training loop computes
 
-    def recording(predictor, z, context, steps, tbptt, detach_later):
+    def recording(predictor, z, context, steps, detach_later):
         seen.append(steps)
-        return parallel_rollout_loss(predictor, z, context, steps, tbptt, detach_later)
+        return parallel_rollout_loss(predictor, z, context, steps, detach_later)
 
-    monkeypatch.setitem(video_training.UNROLLS, "parallel", recording)
+    monkeypatch.setattr(video_training, "parallel_rollout_loss", recording)
     clips = generate_moving_mnist(digits, 8, 10, seed=1).clips
     config = replace(CI, steps=5, batch_size=2, rollout_steps=3, one_step_fraction=0.4)
     train_video_jepa(config, clips, progress=False)
@@ -454,11 +417,11 @@ def test_command_line_trains_and_reports(digits, tmp_path, monkeypatch, capsys):
     assert "Loaded a trained model from " + str(tmp_path / "ship") in capsys.readouterr().out
     seen = []  # K of every training loss: K = 4 trains only its steps after the switch
 
-    def recording(predictor, z, context, steps, tbptt, detach_later):
+    def recording(predictor, z, context, steps, detach_later):
         seen.append(steps)
-        return parallel_rollout_loss(predictor, z, context, steps, tbptt, detach_later)
+        return parallel_rollout_loss(predictor, z, context, steps, detach_later)
 
-    monkeypatch.setitem(video_training.UNROLLS, "parallel", recording)
+    monkeypatch.setattr(video_training, "parallel_rollout_loss", recording)
     train_video.main(["--scale", "ci", "--long"])  # the preset's long runs: K = 1 and 4
     out = capsys.readouterr().out
     assert "video_jepa_ci_long_K1_seed0" in out and "video_jepa_ci_long_K4_seed0" in out

@@ -1,19 +1,19 @@
-"""The K-step rollout loss of the video JEPA (notebook 03; the paper's multistep loss).
+"""The K-step loss of the video JEPA (notebook 03; the paper's multistep loss).
 
 Each frame is encoded to a spatial latent ``z_t`` ``(C, S, S)``; the predictor
 sees the last ``context`` latents and guesses the next one. Training unrolls
-it on its own guesses for ``K`` steps from every start frame of a clip and
-compares the guess of order ``k`` with the true encoding.
+it on its own guesses for ``K`` steps and compares the guess of order ``k``
+with the true encoding.
 
 Two ways to unroll, both the reference code's (its ``unroll_mode``):
 
+- ``"parallel"`` (:func:`parallel_rollout_loss`, the paper's training and
+  evaluation, and notebook 03's exercise): each step predicts every frame of the
+  clip at once from the previous step's sequence, so from order 2 on both context
+  latents of a window are predictions, each made from another true window.
 - ``"autoregressive"`` (:func:`rollout_loss`): one true context rolled
   forward, the prediction of order k made from orders k-1 and k-2 of the
   same rollout, exactly as a planner uses the predictor.
-- ``"parallel"`` (:func:`parallel_rollout_loss`, the paper's training and
-  evaluation): each step predicts every frame of the clip at once from the
-  previous step's sequence, so from order 2 on both context latents of a
-  window are predictions, each made from another true window.
 
 At K = 1 the two are the same loss. Where we differ from the reference: its
 parallel loss also averages the (zero) error of the true context frames, and
@@ -31,7 +31,7 @@ import torch.nn.functional as F
 Predictor = Callable[[torch.Tensor], torch.Tensor]  # (N, context, C, H, W) -> (N, C, H, W)
 
 
-def check_rollout_args(z: torch.Tensor, context: int, steps: int, tbptt: int | None = None):
+def check_rollout_args(z: torch.Tensor, context: int, steps: int):
     """Raise a clear error unless ``z`` is ``(B, T, C, H, W)`` with ``T >= context + steps``."""
     if not isinstance(z, torch.Tensor) or z.ndim != 5:
         got = tuple(z.shape) if isinstance(z, torch.Tensor) else type(z).__name__
@@ -46,23 +46,18 @@ def check_rollout_args(z: torch.Tensor, context: int, steps: int, tbptt: int | N
             f"{steps} prediction steps: use clips of at least {context + steps} frames, or "
             "fewer steps"
         )
-    if tbptt is not None and (not isinstance(tbptt, int) or tbptt < 1):
-        raise ValueError(f"tbptt must be None (no truncation) or an int >= 1, got {tbptt!r}")
 
 
-def rollout(predictor: Predictor, window: torch.Tensor, steps: int, tbptt: int | None = None):
+def rollout(predictor: Predictor, window: torch.Tensor, steps: int):
     """Unroll the predictor on its own outputs: ``(N, context, C, H, W) -> (N, steps, C, H, W)``.
 
     Each step predicts the next latent from the current window, then slides the
-    window: the oldest latent drops out, the prediction comes in. With
-    ``tbptt=m`` the window is detached every ``m`` steps (see :func:`rollout_loss`).
+    window: the oldest latent drops out, the prediction comes in.
     """
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise ValueError(f"steps must be an int >= 1 (predictions to unroll), got {steps!r}")
     predictions = []
-    for k in range(steps):
-        if tbptt is not None and k > 0 and k % tbptt == 0:
-            window = window.detach()  # truncate: no gradient into earlier steps
+    for _ in range(steps):
         z_next = predictor(window)
         predictions.append(z_next)
         window = torch.cat([window[:, 1:], z_next[:, None]], dim=1)
@@ -70,51 +65,40 @@ def rollout(predictor: Predictor, window: torch.Tensor, steps: int, tbptt: int |
 
 
 def rollout_loss(predictor: Predictor, z: torch.Tensor, context: int = 2, steps: int = 4,
-                 tbptt: int | None = None, detach_later: bool = False) -> torch.Tensor:
-    """K-step rollout loss over latents ``z`` ``(B, T, C, H, W)``: a 0-d tensor.
+                 detach_later: bool = False) -> torch.Tensor:
+    """The autoregressive K-step loss over latents ``z`` ``(B, T, C, H, W)``: a 0-d tensor.
 
     From every start frame ``s`` (``0 <= s <= T - context - K``) the predictor
     gets the true window ``z_s .. z_{s+context-1}`` and is unrolled on its own
     predictions for ``K = steps`` steps; prediction ``k`` is compared with the
     true ``z_{s+context-1+k}``. The loss is the mean squared error over all
-    starts, orders ``k``, and elements (the orders weigh equally). Targets keep
-    their gradient, as in the paper; the variance-covariance terms prevent collapse.
-
-    ``tbptt`` (truncated back-propagation through time): ``None`` sends the
-    gradient of order ``k`` back through all ``k - 1`` earlier predictions,
-    which teaches the predictor to make outputs that are good *inputs* for its
-    next steps. ``tbptt=m`` cuts the graph every ``m`` steps (the rolled-out
-    window is detached), so a gradient crosses at most ``m`` predictor calls:
-    the same forward values and loss, a different gradient. ``tbptt=1`` trains
-    every step as a one-step predictor fed with its own (frozen) earlier
-    outputs. Since all orders sit in one loss, each predictor call is
-    back-propagated once either way: truncation changes what the gradient asks
-    for (and can tame exploding rollouts), not the cost.
+    starts, orders ``k``, and elements (the orders weigh equally). The gradient of
+    order ``k`` flows back through all ``k - 1`` earlier predictions.
 
     ``detach_later``: orders 2..K unroll from, and aim at, detached latents, so they
     train the predictor alone and the encoder learns from one-step errors only (the same
     value; the first step is computed twice).
     """
-    check_rollout_args(z, context, steps, tbptt)
+    check_rollout_args(z, context, steps)
     if detach_later and steps > 1:
         n = z.shape[1] - context - steps + 1  # the order-1 term of the same n starts
         first = rollout_loss(predictor, z[:, :n + context], context, 1)
-        later = _rollouts(predictor, z.detach(), context, steps, tbptt)
+        later = _rollouts(predictor, z.detach(), context, steps)
         return (first + (steps - 1) * F.mse_loss(*(x[:, 1:] for x in later))) / steps
-    return F.mse_loss(*_rollouts(predictor, z, context, steps, tbptt))
+    return F.mse_loss(*_rollouts(predictor, z, context, steps))
 
 
-def _rollouts(predictor: Predictor, z: torch.Tensor, context: int, steps: int,
-              tbptt: int | None) -> tuple[torch.Tensor, torch.Tensor]:
+def _rollouts(predictor: Predictor, z: torch.Tensor, context: int,
+              steps: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Predictions and targets ``(B * n, K, C, H, W)`` of the rollouts from every start."""
     n = z.shape[1] - context - steps + 1  # rollouts per clip, one per start frame
     windows = torch.stack([z[:, j:j + n] for j in range(context)], dim=2)  # (B, n, ctx, C, H, W)
     targets = torch.stack([z[:, context + k:context + k + n] for k in range(steps)], dim=2)
-    return rollout(predictor, windows.flatten(0, 1), steps, tbptt), targets.flatten(0, 1)
+    return rollout(predictor, windows.flatten(0, 1), steps), targets.flatten(0, 1)
 
 
-def parallel_unroll(predictor: Predictor, z: torch.Tensor, context: int = 2, steps: int = 4,
-                    tbptt: int | None = None) -> list[torch.Tensor]:
+def parallel_unroll(predictor: Predictor, z: torch.Tensor, context: int = 2,
+                    steps: int = 4) -> list[torch.Tensor]:
     """The paper's parallel unroll of latents ``z`` ``(B, T, C, H, W)``: a list of ``steps``
     tensors ``(B, T - context, C, H, W)``, step k's predictions of frames ``context .. T-1``.
 
@@ -122,13 +106,11 @@ def parallel_unroll(predictor: Predictor, z: torch.Tensor, context: int = 2, ste
     t - 1`` of the sequence step k-1 made (the true latents at step 1), then puts the true
     ``z_0 .. z_{context-1}`` back in front. After step k, frame t is predicted k steps ahead
     of its most recent true input when ``t >= context - 1 + k`` (earlier frames repeat
-    lower orders). ``tbptt=m`` detaches the sequence every ``m`` steps.
+    lower orders).
     """
-    check_rollout_args(z, context, steps, tbptt)
+    check_rollout_args(z, context, steps)
     sequence, out = z, []
-    for k in range(steps):
-        if tbptt is not None and k > 0 and k % tbptt == 0:
-            sequence = sequence.detach()
+    for _ in range(steps):
         n = sequence.shape[1] - context  # one window per predicted frame
         windows = torch.stack([sequence[:, j:j + n] for j in range(context)], dim=2)
         predictions = predictor(windows.flatten(0, 1)).unflatten(0, windows.shape[:2])
@@ -138,20 +120,23 @@ def parallel_unroll(predictor: Predictor, z: torch.Tensor, context: int = 2, ste
 
 
 def parallel_rollout_loss(predictor: Predictor, z: torch.Tensor, context: int = 2,
-                          steps: int = 4, tbptt: int | None = None,
-                          detach_later: bool = False) -> torch.Tensor:
-    """The paper's K-step loss: the mean over steps k of the squared error of step k's
-    predictions (:func:`parallel_unroll`) against the true ``z_context .. z_{T-1}``: a 0-d tensor.
+                          steps: int = 4, detach_later: bool = False) -> torch.Tensor:
+    """The paper's K-step loss (its Eqs. 8 to 10): the mean over steps k of the squared error
+    of step k's predictions (:func:`parallel_unroll`) against the true ``z_context .. z_{T-1}``.
 
-    At ``steps=1`` this is :func:`rollout_loss` with one step. Targets keep their gradient.
-    ``detach_later``: steps 2..K unroll from, and aim at, detached latents (see
-    :func:`rollout_loss`).
+        L_pred = (1/K) sum_k mean_{b, t >= context} ||z~^(k)_{b,t} - z_{b,t}||^2   (a 0-d tensor)
+
+    ``z``: latents ``(B, T, C, H, W)``. Targets keep their gradient (the paper's choice; the
+    variance and covariance terms keep that from collapsing). ``detach_later``: steps 2..K
+    unroll from, and aim at, ``z.detach()``, so they train the predictor alone and the
+    encoder learns from the step-1 error only (the course's class runs; the paper: False).
+    At ``steps=1`` this is :func:`rollout_loss` with one step.
     """
     errors = []
     if detach_later and steps > 1:  # step 1 on the latents, steps 2..K on detached ones
         errors.append(parallel_rollout_loss(predictor, z, context, 1))
         z = z.detach()
-    predictions = parallel_unroll(predictor, z, context, steps, tbptt)[len(errors):]
+    predictions = parallel_unroll(predictor, z, context, steps)[len(errors):]
     errors += [F.mse_loss(p, z[:, context:]) for p in predictions]
     return torch.stack(errors).mean()
 

@@ -80,7 +80,7 @@ def step_split() -> dict[str, float]:
             z = model.encode(frames)
             yield "encoder"
             prediction = UNROLLS[config.unroll](model.predictor, z, config.model.context,
-                                                config.rollout_steps, config.tbptt)
+                                                config.rollout_steps, config.detach_later_orders)
             yield "rollout"
             projected = model.project(z)
         variance, covariance = variance_and_covariance(at_least_float32(projected))

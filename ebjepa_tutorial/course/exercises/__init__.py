@@ -23,7 +23,7 @@ from .vicreg import (
     check_vicreg,
     check_vicreg_paper_to_ebjepa,
 )
-from .video import check_rollout_loss
+from .video import check_parallel_rollout_loss
 from .world_model import check_inverse_dynamics, check_temporal_similarity
 
 __all__ = [
@@ -33,7 +33,7 @@ __all__ = [
     "check_epps_pulley",
     "check_inverse_dynamics",
     "check_mppi_update",
-    "check_rollout_loss",
+    "check_parallel_rollout_loss",
     "check_slab_crossing",
     "check_spread_loss",
     "check_step_violation",

@@ -1,19 +1,19 @@
-"""Checker of chapter 03: the K-step rollout loss, its value and its gradients, and its hints."""
+"""Checker of chapter 03: the paper's K-step loss (the parallel unroll, as the model trains),
+its value and its gradients, and its hints."""
 
 from __future__ import annotations
 
-import inspect
 from collections.abc import Callable
 
 import torch
 
-from ...losses.rollout import Predictor, parallel_rollout_loss, rollout, rollout_loss
+from ...losses.rollout import Predictor, parallel_rollout_loss, parallel_unroll, rollout_loss
 from .common import Case, compare, exercise
 
 
 def _toy_predictor(kind: str, weight: torch.Tensor) -> Predictor:
-    """Toy predictors ``(N, context, C, H, W) -> (N, C, H, W)`` with rollouts easy to follow."""
-    if kind == "shift":  # the last latent plus 0.5: order k of a rollout is z_last + 0.5 k
+    """Toy predictors ``(N, context, C, H, W) -> (N, C, H, W)`` with unrolls easy to follow."""
+    if kind == "shift":  # the last latent plus 0.5
         return lambda window: window[:, -1] + 0.5
     if kind == "velocity":  # constant velocity: exact on latents that move in straight lines
         return lambda window: 2 * window[:, -1] - window[:, -2]
@@ -23,146 +23,173 @@ def _toy_predictor(kind: str, weight: torch.Tensor) -> Predictor:
     return lambda window: torch.tanh(torch.einsum("nkchw,kcd->ndhw", window, weight))
 
 
-def _rollout_case(description: str, kind: str, z: torch.Tensor, context: int, steps: int,
-                  tbptt: int | None = None, seed: int = 0) -> Case:
+def _case(description: str, kind: str, z: torch.Tensor, context: int, steps: int,
+          detach_later: bool, seed: int = 0) -> Case:
     """One test input: the predictor ``kind`` with its weights, the latents ``z`` split into
     all frames but the last and the last, which is only ever a target (so that its gradient
     is checked on its own), and the loss's options."""
     weight = torch.randn(context, z.shape[2], z.shape[2],
                          generator=torch.Generator().manual_seed(seed)) / z.shape[2] ** 0.5
-    return Case(description, (kind, weight, z[:, :-1], z[:, -1], context, steps, tbptt))
+    return Case(description, (kind, weight, z[:, :-1], z[:, -1], context, steps, detach_later),
+                sizes={"K": steps})
 
 
-def _rollout_call(loss_fn: Callable) -> Callable:
-    """``loss_fn`` called on one of the cases above: returns the loss."""
-    def run(kind, weight, z_first, z_last, context, steps, tbptt):
-        kwargs = {"context": context, "steps": steps}
-        if tbptt is not None:
-            kwargs["tbptt"] = tbptt
+def _call(loss_fn: Callable) -> Callable:
+    """``loss_fn`` called on one of the cases above, positionally as the training step calls it."""
+    def run(kind, weight, z_first, z_last, context, steps, detach_later):
         z = torch.cat([z_first, z_last[:, None]], dim=1)
-        return loss_fn(_toy_predictor(kind, weight), z, **kwargs)
+        return loss_fn(_toy_predictor(kind, weight), z, context, steps, detach_later)
     run.__name__ = getattr(loss_fn, "__name__", "your function")
     return run
 
 
-def _rollout_slip(**slip) -> Callable:
-    """The notebook's rollout loop with one mistake, named by a keyword of ``slip``."""
+def _slip(**slip) -> Callable:
+    """The notebook's parallel unroll with one mistake, named by a keyword of ``slip``."""
     error = slip.get("error", lambda d: d.pow(2).mean())
+    shift, mode = slip.get("early", 0), slip.get("detach", "right")  # how steps 2..K are cut
 
-    def rollout_loss(predictor, z, context=2, steps=4, tbptt=None):
+    def errors(predictor, z, inputs, targets, context, steps, cut):
+        out, sequence = [], inputs
+        for _ in range(steps):
+            n = sequence.shape[1] - context
+            windows = torch.stack([sequence[:, j:j + n] for j in range(context)], dim=2)
+            predictions = predictor(windows.flatten(0, 1)).unflatten(0, windows.shape[:2])
+            whole = torch.cat([inputs[:, :context], predictions], dim=1)
+            out.append(error(whole - targets) if slip.get("with_context") else
+                       error(predictions - targets[:, context - shift:z.shape[1] - shift]))
+            if cut and mode == "predictions":
+                predictions = predictions.detach()
+            sequence = inputs if slip.get("teacher_forcing") else torch.cat(
+                [inputs[:, :context], predictions], dim=1)
+        return out
+
+    def parallel_rollout_loss(predictor, z, context=2, steps=4, detach_later=False):
         context = slip.get("context", context)
-        tbptt = None if slip.get("ignore_tbptt") else tbptt
+        z = z.transpose(0, 1) if slip.get("batch_axis") else z
         targets = z.detach() if slip.get("detach_targets") else z
-        errors = []
-        for s in range(1 if slip.get("one_start") else z.shape[1] - context - steps + 1):
-            window = z[:, s:s + context]
-            for k in range(steps):
-                if tbptt is not None and k > 0 and k % tbptt == 0:
-                    window = window.detach()
-                if slip.get("teacher_forcing"):
-                    window = z[:, s + k:s + k + context]
-                z_hat = predictor(window)
-                errors.append(error(z_hat - targets[:, s + context + k - slip.get("early", 0)]))
-                if not slip.get("no_slide"):
-                    window = torch.cat([window[:, 1:], z_hat[:, None]], dim=1)
-        return torch.stack(errors).sum() if slip.get("sum") else torch.stack(errors).mean()
+        cut = detach_later and steps > 1 and mode != "ignored"
+        if not cut or mode == "predictions":
+            found = errors(predictor, z, z, targets, context, steps, cut)
+        else:  # step 1 on z, steps 2..K again from the detached latents
+            found = errors(predictor, z, z, targets, context, 1, False) + errors(
+                predictor, z, z.detach(), z.detach() if mode == "right" else targets,
+                context, steps, False)[1:]
+        return found[-1] if slip.get("last_only") else torch.stack(found).mean()
 
-    return rollout_loss
+    return parallel_rollout_loss
 
 
-_ROLLOUT_HINTS = (
-    "From each start, give the predictor the true context, then let it run on its own "
-    "predictions for K steps, as it will have to when it imagines the future. Score every "
-    "prediction against the true latent of the frame it stands for; the loss is the average "
-    "score over all starts and steps.",
-    "For every start s from 0 to T - context - K: the window holds the true latents "
-    "s, ..., s + context - 1. Step k = 0, ..., K - 1 predicts the latent of frame "
-    "s + context + k from the window; then the window drops its oldest latent and takes the "
-    "prediction as its newest (a window stays (B, context, C, S, S), a prediction is "
-    "(B, C, S, S)). The error of one step is the mean squared difference over all its "
-    "elements; the loss is the mean of the n_starts * K errors. With tbptt = m, cut the "
-    "window's gradient before every step k > 0 that is a multiple of m; the targets keep "
-    "their gradient.",
+def _autoregressive(predictor, z, context=2, steps=4, detach_later=False):
+    return rollout_loss(predictor, z, context, steps, detach_later)
+
+
+_HINTS = (
+    "Unroll the predictor on its own predictions, the paper's way: step 1 predicts every frame "
+    "of the clip from the true latents before it; each later step predicts every frame again, "
+    "from the sequence the previous step made (the true context in front). Score each step "
+    "against the true latents; the loss is the mean over the K steps. With detach_later, "
+    "steps 2..K work on detached latents, so they train the predictor but not the encoder.",
+    "z is (B, T, C, S, S). A step takes a sequence (the true z at step 1), builds for each "
+    "frame t = context .. T-1 the window of frames t - context .. t - 1 of that sequence, "
+    "(B, T - context, context, C, S, S), flattens B and T - context to call the predictor, "
+    "and gets predictions (B, T - context, C, S, S). The error of step k is the mean squared "
+    "difference between its predictions and z[:, context:]; the next sequence is the true "
+    "z[:, :context] followed by the predictions. L = (1/K) sum_k error_k. With detach_later "
+    "(and K > 1): error_1 on z as above; steps 2..K are unrolled again from z.detach(), "
+    "their inputs and targets both detached (step 1 is computed twice).",
     "errors = []\n"
-    "for s in range(n_starts):\n"
-    "    window = <the true latents s .. s + context - 1, along the time axis>\n"
-    "    for k in range(steps):\n"
-    "        if <tbptt is set, k > 0 and k is a multiple of tbptt>: window = <window, detached>\n"
-    "        z_hat = predictor(window)\n"
-    "        errors.append(<the mean squared difference of z_hat and the latent of frame "
-    "s + context + k>)\n"
-    "        window = <the window without its oldest latent, z_hat appended as the newest>\n"
+    "if detach_later and steps > 1:\n"
+    "    errors.append(<this loss of z with steps=1>)\n"
+    "    z = <z, detached>\n"
+    "sequence = z\n"
+    "for k in range(steps):\n"
+    "    n = <the number of predicted frames, T - context>\n"
+    "    windows = <stack sequence[:, j:j + n] for j in range(context), along a new dim 2>\n"
+    "    predictions = <predictor on windows with B and n flattened, then unflattened>\n"
+    "    if <k >= len of the errors you already hold>:\n"
+    "        errors.append(<mean squared difference of predictions and z[:, context:]>)\n"
+    "    sequence = <z[:, :context] followed by predictions, along the time axis>\n"
     "return <the mean of the errors, stacked into one tensor>",
 )
 
-_ROLLOUT_SLIPS = [(words, _rollout_slip(**slip)) for words, slip in [
+_SLIPS = [(words, _slip(**slip)) for words, slip in [  # gradient-only slips first
+    ("with detach_later, steps 2..K still reach the encoder: unroll them from z.detach() and "
+     "score them against z.detach(), so only the step-1 error trains the encoder.",
+     {"detach": "ignored"}),
+    ("with detach_later, steps 2..K unroll from z.detach() but still aim at z: their targets "
+     "must be detached too, or the encoder learns from their errors through the targets.",
+     {"detach": "inputs"}),
+    ("you detached the predictions between steps: detach_later detaches the latents z (the "
+     "inputs and targets of steps 2..K), and the predictor still learns through every step "
+     "of the unroll.", {"detach": "predictions"}),
     ("no gradient reaches the target latents: did you .detach() them? The course keeps the "
-     "targets' gradient, as the paper does.", {"detach_targets": True}),
-    ("you ignored tbptt: the window loses its gradient before every step k > 0 that is a "
-     "multiple of tbptt.", {"ignore_tbptt": True}),
-    ("an off-by-one target: step k (k = 0 .. K-1) from start s predicts the latent of frame "
-     "s + context + k, the frame just after the window; you compared it with the frame "
-     "before that.", {"early": 1}),
-    ("teacher forcing: you gave the predictor the true latents at every step; a rollout feeds "
-     "it its own predictions (the window drops its oldest latent and takes the prediction).",
-     {"teacher_forcing": True}),
-    ("the window never slides: every step predicts from the same true context; append each "
-     "prediction and drop the oldest latent.", {"no_slide": True}),
-    ("you rolled out from the first start only; roll out from every start s = 0 .. "
-     "T - context - K.", {"one_start": True}),
-    ("you ignored the context argument (your window always holds 2 latents).", {"context": 2}),
-    ("you summed the errors instead of averaging them.", {"sum": True}),
+     "targets' gradient, as the paper does (only steps 2..K with detach_later aim at detached "
+     "latents).", {"detach_targets": True}),
+    ("teacher forcing: every step predicted from the true latents; step k predicts from the "
+     "sequence step k - 1 made, the true context in front.", {"teacher_forcing": True}),
+    ("an off-by-one target: the prediction made from frames t - context .. t - 1 is compared "
+     "with z_t, the frame just after its window (z[:, context:]); you compared it with the "
+     "frame before.", {"early": 1}),
+    ("you averaged the error over all T frames, the true context in front included (its error "
+     "is 0, as in the paper's reference code); the course averages the predicted frames "
+     "t >= context only.", {"with_context": True}),
+    ("you scored only the last step; the loss is the mean of the errors of all K steps.",
+     {"last_only": True}),
+    ("you unrolled along the batch axis: time is axis 1 of z (B, T, C, S, S), so the windows "
+     "are z[:, j:j + n], not z[j:j + n].", {"batch_axis": True}),
+    ("you ignored the context argument (your windows always hold 2 latents).", {"context": 2}),
     ("you summed the squared error over each latent's elements; the error of a step is their "
      "mean.", {"error": lambda d: d.pow(2).flatten(1).sum(1).mean()}),
-    ("an unsquared distance: the loss is the mean *squared* error.",
-     {"error": lambda d: d.flatten(1).norm(dim=1).mean()}),
     ("an unsquared distance: the loss is the mean *squared* error, not its square root.",
      {"error": lambda d: d.pow(2).mean().sqrt()}),
     ("you used the absolute error; the loss is the mean squared error.",
      {"error": lambda d: d.abs().mean()}),
-]]
+]] + [
+    ("this is the autoregressive rollout loss, one true context rolled forward from every "
+     "start as a planner does; the model trains with the paper's parallel unroll: each step "
+     "predicts every frame t >= context from the whole sequence the previous step made.",
+     _autoregressive),
+]
 
 
-@exercise(rollout_loss, _ROLLOUT_SLIPS, name="rollout_loss", hints=_ROLLOUT_HINTS,
-          answers=(parallel_rollout_loss, rollout))
-def check_rollout_loss(fn: Callable) -> bool:
-    """Notebook 03: ``rollout_loss(predictor, z, context=2, steps=4[, tbptt=None])`` -> 0-d tensor.
+@exercise(parallel_rollout_loss, _SLIPS, name="parallel_rollout_loss", hints=_HINTS,
+          answers=(parallel_unroll, rollout_loss))
+def check_parallel_rollout_loss(fn: Callable) -> bool:
+    """Notebook 03: ``parallel_rollout_loss(predictor, z, context=2, steps=4,
+    detach_later=False)`` -> 0-d tensor, called positionally as the training step does.
 
-    Compares the loss and its gradients (with respect to the predictor's weights,
-    the last latent, a target only, and the other latents) with :func:`rollout_loss`
-    on random latents and toy predictors. The ``tbptt`` cases run only if ``fn``
-    takes a ``tbptt`` argument.
+    Compares the loss and its gradients (with respect to the predictor's weights, the
+    last latent, a target only, and the other latents) with the course's on random latents
+    and toy predictors, with and without ``detach_later``.
     """
     g = torch.Generator().manual_seed(7)
     drift = torch.arange(7.0)[None, :, None, None, None] * torch.randn(1, 1, 2, 3, 3, generator=g)
     cases = [
-        _rollout_case("the predictor 'last latent + 0.5', random latents (2, 8, 3, 4, 4), "
-                      "context 2, K 3", "shift", torch.randn(2, 8, 3, 4, 4, generator=g), 2, 3),
-        _rollout_case("a constant-velocity predictor on latents moving in straight lines (the "
-                      "loss is 0)", "velocity", drift, 2, 4),
-        _rollout_case("a constant-velocity predictor, random latents (2, 9, 2, 4, 4), K 4",
-                      "velocity", torch.randn(2, 9, 2, 4, 4, generator=g), 2, 4),
-        _rollout_case("a nonlinear predictor, random latents (3, 10, 4, 4, 4), K 4", "mixer",
-                      torch.randn(3, 10, 4, 4, 4, generator=g), 2, 4),
-        _rollout_case("a predictor averaging its window, context 3 (not 2), K 2", "mean",
-                      torch.randn(2, 7, 2, 3, 3, generator=g), 3, 2),
-        _rollout_case("one step (K 1), latents (4, 5, 2, 2, 2)", "mixer",
-                      torch.randn(4, 5, 2, 2, 2, generator=g), 2, 1),
-        _rollout_case("the shortest clip, T = context + K = 5 frames", "velocity",
-                      torch.randn(2, 5, 2, 3, 3, generator=g), 2, 3),
-        _rollout_case("a nonlinear predictor, random latents (2, 8, 3, 3, 3), K 4", "mixer",
-                      torch.randn(2, 8, 3, 3, 3, generator=g), 2, 4, seed=1),
+        _case("the predictor 'last latent + 0.5', random latents (2, 8, 3, 4, 4), context 2, "
+              "K 3", "shift", torch.randn(2, 8, 3, 4, 4, generator=g), 2, 3, False),
+        _case("a constant-velocity predictor on latents moving in straight lines (the loss is "
+              "0)", "velocity", drift, 2, 4, False),
+        _case("a nonlinear predictor, random latents (3, 10, 4, 4, 4), K 4", "mixer",
+              torch.randn(3, 10, 4, 4, 4, generator=g), 2, 4, False),
+        _case("a predictor averaging its window, context 3 (not 2), K 2", "mean",
+              torch.randn(2, 7, 2, 3, 3, generator=g), 3, 2, False),
+        _case("one step (K 1), latents (4, 5, 2, 2, 2)", "mixer",
+              torch.randn(4, 5, 2, 2, 2, generator=g), 2, 1, False),
+        _case("a batch as long as the clips, latents (6, 6, 2, 3, 3), K 3", "mixer",
+              torch.randn(6, 6, 2, 3, 3, generator=g), 2, 3, False, seed=2),
+        _case("the shortest clip, T = context + K = 5 frames", "velocity",
+              torch.randn(2, 5, 2, 3, 3, generator=g), 2, 3, False),
+        _case("a nonlinear predictor, K 4, detach_later=True (the course's runs)", "mixer",
+              torch.randn(2, 8, 3, 3, 3, generator=g), 2, 4, True, seed=1),
+        _case("a predictor averaging its window, context 3, K 3, detach_later=True", "mean",
+              torch.randn(2, 8, 2, 3, 3, generator=g), 3, 3, True),
+        _case("one step (K 1) with detach_later=True (nothing to detach)", "mixer",
+              torch.randn(2, 6, 2, 3, 3, generator=g), 2, 1, True),
     ]
-    if "tbptt" in inspect.signature(fn).parameters:
-        z = torch.randn(2, 9, 3, 3, 3, generator=g)
-        cases += [_rollout_case(f"a nonlinear predictor, K 5, tbptt={m}", "mixer", z, 2, 5,
-                                tbptt=m) for m in (1, 2)]
-    else:
-        print("(your function has no tbptt argument: the truncation cases are skipped)")
-    return compare(_rollout_call(fn), _rollout_call(rollout_loss), cases,
-                   diagnoses=[(w, _rollout_call(v)) for w, v in _ROLLOUT_SLIPS],
+    return compare(_call(fn), _call(parallel_rollout_loss), cases,
+                   diagnoses=[(w, _call(v)) for w, v in _SLIPS],
                    labels=["the predictor", "the predictor's weights", "the latents z[:, :-1]",
                            "the last latent z[:, -1]"],
-                   grad=[(1, "the predictor's weights"),
-                         (3, "the last latent z[:, -1] (only ever a target)"),
-                         (2, "the other latents z[:, :-1]")])
+                   grad=[(1, "the predictor's weights"), (2, "the other latents z[:, :-1]"),
+                         (3, "the last latent z[:, -1] (only ever a target)")],
+                   factors={"K": "a sum over the K steps where their mean belongs"})
