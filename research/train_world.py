@@ -27,7 +27,6 @@ from ebjepa_tutorial.course.presets import SCALES, preset
 from ebjepa_tutorial.envs import generate_trajectories
 from ebjepa_tutorial.envs.two_rooms import WALL_X_RANGES
 from ebjepa_tutorial.evaluation.position import middle_wall_test, probe_report
-from ebjepa_tutorial.losses.world import PREDICTION_STARTS
 from ebjepa_tutorial.models.world import PREDICTORS, WorldConfig
 from ebjepa_tutorial.training.checkpoints import load_checkpoint, save_checkpoint
 from ebjepa_tutorial.training.world import (
@@ -82,9 +81,6 @@ def main(argv: list[str] | None = None) -> None:
                         help="the same as --without inverse_dynamics")
     parser.add_argument("--coeff", action="append", default=[], metavar="NAME=VALUE",
                         help="set one loss weight, e.g. covariance=1 (repeatable)")
-    parser.add_argument("--prediction-starts", choices=PREDICTION_STARTS,
-                        help="roll the prediction loss out from the first frame (default) or "
-                             "from every frame with K after it (the paper's Eq. 8)")
     parser.add_argument("--wall-fraction", type=float,
                         help="the share of trajectories that start in front of the middle wall, "
                              "heading into it (0: the paper's data)")
@@ -113,15 +109,15 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     given = {name: value for name, value in (("steps", args.steps), ("seed", args.seed),
                                               ("n_trajectories", args.trajectories),
-                                              ("prediction_starts", args.prediction_starts),
-                                              ("wall_fraction", args.wall_fraction),
-                                              ("window", args.window),
-                                              ("channels_last", args.channels_last or None),
-                                              ("stay_probability", args.stay_probability),
-                                              ("replay_steps", args.replay_steps),
                                               ("grad_clip", args.grad_clip),
                                               ("walls", args.walls))
              if value is not None}
+    recipe = {name: value for name, value in (("wall_fraction", args.wall_fraction),
+                                               ("window", args.window),
+                                               ("channels_last", args.channels_last or None),
+                                               ("stay_probability", args.stay_probability),
+                                               ("replay_steps", args.replay_steps))
+              if value is not None}
     if args.refit:
         training_only = {"--scale": args.scale, "--paper-recipe": args.paper_recipe,
                          "--without": args.without,
@@ -130,8 +126,8 @@ def main(argv: list[str] | None = None) -> None:
                          "--predictor": args.predictor,
                          "--predictor-hidden": args.predictor_hidden is not None,
                          **{"--" + name.replace("_", "-"): name in given for name in
-                            ("prediction_starts", "wall_fraction", "window", "channels_last",
-                             "stay_probability", "replay_steps", "walls", "grad_clip")}}
+                            ("walls", "grad_clip")},
+                         **{"--" + name.replace("_", "-"): True for name in recipe}}
         refused = [flag for flag, value in training_only.items() if value]
         if refused:
             parser.error(f"--refit keeps the trained model's encoder, so {', '.join(refused)} "
@@ -139,7 +135,7 @@ def main(argv: list[str] | None = None) -> None:
         if args.ddp or launch.launched_by_torchrun():
             parser.error("--refit runs in one process (a small MLP on precomputed latents): "
                          "start it with python -m, without torchrun or --ddp")
-        return refit_main(args.refit, args.out, RefitConfig(**given))
+        return refit_main(args.refit, args.out, RefitConfig(**given))  # steps, seed, trajectories
     without = args.without + (["inverse_dynamics"] if args.no_inverse_dynamics else [])
     try:
         base = preset("05", args.scale or "class").train
@@ -149,6 +145,7 @@ def main(argv: list[str] | None = None) -> None:
             base = replace(base, model=replace(base.model, predictor=args.predictor))
         if args.predictor_hidden is not None:
             base = replace(base, model=replace(base.model, predictor_hidden=args.predictor_hidden))
+        base = replace(base, recipe=replace(base.recipe, **recipe))
         config = with_coeffs(replace(base, decay_steps=args.decay_steps, **given), args.coeff)
     except ValueError as error:
         parser.error(str(error))  # a usage message, not a traceback

@@ -11,7 +11,7 @@ from ebjepa_tutorial.losses.sigreg import sigreg_loss
 from ebjepa_tutorial.models.video import VideoJEPA
 from ebjepa_tutorial.training.image import ImageJEPAConfig, SIGReg, VICReg
 from ebjepa_tutorial.training.video import VIDEO_CONFIGS, VideoJEPAConfig
-from ebjepa_tutorial.training.world import RefitConfig, WorldTrainConfig
+from ebjepa_tutorial.training.world import Recipe, RefitConfig, WorldTrainConfig
 
 
 @pytest.mark.parametrize("config, change, message", [
@@ -31,8 +31,9 @@ from ebjepa_tutorial.training.world import RefitConfig, WorldTrainConfig
      "one_step_fraction must be a number in \\[0, 1\\)"),
     (WorldTrainConfig, {"batch_size": 0}, "WorldTrainConfig.batch_size must be an int >= 2"),
     (WorldTrainConfig, {"rollout_steps": 17}, "rollout_steps must be an int in 1..16"),
-    (WorldTrainConfig, {"prediction_starts": "every"}, "prediction_starts must be one of"),
-    (WorldTrainConfig, {"stay_probability": 1.0}, "stay_probability must be a number in \\[0, 1"),
+    (Recipe, {"stay_probability": 1.0}, "Recipe.stay_probability must be a number in \\[0, 1"),
+    (Recipe, {"window": 1}, "Recipe.window must be 0 \\(whole trajectories\\) or an int in 2..17"),
+    (WorldTrainConfig, {"recipe": Recipe(window=5)}, "window must hold rollout_steps \\+ 1 = 9"),
     (WorldTrainConfig, {"lr": 0.0}, "WorldTrainConfig.lr must be a number > 0"),
     (RefitConfig, {"hidden": 0}, "RefitConfig.hidden must be an int >= 1"),
 ])

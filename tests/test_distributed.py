@@ -49,8 +49,7 @@ WORLD_TINY = WorldConfig(widths=(4, 8), blocks=1, input_size=17, latent_dim=8,
                          action_embed_dim=8, idm_hidden=16)
 # every term on, SIGReg included, rollouts from every frame, with still steps: each draws
 # from the generator or reads the whole batch
-WORLD_OPTIONS = dict(coeffs=WorldLossCoeffs(sigreg=0.5), steps=3, starts="all",
-                     stay_probability=0.3)
+WORLD_OPTIONS = dict(coeffs=WorldLossCoeffs(sigreg=0.5), steps=3, stay_probability=0.3)
 
 
 def free_port() -> int:

@@ -17,12 +17,13 @@ from pathlib import Path
 import pytest
 import torch
 
-from ebjepa_tutorial.training import toy
+from ebjepa_tutorial.training import toy, world
 
 NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
 
 # (notebook, function defined in one of its code cells, the package's copy)
-PAIRS = [("00_energy_and_collapse.ipynb", "train_toy", toy.train_toy)]
+PAIRS = [("00_energy_and_collapse.ipynb", "train_toy", toy.train_toy),
+         ("05_world_model.ipynb", "world_model_step", world.world_model_step)]
 
 
 def notebook_function(notebook: str, name: str) -> str:

@@ -2,7 +2,7 @@
 
 import io
 import math
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 
 import pytest
 import torch
@@ -128,32 +128,15 @@ def test_multistep_prediction_with_z_plus_a():
     assert wl.multistep_prediction_loss(add, shifted, actions, steps=1).item() == 0.0
 
 
-def test_prediction_from_every_start_frame_by_hand():
+def test_prediction_rolls_out_from_the_first_frame_only():
     # scalar latents along one trajectory, a predictor that adds the action, K = 2
     z = torch.tensor([[[0.0], [1.0], [3.0], [3.0]]])  # (1, 4, 1)
     actions = torch.ones(1, 3, 1)
     add = lambda z, a: z + a  # noqa: E731
-    # start 0: zhat 1, 2 vs 1, 3 -> errors 0, 1; start 1: zhat 2, 3 vs 3, 3 -> errors 1, 0
-    # (start 2 has only one frame after it: not a K-step window) -> mean over 4 errors: 1/2
-    loss = wl.multistep_prediction_loss(add, z, actions, steps=2, starts="all")
-    assert loss.item() == pytest.approx(0.5)
+    # from frame 0: zhat 1, 2 against 1, 3 -> errors 0, 1 -> mean 1/2
     assert wl.multistep_prediction_loss(add, z, actions, steps=2).item() == pytest.approx(0.5)
-    z[0, 3] = 5.0  # the last frame is a target only of the second start: (5 - 3)^2 = 4 more
-    assert wl.multistep_prediction_loss(add, z, actions, steps=2, starts="all").item() == (
-        pytest.approx(1.5))
+    z[0, 3] = 5.0  # frame 3 is K + 1 frames away: never a target
     assert wl.multistep_prediction_loss(add, z, actions, steps=2).item() == pytest.approx(0.5)
-    with pytest.raises(ValueError, match="starts must be one of"):
-        wl.multistep_prediction_loss(add, z, actions, steps=2, starts="every")
-
-
-def test_all_starts_average_the_first_start_loss_of_each_window():
-    torch.manual_seed(0)
-    z, actions, weight = torch.randn(3, 7, 4), torch.randn(3, 6, 2), torch.randn(2, 4)
-    step = lambda z, a: 0.5 * z + a @ weight  # noqa: E731
-    each = [wl.multistep_prediction_loss(step, z[:, t:t + 4], actions[:, t:t + 3], steps=3)
-            for t in range(4)]
-    every = wl.multistep_prediction_loss(step, z, actions, steps=3, starts="all")
-    assert every.item() == pytest.approx(torch.stack(each).mean().item(), rel=1e-6)
 
 
 def test_still_steps_repeat_the_target_under_a_zero_action():
@@ -170,11 +153,9 @@ def test_a_predictor_that_adds_the_action_is_exact_with_still_steps_too():
     actions = torch.randn(5, 8, 2)
     exact = torch.cat([torch.zeros(5, 1, 2), actions.cumsum(dim=1)], dim=1)  # (5, 9, 2)
     add = lambda z, a: z + a  # noqa: E731
-    for starts in wl.PREDICTION_STARTS:
-        loss = wl.multistep_prediction_loss(add, exact, actions, 4, starts=starts,
-                                            stay_probability=0.5,
-                                            generator=torch.Generator().manual_seed(0))
-        assert loss.item() == pytest.approx(0.0, abs=1e-10)
+    loss = wl.multistep_prediction_loss(add, exact, actions, 4, stay_probability=0.5,
+                                        generator=torch.Generator().manual_seed(0))
+    assert loss.item() == pytest.approx(0.0, abs=1e-10)
     drift = lambda z, a: z + a + 0.1  # noqa: E731  (moves even under a zero action)
     still = wl.multistep_prediction_loss(drift, exact, actions, 4, stay_probability=0.5,
                                          generator=torch.Generator().manual_seed(0))
@@ -263,13 +244,14 @@ def test_a_windowed_channels_last_run_trains():
     from ebjepa_tutorial.training.world import WorldTrainConfig, train_world_model
 
     config = WorldTrainConfig(model=tiny_model().config, n_trajectories=16, batch_size=4,
-                              steps=2, window=9, channels_last=True, wall_fraction=0.25)
+                              steps=2, recipe=world.Recipe(window=9, channels_last=True,
+                                                           wall_fraction=0.25))
     _, history = train_world_model(config, progress=False, device="cpu")
     assert len(history["loss"]) == 2 and all(math.isfinite(v) for v in history["loss"])
     with pytest.raises(ValueError, match="rollout_steps"):
-        WorldTrainConfig(window=5)
+        WorldTrainConfig(recipe=world.Recipe(window=5))
     with pytest.raises(ValueError, match="wall_fraction"):
-        WorldTrainConfig(wall_fraction=0.9)
+        world.Recipe(wall_fraction=0.9)
 
 
 def test_a_three_rooms_run_trains_on_three_rooms_data_and_is_another_run():
@@ -282,7 +264,8 @@ def test_a_three_rooms_run_trains_on_three_rooms_data_and_is_another_run():
     )
 
     config = WorldTrainConfig(model=tiny_model().config, n_trajectories=16, batch_size=4,
-                              steps=2, window=9, wall_fraction=0.25, walls=2)
+                              steps=2, recipe=world.Recipe(window=9, wall_fraction=0.25),
+                              walls=2)
     data = make_data(config)
     assert data.layouts.shape == (16, 4)  # two walls: (wall_x, door_y) each
     assert (room_of(data.positions[:, 0], data.layouts) == 1).any()  # some start in the middle
@@ -294,14 +277,23 @@ def test_a_three_rooms_run_trains_on_three_rooms_data_and_is_another_run():
         WorldTrainConfig(walls=3)
 
 
-def _replay(capacity=8, steps=3, lr=1e-3):
-    config = world.WorldTrainConfig(model=TINY, batch_size=4, rollout_steps=2, replay_steps=steps,
-                                    replay_batch=8, replay_capacity=capacity, replay_lr=lr)
+@pytest.fixture
+def small_replay(monkeypatch):
+    """A replay buffer of 8 windows drawing 8 per update (the module's sizes, made small)."""
+    monkeypatch.setattr(world, "REPLAY_BATCH", 8)
+    monkeypatch.setattr(world, "REPLAY_CAPACITY", 8)
+
+
+def _replay(replay_steps=3, lr=1e-3, monkeypatch=None, **options):
+    if monkeypatch is not None:
+        monkeypatch.setattr(world, "REPLAY_LR", lr)
+    config = world.WorldTrainConfig(model=TINY, batch_size=4, rollout_steps=2,
+                                    recipe=world.Recipe(replay_steps=replay_steps), **options)
     return world.LatentReplay(tiny_model(), config, frames=3, device="cpu")
 
 
-def test_the_replay_buffer_keeps_the_last_windows():
-    replay = _replay(capacity=8)
+def test_the_replay_buffer_keeps_the_last_windows(small_replay):
+    replay = _replay()
     for value in (1.0, 2.0, 3.0):  # three batches of 4 windows into room for 8
         replay.add(torch.full((4, 3, 8), value), torch.full((4, 2, 2), value))
     assert replay.filled == 8 and replay.head == 4
@@ -309,9 +301,10 @@ def test_the_replay_buffer_keeps_the_last_windows():
     assert torch.equal(replay.latents[:, 0, 0], replay.actions[:, 0, 0])  # stored as pairs
 
 
-def test_replay_fits_the_predictor_on_stored_latents_and_leaves_the_encoder_alone():
+def test_replay_fits_the_predictor_on_stored_latents_and_leaves_the_encoder_alone(
+        small_replay, monkeypatch):
     torch.manual_seed(0)
-    replay, mixing = _replay(capacity=8, steps=5, lr=1e-2), torch.randn(2, 8)
+    replay, mixing = _replay(replay_steps=5, lr=1e-2, monkeypatch=monkeypatch), torch.randn(2, 8)
     actions = torch.randn(8, 2, 2)
     z = torch.cat([torch.randn(8, 1, 8), torch.zeros(8, 2, 8)], dim=1)
     for t in range(2):  # a world whose next latent is z + a M, learnable by the predictor
@@ -329,7 +322,7 @@ def test_replay_fits_the_predictor_on_stored_latents_and_leaves_the_encoder_alon
     assert all(torch.equal(a, b) for a, b in zip(encoder, replay.model.encoder.parameters()))
 
 
-def test_a_replay_restored_from_its_state_continues_exactly():
+def test_a_replay_restored_from_its_state_continues_exactly(small_replay):
     first, second = _replay(), _replay()
     first.add(torch.randn(4, 3, 8), torch.randn(4, 2, 2))
     first(0)
@@ -343,16 +336,16 @@ def test_a_replay_restored_from_its_state_continues_exactly():
                                                   second.model.predictor.parameters()))
 
 
-def test_a_replay_run_trains():
+def test_a_replay_run_trains(small_replay):
+    recipe = world.Recipe(window=9, replay_steps=2, stay_probability=0.2)
     config = world.WorldTrainConfig(model=replace(TINY, predictor="mlp"), n_trajectories=16,
-                                    batch_size=4, steps=2, window=9, replay_steps=2,
-                                    replay_batch=8, replay_capacity=8, stay_probability=0.2)
+                                    batch_size=4, steps=2, recipe=recipe)
     _, history = world.train_world_model(config, progress=False, device="cpu")
     assert len(history["loss"]) == 2 and all(math.isfinite(v) for v in history["loss"])
-    with pytest.raises(ValueError, match="replay_capacity"):
-        world.WorldTrainConfig(batch_size=64, replay_capacity=32)
+    with pytest.raises(ValueError, match="the replay buffer holds 8 windows"):
+        world.WorldTrainConfig(batch_size=64, recipe=world.Recipe(replay_steps=1))
     with pytest.raises(ValueError, match="replay_steps"):
-        world.WorldTrainConfig(replay_steps=-1)
+        world.Recipe(replay_steps=-1)
 
 
 # -- the probe ---------------------------------------------------------------------------
@@ -552,13 +545,11 @@ def test_learning_rate_decays_linearly_over_the_last_steps():
             WorldTrainConfig(steps=6, decay_steps=bad)
 
 
-def test_the_replay_follows_the_joint_steps_schedule():
+def test_the_replay_follows_the_joint_steps_schedule(small_replay, monkeypatch):
     # a replay at a constant rate kept the predictor's updates at full size through the
-    # decay; each step's replayed updates now use that step's share of replay_lr
-    config = world.WorldTrainConfig(model=TINY, batch_size=4, rollout_steps=2, replay_steps=1,
-                                    replay_batch=8, replay_capacity=8, replay_lr=0.2,
-                                    steps=6, decay_steps=4)
-    replay = world.LatentReplay(tiny_model(), config, frames=3, device="cpu")
+    # decay; each step's replayed updates now use that step's share of REPLAY_LR
+    replay = _replay(replay_steps=1, lr=0.2, monkeypatch=monkeypatch, steps=6, decay_steps=4)
+    config = replay.config
     replay.add(torch.randn(8, 3, 8), torch.randn(8, 2, 2))
     rates = []
     for step in range(config.steps):
@@ -678,8 +669,9 @@ def test_the_two_recipes_differ_only_in_how_they_train():
     course = course_recipe(paper)
     assert paper_recipe(course) == paper and course_recipe(course) == course
     assert (course.coeffs, course.rollout_steps, course.lr) == (paper.coeffs, 8, paper.lr)
-    assert (course.window, course.replay_steps, course.model.predictor) == (9, 3, "mlp")
-    assert (paper.window, paper.replay_steps, paper.model.predictor) == (0, 0, "gru")
+    assert (course.recipe.window, course.recipe.replay_steps, course.model.predictor) == (
+        9, 3, "mlp")
+    assert (paper.recipe, paper.model.predictor) == (world.Recipe(), "gru")
     # notebook 05 trains the course's way; chapter 06's long runs and `full`, the paper's
     assert preset("05", "class").train == course_recipe(replace(paper, steps=2800))
     assert paper_recipe(preset("06", "class").long_world) == preset("06", "class").long_world
@@ -703,8 +695,8 @@ def test_command_line_trains_the_run_of_a_scale(tmp_path, monkeypatch):
     assert seen["config"] == preset("05", "ci").train
     train_world.main(["--scale", "ci", "--out", str(tmp_path / "ci.pt"), "--paper-recipe",
                       "--window", "9", "--wall-fraction", "0.25"])
-    assert seen["config"] == replace(world.paper_recipe(preset("05", "ci").train), window=9,
-                                     wall_fraction=0.25)
+    assert seen["config"] == replace(world.paper_recipe(preset("05", "ci").train),
+                                     recipe=world.Recipe(window=9, wall_fraction=0.25))
     long_run = ["--paper-recipe", "--steps", "10000", "--trajectories", "100000"]
     train_world.main(["--out", str(tmp_path / "long.pt"), *long_run])  # checkpoints/README.md
     assert seen["config"] == preset("06", "class").long_world
@@ -724,7 +716,7 @@ def test_command_line_trains_the_run_of_a_scale(tmp_path, monkeypatch):
 
 
 def test_an_identity_holds_the_fields_that_define_the_run():
-    from ebjepa_tutorial.training.checkpoints import run_identity, same_run
+    from ebjepa_tutorial.training.checkpoints import same_run
     from ebjepa_tutorial.training.world import (
         RefitConfig,
         WorldTrainConfig,
@@ -785,6 +777,17 @@ def fit_that_records(seen: list):
     return fit
 
 
+def steps_that_record(seen: list):
+    """A stand-in for the world model's training steps (a meta loss has no value to log): it
+    notes the devices of the model and of batch 0, and trains nothing."""
+
+    def train_steps(run, step, batch, config, history, start, progress):
+        seen.append(devices_of(run.model) | {t.device.type for t in batch(0)
+                                             if isinstance(t, torch.Tensor)})
+        history.log(0, loss=0.0)
+    return train_steps
+
+
 WORLD_RUN = world.WorldTrainConfig(model=WORLD_CONFIGS["ci"], n_trajectories=16, batch_size=4,
                                    steps=2, rollout_steps=2)
 
@@ -798,7 +801,7 @@ def test_train_or_load_returns_the_model_on_the_device_asked_for(tmp_path, monke
     loaded, _ = training.train_or_load(WORLD_RUN, "run", device="meta")  # the notebooks' entry
     assert devices_of(loaded) == {"meta"}  # read from the cache straight onto the device
     seen = []
-    monkeypatch.setattr(world, "fit", fit_that_records(seen))
+    monkeypatch.setattr(world, "_train_steps", steps_that_record(seen))
     on_meta, _ = training.train_or_load(WORLD_RUN, "another_run", device="meta")
     assert seen == [{"meta"}] and devices_of(on_meta) == {"meta"}  # model and every batch
 
@@ -865,9 +868,8 @@ def test_a_clipped_update_moves_the_weights_by_at_most_the_clip():
     assert torch.allclose(layer.weight, torch.full((1, 3), -0.5 / 3 ** 0.5))
 
 
-def test_a_clipped_replay_run_trains():
+def test_a_clipped_replay_run_trains(small_replay):
     config = replace(world.course_recipe(world.WorldTrainConfig(
-        model=WORLD_CONFIGS["ci"], n_trajectories=16, batch_size=4, steps=2,
-        replay_batch=8, replay_capacity=8)), grad_clip=0.1)
+        model=WORLD_CONFIGS["ci"], n_trajectories=16, batch_size=4, steps=2)), grad_clip=0.1)
     _, history = world.train_world_model(config, progress=False, device="cpu")
     assert len(history["loss"]) == 2

@@ -67,9 +67,6 @@ def _check_sequence(z: torch.Tensor, actions: torch.Tensor | None = None) -> Non
         raise ValueError("actions contain NaN or infinite values")
 
 
-PREDICTION_STARTS = ("first", "all")
-
-
 def with_still_steps(z: torch.Tensor, actions: torch.Tensor, stay: torch.Tensor):
     """Rollout windows with "still" steps spliced in: ``z (N, K+1, D)``, ``actions (N, K, A)``,
     ``stay (N, K)`` bool -> the same shapes.
@@ -108,21 +105,16 @@ def multistep_prediction_loss(
     actions: torch.Tensor,
     steps: int = 8,
     detach_targets: bool = False,
-    starts: str = "first",
     stay_probability: float = 0.0,
     generator: torch.Generator | None = None,
     rand: Callable = torch.rand,
 ) -> torch.Tensor:
     """Mean squared error of ``steps``-step autoregressive rollouts under the true actions.
 
-    From a start frame ``t``: ``zhat_0 = z_t``, ``zhat_k = P(zhat_{k-1}, a_{t+k-1})``, and
-    ``L_t = (1/K) sum_{k=1..K} (1/(B D)) sum_b ||zhat_k - z_{t+k}||^2``: the predictor runs
-    on its own predictions, as a planner will use it.
-
-    ``starts="first"`` rolls out from frame 0 only (as the reference code does), so
-    frames ``K+1 .. T-1`` are never a target; ``starts="all"`` averages ``L_t`` over
-    every start ``t = 0 .. T-1-K`` that has ``K`` frames after it (the paper's Eq. 8 sums
-    over start frames), several times the prediction signal for the predictor's cost.
+    From the first frame: ``zhat_0 = z_0``, ``zhat_k = P(zhat_{k-1}, a_{k-1})``, and
+    ``L = (1/K) sum_{k=1..K} (1/(B D)) sum_b ||zhat_k - z_k||^2``: the predictor runs on its
+    own predictions, as a planner will use it. The paper's Eq. 8 also sums over later start
+    frames; its reference code, and the course, roll out from the first frame only.
     With ``stay_probability > 0`` each step is, with that probability, a still step
     (:func:`with_still_steps`), drawn from ``generator`` by ``rand``.
 
@@ -137,16 +129,17 @@ def multistep_prediction_loss(
     _check_sequence(z, actions)
     if not 1 <= steps <= z.shape[1] - 1:
         raise ValueError(f"steps must be in 1..{z.shape[1] - 1} (T - 1), got {steps}")
-    if starts not in PREDICTION_STARTS:
-        raise ValueError(f"starts must be one of {PREDICTION_STARTS}, got {starts!r}")
-    if starts == "all":  # every window of K + 1 frames becomes a trajectory of its own
-        # (B S, K + 1, D) and (B S, K, A)
-        z, actions = windows(z, steps + 1, 1), windows(actions, steps, 1)
     if stay_probability:
         z, actions = z[:, : steps + 1], actions[:, :steps]
         stay = draw_still_steps(len(z), steps, stay_probability, generator, rand)
         z, actions = with_still_steps(z, actions, stay.to(z.device))
-    targets = z.detach() if detach_targets else z
+    return rollout_error(predict, z, z.detach() if detach_targets else z, actions, steps)
+
+
+def rollout_error(predict, z: torch.Tensor, targets: torch.Tensor, actions: torch.Tensor,
+                  steps: int) -> torch.Tensor:
+    """The rollout from ``z[:, 0]`` under ``actions (B, >= K, A)``, scored against
+    ``targets[:, 1..K]`` ``(B, >= K+1, D)``: the mean over ``k`` of each step's MSE, 0-d."""
     zhat, total = z[:, 0], z.new_zeros(())
     for k in range(1, steps + 1):
         zhat = predict(zhat, actions[:, k - 1])
@@ -229,7 +222,6 @@ def latent_loss(
     coeffs: WorldLossCoeffs = WorldLossCoeffs(),
     steps: int = 8,
     detach_targets: bool = False,
-    starts: str = "first",
     generator: torch.Generator | None = None,
     stay_probability: float = 0.0,
     batch_rows: Callable[[torch.Tensor], torch.Tensor] = lambda z: z,
@@ -237,8 +229,8 @@ def latent_loss(
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """:func:`world_model_loss` on latents already encoded, ``z (B, T, D)``.
 
-    ``actions``: ``(B, T-1, 2)``; ``steps``: K; ``starts``: the rollouts' start frames
-    and ``stay_probability`` its still steps (:func:`multistep_prediction_loss`);
+    ``actions``: ``(B, T-1, 2)``; ``steps``: K; ``stay_probability``: the rollouts' still
+    steps (:func:`multistep_prediction_loss`);
     ``generator`` draws those and SIGReg's random directions. Returns ``(total,
     terms)``: a 0-d tensor to back-propagate and a dict of detached 0-d tensors
     (``prediction``, ``variance``, ``covariance``, ``temporal``,
@@ -250,7 +242,7 @@ def latent_loss(
     _check_sequence(z, actions)
     terms = {
         "prediction": multistep_prediction_loss(model.predict, z, actions, steps, detach_targets,
-                                                starts, stay_probability, generator, rand),
+                                                stay_probability, generator, rand),
         "temporal": temporal_similarity_loss(z),
         "inverse_dynamics": inverse_dynamics_loss(model.predict_actions, z, actions),
     }

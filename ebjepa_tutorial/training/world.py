@@ -7,7 +7,8 @@ windows cut from them.
 
 Two recipes train the same loss: the paper's (:class:`WorldTrainConfig`'s
 defaults, :func:`paper_recipe`) and the course's (:func:`course_recipe`, the
-class preset), which learns more per CPU-minute.
+class preset), which learns more per CPU-minute. Each step is
+:func:`world_model_step`, the code notebook 05 shows and can hand in edited.
 
 Shipped checkpoint: ``python -m research.train_world --out PATH``
 trains the class-scale model and writes it. With ``--refit TRAINED.pt`` it
@@ -15,44 +16,95 @@ instead fits a new MLP predictor on that model's frozen latents
 (:func:`refit_predictor`).
 
 Several processes (``torchrun``, see :mod:`ebjepa_tutorial.distributed`):
-:func:`train_world_model` trains with DistributedDataParallel; ``batch_size`` is
-the global batch, and global batch = per-rank batch x world size. Every rank
-draws the same global batch (seeded by the step) and renders only its own
-trajectories. The model has no batch norm (its norm is a LayerNorm, per
-sample), so W ranks compute the loss and gradients of one process on the whole
-batch. The refit runs in one process.
+``batch_size`` is the global batch, and global batch = per-rank batch x world
+size. Every rank draws the same global batch (seeded by the step) and renders
+only its own trajectories; the step averages the gradients over the ranks. The
+model has no batch norm (its norm is a LayerNorm, per sample), so W ranks
+compute the loss and gradients of one process on the whole batch. The refit
+runs in one process.
 """
 
 from __future__ import annotations
 
+import ast
+import inspect
 import math
+import textwrap
+import time
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import torch
+from tqdm.auto import tqdm
 
 from .. import distributed
 from ..envs import generate_trajectories, render
 from ..envs.trajectories import Trajectories
 from ..envs.two_rooms import WALL_X_RANGES
+from ..losses.sigreg import sigreg
 from ..losses.world import (
-    PREDICTION_STARTS,
     WorldLossCoeffs,
     encode_for_loss,
-    latent_loss,
+    inverse_dynamics_loss,
     multistep_prediction_loss,
+    temporal_similarity_loss,
+    variance_covariance_loss,
     with_still_steps,
 )
 from ..models.world import WORLD_CONFIGS, WorldConfig, WorldModel, trajectory_latents
 from ..utils import check_fields, get_device, is_int_at_least, is_non_negative, is_positive
-from .checkpoints import checkpoint_paths, load_checkpoint, run_identity
-from .loop import History, fit, load_or_fit, load_or_train, resume, step_generator
+from .checkpoints import checkpoint_paths, load_checkpoint, run_identity, save_or_warn
+from .loop import (
+    History,
+    _check_finite,
+    _over_ranks,
+    fit,
+    load_or_fit,
+    load_or_train,
+    resume,
+    step_generator,
+)
 
 TRAJECTORY_ACTIONS = 16  # per training trajectory (17 frames, the paper's clips)
 WALL_FRACTION_RULE = (lambda p: is_non_negative(p) and p <= 0.65,
                       "a number in [0, 0.65] (35% of trajectories start at the door)")
 _ROLLOUT_RULE = (lambda k: is_int_at_least(1)(k) and k <= TRAJECTORY_ACTIONS,
                  f"an int in 1..{TRAJECTORY_ACTIONS} (the actions per trajectory)")
+WEIGHT_DECAY = 1e-5  # AdamW's, as in the paper
+# Latent replay (LatentReplay): each replayed update draws REPLAY_BATCH windows from the
+# detached latents of the last REPLAY_CAPACITY training windows, with its own Adam
+REPLAY_BATCH, REPLAY_CAPACITY, REPLAY_LR = 1024, 6400, 1e-3
+LOG_EVERY, CHECKPOINT_EVERY = 10, 250  # steps between logged rows and resumable saves
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """How a run departs from the paper's training to learn more per CPU-minute (notebook 05,
+    section 4; RESULTS.md, chapter 05). The defaults are the paper's: none of it."""
+
+    # frames per training window, cut at a random offset from each drawn trajectory (0: the
+    # whole trajectory). K + 1 frames are all the prediction loss reads, at about half the
+    # encoder's cost of 17.
+    window: int = 0
+    # the share of trajectories that start in front of the middle wall, heading into it
+    # (envs.trajectories.wall_starts)
+    wall_fraction: float = 0.0
+    # the share of imagined steps that are "still" (zero action, unchanged target)
+    stay_probability: float = 0.0
+    # predictor-only updates on replayed latents after each step (LatentReplay)
+    replay_steps: int = 0
+    # convolution weights and inputs in channels_last: about 1.45x faster on a CPU too, but
+    # it changes the order of floating-point sums, so it is part of the run
+    channels_last: bool = False
+
+    def __post_init__(self):
+        check_fields(self, {
+            "window": (lambda w: w == 0 or is_int_at_least(2)(w) and w <= TRAJECTORY_ACTIONS + 1,
+                       f"0 (whole trajectories) or an int in 2..{TRAJECTORY_ACTIONS + 1}"),
+            "wall_fraction": WALL_FRACTION_RULE,
+            "stay_probability": (lambda p: is_non_negative(p) and p < 1, "a number in [0, 1)"),
+            "replay_steps": (is_int_at_least(0), "an int >= 0"),
+        })
 
 
 @dataclass(frozen=True)
@@ -62,39 +114,16 @@ class WorldTrainConfig:
 
     model: WorldConfig = field(default_factory=lambda: WORLD_CONFIGS["class"])
     coeffs: WorldLossCoeffs = field(default_factory=WorldLossCoeffs)  # the paper's weights
+    recipe: Recipe = field(default_factory=Recipe)  # the paper's; course_recipe: the class run's
     n_trajectories: int = 20_000  # offline data set (the paper: ~1.2 million windows)
     walls: int = 1  # 1: Two Rooms (the paper's world); 2: Three Rooms in a row (chapter 07)
-    # the share of trajectories that start in front of the middle wall, heading into it
-    # (envs.trajectories.wall_starts); 0 in the paper's data
-    wall_fraction: float = 0.0
     batch_size: int = 64  # trajectories of 17 frames per step (the paper: 384)
-    # frames per training window, cut at a random offset from each drawn trajectory
-    # (0: the whole trajectory, as the paper). K + 1 frames are all the prediction loss
-    # from the first frame reads, at about half the encoder's cost of 17.
-    window: int = 0
-    # convolution weights and inputs in channels_last: about 1.45x faster on a CPU too,
-    # but it changes the order of floating-point sums, so it is part of the run
-    channels_last: bool = False
     steps: int = 1000  # the class preset trains 2,800 of the course's cheaper steps
     lr: float = 1e-3  # AdamW, as in the paper
-    weight_decay: float = 1e-5
     rollout_steps: int = 8  # K, the prediction horizon of the loss
-    # the rollouts' start frames: "first" (frame 0, as the reference code) or "all" (every
-    # frame with K after it, the paper's Eq. 8); see losses.world.multistep_prediction_loss
-    prediction_starts: str = "first"
-    # the share of imagined steps that are "still" (zero action, unchanged target), as the
-    # refit trains them; 0 in the paper's recipe
-    stay_probability: float = 0.0
     # the last decay_steps steps lower the learning rate linearly towards 0 (0: constant, as
-    # every shipped run: annealing did not plan better, see the results page)
+    # every shipped run but the course's long one)
     decay_steps: int = 0
-    # Latent replay (LatentReplay): after each step, replay_steps extra updates of the
-    # predictor and action encoder alone, each on replay_batch windows drawn from the
-    # detached latents of the last replay_capacity training windows. 0: none, as the paper.
-    replay_steps: int = 0
-    replay_batch: int = 1024
-    replay_capacity: int = 6400
-    replay_lr: float = 1e-3  # Adam, its own optimiser, on the joint step's schedule
     # every update (joint and replayed) scales its gradient down to at most this global
     # norm; 0: none, as the paper
     grad_clip: float = 0.0
@@ -108,56 +137,47 @@ class WorldTrainConfig:
             "batch_size": (is_int_at_least(2), "an int >= 2 (a batch of one has no variance)"),
             "steps": (is_int_at_least(1), "an int >= 1"),
             "lr": (is_positive, "a number > 0"),
-            "weight_decay": (is_non_negative, "a number >= 0"),
             "rollout_steps": _ROLLOUT_RULE,
-            "prediction_starts": (lambda v: v in PREDICTION_STARTS, f"one of {PREDICTION_STARTS}"),
-            "stay_probability": (lambda p: is_non_negative(p) and p < 1, "a number in [0, 1)"),
-            "window": (lambda w: w == 0 or is_int_at_least(2)(w) and w <= TRAJECTORY_ACTIONS + 1,
-                       f"0 (whole trajectories) or an int in 2..{TRAJECTORY_ACTIONS + 1}"),
-            "replay_steps": (is_int_at_least(0), "an int >= 0"),
-            "replay_batch": (is_int_at_least(1), "an int >= 1"),
-            "replay_lr": (is_positive, "a number > 0"),
             "grad_clip": (is_non_negative, "a number >= 0 (0: no clipping)"),
-            "wall_fraction": WALL_FRACTION_RULE,
         })
-        if self.window and self.window < self.rollout_steps + 1:
+        window = self.recipe.window
+        if window and window < self.rollout_steps + 1:
             raise ValueError(f"window must hold rollout_steps + 1 = {self.rollout_steps + 1} "
-                             f"frames, got {self.window}")
-        if self.replay_capacity < self.batch_size:
-            raise ValueError(f"replay_capacity must hold at least one batch "
-                             f"({self.batch_size} windows), got {self.replay_capacity}")
+                             f"frames, got {window}")
+        if self.recipe.replay_steps and REPLAY_CAPACITY < self.batch_size:
+            raise ValueError(f"the replay buffer holds {REPLAY_CAPACITY} windows, fewer than "
+                             f"one batch of {self.batch_size}")
         if not 0 <= self.decay_steps <= self.steps:
             raise ValueError(f"decay_steps must be in 0..steps={self.steps}, "
                              f"got {self.decay_steps}")
 
 
-# How the course's class recipe trains differently from the paper's, to learn more per
-# CPU-minute (notebook 05, section 4; RESULTS.md, chapter 05): half-length windows, a quarter
-# of the trajectories heading into the middle wall, 15% still steps, 3 replayed predictor
-# updates per step, channels_last, and an MLP predictor. The loss, its weights, K and the
-# sizes stay the paper's; WorldTrainConfig's defaults of these fields are the paper's values.
-COURSE_RECIPE = {"window": 9, "wall_fraction": 0.25, "stay_probability": 0.15,
-                 "replay_steps": 3, "channels_last": True}
+# How the course's class recipe trains differently from the paper's (notebook 05, section 4):
+# half-length windows, a quarter of the trajectories heading into the middle wall, 15% still
+# steps, 3 replayed predictor updates per step, channels_last, and an MLP predictor. The loss,
+# its weights, K and the sizes stay the paper's.
+COURSE_RECIPE = Recipe(window=9, wall_fraction=0.25, stay_probability=0.15, replay_steps=3,
+                       channels_last=True)
 COURSE_PREDICTOR = "mlp"
 
 
 def course_recipe(config: WorldTrainConfig) -> WorldTrainConfig:
     """``config`` trained the course's way (the ``class`` and ``ci`` presets)."""
-    return replace(config, **COURSE_RECIPE,
+    return replace(config, recipe=COURSE_RECIPE,
                    model=replace(config.model, predictor=COURSE_PREDICTOR))
 
 
 def paper_recipe(config: WorldTrainConfig) -> WorldTrainConfig:
     """``config`` trained the paper's way: whole 17-frame trajectories of the data policy, a
     GRU predictor, no still steps, no replay (chapter 06's longer runs, the ``full`` preset)."""
-    return replace(config, **{name: getattr(WorldTrainConfig, name) for name in COURSE_RECIPE},
+    return replace(config, recipe=Recipe(),
                    model=replace(config.model, predictor=WorldConfig.predictor))
 
 
 def make_data(config: WorldTrainConfig) -> Trajectories:
     """The offline training trajectories of ``config`` (seeded by ``config.seed``)."""
     return generate_trajectories(config.n_trajectories, TRAJECTORY_ACTIONS, seed=config.seed,
-                                 wall_fraction=config.wall_fraction, walls=config.walls)
+                                 wall_fraction=config.recipe.wall_fraction, walls=config.walls)
 
 
 def random_windows(data: Trajectories, index: torch.Tensor, window: int,
@@ -178,8 +198,8 @@ class LatentReplay:
     Why: a joint step spends most of its time in the encoder and gives the
     predictor one update on ``batch_size`` windows. Updates of the predictor
     alone on stored latents cost little, so after each joint step this makes
-    ``replay_steps`` more, each on ``replay_batch`` windows drawn from the last
-    ``replay_capacity`` windows' latents, detached (only the predictor and the
+    ``recipe.replay_steps`` more, each on ``REPLAY_BATCH`` windows drawn from the
+    last ``REPLAY_CAPACITY`` windows' latents, detached (only the predictor and the
     action encoder learn here, with their own Adam), with the run's rollout loss
     and still steps. Older latents come from a slightly older encoder; a buffer
     of about a hundred steps keeps them close to today's.
@@ -193,11 +213,11 @@ class LatentReplay:
     STREAM = 2**40  # the replay's generators: seeded apart from the batches' (step_generator)
 
     def __init__(self, model: WorldModel, config: WorldTrainConfig, frames: int, device):
-        distributed.per_rank_batch(config.replay_batch)  # refuse an uneven split early
-        self.model, self.config = model, config
+        distributed.per_rank_batch(REPLAY_BATCH)  # refuse an uneven split early
+        self.model, self.config, self.batch = model, config, REPLAY_BATCH
         self.parameters = [*model.predictor.parameters(), *model.action_encoder.parameters()]
-        self.optimizer = torch.optim.Adam(self.parameters, lr=config.replay_lr)
-        capacity, actions = config.replay_capacity, model.config.action_dim
+        self.optimizer = torch.optim.Adam(self.parameters, lr=REPLAY_LR)
+        capacity, actions = REPLAY_CAPACITY, model.config.action_dim
         self.latents = torch.zeros(capacity, frames, model.latent_dim, device=device)
         self.actions = torch.zeros(capacity, frames - 1, actions, device=device)
         self.filled, self.head = 0, 0
@@ -213,14 +233,14 @@ class LatentReplay:
         config = self.config
         generator = torch.Generator().manual_seed(self.STREAM + config.seed * 1_000_003 + step)
         for group in self.optimizer.param_groups:  # the joint step's schedule: a constant
-            group["lr"] = config.replay_lr * decay_factor(config, step)  # rate undid the decay
-        for _ in range(config.replay_steps):
-            pick = torch.randint(0, self.filled, (config.replay_batch,), generator=generator)
+            group["lr"] = REPLAY_LR * decay_factor(config, step)  # rate undid the decay
+        for _ in range(config.recipe.replay_steps):
+            pick = torch.randint(0, self.filled, (self.batch,), generator=generator)
             pick = distributed.local_rows(pick).to(self.latents.device)
             loss = multistep_prediction_loss(
                 self.model.predict, self.latents[pick], self.actions[pick], config.rollout_steps,
-                starts=config.prediction_starts, stay_probability=config.stay_probability,
-                generator=generator, rand=distributed.rand_rows)
+                stay_probability=config.recipe.stay_probability, generator=generator,
+                rand=distributed.rand_rows)
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             distributed.average_gradients(self.parameters)
@@ -246,6 +266,11 @@ def new_model(config: WorldTrainConfig, data: Trajectories) -> WorldModel:
     return model.fit_input_stats(data.frames(slice(0, 256)))
 
 
+def new_optimizer(model: WorldModel, config: WorldTrainConfig) -> torch.optim.AdamW:
+    """AdamW on every parameter at ``config.lr``, with the paper's weight decay."""
+    return torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=WEIGHT_DECAY)
+
+
 def decay_factor(config: WorldTrainConfig, step: int) -> float:
     """The share of the base rate that step ``step`` uses: 1, then a linear decay over the
     last ``decay_steps`` steps, ``min(1, (steps - step) / decay_steps)``, so the last step
@@ -260,82 +285,189 @@ def learning_rate_decay(optimizer, config: WorldTrainConfig):
     return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: decay_factor(config, step))
 
 
+# the names notebook 05's exercises give the two terms: there the learner's own functions
+temporal_similarity, inverse_dynamics = temporal_similarity_loss, inverse_dynamics_loss
+
+
+def world_model_step(model, optimizer, frames, actions, generator, config, step, replay=None):
+    """One training step: the five terms, their weighted total, the update, the replay.
+
+    Notebook 05 shows this code and hands it to :func:`train_world_model`. ``frames``
+    ``(B, T, 2, 65, 65)``, ``actions`` ``(B, T-1, 2)``; ``generator`` draws the still steps
+    and SIGReg's directions; ``step`` seeds the replay's draws. Returns ``(total, terms)``,
+    detached: a 0-d tensor and a dict of 0-d tensors, for the history.
+    """
+    z = encode_for_loss(model, frames)
+    coeffs, recipe = config.coeffs, config.recipe
+    terms = {
+        "prediction": multistep_prediction_loss(
+            model.predict, z, actions, config.rollout_steps,
+            stay_probability=recipe.stay_probability, generator=generator,
+            rand=distributed.rand_rows),
+        "temporal": temporal_similarity(z),
+        "inverse_dynamics": inverse_dynamics(model.predict_actions, z, actions),
+    }
+    everyone = distributed.gather_rows(z)
+    terms["variance"], terms["covariance"] = variance_covariance_loss(everyone)
+    if coeffs.sigreg:
+        terms["sigreg"] = sigreg(everyone.reshape(-1, z.shape[-1]), generator=generator)
+    total = sum(getattr(coeffs, name) * value for name, value in terms.items())
+    optimizer.zero_grad(set_to_none=True)
+    total.backward()
+    distributed.average_gradients(model.parameters())
+    if config.grad_clip:
+        torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+    optimizer.step()
+    if replay is not None:
+        replay.add(z, actions)
+        replay(step)
+    return total.detach(), {name: value.detach() for name, value in terms.items()}
+
+
+def same_code(a, b) -> bool:
+    """Whether functions ``a`` and ``b`` have the same syntax tree, docstrings and comments
+    aside: an edited step does not. A function whose source cannot be read counts as another."""
+    try:
+        return _syntax_tree(a) == _syntax_tree(b)
+    except (OSError, TypeError):
+        return False
+
+
+def _syntax_tree(function) -> str:
+    tree = ast.parse(textwrap.dedent(inspect.getsource(function))).body[0]
+    first = tree.body[0] if tree.body else None
+    if isinstance(first, ast.Expr) and isinstance(getattr(first, "value", None), ast.Constant):
+        tree.body = tree.body[1:]  # the docstring
+    return ast.dump(tree)
+
+
 def train_world_model(
     config: WorldTrainConfig,
     data: Trajectories | None = None,
     checkpoint: str | Path | None = None,
     progress: bool = True,
     device: torch.device | str | None = None,
+    step=world_model_step,
 ) -> tuple[WorldModel, History]:
     """Train a world model on ``data`` (default :func:`make_data`); resume from ``checkpoint``.
 
-    Batch ``step`` is drawn from a generator seeded by ``(seed, step)``, so a
-    resumed run sees the same batches as an uninterrupted one. ``device``
+    Each step is ``step`` (default :func:`world_model_step`; notebook 05 passes its own
+    copy, or an edited one). Batch ``step`` is drawn from a generator seeded by ``(seed,
+    step)``, so a resumed run sees the same batches as an uninterrupted one. ``device``
     defaults to the best available (cuda, mps, cpu).
 
-    Inside a process group (``torchrun``) it trains with DistributedDataParallel:
-    ``config.batch_size`` is the global batch, and global batch = per-rank batch x
-    world size (a world size that does not divide it is refused). Rank 0 alone
-    writes ``checkpoint``, which resumes on any world size.
+    Inside a process group (``torchrun``), ``config.batch_size`` is the global batch, and
+    global batch = per-rank batch x world size (a world size that does not divide it is
+    refused); the step averages the gradients over the ranks. Rank 0 alone writes
+    ``checkpoint``, which resumes on any world size.
     """
     per_rank = distributed.per_rank_batch(config.batch_size)  # refuse an uneven split early
     data = make_data(config) if data is None else data
     device = get_device(device)
-    layout = torch.channels_last if config.channels_last else torch.contiguous_format
+    layout = torch.channels_last if config.recipe.channels_last else torch.contiguous_format
     model = new_model(config, data).to(device, memory_format=layout)
-    optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr,
-                                  weight_decay=config.weight_decay)
+    optimizer = new_optimizer(model, config)
     scheduler = learning_rate_decay(optimizer, config)
-    frames = config.window or data.positions.shape[1]
-    replay = LatentReplay(model, config, frames, device) if config.replay_steps else None
+    frames = config.recipe.window or data.positions.shape[1]
+    replay = LatentReplay(model, config, frames, device) if config.recipe.replay_steps else None
     start, history = (0, History())
     if checkpoint is not None:
         start, history = resume(checkpoint, model, optimizer, scheduler, identity(config),
                                 after_step=replay)
-    buffer = torch.empty(per_rank, frames, 2, 65, 65)
-
-    def loss(module, frames, actions, generator):  # the whole model in one forward (DDP)
-        z = encode_for_loss(module, frames)
-        if replay is not None:
-            replay.add(z, actions)
-        return latent_loss(module, z, actions, config.coeffs, config.rollout_steps,
-                           starts=config.prediction_starts, generator=generator,
-                           stay_probability=config.stay_probability,
-                           batch_rows=distributed.gather_rows, rand=distributed.rand_rows)
-
-    net = distributed.data_parallel(distributed.Forward(model, loss), device)
-
-    def batch(step: int):
-        generator = step_generator(config.seed, step)  # then draws still steps and SIGReg's
-        index = torch.randint(0, len(data), (config.batch_size,), generator=generator)
-        if not config.window:
-            index = distributed.local_rows(index)  # every rank drew the global batch: keep ours
-            frames = data.frames(index, out=buffer)
-            return frames.to(device), data.actions[index].to(device), generator
-        # the global batch's windows (positions only: cheap), then this rank's rows rendered
-        windows = (*random_windows(data, index, config.window, generator), data.layouts[index])
-        positions, actions, layouts = (distributed.local_rows(x) for x in windows)
-        return render(positions, layouts, out=buffer).to(device), actions.to(device), generator
-
-    fit(model, optimizer, lambda step_batch: net(*step_batch), batch, config.steps,
-        scheduler=scheduler, history=history, start_step=start, checkpoint=checkpoint,
-        checkpoint_every=250, log_every=10, desc="world model", progress=progress,
-        config=identity(config), after_step=replay, clip_grad_norm=config.grad_clip)
+    batch = _batches(config, data, torch.empty(per_rank, frames, 2, 65, 65), device)
+    run = _Run(model, optimizer, scheduler, replay, checkpoint, identity(config))
+    _train_steps(run, step, batch, config, history, start, progress)
     model.eval()
     return model, history
 
 
+def _batches(config: WorldTrainConfig, data: Trajectories, buffer: torch.Tensor, device):
+    """``batch(step) -> (frames, actions, generator)``: this rank's rows of the global batch
+    of step ``step``, rendered into ``buffer (b, T, 2, 65, 65)``, and the step's generator."""
+    window = config.recipe.window
+
+    def batch(step: int):
+        generator = step_generator(config.seed, step)  # then draws still steps and SIGReg's
+        index = torch.randint(0, len(data), (config.batch_size,), generator=generator)
+        if not window:
+            index = distributed.local_rows(index)  # every rank drew the global batch: keep ours
+            frames = data.frames(index, out=buffer)
+            return frames.to(device), data.actions[index].to(device), generator
+        # the global batch's windows (positions only: cheap), then this rank's rows rendered
+        windows = (*random_windows(data, index, window, generator), data.layouts[index])
+        positions, actions, layouts = (distributed.local_rows(x) for x in windows)
+        return render(positions, layouts, out=buffer).to(device), actions.to(device), generator
+
+    return batch
+
+
+@dataclass
+class _Run:
+    """What a training run updates and saves: the model, its optimiser, schedule and replay,
+    and where its resumable checkpoint goes (``identity`` names the run in it)."""
+
+    model: WorldModel
+    optimizer: torch.optim.Optimizer
+    scheduler: object
+    replay: LatentReplay | None
+    checkpoint: str | Path | None
+    identity: dict
+
+    def save(self, history: History, done: int) -> None:
+        """The resumable state after ``done`` steps, as :func:`~.loop.resume` reads it."""
+        state = dict(model=self.model.state_dict(), optimizer=self.optimizer.state_dict(),
+                     scheduler=None if self.scheduler is None else self.scheduler.state_dict(),
+                     history=dict(history), step=done, config=self.identity,
+                     seconds=history.seconds)
+        if self.replay is not None:
+            state["after_step"] = self.replay.state_dict()
+        if not save_or_warn(Path(self.checkpoint), **state):
+            self.checkpoint = None  # warned once; train on without
+
+
+def _train_steps(run: _Run, step, batch, config: WorldTrainConfig, history: History,
+                 start: int, progress: bool) -> None:
+    """Steps ``start .. config.steps - 1`` of ``step`` on ``batch(n)``, with a progress bar;
+    every ``LOG_EVERY`` steps (and the last) the terms are read, checked and logged; every
+    ``CHECKPOINT_EVERY`` steps (and the last) rank 0 saves the run."""
+    bar = tqdm(range(start, config.steps), desc="world model", initial=start, total=config.steps,
+               disable=not (progress and distributed.is_main()))
+    started = time.perf_counter() - history.seconds
+    for n in bar:
+        total, terms = step(run.model, run.optimizer, *batch(n), config, n, run.replay)
+        if run.scheduler is not None:
+            run.scheduler.step()
+        if n % LOG_EVERY == 0 or n == config.steps - 1:  # the one wait for a GPU
+            value, terms = _over_ranks(total, terms)
+            _check_finite(value, terms, n)
+            history.log(n, loss=value, **terms)
+            bar.set_postfix(loss=f"{value:.4f}", refresh=False)
+        history.seconds = time.perf_counter() - started
+        done = n + 1
+        due = done % CHECKPOINT_EVERY == 0 or done == config.steps
+        if run.checkpoint is not None and due and distributed.is_main():
+            run.save(history, done)
+
+
 def train_or_load(config: WorldTrainConfig, name: str,
-                  device: torch.device | str | None = None) -> tuple[WorldModel, History]:
-    """The model of ``config``: loaded if this run was saved, else trained.
+                  device: torch.device | str | None = None,
+                  step=world_model_step) -> tuple[WorldModel, History]:
+    """The model of ``config``: loaded if this run was saved, else trained with ``step``.
 
     Looks for ``checkpoints/<name>.pt`` (shipped with the course), then
     ``data/cache/checkpoints/<name>.pt``; otherwise makes the run's data, trains
-    (resumable from ``<name>.partial`` in the cache) and saves. Returns
-    ``(model in eval mode, history)``, the model on ``device`` (default: the
-    best available, cuda, mps, cpu) whether it was loaded or trained.
+    (resumable from ``<name>.partial`` in the cache) and saves. A ``step`` whose code
+    differs from :func:`world_model_step` (an edited one) trains anew and neither
+    loads nor saves a checkpoint: no file of another step is ever taken for its run,
+    or overwritten by it. Returns ``(model in eval mode, history)``, the model on
+    ``device`` (default: the best available, cuda, mps, cpu) whether loaded or trained.
     """
     device = get_device(device)
+    if not same_code(step, world_model_step):
+        print(f"{name}: your {step.__name__} differs from the course's, so it trains here, "
+              "without loading or saving a checkpoint.")
+        model, history = train_world_model(config, device=device, step=step)
+        return model.eval(), history
     # a loaded file brings its input statistics too; it is read straight onto the device
     model = WorldModel(config.model).to(device)
     cache_path, shipped = checkpoint_paths(name)
@@ -343,7 +475,7 @@ def train_or_load(config: WorldTrainConfig, name: str,
 
     def train() -> History:
         trained, history = train_world_model(config, make_data(config), checkpoint=partial,
-                                             device=device)
+                                             device=device, step=step)
         model.load_state_dict(trained.state_dict())
         return history
 
@@ -449,25 +581,10 @@ def refit_predictor(model: WorldModel, config: RefitConfig = RefitConfig(),
     # (N, T+1, D) and (N, T, 2)
     latents, actions = trajectory_latents(model, data).to(device), data.actions.to(device)
     torch.manual_seed(config.seed)
-    new = refitted_model(model, config).to(device)
-    new.load_state_dict({name: value for name, value in model.state_dict().items()
-                         if not name.startswith(("predictor.", "action_encoder.", "_extra"))},
-                        strict=False)
-    # the loss reaches only these: the latents are precomputed
-    optimizer = torch.optim.Adam([*new.predictor.parameters(), *new.action_encoder.parameters()],
-                                 lr=config.lr)
-    decay = config.decay_fraction * config.steps
-    scheduler = torch.optim.lr_scheduler.LambdaLR(
-        optimizer, lambda step: min(1.0, (config.steps - step) / decay))
-    k, last_start = config.rollout_steps, data.actions.shape[1] - config.rollout_steps
-
-    def batch(step: int):
-        generator = step_generator(config.seed, step)
-        index = torch.randint(0, len(data), (config.batch_size,), generator=generator)
-        start = torch.randint(0, last_start + 1, (config.batch_size,), generator=generator)
-        stay = torch.rand(config.batch_size, k, generator=generator) < config.stay_probability
-        # drawn on the CPU (the same windows on every device), gathered on the device
-        return windows_with_stays(latents, actions, *(t.to(device) for t in (index, start, stay)))
+    new = _with_new_predictor(model, config, device)
+    optimizer, scheduler = _refit_optimizer(new, config)
+    k = config.rollout_steps
+    batch = _refit_batches(latents, actions, config, device)
 
     def loss(window):
         z0, actions, targets = window
@@ -477,6 +594,43 @@ def refit_predictor(model: WorldModel, config: RefitConfig = RefitConfig(),
     history = fit(new, optimizer, loss, batch, config.steps, scheduler=scheduler, log_every=50,
                   desc="predictor refit", progress=progress)
     return new.eval(), history
+
+
+def _with_new_predictor(model: WorldModel, config: RefitConfig, device) -> WorldModel:
+    """A copy of ``model`` on ``device`` whose predictor and action encoder are new (the MLP
+    of ``config``); the encoder, the inverse-dynamics head and the input statistics kept."""
+    new = refitted_model(model, config).to(device)
+    new.load_state_dict({name: value for name, value in model.state_dict().items()
+                         if not name.startswith(("predictor.", "action_encoder.", "_extra"))},
+                        strict=False)
+    return new
+
+
+def _refit_optimizer(new: WorldModel, config: RefitConfig):
+    """Adam on the new predictor and action encoder (the loss reaches only these: the latents
+    are precomputed), its rate falling linearly to 0 over the last ``decay_fraction``."""
+    optimizer = torch.optim.Adam([*new.predictor.parameters(), *new.action_encoder.parameters()],
+                                 lr=config.lr)
+    decay = config.decay_fraction * config.steps
+    scheduler = torch.optim.lr_scheduler.LambdaLR(
+        optimizer, lambda step: min(1.0, (config.steps - step) / decay))
+    return optimizer, scheduler
+
+
+def _refit_batches(latents: torch.Tensor, actions: torch.Tensor, config: RefitConfig, device):
+    """``batch(step)``: :func:`windows_with_stays` of ``config.batch_size`` random windows of
+    the latents ``(N, T+1, D)`` and actions ``(N, T, 2)``, drawn on the CPU (the same windows on
+    every device), gathered on ``device``."""
+    k, last_start = config.rollout_steps, actions.shape[1] - config.rollout_steps
+
+    def batch(step: int):
+        generator = step_generator(config.seed, step)
+        index = torch.randint(0, len(latents), (config.batch_size,), generator=generator)
+        start = torch.randint(0, last_start + 1, (config.batch_size,), generator=generator)
+        stay = torch.rand(config.batch_size, k, generator=generator) < config.stay_probability
+        return windows_with_stays(latents, actions, *(t.to(device) for t in (index, start, stay)))
+
+    return batch
 
 
 def refit_identity(config: RefitConfig, base: dict) -> dict:

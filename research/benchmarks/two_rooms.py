@@ -1,7 +1,7 @@
 """Two Rooms benchmark: data generation speed, world-model training speed, probe error.
 
 Run: ``python -m research.benchmarks.two_rooms [--n 4096] [--batch 256] [--threads 2] [--steps N]
-[--prediction-starts first|all] [--out PATH] [--record]``.
+[--out PATH] [--record]``.
 Prints trajectories per second (17 frames, 16 actions) for the states alone
 and with every 65x65x2 frame rendered (float32, in batches into one reused
 buffer, as a training loop would); then trains notebook 05's class run (the
@@ -28,7 +28,6 @@ import torch
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.envs import generate_trajectories
 from ebjepa_tutorial.evaluation.position import middle_wall_test, probe_report
-from ebjepa_tutorial.losses.world import PREDICTION_STARTS
 from ebjepa_tutorial.training.checkpoints import save_checkpoint
 from ebjepa_tutorial.training.world import identity, train_world_model
 from research.benchmarks import command_line
@@ -72,17 +71,12 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     parser.add_argument("--steps", type=int, default=CLASS_RUN.train.steps,
                         help="world-model training steps (0: data generation only)")
-    parser.add_argument("--prediction-starts", choices=PREDICTION_STARTS,
-                        default=CLASS_RUN.train.prediction_starts,
-                        help="the prediction loss's rollout start frames")
     parser.add_argument("--out", help="save the trained model here (for planning.py --checkpoint)")
     parser.add_argument("--record", action="store_true",
                         help="store the probe error in checkpoints/reference.json")
     args = parser.parse_args()
-    class_recipe = (CLASS_RUN.train.steps, CLASS_RUN.train.prediction_starts)
-    if args.record and (args.steps, args.prediction_starts) != class_recipe:
-        parser.error("--record stores the class recipe's figure: drop --steps and "
-                     "--prediction-starts")
+    if args.record and args.steps != CLASS_RUN.train.steps:
+        parser.error("--record stores the class recipe's figure: drop --steps")
     torch.set_num_threads(args.threads)
     speed = data_generation_speed(args.n, args.batch)
     print(f"Two Rooms data, {args.n} trajectories of 17 frames, {args.threads} threads:")
@@ -92,7 +86,7 @@ def main() -> None:
     if args.steps == 0:
         print(f"traj_per_s={speed['traj_per_s']:.0f}")
         return
-    config = replace(CLASS_RUN.train, steps=args.steps, prediction_starts=args.prediction_starts)
+    config = replace(CLASS_RUN.train, steps=args.steps)
     start = time.perf_counter()
     model, history = train_world_model(config, device="cpu")
     seconds = time.perf_counter() - start
@@ -101,7 +95,7 @@ def main() -> None:
                           test_steps=CLASS_RUN.horizon)
     walls = middle_wall_test(model, generate_trajectories(400, seed=778))  # notebook 06's
     print(f"world model, {config.steps} steps of {config.batch_size} trajectories "
-          f"(prediction from {config.prediction_starts} start frames) in {seconds / 60:.1f} min: "
+          f"in {seconds / 60:.1f} min: "
           f"{train_speed:.0f} traj/s; position probe {report['probe_px']:.2f} px (mean-position "
           f"baseline {report['baseline_px']:.2f} px); wall test: stopped {walls['stopped']:.0%} "
           f"of {walls['n_stopped']} wall-stopped steps, moved {walls['moved']:.0%} of "

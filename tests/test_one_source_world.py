@@ -1,0 +1,101 @@
+"""Chapter 05's training step: the notebook's cell is the step that trains, and an edit to it
+retrains without touching the checkpoint of the unedited run.
+
+tests/test_one_source.py compares the cell's code with ``training.world.world_model_step``;
+here the cell itself trains: unedited it gives the package's history bit for bit, edited it
+gives another, and it calls the learner's two exercise functions on every step.
+"""
+
+import linecache
+from dataclasses import replace
+
+import pytest
+import torch
+from test_one_source import notebook_function
+
+from ebjepa_tutorial.course.presets import preset
+from ebjepa_tutorial.training import world
+
+NOTEBOOK = "05_world_model.ipynb"
+# the ci preset: the class recipe's window, wall starts, still steps, replay and channels_last
+CI = preset("05", "ci").train
+SHORT = replace(CI, steps=3)  # logs steps 0 and 2
+
+
+def notebook_step(edit=lambda source: source, **names):
+    """The notebook's ``world_model_step``, defined among the package's names (those the
+    notebook imports before the cell) and ``names`` (e.g. the learner's functions)."""
+    source = notebook_function(NOTEBOOK, "world_model_step")
+    edited = edit(source)
+    assert edited == source or edit(source) != source
+    space = {**vars(world), **names}
+    filename = f"<notebook 05 cell, {len(linecache.cache)}>"  # readable by inspect, as in IPython
+    linecache.cache[filename] = (len(edited), None, edited.splitlines(True), filename)
+    exec(compile(edited, filename, "exec"), space)
+    return space["world_model_step"]
+
+
+def train(step, config=SHORT):
+    return world.train_world_model(config, progress=False, device="cpu", step=step)
+
+
+def weights(model) -> list[torch.Tensor]:
+    return [t for t in model.state_dict().values() if isinstance(t, torch.Tensor)]
+
+
+def test_the_cell_as_shown_trains_the_packages_run_and_an_edit_changes_it():
+    package_model, package = train(world.world_model_step)
+    shown_model, shown = train(notebook_step())
+    assert shown == package  # every logged term, bit for bit
+    assert all(torch.equal(a, b) for a, b in zip(weights(shown_model), weights(package_model)))
+    edited = notebook_step(lambda s: s.replace("total.backward()", "(2 * total).backward()"))
+    _, changed = train(edited)
+    assert changed["loss"][0] == package["loss"][0]  # the same first batch and weights ...
+    assert changed["loss"][-1] != package["loss"][-1]  # ... then another update
+
+
+def test_the_ci_run_keeps_the_terms_it_had_before_the_step_moved_into_the_notebook():
+    # recorded from train_world_model before world_model_step existed (the ci preset, 10 steps,
+    # on 1 thread); bit-identical on the machine that recorded it
+    _, history = train(notebook_step(), CI)
+    before = {"step": [0, 9], "loss": [8.430205345153809, 4.285619258880615],
+              "prediction": [0.06543906778097153, 0.09975956380367279],
+              "temporal": [0.017093710601329803, 0.022132975980639458],
+              "inverse_dynamics": [0.6459769606590271, 0.5691583156585693],
+              "variance": [0.4606993496417999, 0.1303287148475647],
+              "covariance": [0.017809344455599785, 0.15823078155517578]}
+    assert history.keys() == before.keys()
+    for name, values in before.items():
+        assert history[name] == pytest.approx(values, rel=1e-5), name
+
+
+def test_the_step_calls_the_learners_functions_on_every_step():
+    calls = []
+
+    def temporal_similarity(z):  # the learner's exercise 1, counted
+        calls.append("temporal")
+        return world.temporal_similarity_loss(z)
+
+    def inverse_dynamics(predict_actions, z, actions):  # exercise 2
+        calls.append("inverse")
+        return world.inverse_dynamics_loss(predict_actions, z, actions)
+
+    train(notebook_step(temporal_similarity=temporal_similarity,
+                        inverse_dynamics=inverse_dynamics))
+    assert calls == ["temporal", "inverse"] * SHORT.steps
+
+
+def test_an_edited_step_neither_loads_nor_overwrites_the_unedited_runs_checkpoint(
+        tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
+    run = replace(SHORT, steps=2)
+    world.train_or_load(run, "world", device="cpu", step=notebook_step())
+    saved = {p.name: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    assert saved and "Trained and saved" in capsys.readouterr().out
+    world.train_or_load(run, "world", device="cpu", step=notebook_step())  # the same code
+    assert "Loaded a trained model" in capsys.readouterr().out
+    edited = notebook_step(lambda s: s.replace("total.backward()", "(2 * total).backward()"))
+    _, history = world.train_or_load(run, "world", device="cpu", step=edited)
+    assert "differs from the course's" in capsys.readouterr().out
+    assert len(history["loss"]) == 2  # it trained, here, and wrote nothing
+    assert {p.name: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == saved
