@@ -25,7 +25,6 @@ from ebjepa_tutorial.training.world import Recipe, RefitConfig, WorldTrainConfig
     (VideoJEPAConfig, {"batch_size": 0}, "VideoJEPAConfig.batch_size must be an int >= 1"),
     (VideoJEPAConfig, {"n_frames": 5}, "n_frames must be an int >= context \\+ rollout_steps = 6"),
     (VideoJEPAConfig, {"rollout_steps": 0}, "rollout_steps must be an int >= 1"),
-    (VideoJEPAConfig, {"tbptt": 0}, "tbptt must be None or an int >= 1"),
     (VideoJEPAConfig, {"unroll": "teacher"}, "unroll must be one of \\['autoregressive', "),
     (VideoJEPAConfig, {"one_step_fraction": 1.0},
      "one_step_fraction must be a number in \\[0, 1\\)"),
