@@ -83,7 +83,8 @@ def spy(monkeypatch, module, name: str) -> list[torch.dtype]:
 @pytest.mark.parametrize("loss", [image.VICReg(), image.SIGReg()])
 def test_image_training_lowers_the_network_and_not_the_loss(monkeypatch, loss):
     monkeypatch.setattr(image, "mixed_precision", cpu_bf16)
-    received = spy(monkeypatch, image, "jepa_loss")
+    # the loss the training step calls: VICReg's weighted sum, or SIGReg's loss
+    received = spy(monkeypatch, image, "vicreg" if loss == image.VICReg() else "sigreg_loss")
     outputs = []
     monkeypatch.setattr(image.ImageJEPA, "forward",
                         lambda self, v: outputs.append(z := self.projector(self.encoder(v))) or z)

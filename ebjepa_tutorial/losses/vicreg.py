@@ -100,9 +100,28 @@ def vicreg_loss(
     when they log). ``variance`` and ``covariance``: the two regularisers, ``(B, D) -> 0-d``
     (notebook 00 trains with the learner's own once they pass their checks).
     """
-    inv = invariance_term(z_a, z_b)
-    var = (variance(z_a) + variance(z_b)) / 2
-    cov = (covariance(z_a) + covariance(z_b)) / 2
+    inv, var, cov = vicreg_terms(z_a, z_b, variance, covariance).values()
     total = inv_coeff * inv + std_coeff * var + cov_coeff * cov
     return total, {"invariance": inv.detach(), "variance": var.detach(),
                    "covariance": cov.detach()}
+
+
+def vicreg_terms(
+    z_a: torch.Tensor,
+    z_b: torch.Tensor,
+    variance: Callable[[torch.Tensor], torch.Tensor] = variance_term,
+    covariance: Callable[[torch.Tensor], torch.Tensor] = covariance_term,
+) -> dict[str, torch.Tensor]:
+    """VICReg's three terms of two views ``(B, D)``, unweighted: ``{"invariance", "variance",
+    "covariance"}``, 0-d each; the last two computed on each view and averaged."""
+    return {"invariance": invariance_term(z_a, z_b),
+            "variance": (variance(z_a) + variance(z_b)) / 2,
+            "covariance": (covariance(z_a) + covariance(z_b)) / 2}
+
+
+def vicreg(z_a: torch.Tensor, z_b: torch.Tensor, inv_coeff: float = 1.0, std_coeff: float = 1.0,
+           cov_coeff: float = 1.0) -> torch.Tensor:
+    """VICReg's weighted sum of two views ``(B, D)``, a 0-d tensor: the total of
+    :func:`vicreg_loss`, and what notebook 01's exercise 1 writes (its training step calls the
+    learner's once it passes). Not re-exported by ``losses``, whose ``vicreg`` is this module."""
+    return vicreg_loss(z_a, z_b, inv_coeff, std_coeff, cov_coeff)[0]

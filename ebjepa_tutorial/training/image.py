@@ -20,6 +20,10 @@ Batch norm normalises over each rank's rows, unless ``sync_batchnorm`` (GPUs onl
 
 from __future__ import annotations
 
+import ast
+import hashlib
+import inspect
+import textwrap
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -27,9 +31,11 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 from torch import nn
+from tqdm.auto import tqdm
 
 from .. import augment, distributed, losses
 from ..losses.sigreg import sigreg_loss
+from ..losses.vicreg import vicreg, vicreg_terms
 from ..models.encoders import ResNet18
 from ..models.heads import build_projector
 from ..utils import (
@@ -41,11 +47,12 @@ from ..utils import (
     memory_format,
     mixed_precision,
 )
-from .checkpoints import checkpoint_paths, run_identity
-from .loop import History, fit, load_or_train, resume, step_generator
+from .checkpoints import checkpoint_paths, run_identity, save_or_warn
+from .loop import History, _check_finite, _over_ranks, load_or_train, resume, step_generator
 from .optim import split_decay_params, warmup_cosine_scheduler
 
 EVAL_FIELDS = ("eval_image_size",)  # how a run is scored, not how it is trained
+LOG_EVERY = 10  # steps between the history's rows: reading a value waits for the GPU
 WEIGHT_DECAY = 1e-4  # AdamW's, on weight matrices only (optim.split_decay_params)
 
 
@@ -177,14 +184,67 @@ def make_optimizer(model: nn.Module, config: ImageJEPAConfig) -> torch.optim.Ada
     return torch.optim.AdamW(split_decay_params(model, WEIGHT_DECAY), lr=config.lr)
 
 
+def embed(net: nn.Module, views) -> tuple[torch.Tensor, torch.Tensor]:
+    """Both views ``(b, 3, S, S)`` through ``net`` (encoder, then projector): ``(B, D)`` each.
+
+    The networks run in bf16 where that is fast (:func:`mixed_precision`), the loss gets
+    float32; under ``torchrun`` every rank's rows are gathered, so the loss sees the global
+    batch (gradients reach each rank's own rows).
+    """
+    with mixed_precision(views[0].device, cpu=True):
+        embedded = net(*views)
+    z_a, z_b = (distributed.gather_rows(at_least_float32(z)) for z in embedded)
+    return z_a, z_b
+
+
+def vicreg_step(net, batch, optimizer, scheduler, weights):
+    """One VICReg training step (notebook 01 shows it; tests/test_one_source.py keeps the two
+    the same). ``batch``: the step's two views and generator; ``weights``: a :class:`VICReg`.
+    Returns the loss and, for the steps the loop logs, a function giving the unweighted terms.
+    """
+    views, _ = batch  # two augmented views of the step's images: (b, 3, S, S) each
+    z_a, z_b = embed(net, views)  # encoder, then projector: (B, D) each
+    loss = vicreg(z_a, z_b, weights.inv_coeff, weights.std_coeff, weights.cov_coeff)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+    scheduler.step()
+    return loss.detach(), lambda: vicreg_terms(z_a.detach(), z_b.detach())
+
+
+def sigreg_step(net, batch, optimizer, scheduler, weights):
+    """One SIGReg training step (notebook 02 shows it): :func:`vicreg_step` with SIGReg's
+    loss. ``weights``: a :class:`SIGReg`; the directions are drawn from the step's generator."""
+    views, generator = batch  # two augmented views: (b, 3, S, S) each; the step's generator
+    z_a, z_b = embed(net, views)  # encoder, then projector: (B, D) each
+    loss, terms = sigreg_loss(z_a, z_b, weights.lam, weights.slices, generator,
+                              weights.scale_by_n)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+    scheduler.step()
+    return loss.detach(), terms
+
+
+INVARIANCE_ONLY = VICReg(1.0, 0.0, 0.0)  # the step of ``loss=None``: no regulariser
+
+
+def package_step(config: ImageJEPAConfig):
+    """The step that trains ``config`` when none is passed: :func:`sigreg_step` for SIGReg,
+    else :func:`vicreg_step` (``loss=None``: with :data:`INVARIANCE_ONLY`'s weights)."""
+    return sigreg_step if isinstance(config.loss, SIGReg) else vicreg_step
+
+
 def train_image_jepa(config: ImageJEPAConfig, images: torch.Tensor,
                      checkpoint: str | Path | None = None, device: torch.device | str = "cpu",
                      progress: bool = True, checkpoint_every: int = 250,
-                     sync_batchnorm: bool = False) -> tuple[ImageJEPA, History]:
+                     sync_batchnorm: bool = False, step=None) -> tuple[ImageJEPA, History]:
     """Train on uint8 ``images`` ``(N, 3, 32, 32)``; resume from ``checkpoint`` if it exists.
 
-    Batch ``step`` (indices and augmentations) is drawn from a generator seeded
-    with ``(seed, step)``, so a resumed run matches an uninterrupted one.
+    ``step(net, batch, optimizer, scheduler, weights)``: one training step (default
+    :func:`package_step`; notebooks 01 and 02 pass their own cell's). Batch ``step``
+    (indices and augmentations) is drawn from a generator seeded with ``(seed, step)``,
+    so a resumed run matches an uninterrupted one.
 
     Inside a process group (``torchrun``) it trains with DistributedDataParallel:
     ``config.batch_size`` is the global batch, and global batch = per-rank batch x
@@ -200,23 +260,47 @@ def train_image_jepa(config: ImageJEPAConfig, images: torch.Tensor,
     net = distributed.data_parallel(AllViews(model), device, sync_batchnorm)
     optimizer = make_optimizer(model, config)
     scheduler = warmup_cosine_scheduler(optimizer, config.steps, config.warmup_steps)
-    start, history = (0, History())
+    start, history, run = 0, History(), identity(config, step=step)
     if checkpoint is not None:
-        start, history = resume(checkpoint, model, optimizer, scheduler, identity(config))
+        start, history = resume(checkpoint, model, optimizer, scheduler, run)
     batch = _batches(config, images.to(device), layout)  # CIFAR-10 stays on the GPU (150 MB)
 
-    def loss(views_and_generator):
-        views, generator = views_and_generator
-        with mixed_precision(device, cpu=True):  # bf16 networks where fast; the loss in fp32
-            embedded = net(*views)
-        # the global batch's embeddings (W b, D); gradients reach each rank's own rows
-        z_a, z_b = (distributed.gather_rows(at_least_float32(z)) for z in embedded)
-        return jepa_loss(config, z_a, z_b, generator)
+    def save(done: int) -> bool:  # what resume() reads back; rank 0 alone writes
+        return not distributed.is_main() or save_or_warn(
+            Path(checkpoint), model=model.state_dict(), optimizer=optimizer.state_dict(),
+            scheduler=scheduler.state_dict(), history=dict(history), step=done, config=run,
+            seconds=history.seconds)
 
-    fit(model, optimizer, loss, batch, config.steps, scheduler=scheduler, history=history,
-        start_step=start, checkpoint=checkpoint, checkpoint_every=checkpoint_every, log_every=10,
-        desc=f"{config.method} training", progress=progress, config=identity(config))
+    model.train()
+    _loop(config, package_step(config) if step is None else step,
+          (net, optimizer, scheduler), batch, history, start,
+          save if checkpoint is not None else None, checkpoint_every, progress)
     return model, history
+
+
+def _loop(config: ImageJEPAConfig, step, trainer, batch, history: History, start: int, save,
+          checkpoint_every: int, progress: bool) -> None:
+    """Steps ``start`` to ``config.steps - 1``, each ``step(net, batch(i), optimizer,
+    scheduler, weights)`` with ``trainer = (net, optimizer, scheduler)``. Every
+    :data:`LOG_EVERY` steps (and the last) the loss and terms are read, checked to be finite
+    and logged; ``save(done)``, if given, every ``checkpoint_every`` steps and at the end."""
+    net, optimizer, scheduler = trainer
+    weights = INVARIANCE_ONLY if config.loss is None else config.loss
+    bar = tqdm(range(start, config.steps), desc=f"{config.method} training", initial=start,
+               total=config.steps, disable=not (progress and distributed.is_main()))
+    started = time.perf_counter() - history.seconds
+    for i in bar:
+        loss, terms = step(net, batch(i), optimizer, scheduler, weights)
+        if i % LOG_EVERY == 0 or i == config.steps - 1:  # the one wait for a GPU
+            value, terms = _over_ranks(loss, terms() if callable(terms) else terms)
+            _check_finite(value, terms, i)
+            history.log(i, loss=value, **terms)
+            bar.set_postfix(loss=f"{value:.4f}", refresh=False)
+        history.seconds = time.perf_counter() - started
+        due = (i + 1) % checkpoint_every == 0 or i + 1 == config.steps
+        if save is not None and due and not save(i + 1):
+            save = None  # warned once; train on without
+    bar.close()
 
 
 def _batches(config: ImageJEPAConfig, images: torch.Tensor, layout):
@@ -254,14 +338,32 @@ def seconds_per_step(config: ImageJEPAConfig, images: torch.Tensor, steps: int =
     return max(run(1 + steps) - first, 0.0) / steps
 
 
-def identity(config: ImageJEPAConfig, encoder_only: bool = False) -> dict:
+def identity(config: ImageJEPAConfig, encoder_only: bool = False, step=None) -> dict:
     """What a checkpoint stores to recognise its run (:func:`run_identity`), without
     ``EVAL_FIELDS``: how a network will be probed does not change how it is trained. A file
-    of the encoder alone is marked, so it is never read as a whole model.
+    of the encoder alone is marked, so it is never read as a whole model. A ``step`` whose
+    code differs from :func:`package_step`'s (an edited cell) is another run: its file holds a
+    hash of that code, so it never loads, or replaces, the shipped or cached unedited run.
     """
     always = ("loss", "steps", "batch_size", "lr", "seed")
-    stored = run_identity(config, always, **({"weights": "encoder only"} if encoder_only else {}))
+    extra = {"weights": "encoder only"} if encoder_only else {}
+    if step is not None and _code(step) != _code(package_step(config)):
+        extra["step"] = hashlib.sha256(_code(step).encode()).hexdigest()[:16]
+    stored = run_identity(config, always, **extra)
     return {k: v for k, v in stored.items() if k not in EVAL_FIELDS}
+
+
+def _code(function) -> str:
+    """``function``'s code as a syntax tree without its docstring (comments are not in it);
+    its ``repr`` (never another's) where Python cannot find its source."""
+    try:
+        tree = ast.parse(textwrap.dedent(inspect.getsource(function))).body[0]
+    except (OSError, TypeError, SyntaxError, IndexError):
+        return repr(function)
+    body = tree.body
+    if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
+        tree.body = body[1:]
+    return ast.dump(tree)
 
 
 def _partial(name: str) -> Path:
@@ -269,15 +371,16 @@ def _partial(name: str) -> Path:
     return checkpoint_paths(name)[0].with_suffix(".partial")
 
 
-def _train_into(module: nn.Module, config, images, name: str, device, keep) -> History:
+def _train_into(module: nn.Module, config, images, name: str, device, keep, step) -> History:
     """Train ``config`` (resumable from ``<name>.partial``); copy ``keep(model)`` to ``module``."""
-    trained, history = train_image_jepa(config, images, checkpoint=_partial(name), device=device)
+    trained, history = train_image_jepa(config, images, checkpoint=_partial(name), device=device,
+                                        step=step)
     module.load_state_dict(keep(trained).state_dict())
     return history  # load_or_train deletes the partial file once the model is saved
 
 
 def train_or_load(config: ImageJEPAConfig, name: str, images: torch.Tensor, device="cpu",
-                  encoder_only: bool = False):
+                  encoder_only: bool = False, step=None):
     """The model of ``config``: loaded if this run was saved, else trained on ``images``.
 
     Looks for ``checkpoints/<name>.pt`` (shipped with the course), then
@@ -285,8 +388,9 @@ def train_or_load(config: ImageJEPAConfig, name: str, images: torch.Tensor, devi
     ``(N, 3, 32, 32)`` (resumable from ``<name>.partial`` in the cache) and
     saves. With ``encoder_only`` it keeps and stores the encoder alone, as the
     longer shipped runs are (the projector is three quarters of the weights at
-    class scale, and only training needs it). Returns ``(model or encoder in eval
-    mode, history)``.
+    class scale, and only training needs it). ``step``: the training step
+    (:func:`train_image_jepa`); an edited one is its own run (:func:`identity`). Returns
+    ``(model or encoder in eval mode, history)``.
     """
     torch.manual_seed(config.seed)
     model = ImageJEPA(config)
@@ -294,6 +398,6 @@ def train_or_load(config: ImageJEPAConfig, name: str, images: torch.Tensor, devi
     keep = (lambda m: m.encoder) if encoder_only else (lambda m: m)
     cache_path, shipped = checkpoint_paths(name)
     history = load_or_train(cache_path, module, lambda: _train_into(
-        module, config, images, name, device, keep), identity(config, encoder_only), shipped,
-        partial=_partial(name))
+        module, config, images, name, device, keep, step),
+        identity(config, encoder_only, step), shipped, partial=_partial(name))
     return module.eval(), history

@@ -35,8 +35,8 @@ def train_or_load(config, name: str, data=None, device=None, **options):
 
 
 @train_or_load.register(ImageJEPAConfig)
-def _image(config, name, data=None, device=None, encoder_only: bool = False):
-    return train_image(config, name, data, device or "cpu", encoder_only)
+def _image(config, name, data=None, device=None, encoder_only: bool = False, step=None):
+    return train_image(config, name, data, device or "cpu", encoder_only, step)
 
 
 @train_or_load.register(VideoJEPAConfig)
