@@ -478,7 +478,8 @@ def test_torchrun_trains_the_world_command_on_two_processes(tmp_path, flags, cha
     assert done.returncode == 0, done.stderr[-3000:]
     assert "on 2 process(es)" in done.stdout and done.stdout.count("saved") == 1
     stored = load_checkpoint(out)
-    config = replace(preset("05", "ci").train, steps=4, **changes)
+    ci = preset("05", "ci").train
+    config = replace(ci, steps=4, recipe=replace(ci.recipe, **changes))
     assert stored["config"] == world.identity(config) and stored["processes"] == 2
     assert stored["history"]["step"] == [0, 3]  # logged every 10 steps and the last
     world.load_world_model(out, config.model)
