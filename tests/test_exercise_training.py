@@ -1,9 +1,13 @@
-"""Chapter 00 trains with the learner's own variance and covariance terms once they pass."""
+"""Chapters 00 and 01 train with the learner's own functions once they pass their checks:
+chapter 00 its variance and covariance terms, chapter 01 its VICReg loss."""
 
 import torch
+from test_one_source import notebook_function
 
 from ebjepa_tutorial import losses
-from ebjepa_tutorial.training import toy
+from ebjepa_tutorial.course import exercises
+from ebjepa_tutorial.course.presets import preset
+from ebjepa_tutorial.training import image, toy
 
 
 def test_the_toy_run_trains_with_the_terms_it_is_given():
@@ -39,3 +43,46 @@ def test_the_course_s_terms_are_the_default():
     explicit = losses.vicreg_loss(z_a, z_b, 1.0, 2.0, 3.0, variance=losses.variance_term,
                                   covariance=losses.covariance_term)[0]
     assert torch.equal(explicit, losses.vicreg_loss(z_a, z_b, 1.0, 2.0, 3.0)[0])
+
+
+def _chapter_01_step(vicreg):
+    """Notebook 01's training step, defined as its cell does, after its exercise 1 cell."""
+    space = {**vars(image), "vicreg": vicreg}
+    exec(notebook_function("01_vicreg.ipynb", "vicreg_step"), space)
+    return space["vicreg_step"]
+
+
+def test_chapter_01_trains_with_the_learner_s_vicreg_once_it_passes(capsys):
+    calls = []
+
+    def vicreg(z_a, z_b, inv_coeff, std_coeff, cov_coeff):  # a learner's own, passing
+        calls.append(1)
+        centred = [z - z.mean(0) for z in (z_a, z_b)]
+        var = sum(torch.relu(1 - (z.var(0) + 1e-4).sqrt()).mean() for z in (z_a, z_b)) / 2
+        cov = sum(((c.T @ c / (len(c) - 1)) * (1 - torch.eye(c.shape[1]))).pow(2).sum()
+                  / (c.shape[1] * (c.shape[1] - 1)) for c in centred) / 2
+        return inv_coeff * (z_a - z_b).pow(2).mean() + std_coeff * var + cov_coeff * cov
+
+    checked = exercises.check_vicreg(vicreg)
+    assert checked is vicreg and exercises.whose(checked) == "your"
+    calls.clear()
+    config, images = preset("01", "ci").config, torch.randint(0, 256, (64, 3, 32, 32),
+                                                              dtype=torch.uint8)
+    _, history = image.train_image_jepa(config, images, progress=False,
+                                        step=_chapter_01_step(checked))
+    assert len(calls) == config.steps  # the learner's function, at every step
+    _, course = image.train_image_jepa(config, images, progress=False)
+    assert torch.allclose(torch.tensor(history["loss"]), torch.tensor(course["loss"]), rtol=1e-3)
+
+
+def test_chapter_01_trains_with_the_course_s_vicreg_while_the_learner_s_is_unwritten(capsys):
+    def vicreg(z_a, z_b, inv_coeff, std_coeff, cov_coeff):  # the student version's stub
+        raise NotImplementedError("write the VICReg loss")
+
+    checked = exercises.check_vicreg(vicreg)
+    assert checked is losses.vicreg.vicreg and exercises.whose(checked) == "the course's"
+    config = preset("01", "ci").config
+    images = torch.randint(0, 256, (64, 3, 32, 32), dtype=torch.uint8)
+    _, history = image.train_image_jepa(config, images, progress=False,
+                                        step=_chapter_01_step(checked))
+    assert history == image.train_image_jepa(config, images, progress=False)[1]
