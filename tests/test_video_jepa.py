@@ -5,7 +5,6 @@ from dataclasses import replace
 
 import pytest
 import torch
-import torch.nn.functional as F
 
 from ebjepa_tutorial import viz
 from ebjepa_tutorial.course.exercises import ExerciseError
