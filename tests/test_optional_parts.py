@@ -214,7 +214,8 @@ def test_a_main_cell_that_reads_an_optional_variable_is_caught():
 
 def test_a_name_bound_locally_or_on_the_main_path_is_no_dependency():
     cells = sound_notebook() + [
-        code("def f(y):\n    return y\nsquares = [y * y for y in range(3)]\nf(lambda twice: twice)"),
+        code("def f(y):\n    return y\nsquares = [y * y for y in range(3)]\n"
+             "f(lambda twice: twice)"),
         code("y = 5"), code("print(y)")]  # y assigned on the main path before it is read
     assert dependency_problems(cells) == []
 
