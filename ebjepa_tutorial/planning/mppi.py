@@ -259,7 +259,8 @@ def mppi_iteration(model, z0, z_goal, mean, std, config, generators):
         mean, std = mppi_update(actions, costs, config.elites, config.temperature)
     else:  # CEM: every elite counts the same
         mean, std = cem_update(actions, costs, config.elites)
-    return mean, std.clamp_min(MIN_STD), actions, costs
+    spread = std.clamp_min(MIN_STD)  # a spread of 0 would stop the search for good
+    return mean, spread, actions, costs
 
 
 @dataclass
