@@ -8,6 +8,7 @@ and the package's differ in code, show that an edit to the cell changes what tra
 step never loads, or replaces, the checkpoint of the unedited run.
 """
 
+import inspect
 import linecache
 
 import pytest
@@ -44,7 +45,7 @@ def _images(n=64, seed=0):
 @pytest.mark.parametrize("notebook, scale, name, package, edit", STEPS, ids=[s[2] for s in STEPS])
 def test_the_notebook_shows_the_step_the_package_runs(notebook, scale, name, package, edit):
     assert code_of(notebook_function(notebook, name)) == code_of(
-        image.inspect.getsource(package)), (
+        inspect.getsource(package)), (
         f"{name} in {notebook} and training.image.{name} differ: change both together")
     config = preset(scale, "ci").config
     assert image.package_step(config) is package  # the step that trains the chapter's runs

@@ -778,14 +778,14 @@ def fit_that_records(seen: list):
 
 
 def steps_that_record(seen: list):
-    """A stand-in for the world model's training steps (a meta loss has no value to log): it
-    notes the devices of the model and of batch 0, and trains nothing."""
+    """A stand-in for the loop the world model trains in (a meta loss has no value to log): it
+    notes the devices of batch 0, and trains nothing (the model's are checked on its return)."""
 
-    def train_steps(run, step, batch, config, history, start, progress):
-        seen.append(devices_of(run.model) | {t.device.type for t in batch(0)
-                                             if isinstance(t, torch.Tensor)})
+    def run_steps(update, batch_fn, steps, *, history, **options):
+        seen.append({t.device.type for t in batch_fn(0) if isinstance(t, torch.Tensor)})
         history.log(0, loss=0.0)
-    return train_steps
+        return history
+    return run_steps
 
 
 WORLD_RUN = world.WorldTrainConfig(model=WORLD_CONFIGS["ci"], n_trajectories=16, batch_size=4,
@@ -801,9 +801,9 @@ def test_train_or_load_returns_the_model_on_the_device_asked_for(tmp_path, monke
     loaded, _ = training.train_or_load(WORLD_RUN, "run", device="meta")  # the notebooks' entry
     assert devices_of(loaded) == {"meta"}  # read from the cache straight onto the device
     seen = []
-    monkeypatch.setattr(world, "_train_steps", steps_that_record(seen))
+    monkeypatch.setattr(world, "run_steps", steps_that_record(seen))
     on_meta, _ = training.train_or_load(WORLD_RUN, "another_run", device="meta")
-    assert seen == [{"meta"}] and devices_of(on_meta) == {"meta"}  # model and every batch
+    assert seen == [{"meta"}] and devices_of(on_meta) == {"meta"}  # every batch and the model
 
 
 @pytest.mark.filterwarnings("ignore:for .*copying from a non-meta parameter")  # a no-op copy

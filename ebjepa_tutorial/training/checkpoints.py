@@ -12,10 +12,13 @@
 
 from __future__ import annotations
 
+import ast
 import hashlib
+import inspect
 import json
 import os
 import pickle
+import textwrap
 import warnings
 from dataclasses import MISSING, Field, asdict, fields, is_dataclass
 from pathlib import Path
@@ -128,6 +131,20 @@ def _default(field: Field) -> Any:
     if field.default is not MISSING:
         return field.default
     return field.default_factory() if field.default_factory is not MISSING else MISSING
+
+
+def code_of(function) -> str:
+    """``function``'s code as a syntax tree, its docstring and comments aside (a notebook's
+    copy of a step explains in markdown what the package's says in its docstring); its
+    ``repr``, never another function's code, where Python cannot read its source."""
+    try:
+        tree = ast.parse(textwrap.dedent(inspect.getsource(function))).body[0]
+    except (OSError, TypeError, SyntaxError, IndexError):
+        return repr(function)
+    body = tree.body
+    if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
+        tree.body = body[1:]
+    return ast.dump(tree)
 
 
 def same_run(state: dict, identity: Any) -> bool:

@@ -20,10 +20,7 @@ Batch norm normalises over each rank's rows, unless ``sync_batchnorm`` (GPUs onl
 
 from __future__ import annotations
 
-import ast
 import hashlib
-import inspect
-import textwrap
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -31,7 +28,6 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 from torch import nn
-from tqdm.auto import tqdm
 
 from .. import augment, distributed, losses
 from ..losses.sigreg import sigreg_loss
@@ -47,8 +43,8 @@ from ..utils import (
     memory_format,
     mixed_precision,
 )
-from .checkpoints import checkpoint_paths, run_identity, save_or_warn
-from .loop import History, _check_finite, _over_ranks, load_or_train, resume, step_generator
+from .checkpoints import checkpoint_paths, code_of, run_identity
+from .loop import History, load_or_train, resume, run_steps, saver, step_generator
 from .optim import split_decay_params, warmup_cosine_scheduler
 
 EVAL_FIELDS = ("eval_image_size",)  # how a run is scored, not how it is trained
@@ -265,42 +261,19 @@ def train_image_jepa(config: ImageJEPAConfig, images: torch.Tensor,
         start, history = resume(checkpoint, model, optimizer, scheduler, run)
     batch = _batches(config, images.to(device), layout)  # CIFAR-10 stays on the GPU (150 MB)
 
-    def save(done: int) -> bool:  # what resume() reads back; rank 0 alone writes
-        return not distributed.is_main() or save_or_warn(
-            Path(checkpoint), model=model.state_dict(), optimizer=optimizer.state_dict(),
-            scheduler=scheduler.state_dict(), history=dict(history), step=done, config=run,
-            seconds=history.seconds)
+    def state(done: int) -> dict:  # what resume() reads back; rank 0 alone writes
+        return dict(model=model.state_dict(), optimizer=optimizer.state_dict(),
+                    scheduler=scheduler.state_dict(), history=dict(history), step=done,
+                    config=run, seconds=history.seconds)
 
     model.train()
-    _loop(config, package_step(config) if step is None else step,
-          (net, optimizer, scheduler), batch, history, start,
-          save if checkpoint is not None else None, checkpoint_every, progress)
-    return model, history
-
-
-def _loop(config: ImageJEPAConfig, step, trainer, batch, history: History, start: int, save,
-          checkpoint_every: int, progress: bool) -> None:
-    """Steps ``start`` to ``config.steps - 1``, each ``step(net, batch(i), optimizer,
-    scheduler, weights)`` with ``trainer = (net, optimizer, scheduler)``. Every
-    :data:`LOG_EVERY` steps (and the last) the loss and terms are read, checked to be finite
-    and logged; ``save(done)``, if given, every ``checkpoint_every`` steps and at the end."""
-    net, optimizer, scheduler = trainer
+    step = package_step(config) if step is None else step
     weights = INVARIANCE_ONLY if config.loss is None else config.loss
-    bar = tqdm(range(start, config.steps), desc=f"{config.method} training", initial=start,
-               total=config.steps, disable=not (progress and distributed.is_main()))
-    started = time.perf_counter() - history.seconds
-    for i in bar:
-        loss, terms = step(net, batch(i), optimizer, scheduler, weights)
-        if i % LOG_EVERY == 0 or i == config.steps - 1:  # the one wait for a GPU
-            value, terms = _over_ranks(loss, terms() if callable(terms) else terms)
-            _check_finite(value, terms, i)
-            history.log(i, loss=value, **terms)
-            bar.set_postfix(loss=f"{value:.4f}", refresh=False)
-        history.seconds = time.perf_counter() - started
-        due = (i + 1) % checkpoint_every == 0 or i + 1 == config.steps
-        if save is not None and due and not save(i + 1):
-            save = None  # warned once; train on without
-    bar.close()
+    run_steps(lambda views, i: step(net, views, optimizer, scheduler, weights), batch,
+              config.steps, start_step=start, history=history, log_every=LOG_EVERY,
+              desc=f"{config.method} training", progress=progress,
+              after=saver(checkpoint, state, config.steps, checkpoint_every))
+    return model, history
 
 
 def _batches(config: ImageJEPAConfig, images: torch.Tensor, layout):
@@ -347,23 +320,10 @@ def identity(config: ImageJEPAConfig, encoder_only: bool = False, step=None) -> 
     """
     always = ("loss", "steps", "batch_size", "lr", "seed")
     extra = {"weights": "encoder only"} if encoder_only else {}
-    if step is not None and _code(step) != _code(package_step(config)):
-        extra["step"] = hashlib.sha256(_code(step).encode()).hexdigest()[:16]
+    if step is not None and code_of(step) != code_of(package_step(config)):
+        extra["step"] = hashlib.sha256(code_of(step).encode()).hexdigest()[:16]
     stored = run_identity(config, always, **extra)
     return {k: v for k, v in stored.items() if k not in EVAL_FIELDS}
-
-
-def _code(function) -> str:
-    """``function``'s code as a syntax tree without its docstring (comments are not in it);
-    its ``repr`` (never another's) where Python cannot find its source."""
-    try:
-        tree = ast.parse(textwrap.dedent(inspect.getsource(function))).body[0]
-    except (OSError, TypeError, SyntaxError, IndexError):
-        return repr(function)
-    body = tree.body
-    if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
-        tree.body = body[1:]
-    return ast.dump(tree)
 
 
 def _partial(name: str) -> Path:

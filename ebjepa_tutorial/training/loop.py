@@ -84,6 +84,56 @@ def _over_ranks(loss: torch.Tensor, terms: dict) -> tuple[float, dict[str, float
     return values[0], dict(zip(terms, values[1:]))
 
 
+def run_steps(
+    update: Callable[[Any, int], tuple[torch.Tensor, Any]],
+    batch_fn: Callable[[int], Any],
+    steps: int,
+    *,
+    start_step: int = 0,
+    history: History | None = None,
+    log_every: int = 1,
+    desc: str = "training",
+    progress: bool = True,
+    after: Callable[[int], Any] | None = None,
+) -> History:
+    """The loop every recipe shares: steps ``start_step .. steps - 1`` of ``update``.
+
+    ``update(batch_fn(step), step) -> (loss, terms)`` takes one whole training step
+    (forward, backward, the optimiser's step: a notebook writes it in a cell); ``terms`` is a
+    dict of 0-d tensors or floats, or a function returning one, called only on the steps
+    logged. Every ``log_every`` steps (and the last) the loss and terms are read (the one
+    wait for a GPU), averaged over ranks, checked to be finite and logged, the total as
+    ``"loss"``. ``after(done)``, on rank 0 after each step, saves what the caller keeps.
+    """
+    history = History() if history is None else history
+    bar = tqdm(range(start_step, steps), desc=desc, initial=start_step, total=steps,
+               disable=not (progress and distributed.is_main()))  # one bar, not one per rank
+    started = time.perf_counter() - history.seconds
+    for step in bar:
+        loss, terms = update(batch_fn(step), step)
+        if step % log_every == 0 or step == steps - 1:
+            value, terms = _over_ranks(loss, terms() if callable(terms) else terms)
+            _check_finite(value, terms, step)
+            history.log(step, loss=value, **terms)
+            bar.set_postfix(loss=f"{value:.4f}", refresh=False)
+        history.seconds = time.perf_counter() - started
+        if after is not None and distributed.is_main():
+            after(step + 1)
+    return history
+
+
+def saver(path: str | Path | None, state: Callable[[int], dict], steps: int, every: int):
+    """``after(done)`` for :func:`run_steps`: ``state(done)`` saved to ``path`` every ``every``
+    steps and at the last; a folder that cannot be written warns once and training goes on."""
+    target = [path]
+
+    def after(done: int) -> None:
+        if target[0] is not None and (done % every == 0 or done == steps):
+            target[0] = target[0] if save_or_warn(Path(target[0]), **state(done)) else None
+
+    return after
+
+
 def fit(
     model: torch.nn.Module,
     optimizer: torch.optim.Optimizer,
@@ -104,45 +154,26 @@ def fit(
     clip_grad_norm: float = 0.0,
     snapshots: Sequence[tuple[int, str | Path, dict[str, Any]]] = (),
 ) -> History:
-    """Train for ``steps`` optimiser steps; return the :class:`History` of logged terms.
+    """:func:`run_steps` with the usual update: ``loss_fn(batch) -> (loss, terms)``, then
+    backward, the optimiser's step (its gradient clipped to ``clip_grad_norm`` if > 0) and the
+    scheduler's. Returns the :class:`History` of logged terms.
 
-    ``loss_fn(batch) -> (loss, terms)`` where ``loss`` is a 0-d tensor and
-    ``terms`` a dict of 0-d tensors (or floats) to log (the total is logged as ``"loss"``).
-    Every ``log_every`` steps (and at the last) they are read, checked to be finite
-    before that step is taken, and logged; other steps never wait for a GPU.
-    ``batch_fn(step)`` returns the batch for optimiser step ``step``.
-    With ``checkpoint``, the model, optimiser, scheduler, history and step are
-    saved every ``checkpoint_every`` steps and at the end, with ``config`` (a
-    plain dict describing the run) so that :func:`resume` recognises its own runs.
-    ``after_step``: an object called with the step number after each optimiser
-    step (e.g. extra updates of part of the model); its ``state_dict()`` is saved
-    in the checkpoint and given back to it by :func:`resume`.
-    ``clip_grad_norm > 0`` scales each step's gradient down to at most that global norm.
+    With ``checkpoint``, the model, optimiser, scheduler, history and step are saved every
+    ``checkpoint_every`` steps and at the end, with ``config`` (the run's identity) so that
+    :func:`resume` recognises its own runs. ``after_step``: an object called with the step
+    number after each optimiser step (e.g. extra updates of part of the model); its
+    ``state_dict()`` is saved with the rest and given back to it by :func:`resume`.
     ``snapshots``: ``(step, path, config)`` triples; after ``step`` steps the state is also
     saved to ``path`` as a checkpoint of the run ``config``, for another run that is this one
     up to that step to resume from (notebook 03's K = 1 curriculum).
-    In a process group, ``model`` is the bare module (its state dict is saved,
-    by rank 0 alone) and ``loss_fn`` calls its DDP wrapper.
+    In a process group, ``model`` is the bare module (its state dict is saved, by rank 0
+    alone) and ``loss_fn`` calls its DDP wrapper.
     """
     history = History() if history is None else history
     model.train()
-    shown = progress and distributed.is_main()  # one bar, not one per rank
-    bar = tqdm(range(start_step, steps), desc=desc, disable=not shown, initial=start_step,
-               total=steps)
-    started = time.perf_counter() - history.seconds
 
-    def state(done: int, identity: dict[str, Any] | None) -> dict[str, Any]:
-        return dict(model=model.state_dict(), optimizer=optimizer.state_dict(),
-                    scheduler=None if scheduler is None else scheduler.state_dict(),
-                    history=dict(history), step=done, config=identity, seconds=history.seconds,
-                    **({} if after_step is None else {"after_step": after_step.state_dict()}))
-
-    for step in bar:
-        loss, terms = loss_fn(batch_fn(step))
-        logged = step % log_every == 0 or step == steps - 1
-        if logged:  # read (the one wait for a GPU) and checked before the step is taken
-            value, terms = _over_ranks(loss, terms)
-            _check_finite(value, terms, step)
+    def update(batch, step: int):
+        loss, terms = loss_fn(batch)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if clip_grad_norm:
@@ -152,19 +183,25 @@ def fit(
             scheduler.step()
         if after_step is not None:
             after_step(step)
-        if logged:
-            history.log(step, loss=value, **terms)
-            bar.set_postfix(loss=f"{value:.4f}", refresh=False)
-        done = step + 1
-        history.seconds = time.perf_counter() - started
-        due = done % checkpoint_every == 0 or done == steps
-        if checkpoint is not None and due and distributed.is_main():
-            saved = save_or_warn(Path(checkpoint), **state(done, config))
-            checkpoint = checkpoint if saved else None  # warned once; train on without
+        return loss, terms
+
+    def state(done: int, identity: dict[str, Any] | None = config) -> dict[str, Any]:
+        extra = {} if after_step is None else {"after_step": after_step.state_dict()}
+        return dict(model=model.state_dict(), optimizer=optimizer.state_dict(),
+                    scheduler=None if scheduler is None else scheduler.state_dict(),
+                    history=dict(history), step=done, config=identity,
+                    seconds=history.seconds, **extra)
+
+    save = saver(checkpoint, state, steps, checkpoint_every)
+
+    def after(done: int) -> None:
+        save(done)
         for at, path, other in snapshots:
-            if done == at and distributed.is_main():
+            if done == at:
                 save_or_warn(Path(path), **state(done, other))
-    return history
+
+    return run_steps(update, batch_fn, steps, start_step=start_step, history=history,
+                     log_every=log_every, desc=desc, progress=progress, after=after)
 
 
 def resume(

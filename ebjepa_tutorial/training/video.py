@@ -28,11 +28,8 @@ normalises over each rank's frames, unless ``sync_batchnorm`` (GPUs only).
 
 from __future__ import annotations
 
-import ast
 import hashlib
-import inspect
 import math
-import textwrap
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -54,7 +51,7 @@ from ..utils import (
     is_positive,
     mixed_precision,
 )
-from .checkpoints import checkpoint_paths, run_identity
+from .checkpoints import checkpoint_paths, code_of, run_identity
 from .loop import History, fit, load_or_train, resume, step_generator
 from .optim import warmup_cosine_scheduler
 
@@ -183,20 +180,7 @@ def video_jepa_loss(model, frames, config, rollout_steps=None, statistics=None):
 def is_the_course_step(step) -> bool:
     """Whether ``step`` is :func:`video_jepa_loss` in code (comments and docstrings aside):
     ``None``, the package's function, or a notebook's unedited copy of it."""
-    if step is None or step is video_jepa_loss:
-        return True
-    try:
-        source = inspect.getsource(step)
-    except (OSError, TypeError):  # defined where its source cannot be read: count it as edited
-        return False
-
-    def code(text: str) -> str:
-        function = ast.parse(textwrap.dedent(text)).body[0]
-        body = function.body
-        if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
-            function.body = body[1:]  # the docstring
-        return ast.dump(function)
-    return code(source) == code(inspect.getsource(video_jepa_loss))
+    return step is None or code_of(step) == code_of(video_jepa_loss)
 
 
 def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,

@@ -26,16 +26,11 @@ runs in one process.
 
 from __future__ import annotations
 
-import ast
-import inspect
 import math
-import textwrap
-import time
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import torch
-from tqdm.auto import tqdm
 
 from .. import distributed
 from ..envs import generate_trajectories, render
@@ -53,15 +48,15 @@ from ..losses.world import (
 )
 from ..models.world import WORLD_CONFIGS, WorldConfig, WorldModel, trajectory_latents
 from ..utils import check_fields, get_device, is_int_at_least, is_non_negative, is_positive
-from .checkpoints import checkpoint_paths, load_checkpoint, run_identity, save_or_warn
+from .checkpoints import checkpoint_paths, code_of, load_checkpoint, run_identity
 from .loop import (
     History,
-    _check_finite,
-    _over_ranks,
     fit,
     load_or_fit,
     load_or_train,
     resume,
+    run_steps,
+    saver,
     step_generator,
 )
 
@@ -324,23 +319,6 @@ def world_model_step(model, optimizer, frames, actions, generator, config, step,
     return total.detach(), {name: value.detach() for name, value in terms.items()}
 
 
-def same_code(a, b) -> bool:
-    """Whether functions ``a`` and ``b`` have the same syntax tree, docstrings and comments
-    aside: an edited step does not. A function whose source cannot be read counts as another."""
-    try:
-        return _syntax_tree(a) == _syntax_tree(b)
-    except (OSError, TypeError):
-        return False
-
-
-def _syntax_tree(function) -> str:
-    tree = ast.parse(textwrap.dedent(inspect.getsource(function))).body[0]
-    first = tree.body[0] if tree.body else None
-    if isinstance(first, ast.Expr) and isinstance(getattr(first, "value", None), ast.Constant):
-        tree.body = tree.body[1:]  # the docstring
-    return ast.dump(tree)
-
-
 def train_world_model(
     config: WorldTrainConfig,
     data: Trajectories | None = None,
@@ -375,8 +353,23 @@ def train_world_model(
         start, history = resume(checkpoint, model, optimizer, scheduler, identity(config),
                                 after_step=replay)
     batch = _batches(config, data, torch.empty(per_rank, frames, 2, 65, 65), device)
-    run = _Run(model, optimizer, scheduler, replay, checkpoint, identity(config))
-    _train_steps(run, step, batch, config, history, start, progress)
+
+    def update(batch, n: int):
+        total, terms = step(model, optimizer, *batch, config, n, replay)
+        if scheduler is not None:
+            scheduler.step()
+        return total, terms
+
+    def state(done: int) -> dict:  # what resume() reads back; rank 0 alone writes
+        extra = {} if replay is None else {"after_step": replay.state_dict()}
+        return dict(model=model.state_dict(), optimizer=optimizer.state_dict(),
+                    scheduler=None if scheduler is None else scheduler.state_dict(),
+                    history=dict(history), step=done, config=identity(config),
+                    seconds=history.seconds, **extra)
+
+    run_steps(update, batch, config.steps, start_step=start, history=history,
+              log_every=LOG_EVERY, desc="world model", progress=progress,
+              after=saver(checkpoint, state, config.steps, CHECKPOINT_EVERY))
     model.eval()
     return model, history
 
@@ -401,54 +394,6 @@ def _batches(config: WorldTrainConfig, data: Trajectories, buffer: torch.Tensor,
     return batch
 
 
-@dataclass
-class _Run:
-    """What a training run updates and saves: the model, its optimiser, schedule and replay,
-    and where its resumable checkpoint goes (``identity`` names the run in it)."""
-
-    model: WorldModel
-    optimizer: torch.optim.Optimizer
-    scheduler: object
-    replay: LatentReplay | None
-    checkpoint: str | Path | None
-    identity: dict
-
-    def save(self, history: History, done: int) -> None:
-        """The resumable state after ``done`` steps, as :func:`~.loop.resume` reads it."""
-        state = dict(model=self.model.state_dict(), optimizer=self.optimizer.state_dict(),
-                     scheduler=None if self.scheduler is None else self.scheduler.state_dict(),
-                     history=dict(history), step=done, config=self.identity,
-                     seconds=history.seconds)
-        if self.replay is not None:
-            state["after_step"] = self.replay.state_dict()
-        if not save_or_warn(Path(self.checkpoint), **state):
-            self.checkpoint = None  # warned once; train on without
-
-
-def _train_steps(run: _Run, step, batch, config: WorldTrainConfig, history: History,
-                 start: int, progress: bool) -> None:
-    """Steps ``start .. config.steps - 1`` of ``step`` on ``batch(n)``, with a progress bar;
-    every ``LOG_EVERY`` steps (and the last) the terms are read, checked and logged; every
-    ``CHECKPOINT_EVERY`` steps (and the last) rank 0 saves the run."""
-    bar = tqdm(range(start, config.steps), desc="world model", initial=start, total=config.steps,
-               disable=not (progress and distributed.is_main()))
-    started = time.perf_counter() - history.seconds
-    for n in bar:
-        total, terms = step(run.model, run.optimizer, *batch(n), config, n, run.replay)
-        if run.scheduler is not None:
-            run.scheduler.step()
-        if n % LOG_EVERY == 0 or n == config.steps - 1:  # the one wait for a GPU
-            value, terms = _over_ranks(total, terms)
-            _check_finite(value, terms, n)
-            history.log(n, loss=value, **terms)
-            bar.set_postfix(loss=f"{value:.4f}", refresh=False)
-        history.seconds = time.perf_counter() - started
-        done = n + 1
-        due = done % CHECKPOINT_EVERY == 0 or done == config.steps
-        if run.checkpoint is not None and due and distributed.is_main():
-            run.save(history, done)
-
-
 def train_or_load(config: WorldTrainConfig, name: str,
                   device: torch.device | str | None = None,
                   step=world_model_step) -> tuple[WorldModel, History]:
@@ -463,7 +408,7 @@ def train_or_load(config: WorldTrainConfig, name: str,
     ``device`` (default: the best available, cuda, mps, cpu) whether loaded or trained.
     """
     device = get_device(device)
-    if not same_code(step, world_model_step):
+    if code_of(step) != code_of(world_model_step):
         print(f"{name}: your {step.__name__} differs from the course's, so it trains here, "
               "without loading or saving a checkpoint.")
         model, history = train_world_model(config, device=device, step=step)
