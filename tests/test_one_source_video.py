@@ -5,8 +5,8 @@ projector, variance and covariance, weighted total) in a cell the learner edits,
 training cells pass it to the package's loop. The package's
 ``training.video.video_jepa_loss`` trained the shipped checkpoints. These tests fail
 when the two differ in code, show that an edit to the cell changes what trains at ``ci``
-while the unedited cell reproduces the package's history, and that an edited step never
-reads or writes a checkpoint.
+while the unedited cell reproduces the package's history, and that an edited step is a run
+of its own, which never loads or replaces the unedited run's checkpoint.
 """
 
 import inspect
@@ -53,18 +53,24 @@ def test_an_edit_to_the_step_changes_what_trains_and_the_cell_as_shown_does_not(
     assert changed["covariance"][-1] != package["covariance"][-1]  # and training followed
 
 
-def test_an_edited_step_neither_loads_nor_writes_a_checkpoint(monkeypatch, capsys):
+def test_an_edited_step_is_a_run_of_its_own(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
     source = notebook_function(NOTEBOOK, "video_jepa_loss")
     edited = _define(source.replace("total = prediction +", "total = 2 * prediction +"))
-    assert not video.is_the_course_step(edited)
-    assert video.is_the_course_step(None) and video.is_the_course_step(video.video_jepa_loss)
     digits = torch.randint(0, 256, (20, 1, 28, 28), dtype=torch.uint8,
                            generator=torch.Generator().manual_seed(1))
-    calls = []
-    monkeypatch.setattr(video, "load_or_train", lambda *a, **k: calls.append(a))
-    model, history = video.train_or_load(CONFIG, "edited_step_run", digits, progress=False,
-                                         step=edited)
-    assert not calls and len(history["loss"]) > 0  # trained here, the cache never consulted
-    cache, shipped = video.checkpoint_paths("edited_step_run")
-    assert not any(p.exists() for p in (cache, shipped, cache.with_suffix(".partial")))
-    assert "edited training step" in capsys.readouterr().out
+    course = video.identity(CONFIG, digits)
+    assert video.identity(CONFIG, digits, video.video_jepa_loss) == course  # unedited: the same
+    assert video.identity(CONFIG, digits, edited) == {**course, "step": course_hash(edited)}
+    video.train_or_load(CONFIG, "run", digits, progress=False)
+    assert "Trained and saved" in capsys.readouterr().out
+    video.train_or_load(CONFIG, "run", digits, progress=False, step=edited)
+    assert "Trained and saved" in capsys.readouterr().out  # never the unedited run's file
+    video.train_or_load(CONFIG, "run", digits, progress=False, step=edited)
+    assert "Loaded a trained model" in capsys.readouterr().out  # cached as itself
+    video.train_or_load(CONFIG, "run", digits, progress=False)
+    assert "moved it back" in capsys.readouterr().out  # the unedited run was kept aside
+
+
+def course_hash(step) -> str:
+    return video.step_identity(step, video.video_jepa_loss)["step"]

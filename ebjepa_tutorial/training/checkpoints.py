@@ -147,6 +147,17 @@ def code_of(function) -> str:
     return ast.dump(tree)
 
 
+def step_identity(step, course_step) -> dict:
+    """What an identity adds for the training ``step`` a run used: nothing for ``None`` or
+    for ``course_step`` in code (a notebook's unedited copy of it), else a hash of the step's
+    code. A run with an edited step (a learner's cell) is thus a run of its own: it never
+    loads, or replaces, the shipped or cached unedited run, and is cached and resumed as itself.
+    """
+    if step is None or code_of(step) == code_of(course_step):
+        return {}
+    return {"step": hashlib.sha256(code_of(step).encode()).hexdigest()[:16]}
+
+
 def same_run(state: dict, identity: Any) -> bool:
     """Whether ``state`` was saved by the run of ``identity``."""
     return state.get("config") == identity

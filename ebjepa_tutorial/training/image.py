@@ -20,7 +20,6 @@ Batch norm normalises over each rank's rows, unless ``sync_batchnorm`` (GPUs onl
 
 from __future__ import annotations
 
-import hashlib
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -43,7 +42,7 @@ from ..utils import (
     memory_format,
     mixed_precision,
 )
-from .checkpoints import checkpoint_paths, code_of, run_identity
+from .checkpoints import checkpoint_paths, run_identity, step_identity
 from .loop import History, load_or_train, resume, run_steps, saver, step_generator
 from .optim import split_decay_params, warmup_cosine_scheduler
 
@@ -315,14 +314,12 @@ def identity(config: ImageJEPAConfig, encoder_only: bool = False, step=None) -> 
     """What a checkpoint stores to recognise its run (:func:`run_identity`), without
     ``EVAL_FIELDS``: how a network will be probed does not change how it is trained. A file
     of the encoder alone is marked, so it is never read as a whole model. A ``step`` whose
-    code differs from :func:`package_step`'s (an edited cell) is another run: its file holds a
-    hash of that code, so it never loads, or replaces, the shipped or cached unedited run.
+    code differs from :func:`package_step`'s (an edited cell) is another run
+    (:func:`~.checkpoints.step_identity`).
     """
     always = ("loss", "steps", "batch_size", "lr", "seed")
     extra = {"weights": "encoder only"} if encoder_only else {}
-    if step is not None and code_of(step) != code_of(package_step(config)):
-        extra["step"] = hashlib.sha256(code_of(step).encode()).hexdigest()[:16]
-    stored = run_identity(config, always, **extra)
+    stored = run_identity(config, always, **extra, **step_identity(step, package_step(config)))
     return {k: v for k, v in stored.items() if k not in EVAL_FIELDS}
 
 

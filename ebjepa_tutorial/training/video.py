@@ -51,7 +51,7 @@ from ..utils import (
     is_positive,
     mixed_precision,
 )
-from .checkpoints import checkpoint_paths, code_of, run_identity
+from .checkpoints import checkpoint_paths, run_identity, step_identity
 from .loop import History, fit, load_or_train, resume, step_generator
 from .optim import warmup_cosine_scheduler
 
@@ -177,12 +177,6 @@ def video_jepa_loss(model, frames, config, rollout_steps=None, statistics=None):
     return total, {name: value.detach() for name, value in terms.items()}
 
 
-def is_the_course_step(step) -> bool:
-    """Whether ``step`` is :func:`video_jepa_loss` in code (comments and docstrings aside):
-    ``None``, the package's function, or a notebook's unedited copy of it."""
-    return step is None or code_of(step) == code_of(video_jepa_loss)
-
-
 def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
                      checkpoint: str | Path | None = None, progress: bool = True,
                      device: torch.device | str | None = None,
@@ -232,7 +226,8 @@ def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
     scheduler = warmup_cosine_scheduler(optimizer, config.steps, 0) if config.cosine else None
     start, history = (0, History())
     if checkpoint is not None:
-        start, history = resume(checkpoint, model, optimizer, scheduler, identity(config))
+        start, history = resume(checkpoint, model, optimizer, scheduler,
+                                identity(config, step=step))
 
     def batch(step: int) -> tuple[torch.Tensor, int]:  # the step's clips and its K
         generator = step_generator(config.seed, step)
@@ -246,18 +241,23 @@ def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
 
     fit(model, optimizer, step_loss, batch, config.steps, scheduler=scheduler, history=history,
         start_step=start, checkpoint=checkpoint, checkpoint_every=100, log_every=10,
-        desc="video JEPA", progress=progress, config=identity(config),
+        desc="video JEPA", progress=progress, config=identity(config, step=step),
         after_step=None if after_step is None else lambda step: after_step(model, step),
-        snapshots=[(config.switch_step, path, identity(other)) for other, path in handover])
+        snapshots=[(config.switch_step, path, identity(other, step=step))
+                   for other, path in handover])
     return model.eval(), history
 
 
-def identity(config: VideoJEPAConfig, train_digits: torch.Tensor | None = None) -> dict:
-    """What a checkpoint stores to recognise its run: ``config`` and, for a finished
-    run, the digits its clips were made from (:func:`digits_fingerprint`)."""
+def identity(config: VideoJEPAConfig, train_digits: torch.Tensor | None = None,
+             step=None) -> dict:
+    """What a checkpoint stores to recognise its run: ``config``, for a finished run the
+    digits its clips were made from (:func:`digits_fingerprint`), and an edited ``step``'s
+    code (:func:`~.checkpoints.step_identity`)."""
+    edited = step_identity(step, video_jepa_loss)
     if train_digits is None:  # a run in progress: its clips are fixed by the caller
-        return run_identity(config, VIDEO_ALWAYS)
-    return run_identity(config, VIDEO_ALWAYS, train_digits=digits_fingerprint(train_digits))
+        return run_identity(config, VIDEO_ALWAYS, **edited)
+    return run_identity(config, VIDEO_ALWAYS, train_digits=digits_fingerprint(train_digits),
+                        **edited)
 
 
 VIDEO_ALWAYS = ("steps", "batch_size", "lr", "rollout_steps", "seed")
@@ -290,13 +290,9 @@ def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor
     saved or started yet get this run's state at the switch as their ``.partial``, so
     they train only their rollout half.
     ``step``: the loss of one step (:func:`train_video_jepa`). A step whose code differs from
-    :func:`video_jepa_loss` (a learner's edit) trains here every time, with no checkpoint
-    loaded or written, so that it can never be mistaken for, or overwrite, the course's run.
+    :func:`video_jepa_loss` (a learner's edit) is a run of its own: its identity holds a hash
+    of its code, so it never loads, or replaces, the course's run.
     """
-    if not is_the_course_step(step):
-        print(f"{name}: your edited training step trains here, with no checkpoint read or written")
-        return train_video_jepa(config, make_clips(config, train_digits), progress=progress,
-                                device=device, sync_batchnorm=sync_batchnorm, step=step)
     torch.manual_seed(config.seed)
     model = VideoJEPA(config.model).to(get_device(device))
     cache_path, shipped = checkpoint_paths(name)
@@ -310,7 +306,7 @@ def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor
         model.load_state_dict(trained.state_dict())
         return history
 
-    history = load_or_train(cache_path, model, train, identity(config, train_digits), shipped,
+    history = load_or_train(cache_path, model, train, identity(config, train_digits, step), shipped,
                             partial=partial)
     return model.eval(), history
 

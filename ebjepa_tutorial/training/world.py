@@ -48,7 +48,7 @@ from ..losses.world import (
 )
 from ..models.world import WORLD_CONFIGS, WorldConfig, WorldModel, trajectory_latents
 from ..utils import check_fields, get_device, is_int_at_least, is_non_negative, is_positive
-from .checkpoints import checkpoint_paths, code_of, load_checkpoint, run_identity
+from .checkpoints import checkpoint_paths, load_checkpoint, run_identity, step_identity
 from .loop import (
     History,
     fit,
@@ -350,7 +350,7 @@ def train_world_model(
     replay = LatentReplay(model, config, frames, device) if config.recipe.replay_steps else None
     start, history = (0, History())
     if checkpoint is not None:
-        start, history = resume(checkpoint, model, optimizer, scheduler, identity(config),
+        start, history = resume(checkpoint, model, optimizer, scheduler, identity(config, step),
                                 after_step=replay)
     batch = _batches(config, data, torch.empty(per_rank, frames, 2, 65, 65), device)
 
@@ -364,7 +364,7 @@ def train_world_model(
         extra = {} if replay is None else {"after_step": replay.state_dict()}
         return dict(model=model.state_dict(), optimizer=optimizer.state_dict(),
                     scheduler=None if scheduler is None else scheduler.state_dict(),
-                    history=dict(history), step=done, config=identity(config),
+                    history=dict(history), step=done, config=identity(config, step),
                     seconds=history.seconds, **extra)
 
     run_steps(update, batch, config.steps, start_step=start, history=history,
@@ -402,17 +402,12 @@ def train_or_load(config: WorldTrainConfig, name: str,
     Looks for ``checkpoints/<name>.pt`` (shipped with the course), then
     ``data/cache/checkpoints/<name>.pt``; otherwise makes the run's data, trains
     (resumable from ``<name>.partial`` in the cache) and saves. A ``step`` whose code
-    differs from :func:`world_model_step` (an edited one) trains anew and neither
-    loads nor saves a checkpoint: no file of another step is ever taken for its run,
-    or overwritten by it. Returns ``(model in eval mode, history)``, the model on
+    differs from :func:`world_model_step` (an edited one) is a run of its own
+    (:func:`identity`): it never loads, or replaces, the course's run. Returns
+    ``(model in eval mode, history)``, the model on
     ``device`` (default: the best available, cuda, mps, cpu) whether loaded or trained.
     """
     device = get_device(device)
-    if code_of(step) != code_of(world_model_step):
-        print(f"{name}: your {step.__name__} differs from the course's, so it trains here, "
-              "without loading or saving a checkpoint.")
-        model, history = train_world_model(config, device=device, step=step)
-        return model.eval(), history
     # a loaded file brings its input statistics too; it is read straight onto the device
     model = WorldModel(config.model).to(device)
     cache_path, shipped = checkpoint_paths(name)
@@ -424,7 +419,7 @@ def train_or_load(config: WorldTrainConfig, name: str,
         model.load_state_dict(trained.state_dict())
         return history
 
-    history = load_or_train(cache_path, model, train, identity(config), shipped,
+    history = load_or_train(cache_path, model, train, identity(config, step), shipped,
                             partial=partial)
     return model.eval(), history
 
@@ -625,12 +620,14 @@ def with_coeffs(config: WorldTrainConfig, pairs: list[str]) -> WorldTrainConfig:
     return replace(config, coeffs=replace(config.coeffs, **values))
 
 
-def identity(config: WorldTrainConfig) -> dict:
+def identity(config: WorldTrainConfig, step=None) -> dict:
     """What a checkpoint stores to recognise the run of ``config``. With several walls it
     records the ranges the walls are drawn from too, so that a model of one geometry never
-    loads as the model of another."""
+    loads as the model of another; with an edited ``step``, a hash of its code
+    (:func:`~.checkpoints.step_identity`)."""
     always = ("steps", "batch_size", "lr", "n_trajectories", "rollout_steps", "seed")
+    edited = step_identity(step, world_model_step)
     if config.walls == 1:
-        return run_identity(config, always)
-    return run_identity(config, always,
+        return run_identity(config, always, **edited)
+    return run_identity(config, always, **edited,
                         wall_x_ranges=[list(r) for r in WALL_X_RANGES[config.walls]])
