@@ -234,18 +234,12 @@ def train_image_jepa(config: ImageJEPAConfig, images: torch.Tensor,
                      checkpoint: str | Path | None = None, device: torch.device | str = "cpu",
                      progress: bool = True, checkpoint_every: int = 250,
                      sync_batchnorm: bool = False, step=None) -> tuple[ImageJEPA, History]:
-    """Train on uint8 ``images`` ``(N, 3, 32, 32)``; resume from ``checkpoint`` if it exists.
-
-    ``step(net, batch, optimizer, scheduler, weights)``: one training step (default
-    :func:`package_step`; notebooks 01 and 02 pass their own cell's). Batch ``step``
-    (indices and augmentations) is drawn from a generator seeded with ``(seed, step)``,
-    so a resumed run matches an uninterrupted one.
-
-    Inside a process group (``torchrun``) it trains with DistributedDataParallel:
-    ``config.batch_size`` is the global batch, and global batch = per-rank batch x
-    world size (a world size that does not divide it is refused). Rank 0 alone
-    writes ``checkpoint``, which resumes on any world size. ``sync_batchnorm``
-    (off by default; GPUs only) normalises over the global batch, not each rank's.
+    """Train on uint8 ``images (N, 3, 32, 32)``, each update a ``step(net, batch, optimizer,
+    scheduler, weights)`` (default :func:`package_step`; notebooks 01 and 02 pass their
+    cell's); resume from ``checkpoint``. Batches come from generators seeded by ``(seed,
+    step)``, so a resumed run sees the same ones. Under ``torchrun`` it trains with DDP:
+    ``config.batch_size`` is the global batch (per-rank batch x world size), rank 0 alone
+    writes ``checkpoint``, and ``sync_batchnorm`` (GPUs only) normalises over the global batch.
     """
     distributed.per_rank_batch(config.batch_size)  # refuses an uneven split before any work
     torch.manual_seed(config.seed)

@@ -154,36 +154,18 @@ def fit(
     clip_grad_norm: float = 0.0,
     snapshots: Sequence[tuple[int, str | Path, dict[str, Any]]] = (),
 ) -> History:
-    """:func:`run_steps` with the usual update: ``loss_fn(batch) -> (loss, terms)``, then
-    backward, the optimiser's step (its gradient clipped to ``clip_grad_norm`` if > 0) and the
-    scheduler's. Returns the :class:`History` of logged terms.
+    """:func:`run_steps` with :func:`backward_step`'s update; returns the :class:`History`.
 
-    With ``checkpoint``, the model, optimiser, scheduler, history and step are saved every
-    ``checkpoint_every`` steps and at the end, with ``config`` (the run's identity) so that
-    :func:`resume` recognises its own runs. ``after_step``: an object called with the step
-    number after each optimiser step (e.g. extra updates of part of the model); its
-    ``state_dict()`` is saved with the rest and given back to it by :func:`resume`.
-    ``snapshots``: ``(step, path, config)`` triples; after ``step`` steps the state is also
-    saved to ``path`` as a checkpoint of the run ``config``, for another run that is this one
-    up to that step to resume from (notebook 03's K = 1 curriculum).
-    In a process group, ``model`` is the bare module (its state dict is saved, by rank 0
-    alone) and ``loss_fn`` calls its DDP wrapper.
+    With ``checkpoint``, the model, optimiser, scheduler, history and step (and
+    ``after_step.state_dict()``) are saved every ``checkpoint_every`` steps and at the end,
+    with ``config`` (the run's identity) for :func:`resume`. ``snapshots``: ``(step, path,
+    config)``: after ``step`` steps the state is also saved to ``path`` as the run ``config``,
+    which is this one up to there (notebook 03's K = 1 half). In a process group, ``model`` is
+    the bare module (rank 0 saves it) and ``loss_fn`` calls its DDP wrapper.
     """
     history = History() if history is None else history
     model.train()
-
-    def update(batch, step: int):
-        loss, terms = loss_fn(batch)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        if clip_grad_norm:
-            torch.nn.utils.clip_grad_norm_(model.parameters(), clip_grad_norm)
-        optimizer.step()
-        if scheduler is not None:
-            scheduler.step()
-        if after_step is not None:
-            after_step(step)
-        return loss, terms
+    update = backward_step(model, optimizer, loss_fn, scheduler, clip_grad_norm, after_step)
 
     def state(done: int, identity: dict[str, Any] | None = config) -> dict[str, Any]:
         extra = {} if after_step is None else {"after_step": after_step.state_dict()}
@@ -202,6 +184,28 @@ def fit(
 
     return run_steps(update, batch_fn, steps, start_step=start_step, history=history,
                      log_every=log_every, desc=desc, progress=progress, after=after)
+
+
+def backward_step(model, optimizer, loss_fn: LossFn, scheduler=None, clip_grad_norm=0.0,
+                  after_step=None):
+    """``update(batch, step)`` for :func:`run_steps` from a loss: ``loss_fn(batch)``, backward,
+    the gradient clipped to ``clip_grad_norm`` if > 0, the optimiser's and scheduler's steps,
+    then ``after_step(step)``. Returns the loss and its terms."""
+
+    def update(batch, step: int):
+        loss, terms = loss_fn(batch)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if clip_grad_norm:
+            torch.nn.utils.clip_grad_norm_(model.parameters(), clip_grad_norm)
+        optimizer.step()
+        if scheduler is not None:
+            scheduler.step()
+        if after_step is not None:
+            after_step(step)
+        return loss, terms
+
+    return update
 
 
 def resume(

@@ -177,6 +177,20 @@ def video_jepa_loss(model, frames, config, rollout_steps=None, statistics=None):
     return total, {name: value.detach() for name, value in terms.items()}
 
 
+def _check_run(config: VideoJEPAConfig, clips, handover, both: bool) -> None:
+    """Refuse a bad run before any work: a handover to another run, ``after_step`` and a
+    checkpoint together (``both``), an uneven split over ranks, clips too short."""
+    for other, _ in handover:
+        if not config.shares_start_with(other):
+            raise ValueError(f"a run can hand over its K = 1 half only to the same run with "
+                             f"another K; got {other} for {config}")
+    if both:
+        raise ValueError("after_step is not saved in a checkpoint: give one or the other")
+    if distributed.world_size() > 1:  # (one process may take one-clip batches)
+        distributed.per_rank_batch(config.batch_size)
+    check_clips(clips, config.model.context + config.rollout_steps)
+
+
 def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
                      checkpoint: str | Path | None = None, progress: bool = True,
                      device: torch.device | str | None = None,
@@ -204,15 +218,7 @@ def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
     notebook 03 passes its cell's copy, which the learner can edit.
     """
     step = step or video_jepa_loss
-    for other, _ in handover:
-        if not config.shares_start_with(other):
-            raise ValueError(f"a run can hand over its K = 1 half only to the same run with "
-                             f"another K; got {other} for {config}")
-    if after_step is not None and checkpoint is not None:
-        raise ValueError("after_step is not saved in a checkpoint: give one or the other")
-    if distributed.world_size() > 1:  # refuse an uneven split before any work (one
-        distributed.per_rank_batch(config.batch_size)  # process may take one-clip batches)
-    check_clips(clips, config.model.context + config.rollout_steps)
+    _check_run(config, clips, handover, after_step is not None and checkpoint is not None)
     device = get_device(device)
     torch.manual_seed(config.seed)
     layout = torch.channels_last if config.channels_last else torch.contiguous_format

@@ -327,17 +327,11 @@ def train_world_model(
     device: torch.device | str | None = None,
     step=world_model_step,
 ) -> tuple[WorldModel, History]:
-    """Train a world model on ``data`` (default :func:`make_data`); resume from ``checkpoint``.
-
-    Each step is ``step`` (default :func:`world_model_step`; notebook 05 passes its own
-    copy, or an edited one). Batch ``step`` is drawn from a generator seeded by ``(seed,
-    step)``, so a resumed run sees the same batches as an uninterrupted one. ``device``
-    defaults to the best available (cuda, mps, cpu).
-
-    Inside a process group (``torchrun``), ``config.batch_size`` is the global batch, and
-    global batch = per-rank batch x world size (a world size that does not divide it is
-    refused); the step averages the gradients over the ranks. Rank 0 alone writes
-    ``checkpoint``, which resumes on any world size.
+    """Train a world model on ``data`` (default :func:`make_data`), each update a ``step``
+    (notebook 05 passes its cell's); resume from ``checkpoint``. Batches come from
+    generators seeded by ``(seed, step)``, so a resumed run sees the same ones. Under
+    ``torchrun``, ``config.batch_size`` is the global batch (per-rank batch x world size);
+    the step averages gradients over ranks and rank 0 alone writes ``checkpoint``.
     """
     per_rank = distributed.per_rank_batch(config.batch_size)  # refuse an uneven split early
     data = make_data(config) if data is None else data
