@@ -238,8 +238,9 @@ def train_image_jepa(config: ImageJEPAConfig, images: torch.Tensor,
     scheduler, weights)`` (default :func:`package_step`; notebooks 01 and 02 pass their
     cell's); resume from ``checkpoint``. Batches come from generators seeded by ``(seed,
     step)``, so a resumed run sees the same ones. Under ``torchrun`` it trains with DDP:
-    ``config.batch_size`` is the global batch (per-rank batch x world size), rank 0 alone
-    writes ``checkpoint``, and ``sync_batchnorm`` (GPUs only) normalises over the global batch.
+    ``config.batch_size`` is the global batch (global batch = per-rank batch x world size),
+    rank 0 alone writes ``checkpoint``, and ``sync_batchnorm`` (GPUs only) normalises over the
+    global batch.
     """
     distributed.per_rank_batch(config.batch_size)  # refuses an uneven split before any work
     torch.manual_seed(config.seed)

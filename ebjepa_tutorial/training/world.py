@@ -330,8 +330,8 @@ def train_world_model(
     """Train a world model on ``data`` (default :func:`make_data`), each update a ``step``
     (notebook 05 passes its cell's); resume from ``checkpoint``. Batches come from
     generators seeded by ``(seed, step)``, so a resumed run sees the same ones. Under
-    ``torchrun``, ``config.batch_size`` is the global batch (per-rank batch x world size);
-    the step averages gradients over ranks and rank 0 alone writes ``checkpoint``.
+    ``torchrun``, ``config.batch_size`` is the global batch (global batch = per-rank batch x
+    world size); the step averages gradients over ranks and rank 0 alone writes ``checkpoint``.
     """
     per_rank = distributed.per_rank_batch(config.batch_size)  # refuse an uneven split early
     data = make_data(config) if data is None else data
