@@ -38,7 +38,12 @@ from ebjepa_tutorial.training.image import (
 )
 from ebjepa_tutorial.utils import at_least_float32, mixed_precision
 from research.benchmarks import command_line
-from research.benchmarks.timing import precision_name, print_parts, time_parts
+from research.benchmarks.timing import (
+    backward_and_step,
+    precision_name,
+    print_parts,
+    time_parts,
+)
 from tools import figures
 
 
@@ -58,11 +63,7 @@ def step_split(config, images: torch.Tensor) -> dict[str, float]:
         yield "forward"
         loss, _ = jepa_loss(config, z_a, z_b, generator)
         yield "loss"
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        yield "backward"
-        optimizer.step()
-        yield "optimiser"
+        yield from backward_and_step(optimizer, loss)
 
     return time_parts(step)
 

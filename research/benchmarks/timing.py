@@ -33,6 +33,15 @@ def time_parts(step: Callable[[int], Iterator[str]], repeats: int = 5) -> dict[s
     return {name: statistics.median(seconds) for name, seconds in times.items()}
 
 
+def backward_and_step(optimizer: torch.optim.Optimizer, loss: torch.Tensor) -> Iterator[str]:
+    """The last two parts of a timed step (``yield from`` it): backward, then the optimiser."""
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    yield "backward"
+    optimizer.step()
+    yield "optimiser"
+
+
 def print_parts(title: str, parts: dict[str, float]) -> None:
     """Print :func:`time_parts`' result under ``title``: seconds and share of each part."""
     total = sum(parts.values())

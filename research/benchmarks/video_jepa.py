@@ -43,7 +43,12 @@ from ebjepa_tutorial.training.video import (
 )
 from ebjepa_tutorial.utils import at_least_float32, mixed_precision
 from research.benchmarks import command_line
-from research.benchmarks.timing import precision_name, print_parts, time_parts
+from research.benchmarks.timing import (
+    backward_and_step,
+    precision_name,
+    print_parts,
+    time_parts,
+)
 from tools import figures
 
 
@@ -86,11 +91,7 @@ def step_split() -> dict[str, float]:
         variance, covariance = variance_and_covariance(at_least_float32(projected))
         loss = prediction + config.std_coeff * variance + config.cov_coeff * covariance
         yield "projector+regulariser"
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        yield "backward"
-        optimizer.step()
-        yield "optimiser"
+        yield from backward_and_step(optimizer, loss)
 
     return time_parts(step)
 
