@@ -90,6 +90,27 @@ METRICS |= {  # figures of the longer runs, and class runs pooled over seeds or 
     "planning_cpu_s_shipped": Metric("CPU seconds per episode", "{:.1f} s", ours=_SHIPPED),
 }
 
+_NOTEBOOKS = "python -m research.benchmarks.notebooks"
+METRICS |= {  # compute times: a whole notebook, and one live class run of a chapter's model
+    **{f"notebook_{nb}_ci": Metric(f"notebook {nb} at ci", "{:.0f} s", benchmark=_NOTEBOOKS)
+       for nb in ("00", "01", "02", "03", "04", "05", "06", "07")},
+    **{f"notebook_{nb}_class": Metric(f"notebook {nb} at class", "{:.1f} min",
+                                      benchmark=_NOTEBOOKS)
+       for nb in ("00", "01", "02", "03", "04", "05", "06", "07")},
+    "vicreg_train_min": Metric("VICReg class run", "{:.1f} min", benchmark=_IMAGE),
+    "sigreg_train_min": Metric("SIGReg class run", "{:.1f} min", benchmark=_IMAGE),
+    "video_train_min": Metric("video JEPA class run (K = 4)", "{:.1f} min",
+                              benchmark="python -m research.benchmarks.video_jepa"),
+    "world_train_min": Metric("world model class run", "{:.1f} min",
+                              benchmark="python -m research.benchmarks.two_rooms"),
+}
+
+TABLE_4 = {"no_variance": 0.47, "no_covariance": 0.46, "no_temporal": 0.61, "no_idm": 0.01}
+METRICS |= {  # the paper's Table 4 at class length: chapter 05's class run without one term
+    f"planning_success_{suffix}": Metric("planning success", "{:.0%}", paper, "MPPI, the paper's "
+                                         "Table 4", _PLANNING, "the course's class run")
+    for suffix, paper in TABLE_4.items()}
+
 BEYOND_PLANNERS = ("flat", "short", "learned_cost", "two_level")  # notebook 07's comparison
 METRICS |= {f"beyond_{world}_{planner}": Metric("planning success", "{:.1%}",
                                                 benchmark="python -m research.benchmarks.beyond")
