@@ -1,14 +1,13 @@
 """What every checker shares.
 
 - :class:`ExerciseError`, the error a check raises, and :class:`Case`, one test input;
-- the graded hints: :func:`hint` (level 1 the idea, 2 the formula and the shapes in words or
-  maths, 3 an outline of the code), each exercise's text kept beside its checker;
+- the graded hints, :func:`hint`: 1 the idea, 2 the formula with the shapes, 3 an outline of
+  the code;
 - :func:`compare`: the learner's function against the course's on every case, values and,
-  where the output trains something, gradients;
-- the general mistakes, named in words wherever they occur: a sign flip, a factor off, an
-  input changed in place, a gradient that does not flow (and what cut it), the wrong axis,
-  a transposed result, a float, a tuple or a numpy value where a tensor belongs;
-- :func:`diagnose`, which names one of an exercise's own typical mistakes;
+  where the output trains something, gradients. A wrong answer is named in words: one of
+  the exercise's own typical mistakes (:func:`diagnose`), or a general one (a sign flip, a
+  factor off, an input changed in place, a gradient that does not flow and what cut it, the
+  wrong axis, a transposed result, a float, a tuple or numpy where a tensor belongs);
 - :func:`exercise`, which lets a notebook run on past an exercise not yet done.
 """
 
@@ -36,12 +35,6 @@ class NotImplementedYet(ExerciseError):
     """The learner's function still raises ``NotImplementedError`` (the student stub)."""
 
 
-def not_implemented(name: str) -> NotImplementedYet:
-    return NotImplementedYet(
-        f"{name} is not implemented yet: replace the `raise NotImplementedError` line with your "
-        "code, run that cell, then run this check again.")
-
-
 # ------------------------------------------------------------------------------ graded hints
 
 LEVELS = ("the idea", "the formula", "an outline of the code")
@@ -50,18 +43,15 @@ _shown: dict[str, int] = {}  # exercise -> the highest level shown in this sessi
 
 
 def hint(name, level: int | None = None) -> None:
-    """Print a hint for the exercise ``name`` (its function's name, or the function itself).
-
-    ``level`` 1 gives the idea, 2 the formula and the shapes, 3 an outline of
-    the code; without it, the next level not shown yet.
-    """
+    """Print hint ``level`` of the exercise ``name`` (its function's name, or the function):
+    1 the idea, 2 the formula and the shapes, 3 an outline of the code; by default the next
+    level not shown yet."""
     name = getattr(name, "__name__", name)
     if name not in HINTS:
         print(f"There is no exercise called {name!r}; the exercises with hints are "
               f"{', '.join(sorted(HINTS))}.")
         return
-    if level is None:
-        level = min(_shown.get(name, 0) + 1, len(LEVELS))
+    level = min(_shown.get(name, 0) + 1, len(LEVELS)) if level is None else level
     if level not in range(1, len(LEVELS) + 1):
         raise ValueError(f"level is 1 (the idea), 2 (the formula) or 3 (an outline of the "
                          f"code), not {level!r}")
@@ -80,10 +70,8 @@ def hint_text(name: str, level: int) -> str:
 
 
 def _offer(name: str) -> str:
-    """What a failed check adds: the next hint not shown yet when it holds no code (levels 1
-    and 2), else how to ask for the outline."""
-    if name not in HINTS:
-        return ""
+    """What a failed check adds: the next hint not shown yet while it holds no code (levels 1
+    and 2), then how to ask for the outline."""
     level = _shown.get(name, 0) + 1
     if level < len(LEVELS):
         _shown[name] = level
@@ -94,100 +82,78 @@ def _offer(name: str) -> str:
 # --------------------------------------------------------------- watching the learner's call
 
 _NOT_THE_LEARNER = (str(Path(torch.__file__).parent), str(Path(__file__).parent))
-_CUTS = {"detach": ".detach()", "detach_": ".detach_()", "numpy": ".numpy()",
+_CUTS = {"detach": ".detach()", "detach_": ".detach_()", "numpy": ".numpy()",  # C methods
          "item": ".item()", "tolist": ".tolist()"}
-_GRAD_OFF = {"no_grad.__enter__": "torch.no_grad()",
+_GRAD_OFF = {"no_grad.__enter__": "torch.no_grad()",  # Python functions, by qualified name
              "inference_mode.__enter__": "torch.inference_mode()",
              "set_grad_enabled.__init__": "torch.set_grad_enabled(False)"}
-_WHAT_CUTS = {".detach()": "detaches a tensor from the autograd graph",
-              ".detach_()": "detaches a tensor from the autograd graph",
-              ".numpy()": "leaves torch for numpy, which has no gradients",
-              "numpy": "leaves torch for numpy, which has no gradients",
+_DETACHES = "detaches a tensor from the autograd graph"
+_NUMPY = "leaves torch for numpy, which has no gradients"
+_WHAT_CUTS = {".detach()": _DETACHES, ".detach_()": _DETACHES, ".numpy()": _NUMPY, "numpy": _NUMPY,
               ".item()": "turns a tensor into a Python number",
               ".tolist()": "turns a tensor into Python numbers",
-              "torch.no_grad()": "switches gradients off",
-              "torch.inference_mode()": "switches gradients off",
-              "torch.set_grad_enabled(False)": "switches gradients off"}
+              **{word: "switches gradients off" for word in _GRAD_OFF.values()}}
+
+
+def _learners(frame) -> bool:
+    return frame is not None and not frame.f_code.co_filename.startswith(_NOT_THE_LEARNER)
 
 
 class _Spy:
     """Watches one call of a learner's function (``sys.setprofile``): what in it can cut a
-    gradient (``cuts``), and which of the exercise's answers, the course's own functions, it
-    calls (kept for the whole check in ``_Spy.called``; ``_Spy.answers`` is set by
-    :func:`exercise`)."""
+    gradient (``cuts``), and which of the course's own answers (``_Spy.answers``, code ->
+    name, set by :func:`exercise`) it calls (``_Spy.called``, kept for the whole check)."""
 
-    answers: dict = {}  # code object -> the name of the course's function
-    called: list = []
-
-    def __init__(self):
-        self.cuts: list[str] = []
+    answers: dict = {}
+    called: dict = {}  # used as an ordered set, as is cuts
 
     def __enter__(self) -> _Spy:
-        self._previous = sys.getprofile()
+        self.cuts, self._previous = {}, sys.getprofile()
         sys.setprofile(self._event)
         return self
 
     def __exit__(self, *exc) -> None:
         sys.setprofile(self._previous)
 
-    @staticmethod
-    def _note(found: list, word: str) -> None:
-        if word not in found:
-            found.append(word)
-
     def _event(self, frame, event, arg) -> None:
         if event == "c_call":
-            word = _CUTS.get(getattr(arg, "__name__", None))
-            if word and not frame.f_code.co_filename.startswith(_NOT_THE_LEARNER):
-                self._note(self.cuts, word)
+            if (word := _CUTS.get(getattr(arg, "__name__", None))) and _learners(frame):
+                self.cuts.setdefault(word)
         elif event == "call":
-            code, caller = frame.f_code, frame.f_back
-            learner = caller is not None and not caller.f_code.co_filename.startswith(
-                _NOT_THE_LEARNER)
+            code, learner = frame.f_code, _learners(frame.f_back)
             qualname = getattr(code, "co_qualname", code.co_name)
             # a decorator's no_grad is entered from torch's own code: count it wherever it is
             if qualname in _GRAD_OFF and (learner or code.co_name == "__enter__"):
-                self._note(self.cuts, _GRAD_OFF[qualname])
+                self.cuts.setdefault(_GRAD_OFF[qualname])
             elif code.co_name == "__array__" and learner:
-                self._note(self.cuts, "numpy")
+                self.cuts.setdefault("numpy")
             elif code in _Spy.answers:
-                self._note(_Spy.called, _Spy.answers[code])
-
-
-def _own_copy(case: Case) -> tuple[tuple, dict]:
-    """``case``'s inputs with every tensor cloned: the learner's function gets its own."""
-    def copy(v):
-        return v.clone() if isinstance(v, torch.Tensor) else v
-    return tuple(copy(v) for v in case.args), {k: copy(v) for k, v in case.kwargs.items()}
-
-
-def _label(labels: Sequence[str], index) -> str:
-    if isinstance(index, str):
-        return index
-    return labels[index] if index < len(labels) else f"argument {index + 1}"
+                _Spy.called.setdefault(_Spy.answers[code])
 
 
 def _run(fn: Callable, name: str, case: Case, labels: Sequence[str] = ()):
-    """``fn`` on its own copy of ``case``'s inputs: returns ``(output, spy)``; raises
+    """``fn`` on its own copy of ``case``'s inputs -> ``(output, spy)``; raises
     :class:`ExerciseError` if it crashes or changes an input in place."""
-    args, kwargs = _own_copy(case)
+    def copy(v):
+        return v.clone() if isinstance(v, torch.Tensor) else v
+    args, kwargs = [copy(v) for v in case.args], {k: copy(v) for k, v in case.kwargs.items()}
     with _Spy() as spy:
         try:
             out = fn(*args, **kwargs)
         except NotImplementedError:
-            raise not_implemented(name) from None
+            raise NotImplementedYet(f"{name} is not implemented yet") from None
         except Exception as err:
-            message = f"{name} raised {type(err).__name__}: {err} on {case.description}."
-            if "numpy" in str(err) and "grad" in str(err):
-                message += (" numpy cannot carry a gradient, so a loss computed through it "
-                            "cannot train anything: compute with torch operations on the "
-                            "tensors you are given.")
-            raise ExerciseError(message) from err
-    for where, before, after in [*zip(range(len(args)), case.args, args),
-                                 *((k, case.kwargs[k], kwargs[k]) for k in kwargs)]:
+            numpy = (" numpy cannot carry a gradient, so a loss computed through it cannot "
+                     "train anything: compute with torch operations on the tensors you are "
+                     "given.") if "numpy" in str(err) and "grad" in str(err) else ""
+            raise ExerciseError(f"{name} raised {type(err).__name__}: {err} on "
+                                f"{case.description}.{numpy}") from err
+    for where, after in [*enumerate(args), *kwargs.items()]:
+        before = case.kwargs[where] if isinstance(where, str) else case.args[where]
         if isinstance(before, torch.Tensor) and (after.shape != before.shape
                                                  or not torch.equal(after, before)):
-            label = _label(labels, where)
+            label = where if isinstance(where, str) else (
+                labels[where] if where < len(labels) else f"argument {where + 1}")
             raise ExerciseError(
                 f"{name} changed its input {label} in place on {case.description}: after the "
                 f"call, {label} no longer holds what was passed in. Look for an operator such "
@@ -198,21 +164,16 @@ def _run(fn: Callable, name: str, case: Case, labels: Sequence[str] = ()):
     return out, spy
 
 
-def _call(fn: Callable, name: str, case: Case, labels: Sequence[str] = ()):
-    """``fn``'s output on its own copy of ``case``'s inputs (see :func:`_run`)."""
-    return _run(fn, name, case, labels)[0]
-
-
 # ---------------------------------------------------------------------------- test cases
 
 @dataclass
 class Case:
     """One test input: a description for the learner and the arguments to call with.
 
-    ``sizes``: named sizes of the inputs (``{"B": 32, "D": 8}``) the factor detector
-    tries, besides those :func:`compare` reads off the shapes (its ``dims``). ``atol``:
-    a looser tolerance on this case, where float32 cannot do better; ``why_loose`` says
-    why, printed beside the verdict when an answer needed it.
+    ``sizes``: named sizes of the inputs (``{"K": 3}``) the factor detector tries, besides
+    those :func:`compare` reads off the shapes (its ``dims``). ``atol``: a looser tolerance
+    on this case, where float32 cannot do better; ``why_loose`` says why, printed beside the
+    verdict when an answer needed it (``{diff}``: the largest difference).
     """
 
     description: str
@@ -292,33 +253,29 @@ def diagnose(got, diagnoses: Sequence[Diagnosis], case: Case, atol: float = 1e-5
 
 # ---------------------------------------------------------------------- general mistakes
 
-def _factors(sizes: dict) -> list[tuple[str, float]]:
-    """The factors a value can be off by: for each named size n, n, n - 1, n/(n - 1) and its
-    square (an unbiased estimate divided by n, then squared); then 2. A named size comes
-    first: its advice is the more telling."""
+def _factors(sizes: dict) -> list[tuple[str, float, str]]:
+    """``(words, value, what to look at)`` for each factor a value can be off by: for each
+    named size n, n, n - 1, n/(n - 1) and its square (an unbiased estimate divided by n,
+    then squared); then 2. A named size comes first: its advice is the more telling."""
     out = []
     for k, n in sizes.items():
-        out += [(k, float(n))] if n >= 2 else []
+        if n >= 2:
+            out.append((k, n, f"a sum over {k} where a mean belongs (or a mean where a sum "
+                              "belongs), or a division by the wrong count"))
         if n > 2:
-            out += [(f"{k} - 1", n - 1.0), (f"{k}/({k} - 1)", n / (n - 1)),
-                    (f"({k}/({k} - 1))²", (n / (n - 1)) ** 2)]
-    return out + [("2", 2.0)]
-
-
-_FACTOR_ADVICE = {
-    "2": "a sum of two things where their average belongs (or the reverse), or a factor 2 "
-         "missing or repeated",
-    "n": "a sum over {k} where a mean belongs (or a mean where a sum belongs), or a division "
-         "by the wrong count",
-    "n - 1": "a division by {k} - 1 where {k} belongs or the reverse, or a count that is off",
-    "ratio": "a division by {k} where {k} - 1 belongs (the unbiased estimate divides by "
-             "{k} - 1), or the reverse",
-}
+            ratio = (f"a division by {k} where {k} - 1 belongs (the unbiased estimate divides "
+                     f"by {k} - 1), or the reverse")
+            out += [(f"{k} - 1", n - 1, f"a division by {k} - 1 where {k} belongs or the "
+                                        "reverse, or a count that is off"),
+                    (f"{k}/({k} - 1)", n / (n - 1), ratio),
+                    (f"({k}/({k} - 1))²", (n / (n - 1)) ** 2, ratio)]
+    return out + [("2", 2, "a sum of two things where their average belongs (or the reverse), "
+                           "or a factor 2 missing or repeated")]
 
 
 def _factor_off(got, expected, sizes: dict, advice: dict) -> tuple[str, str, str] | None:
     """``(what was found, '', what to look at)`` when ``got`` is ``expected`` times one of
-    :func:`_factors`, else None."""
+    :func:`_factors` (``advice``, by the factor's words, replaces the general one)."""
     big = expected.abs() > 1e-8
     if not big.any() or not torch.isfinite(got).all():
         return None
@@ -326,16 +283,13 @@ def _factor_off(got, expected, sizes: dict, advice: dict) -> tuple[str, str, str
     r = float(ratio.median())
     if r <= 0 or not torch.allclose(ratio, torch.full_like(ratio, r), rtol=1e-4, atol=0):
         return None
-    for words, value in _factors(sizes):
+    for words, value, look in _factors(sizes):
         for direction, target in (("too large", value), ("too small", 1 / value)):
             if abs(r - target) < 1e-4 * target:
-                k = words.split("/")[0].strip("(").split(" ")[0]
-                kind = ("2" if words == "2" else "n" if words == k else
-                        "n - 1" if words.endswith("- 1") else "ratio")
                 shown = "" if words == "2" else f" = {value:.4g}"
                 return (f"is {direction} by a factor of {words}{shown}", "",
                         "The formula is right up to a constant; look at what you divide by or "
-                        f"average over: {advice.get(words, _FACTOR_ADVICE[kind].format(k=k))}")
+                        f"average over: {advice.get(words, look)}")
     return None
 
 
@@ -348,81 +302,6 @@ def _transposition(got, expected, atol: float) -> tuple[int, ...] | None:
                 expected.permute(order).double(), got.double(), atol=atol, rtol=1e-4):
             return order
     return None
-
-
-@dataclass
-class _Options:
-    """What :func:`compare` knows about an exercise besides its reference."""
-
-    atol: float
-    diagnoses: Sequence[Diagnosis]
-    labels: Sequence[str]
-    dims: dict
-    swap: tuple | None
-    factors: dict
-
-
-def _sizes(case: Case, options: _Options) -> dict:
-    """The named sizes of ``case``: read off the shapes (``options.dims``), then its own."""
-    sizes = {}
-    for index, names in options.dims.items():
-        shape = case.args[index].shape
-        sizes.update({k: n for k, n in zip(names, shape) if k != "_"})
-    return {**sizes, **case.sizes}
-
-
-def _swapped(reference: Callable, swap: tuple) -> Callable:
-    """``reference`` applied with two axes of one input exchanged (the wrong-axis mistake)."""
-    index, a, b = swap[:3]
-
-    def run(*args, **kwargs):
-        args = list(args)
-        args[index] = args[index].transpose(a, b).contiguous()
-        return reference(*args, **kwargs)
-    return run
-
-
-def _general_cause(got, expected, case: Case, reference: Callable, options: _Options):
-    """``(what was found, what it means, what to look at)`` for a general mistake of value,
-    or None; the second may be empty."""
-    if torch.isfinite(expected).all() and not torch.isfinite(got).all():
-        return ("returned NaN or infinity", "",
-                "Look for 0/0 (exponentials that underflowed to 0, then divided by their "
-                "sum), a square root or a log of a negative number, or a division by zero")
-    scale = float(expected.abs().max()) if expected.numel() else 0.0
-    if scale > 10 * options.atol and torch.allclose(got, -expected, atol=options.atol,
-                                                    rtol=1e-4):
-        return ("has the wrong sign", "it is minus the answer",
-                "A loss that training minimises must grow with what it penalises; look for a "
-                "difference taken the wrong way round or a minus sign too many")
-    if (found := _factor_off(got, expected, _sizes(case, options), options.factors)):
-        return found
-    if options.swap is not None:
-        try:
-            wrong = _numbers(_swapped(reference, options.swap)(*case.args, **case.kwargs))
-        except Exception:
-            wrong = None
-        if wrong is not None and wrong.shape == got.shape and torch.allclose(
-                got, wrong, atol=options.atol / 10, rtol=1e-5):
-            return ("worked along the wrong axis",
-                    f"it gives what the answer would be with {options.swap[3]}", options.swap[4])
-    return None
-
-
-def _disagreement(got, expected, atol: float) -> str:
-    """``'x, but the answer is y'``, naming the first element that differs."""
-    got, expected = got.detach(), expected.detach()
-    if expected.numel() == 1:
-        return f"{float(got):.6g}, but the answer is {float(expected):.6g}"
-    bad = ~torch.isclose(got.double(), expected.double(), atol=atol, rtol=1e-4)
-    first = tuple(int(i) for i in bad.nonzero()[0])
-    g, e = float(got[first]), float(expected[first])
-    return (f"{g:.6g} at index {list(first)}, but the answer is {e:.6g} (the first of "
-            f"{int(bad.sum())} wrong elements out of {bad.numel()})")
-
-
-def _parts(value, parts) -> list:
-    return list(value) if parts else [value]
 
 
 def _shape_problem(got, expected, name: str, case: Case, label: str, atol: float) -> str:
@@ -440,40 +319,16 @@ def _shape_problem(got, expected, name: str, case: Case, label: str, atol: float
             f"{single}.")
 
 
-def _check_case(fn, reference, case: Case, name: str, options: _Options,
-                parts: Sequence[str] | None) -> str:
-    """Raise :class:`ExerciseError` unless ``fn`` agrees with ``reference`` on ``case``;
-    returns a note when it agreed only within the case's looser tolerance."""
-    expected = reference(*case.args, **case.kwargs)
-    got, _ = _run(fn, name, case, options.labels)
-    atol = case.atol if case.atol is not None else options.atol
-    if parts and (not isinstance(got, (tuple, list)) or len(got) != len(parts)):
-        raise ExerciseError(
-            f"{name} returned {_describe(got)} on {case.description}; it must return a pair "
-            f"({', '.join(parts)}), {len(parts)} tensors.")
-    note = ""
-    for label, g, e in zip(parts or [""], _parts(got, parts), _parts(expected, parts)):
-        if (problem := _type_problem(g, name, case, label)):
-            raise ExerciseError(problem)
-        if g.shape != e.shape:
-            raise ExerciseError(_shape_problem(g, e, name, case, label, atol)
-                                + diagnose(got, options.diagnoses, case, atol))
-        if torch.allclose(g.double(), e.double(), atol=atol, rtol=1e-4):
-            if not torch.allclose(g.double(), e.double(), atol=options.atol, rtol=1e-4):
-                note = case.why_loose.format(diff=float((g.double() - e.double()).abs().max()))
-            continue
-        numbers = f"{'your ' + label + ' ' if label else ''}{_disagreement(g, e, atol)}"
-        why = diagnose(got, options.diagnoses, case, atol)
-        general = None if why else _general_cause(g.double(), e.double(), case, reference,
-                                                  options)
-        if general:
-            found, meaning, look = general
-            where = f" (your {label})" if label else ""
-            meaning = f": {meaning}" if meaning else ""
-            raise ExerciseError(f"{name} {found} on {case.description}{where}{meaning}. {look}. "
-                                f"Yours: {numbers}.")
-        raise ExerciseError(f"{name} gave {numbers} on {case.description}.{why}")
-    return note
+def _disagreement(got, expected, atol: float) -> str:
+    """``'x, but the answer is y'``, naming the first element that differs."""
+    got, expected = got.detach(), expected.detach()
+    if expected.numel() == 1:
+        return f"{float(got):.6g}, but the answer is {float(expected):.6g}"
+    bad = ~torch.isclose(got.double(), expected.double(), atol=atol, rtol=1e-4)
+    first = tuple(int(i) for i in bad.nonzero()[0])
+    g, e = float(got[first]), float(expected[first])
+    return (f"{g:.6g} at index {list(first)}, but the answer is {e:.6g} (the first of "
+            f"{int(bad.sum())} wrong elements out of {bad.numel()})")
 
 
 def gradient(fn: Callable, index: int) -> Callable:
@@ -484,9 +339,7 @@ def gradient(fn: Callable, index: int) -> Callable:
         x = args[index].detach().clone().requires_grad_()
         out = fn(*args[:index], x.clone(), *args[index + 1:], **kwargs)  # clone: in place is ok
         run.connected = isinstance(out, torch.Tensor) and out.requires_grad
-        if not run.connected:
-            return torch.zeros_like(x)
-        grad = torch.autograd.grad(out.sum(), x, allow_unused=True)[0]
+        grad = torch.autograd.grad(out.sum(), x, allow_unused=True)[0] if run.connected else None
         return torch.zeros_like(x) if grad is None else grad
 
     run.__name__ = getattr(fn, "__name__", "your function")
@@ -502,10 +355,9 @@ def _no_flow(name: str, case: Case, label: str, cuts: Sequence[str], connected: 
              why: str = "") -> ExerciseError:
     """The error for a right value whose gradient does not reach ``label``: what cut it."""
     if cuts:
-        found = _and([f"{c} ({_WHAT_CUTS[c]})" for c in cuts])
-        look = (f"Found in your function: {found}. Keep every step from the inputs to the "
-                "output in torch, with no .detach(), .item(), numpy or torch.no_grad() on the "
-                "way.")
+        look = (f"Found in your function: {_and([f'{c} ({_WHAT_CUTS[c]})' for c in cuts])}. "
+                "Keep every step from the inputs to the output in torch, with no .detach(), "
+                ".item(), numpy or torch.no_grad() on the way.")
     elif not connected:
         look = ("Its output is not connected to the inputs in autograd: look for .detach(), "
                 ".item(), a detour through numpy, or torch.no_grad().")
@@ -517,28 +369,115 @@ def _no_flow(name: str, case: Case, label: str, cuts: Sequence[str], connected: 
         f"{label}, so training could not change it through this term. {look}{why}")
 
 
-def _check_gradient(fn, reference, case: Case, name: str, options: _Options, index: int,
-                    label: str) -> None:
-    """Raise :class:`ExerciseError` unless ``fn``'s gradient with respect to argument ``index``
-    agrees with ``reference``'s."""
-    atol = case.atol if case.atol is not None else options.atol
-    expected = gradient(reference, index)(*case.args, **case.kwargs)
-    probe = gradient(fn, index)
-    try:
-        got, spy = _run(probe, name, case, options.labels)
-    except ExerciseError as error:  # numpy refuses a tensor that requires a gradient
-        if "numpy" in str(error) and "grad" in str(error):
-            raise _no_flow(name, case, label, ["numpy"], False) from None
-        raise
-    if torch.allclose(got.double(), expected.double(), atol=atol, rtol=1e-4):
-        return
-    why = diagnose(got, [(w, gradient(v, index)) for w, v in options.diagnoses], case, atol)
-    if expected.abs().max() > 0 and not got.any():  # an own slip explains only a partial cut
-        raise _no_flow(name, case, label, spy.cuts, probe.connected,
-                       why if probe.connected else "")
-    raise ExerciseError(
-        f"{name} has the right value on {case.description}, but not the right gradient with "
-        f"respect to {label}: it gave {_disagreement(got, expected, atol)}.{why}")
+# ---------------------------------------------------------------------- the comparison
+
+@dataclass
+class _Comparison:
+    """The learner's ``fn`` against ``reference`` on one case at a time (see :func:`compare`)."""
+
+    fn: Callable
+    reference: Callable
+    name: str
+    atol: float
+    diagnoses: Sequence[Diagnosis]
+    parts: Sequence[str] | None
+    labels: Sequence[str]
+    dims: dict
+    swap: tuple | None
+    factors: dict
+
+    def check_values(self, case: Case) -> str:
+        """Raise :class:`ExerciseError` unless ``fn`` agrees with the reference on ``case``;
+        returns a note when it agreed only within the case's looser tolerance."""
+        expected = self.reference(*case.args, **case.kwargs)
+        got, _ = _run(self.fn, self.name, case, self.labels)
+        atol, name, parts = self.atol if case.atol is None else case.atol, self.name, self.parts
+        if parts and (not isinstance(got, (tuple, list)) or len(got) != len(parts)):
+            raise ExerciseError(
+                f"{name} returned {_describe(got)} on {case.description}; it must return a pair "
+                f"({', '.join(parts)}), {len(parts)} tensors.")
+        note = ""
+        for label, g, e in zip(parts, got, expected) if parts else [("", got, expected)]:
+            if (problem := _type_problem(g, name, case, label)):
+                raise ExerciseError(problem)
+            if g.shape != e.shape:
+                raise ExerciseError(_shape_problem(g, e, name, case, label, atol)
+                                    + diagnose(got, self.diagnoses, case, atol))
+            g, e = g.double(), e.double()
+            if not torch.allclose(g, e, atol=atol, rtol=1e-4):
+                raise ExerciseError(self._value_problem(got, g, e, case, label, atol))
+            if not torch.allclose(g, e, atol=self.atol, rtol=1e-4):
+                note = case.why_loose.format(diff=float((g - e).abs().max()))
+        return note
+
+    def _value_problem(self, got, g, e, case: Case, label: str, atol: float) -> str:
+        """Words for a wrong output ``g`` (a part of ``got``; ``e`` the answer): one of the
+        exercise's own mistakes, else a general one, else only the numbers."""
+        numbers = f"{'your ' + label + ' ' if label else ''}{_disagreement(g, e, atol)}"
+        why = diagnose(got, self.diagnoses, case, atol)
+        if why or not (general := self._general_cause(g, e, case)):
+            return f"{self.name} gave {numbers} on {case.description}.{why}"
+        found, meaning, look = general
+        where = f" (your {label})" if label else ""
+        return (f"{self.name} {found} on {case.description}{where}{meaning}. {look}. "
+                f"Yours: {numbers}.")
+
+    def _general_cause(self, got, expected, case: Case) -> tuple[str, str, str] | None:
+        """``(what was found, ': what it means' or '', what to look at)`` for a general
+        mistake of value, or None."""
+        if torch.isfinite(expected).all() and not torch.isfinite(got).all():
+            return ("returned NaN or infinity", "",
+                    "Look for 0/0 (exponentials that underflowed to 0, then divided by their "
+                    "sum), a square root or a log of a negative number, or a division by zero")
+        scale = float(expected.abs().max()) if expected.numel() else 0.0
+        if scale > 10 * self.atol and torch.allclose(got, -expected, atol=self.atol, rtol=1e-4):
+            return ("has the wrong sign", ": it is minus the answer",
+                    "A loss that training minimises must grow with what it penalises; look for "
+                    "a difference taken the wrong way round or a minus sign too many")
+        sizes = {k: n for i, axes in self.dims.items()
+                 for k, n in zip(axes, case.args[i].shape) if k != "_"}
+        return (_factor_off(got, expected, {**sizes, **case.sizes}, self.factors)
+                or self._wrong_axis(got, case))
+
+    def _wrong_axis(self, got, case: Case) -> tuple[str, str, str] | None:
+        """The cause when ``got`` is the answer with two axes of one input exchanged (``swap``:
+        ``(index, a, b, what that means, what to look at)``), else None."""
+        if self.swap is None:
+            return None
+        index, a, b, means, look = self.swap
+        args = list(case.args)
+        args[index] = args[index].transpose(a, b).contiguous()
+        try:
+            wrong = _numbers(self.reference(*args, **case.kwargs))
+        except Exception:
+            return None
+        if wrong is not None and wrong.shape == got.shape and torch.allclose(
+                got, wrong, atol=self.atol / 10, rtol=1e-5):
+            return ("worked along the wrong axis",
+                    f": it gives what the answer would be with {means}", look)
+        return None
+
+    def check_gradient(self, case: Case, index: int, label: str) -> None:
+        """Raise :class:`ExerciseError` unless ``fn``'s gradient with respect to argument
+        ``index`` agrees with the reference's."""
+        atol = self.atol if case.atol is None else case.atol
+        expected = gradient(self.reference, index)(*case.args, **case.kwargs)
+        probe = gradient(self.fn, index)
+        try:
+            got, spy = _run(probe, self.name, case, self.labels)
+        except ExerciseError as error:  # numpy refuses a tensor that requires a gradient
+            if "numpy" in str(error) and "grad" in str(error):
+                raise _no_flow(self.name, case, label, ["numpy"], False) from None
+            raise
+        if torch.allclose(got.double(), expected.double(), atol=atol, rtol=1e-4):
+            return
+        why = diagnose(got, [(w, gradient(v, index)) for w, v in self.diagnoses], case, atol)
+        if expected.abs().max() > 0 and not got.any():  # an own slip explains only a partial cut
+            raise _no_flow(self.name, case, label, list(spy.cuts), probe.connected,
+                           why if probe.connected else "")
+        raise ExerciseError(
+            f"{self.name} has the right value on {case.description}, but not the right gradient "
+            f"with respect to {label}: it gave {_disagreement(got, expected, atol)}.{why}")
 
 
 def compare(fn: Callable, reference: Callable, cases: list[Case], atol: float = 1e-5,
@@ -561,16 +500,13 @@ def compare(fn: Callable, reference: Callable, cases: list[Case], atol: float = 
     (``"D - 1"``).
     """
     name = getattr(fn, "__name__", "your function")
-    if labels is None:
-        try:
-            labels = list(inspect.signature(reference).parameters)
-        except (TypeError, ValueError):
-            labels = []
-    options = _Options(atol, diagnoses, labels, dims or {}, swap, factors or {})
-    notes = [_check_case(fn, reference, case, name, options, parts) for case in cases]
+    labels = list(inspect.signature(reference).parameters) if labels is None else labels
+    check = _Comparison(fn, reference, name, atol, diagnoses, parts, labels, dims or {}, swap,
+                        factors or {})
+    notes = [check.check_values(case) for case in cases]
     for case in cases:
         for index, label in grad:
-            _check_gradient(fn, reference, case, name, options, index, label)
+            check.check_gradient(case, index, label)
     what = f" (values, and gradients with respect to {_and([g[1] for g in grad])})" if grad else ""
     print(f"Correct: {name} matches the reference on {len(cases)} test inputs{what}.")
     for note in dict.fromkeys(n for n in notes if n):
@@ -601,13 +537,12 @@ def exercise(reference: Callable, mistakes: Sequence[Diagnosis] = (), *, name: s
     ``fn`` when it is right; ``reference`` (the course's implementation, same
     signature) when ``fn`` is still the student stub, so that "Run All" reaches
     the end of the chapter; an :class:`ExerciseError` naming the mistake when
-    ``fn`` is wrong, followed by the next hint. Raised from here, the error's
-    traceback shows the learner's cell, not the checker's insides (nor the
-    answer). ``mistakes``: the typical wrong versions the check names, ``(words,
-    function)``, kept as ``check.mistakes``. ``name``: the exercise's function, as
-    the notebook calls it. ``hints``: the idea, the formula, an outline of the code
-    (:func:`hint`). ``answers``: the course's functions that compute the answer
-    besides ``reference``: a right ``fn`` that only calls one of them is told so.
+    ``fn`` is wrong, followed by the next hint. ``mistakes``: the typical wrong
+    versions the check names, ``(words, function)``, kept as ``check.mistakes``.
+    ``name``: the exercise's function, as the notebook calls it. ``hints``: the
+    idea, the formula, an outline of the code (:func:`hint`). ``answers``: the
+    course's functions that compute the answer besides ``reference``: a right
+    ``fn`` that only calls one of them is told so.
     """
     if len(hints) != len(LEVELS):
         raise ValueError(f"{name}: give {len(LEVELS)} hints, one per level {LEVELS}")
@@ -618,32 +553,38 @@ def exercise(reference: Callable, mistakes: Sequence[Diagnosis] = (), *, name: s
     def decorate(check: Callable) -> Callable:
         @functools.wraps(check)
         def run(fn: Callable, *args, **kwargs) -> Callable:
-            if fn is reference:  # this cell ran again after handing the course's one over
-                print("This is still the course's implementation: run the cell with your "
-                      "function first, then this check.")
-                return reference
-            _Spy.answers, _Spy.called = codes, []
-            try:
-                check(fn, *args, **kwargs)
-            except NotImplementedYet:
-                print(f"{getattr(fn, '__name__', 'your function')} is not implemented yet: the "
-                      "rest of this notebook uses the course's implementation. Write yours in "
-                      f"the cell above, then run it and this check again (exercises.hint("
-                      f"{name!r}) gives a hint).")
-                return reference
-            except ExerciseError as error:
-                raise ExerciseError(str(error) + _offer(name)) from None
-            finally:
-                _Spy.answers = {}
-            if _Spy.called:
-                print(f"Note: your {getattr(fn, '__name__', 'function')} calls the course's "
-                      f"own {_and(_Spy.called)}. The check passes, but it checked the course's "
-                      "code, not yours: write it from the formula to get what the exercise "
-                      "teaches.")
-            return fn
+            verdict = _judge(check, fn, args, kwargs, reference, name, codes)
+            if isinstance(verdict, ExerciseError):  # raised here, its traceback shows the
+                raise verdict from None  # learner's cell, not the checker's insides
+            return verdict
         run.__annotations__ = {"fn": "Callable", "return": "Callable"}  # not check's bool
-        run.reference = reference
-        run.mistakes = tuple(mistakes)
-        run.exercise = name
+        run.reference, run.mistakes, run.exercise = reference, tuple(mistakes), name
         return run
     return decorate
+
+
+def _judge(check: Callable, fn: Callable, args, kwargs, reference: Callable, name: str,
+           codes: dict) -> Callable | ExerciseError:
+    """Run ``check(fn, ...)``: the function the notebook goes on with, or the error to raise."""
+    if fn is reference:  # this cell ran again after handing the course's one over
+        print("This is still the course's implementation: run the cell with your "
+              "function first, then this check.")
+        return reference
+    _Spy.answers, _Spy.called = codes, {}
+    try:
+        check(fn, *args, **kwargs)
+    except NotImplementedYet:
+        print(f"{getattr(fn, '__name__', 'your function')} is not implemented yet: the "
+              "rest of this notebook uses the course's implementation. Write yours in "
+              f"the cell above, then run it and this check again (exercises.hint("
+              f"{name!r}) gives a hint).")
+        return reference
+    except ExerciseError as error:
+        return ExerciseError(str(error) + _offer(name))
+    finally:
+        _Spy.answers = {}
+    if _Spy.called:
+        print(f"Note: your {getattr(fn, '__name__', 'function')} calls the course's "
+              f"own {_and(list(_Spy.called))}. The check passes, but it checked the course's "
+              "code, not yours: write it from the formula to get what the exercise teaches.")
+    return fn

@@ -1,6 +1,5 @@
-"""Checkers of chapters 00-01: the variance and covariance terms, the VICReg loss, the
-conversion of the VICReg paper's coefficients to EB-JEPA's. Each exercise's hints are here,
-beside its checker."""
+"""Checkers of chapters 00-01: the variance and covariance terms, the VICReg loss, and the
+conversion of the VICReg paper's coefficients to EB-JEPA's."""
 
 from __future__ import annotations
 
@@ -9,7 +8,7 @@ from collections.abc import Callable
 import torch
 
 from ... import losses
-from .common import Case, ExerciseError, _call, _describe, compare, diagnose, exercise
+from .common import Case, ExerciseError, _describe, _run, compare, diagnose, exercise
 
 _ALONG_THE_BATCH = (0, 0, 1, "the batch and the dimension axes of z exchanged",
                     "Here z is (B, D), one row per sample: each dimension's statistics are taken "
@@ -286,30 +285,27 @@ _CONVERSION_SLIPS = [
 def check_vicreg_paper_to_ebjepa(fn: Callable) -> bool:
     """Notebook 01: ``vicreg_paper_to_ebjepa(inv, std, cov, dim)`` -> three floats."""
     name = getattr(fn, "__name__", "your function")
-    labels = ("invariance", "variance", "covariance")
     cases = [(25.0, 25.0, 1.0, 2048), (25.0, 25.0, 1.0, 8192), (10.0, 25.0, 1.0, 1024),
              (5.0, 5.0, 1.0, 128), (2.0, 1.0, 0.5, 3)]
-    for inv, std, cov, dim in cases:
-        where = f"inv={inv:g}, std={std:g}, cov={cov:g}, dim={dim}"
-        got = _call(fn, name, Case(where, (inv, std, cov, dim)))
+    for args in cases:
+        case = Case("inv={:g}, std={:g}, cov={:g}, dim={}".format(*args), args)
+        got, where = _run(fn, name, case)[0], case.description
         if isinstance(got, torch.Tensor) or not hasattr(got, "__len__") or len(got) != 3:
-            raise ExerciseError(
-                f"{name} returned {_describe(got)} on {where}; expected a tuple of three "
-                "numbers (invariance, variance, covariance weights)."
-            )
+            raise ExerciseError(f"{name} returned {_describe(got)} on {where}; expected a tuple "
+                                "of three numbers (invariance, variance, covariance weights).")
         try:
             values = [float(v) for v in got]
         except (TypeError, ValueError):
             raise ExerciseError(f"{name} returned {got!r} on {where}; expected numbers.") from None
-        expected = _vicreg_paper_to_ebjepa(inv, std, cov, dim)
-        for k, (label, value, answer) in enumerate(zip(labels, values, expected)):
+        expected = _vicreg_paper_to_ebjepa(*args)
+        for k, (label, value, answer) in enumerate(zip(("invariance", "variance", "covariance"),
+                                                       values, expected)):
             if abs(value - answer) > 1e-6 * max(1.0, abs(answer)):
-                one = [(words, lambda *a, v=v, k=k: v(*a)[k])
-                       for words, v in _CONVERSION_SLIPS]  # the first wrong weight's slip
-                why = diagnose(value, one, Case(where, (inv, std, cov, dim)), atol=1e-6)
+                one = [(words, lambda *a, v=v, k=k: v(*a)[k])  # the slips of this weight alone
+                       for words, v in _CONVERSION_SLIPS]
                 raise ExerciseError(
                     f"{name} gave {label} weight {value:.6g} on {where}, but the answer is "
-                    f"{answer:.6g} (all three: {tuple(round(a, 6) for a in expected)}).{why}"
-                )
+                    f"{answer:.6g} (all three: {tuple(round(a, 6) for a in expected)})."
+                    + diagnose(value, one, case, atol=1e-6))
     print(f"Correct: {name} matches the reference on {len(cases)} test inputs.")
     return True
