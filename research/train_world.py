@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> None:
                         help=f"size of the offline data set (the paper: 100,000); default "
                              f"{preset('05', 'class').train.n_trajectories} at class "
                              f"({RefitConfig.n_trajectories} with --refit)")
-    parser.add_argument("--decay-steps", type=int, default=0,
+    parser.add_argument("--decay-steps", type=int,
                         help="lower the learning rate linearly to 0 over the last N steps")
     parser.add_argument("--without", action="append", default=[], choices=ABLATABLE_TERMS,
                         help="an ablation: set this term's coefficient to 0 (repeatable)")
@@ -109,24 +109,23 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     given = {name: value for name, value in (("steps", args.steps), ("seed", args.seed),
                                               ("n_trajectories", args.trajectories),
-                                              ("grad_clip", args.grad_clip),
                                               ("walls", args.walls))
              if value is not None}
     recipe = {name: value for name, value in (("wall_fraction", args.wall_fraction),
                                                ("window", args.window),
                                                ("channels_last", args.channels_last or None),
                                                ("stay_probability", args.stay_probability),
-                                               ("replay_steps", args.replay_steps))
+                                               ("replay_steps", args.replay_steps),
+                                               ("decay_steps", args.decay_steps),
+                                               ("grad_clip", args.grad_clip))
               if value is not None}
     if args.refit:
         training_only = {"--scale": args.scale, "--paper-recipe": args.paper_recipe,
                          "--without": args.without,
                          "--no-inverse-dynamics": args.no_inverse_dynamics,
-                         "--coeff": args.coeff, "--decay-steps": args.decay_steps,
-                         "--predictor": args.predictor,
+                         "--coeff": args.coeff, "--predictor": args.predictor,
                          "--predictor-hidden": args.predictor_hidden is not None,
-                         **{"--" + name.replace("_", "-"): name in given for name in
-                            ("walls", "grad_clip")},
+                         "--walls": args.walls is not None,
                          **{"--" + name.replace("_", "-"): True for name in recipe}}
         refused = [flag for flag, value in training_only.items() if value]
         if refused:
@@ -145,8 +144,9 @@ def main(argv: list[str] | None = None) -> None:
             base = replace(base, model=replace(base.model, predictor=args.predictor))
         if args.predictor_hidden is not None:
             base = replace(base, model=replace(base.model, predictor_hidden=args.predictor_hidden))
-        base = replace(base, recipe=replace(base.recipe, **recipe))
-        config = with_coeffs(replace(base, decay_steps=args.decay_steps, **given), args.coeff)
+        # one replace: a decay longer than the scale's steps must meet the new step count
+        config = with_coeffs(replace(base, recipe=replace(base.recipe, **recipe), **given),
+                             args.coeff)
     except ValueError as error:
         parser.error(str(error))  # a usage message, not a traceback
     config = ablation_config(config, *without)

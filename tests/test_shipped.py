@@ -53,7 +53,7 @@ def test_the_refit_and_course_long_runs_are_what_their_names_say():
     assert cfg.refit_base == replace(cfg.long_world, steps=2 * cfg.long_world.steps)
     assert cfg.refit == world.RefitConfig()  # the command's defaults
     assert cfg.course_long.model.predictor == cfg.world.model.predictor == "mlp"
-    assert cfg.course_long.steps > cfg.world.steps and cfg.course_long.grad_clip > 0
+    assert cfg.course_long.steps > cfg.world.steps and cfg.course_long.recipe.grad_clip > 0
     assert cfg.long_world.n_trajectories == 100_000 and cfg.long_world.steps > cfg.world.steps
 
 

@@ -284,11 +284,12 @@ def small_replay(monkeypatch):
     monkeypatch.setattr(world, "REPLAY_CAPACITY", 8)
 
 
-def _replay(replay_steps=3, lr=1e-3, monkeypatch=None, **options):
+def _replay(replay_steps=3, lr=1e-3, monkeypatch=None, decay_steps=0, **options):
     if monkeypatch is not None:
         monkeypatch.setattr(world, "REPLAY_LR", lr)
-    config = world.WorldTrainConfig(model=TINY, batch_size=4, rollout_steps=2,
-                                    recipe=world.Recipe(replay_steps=replay_steps), **options)
+    recipe = world.Recipe(replay_steps=replay_steps, decay_steps=decay_steps)
+    config = world.WorldTrainConfig(model=TINY, batch_size=4, rollout_steps=2, recipe=recipe,
+                                    **options)
     return world.LatentReplay(tiny_model(), config, frames=3, device="cpu")
 
 
@@ -519,7 +520,8 @@ def test_command_line_sets_steps_data_size_and_decay(tmp_path, monkeypatch, caps
     train_world.main(["--out", str(out), "--steps", "3000", "--trajectories", "100000",
                       "--decay-steps", "500", "--without", "covariance"])
     config = seen["config"]
-    assert (config.steps, config.n_trajectories, config.decay_steps) == (3000, 100_000, 500)
+    assert (config.steps, config.n_trajectories, config.recipe.decay_steps) == (3000, 100_000,
+                                                                                 500)
     assert config.coeffs.covariance == 0
     assert seen["partial"] == out.with_suffix(".partial") and not seen["partial"].exists()
     state = torch.load(out, weights_only=False)
@@ -530,7 +532,7 @@ def test_command_line_sets_steps_data_size_and_decay(tmp_path, monkeypatch, caps
 def test_learning_rate_decays_linearly_over_the_last_steps():
     from ebjepa_tutorial.training.world import WorldTrainConfig, learning_rate_decay
 
-    config = WorldTrainConfig(steps=6, decay_steps=4, lr=0.5)
+    config = WorldTrainConfig(steps=6, recipe=world.Recipe(decay_steps=4), lr=0.5)
     optimizer = torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], lr=config.lr)
     scheduler = learning_rate_decay(optimizer, config)
     rates = []
@@ -540,9 +542,10 @@ def test_learning_rate_decays_linearly_over_the_last_steps():
         scheduler.step()
     assert rates == pytest.approx([0.5, 0.5, 0.5, 0.375, 0.25, 0.125])  # (6 - s) / 4, capped
     assert learning_rate_decay(optimizer, WorldTrainConfig()) is None  # the class run: constant
-    for bad in (-1, 7):
-        with pytest.raises(ValueError, match="decay_steps must be in 0..steps=6"):
-            WorldTrainConfig(steps=6, decay_steps=bad)
+    with pytest.raises(ValueError, match="decay_steps must be in 0..steps=6"):
+        WorldTrainConfig(steps=6, recipe=world.Recipe(decay_steps=7))
+    with pytest.raises(ValueError, match="decay_steps must be an int >= 0"):
+        world.Recipe(decay_steps=-1)
 
 
 def test_the_replay_follows_the_joint_steps_schedule(small_replay, monkeypatch):
@@ -563,7 +566,7 @@ def test_a_decayed_run_trains_and_saves_its_schedule(tmp_path):
     from ebjepa_tutorial.training.world import WorldTrainConfig, train_world_model
 
     config = WorldTrainConfig(model=WORLD_CONFIGS["ci"], n_trajectories=32, batch_size=4,
-                              steps=3, decay_steps=2, rollout_steps=2)
+                              steps=3, recipe=world.Recipe(decay_steps=2), rollout_steps=2)
     partial = tmp_path / "run.partial"
     model, history = train_world_model(config, checkpoint=partial, progress=False,
                                        device="cpu")
@@ -703,7 +706,8 @@ def test_command_line_trains_the_run_of_a_scale(tmp_path, monkeypatch):
     train_world.main(["--out", str(tmp_path / "three.pt"), "--walls", "2"])  # checkpoints/README
     assert seen["config"] == replace(preset("05", "class").train, walls=2)
     train_world.main(["--out", str(tmp_path / "clip.pt"), "--grad-clip", "1"])
-    assert seen["config"] == replace(preset("05", "class").train, grad_clip=1.0)
+    train = preset("05", "class").train
+    assert seen["config"] == replace(train, recipe=replace(train.recipe, grad_clip=1.0))
     train_world.main(["--out", str(tmp_path / "wide.pt"), "--predictor-hidden", "256"])
     assert seen["config"].model == replace(preset("05", "class").train.model, predictor_hidden=256)
     for option in (["--scale", "ci"], ["--window", "9"], ["--channels-last"], ["--paper-recipe"],
@@ -728,8 +732,9 @@ def test_an_identity_holds_the_fields_that_define_the_run():
     # the fields named always, and nothing left at its default
     assert set(default) == {"steps", "batch_size", "lr", "n_trajectories", "rollout_steps",
                             "seed"}
-    changed = identity(WorldTrainConfig(decay_steps=4, coeffs=wl.WorldLossCoeffs(sigreg=0.05)))
-    assert changed == {**default, "decay_steps": 4, "coeffs": {"sigreg": 0.05}}
+    changed = identity(WorldTrainConfig(recipe=world.Recipe(decay_steps=4),
+                                        coeffs=wl.WorldLossCoeffs(sigreg=0.05)))
+    assert changed == {**default, "recipe": {"decay_steps": 4}, "coeffs": {"sigreg": 0.05}}
     assert not same_run({"config": default}, changed)
     refit = refit_identity(RefitConfig(), default)
     assert refit["base"] == default and same_run({"config": refit}, refit)
@@ -869,7 +874,8 @@ def test_a_clipped_update_moves_the_weights_by_at_most_the_clip():
 
 
 def test_a_clipped_replay_run_trains(small_replay):
-    config = replace(world.course_recipe(world.WorldTrainConfig(
-        model=WORLD_CONFIGS["ci"], n_trajectories=16, batch_size=4, steps=2)), grad_clip=0.1)
+    config = world.course_recipe(world.WorldTrainConfig(
+        model=WORLD_CONFIGS["ci"], n_trajectories=16, batch_size=4, steps=2))
+    config = replace(config, recipe=replace(config.recipe, grad_clip=0.1))
     _, history = world.train_world_model(config, progress=False, device="cpu")
     assert len(history["loss"]) == 2

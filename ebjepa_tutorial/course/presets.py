@@ -218,8 +218,8 @@ def course_long(config: WorldTrainConfig, steps: int, n_trajectories: int) -> Wo
     steps on ``n_trajectories``, the rate falling to 0 over the last 40% and every update's
     gradient clipped to norm 1 (an unclipped long run jumped out of its minimum, RESULTS.md)."""
     model = replace(config.model, predictor_hidden=2 * config.model.predictor_hidden)
-    return replace(config, model=model, steps=steps, n_trajectories=n_trajectories,
-                   decay_steps=steps * 2 // 5, grad_clip=1.0)
+    recipe = replace(config.recipe, decay_steps=steps * 2 // 5, grad_clip=1.0)
+    return replace(config, model=model, recipe=recipe, steps=steps, n_trajectories=n_trajectories)
 
 
 _PLANNER_CI = PlannerConfig(horizon=8, samples=32, elites=4, iterations=2, execute=4)

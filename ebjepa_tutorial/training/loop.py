@@ -168,11 +168,7 @@ def fit(
     update = backward_step(model, optimizer, loss_fn, scheduler, clip_grad_norm, after_step)
 
     def state(done: int, identity: dict[str, Any] | None = config) -> dict[str, Any]:
-        extra = {} if after_step is None else {"after_step": after_step.state_dict()}
-        return dict(model=model.state_dict(), optimizer=optimizer.state_dict(),
-                    scheduler=None if scheduler is None else scheduler.state_dict(),
-                    history=dict(history), step=done, config=identity,
-                    seconds=history.seconds, **extra)
+        return training_state(done, identity, history, model, optimizer, scheduler, after_step)
 
     save = saver(checkpoint, state, steps, checkpoint_every)
 
@@ -184,6 +180,19 @@ def fit(
 
     return run_steps(update, batch_fn, steps, start_step=start_step, history=history,
                      log_every=log_every, desc=desc, progress=progress, after=after)
+
+
+def training_state(done: int, identity: dict[str, Any] | None, history: History,
+                   model: torch.nn.Module, optimizer: torch.optim.Optimizer, scheduler=None,
+                   after_step=None) -> dict[str, Any]:
+    """What a resumable checkpoint holds after ``done`` steps of the run ``identity`` (what
+    :func:`resume` reads back): the model's, optimiser's, scheduler's and ``after_step``'s
+    states, the history and its wall time."""
+    extra = {} if after_step is None else {"after_step": after_step.state_dict()}
+    return dict(model=model.state_dict(), optimizer=optimizer.state_dict(),
+                scheduler=None if scheduler is None else scheduler.state_dict(),
+                history=dict(history), step=done, config=identity,
+                seconds=history.seconds, **extra)
 
 
 def backward_step(model, optimizer, loss_fn: LossFn, scheduler=None, clip_grad_norm=0.0,
@@ -209,7 +218,7 @@ def backward_step(model, optimizer, loss_fn: LossFn, scheduler=None, clip_grad_n
 
 
 def resume(
-    path: str | Path,
+    path: str | Path | None,
     model: torch.nn.Module,
     optimizer: torch.optim.Optimizer,
     scheduler: Any = None,
@@ -221,10 +230,13 @@ def resume(
     ``after_step``: the object given to :func:`fit`, whose saved state is loaded too.
 
     Returns ``(0, History())`` when there is no checkpoint of the run ``config``
-    (its identity) yet. A file at ``path`` from another run is kept under
+    (its identity) yet, or no ``path`` (a run that keeps none). A file at
+    ``path`` from another run is kept under
     :func:`~ebjepa_tutorial.training.checkpoints.kept_path` (and resumed from
     there when you return to that run); a damaged one is moved aside.
     """
+    if path is None:
+        return 0, History()
     device = "cpu" if distributed.world_size() > 1 else next(model.parameters()).device
     # rank 0 alone reads (and may move) the files; every rank gets its state, on the CPU
     state = distributed.from_main(lambda: claim(Path(path), config, device))

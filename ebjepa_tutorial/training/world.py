@@ -58,6 +58,7 @@ from .loop import (
     run_steps,
     saver,
     step_generator,
+    training_state,
 )
 
 TRAJECTORY_ACTIONS = 16  # per training trajectory (17 frames, the paper's clips)
@@ -74,8 +75,9 @@ LOG_EVERY, CHECKPOINT_EVERY = 10, 250  # steps between logged rows and resumable
 
 @dataclass(frozen=True)
 class Recipe:
-    """How a run departs from the paper's training to learn more per CPU-minute (notebook 05,
-    section 4; RESULTS.md, chapter 05). The defaults are the paper's: none of it."""
+    """How a run departs from the paper's training: the class recipe's ways to learn more per
+    CPU-minute (notebook 05, section 4; RESULTS.md, chapter 05) and the long runs' guards
+    (notebook 06, experiment 5). The defaults are the paper's: none of it."""
 
     # frames per training window, cut at a random offset from each drawn trajectory (0: the
     # whole trajectory). K + 1 frames are all the prediction loss reads, at about half the
@@ -91,6 +93,12 @@ class Recipe:
     # convolution weights and inputs in channels_last: about 1.45x faster on a CPU too, but
     # it changes the order of floating-point sums, so it is part of the run
     channels_last: bool = False
+    # the last decay_steps steps lower the learning rate linearly towards 0 (0: constant, as
+    # every shipped run but the course's long one)
+    decay_steps: int = 0
+    # every update (joint and replayed) scales its gradient down to at most this global norm
+    # (0: none)
+    grad_clip: float = 0.0
 
     def __post_init__(self):
         check_fields(self, {
@@ -99,6 +107,8 @@ class Recipe:
             "wall_fraction": WALL_FRACTION_RULE,
             "stay_probability": (lambda p: is_non_negative(p) and p < 1, "a number in [0, 1)"),
             "replay_steps": (is_int_at_least(0), "an int >= 0"),
+            "decay_steps": (is_int_at_least(0), "an int >= 0 (0: a constant rate)"),
+            "grad_clip": (is_non_negative, "a number >= 0 (0: no clipping)"),
         })
 
 
@@ -116,12 +126,6 @@ class WorldTrainConfig:
     steps: int = 1000  # the class preset trains 2,800 of the course's cheaper steps
     lr: float = 1e-3  # AdamW, as in the paper
     rollout_steps: int = 8  # K, the prediction horizon of the loss
-    # the last decay_steps steps lower the learning rate linearly towards 0 (0: constant, as
-    # every shipped run but the course's long one)
-    decay_steps: int = 0
-    # every update (joint and replayed) scales its gradient down to at most this global
-    # norm; 0: none, as the paper
-    grad_clip: float = 0.0
     seed: int = 0
 
     def __post_init__(self):
@@ -133,7 +137,6 @@ class WorldTrainConfig:
             "steps": (is_int_at_least(1), "an int >= 1"),
             "lr": (is_positive, "a number > 0"),
             "rollout_steps": _ROLLOUT_RULE,
-            "grad_clip": (is_non_negative, "a number >= 0 (0: no clipping)"),
         })
         window = self.recipe.window
         if window and window < self.rollout_steps + 1:
@@ -142,9 +145,9 @@ class WorldTrainConfig:
         if self.recipe.replay_steps and REPLAY_CAPACITY < self.batch_size:
             raise ValueError(f"the replay buffer holds {REPLAY_CAPACITY} windows, fewer than "
                              f"one batch of {self.batch_size}")
-        if not 0 <= self.decay_steps <= self.steps:
+        if self.recipe.decay_steps > self.steps:
             raise ValueError(f"decay_steps must be in 0..steps={self.steps}, "
-                             f"got {self.decay_steps}")
+                             f"got {self.recipe.decay_steps}")
 
 
 # How the course's class recipe trains differently from the paper's (notebook 05, section 4):
@@ -239,8 +242,8 @@ class LatentReplay:
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             distributed.average_gradients(self.parameters)
-            if config.grad_clip:
-                torch.nn.utils.clip_grad_norm_(self.parameters, config.grad_clip)
+            if config.recipe.grad_clip:
+                torch.nn.utils.clip_grad_norm_(self.parameters, config.recipe.grad_clip)
             self.optimizer.step()
 
     def state_dict(self) -> dict:
@@ -268,14 +271,15 @@ def new_optimizer(model: WorldModel, config: WorldTrainConfig) -> torch.optim.Ad
 
 def decay_factor(config: WorldTrainConfig, step: int) -> float:
     """The share of the base rate that step ``step`` uses: 1, then a linear decay over the
-    last ``decay_steps`` steps, ``min(1, (steps - step) / decay_steps)``, so the last step
-    uses ``1 / decay_steps`` of it."""
-    return min(1.0, (config.steps - step) / config.decay_steps) if config.decay_steps else 1.0
+    last ``decay_steps`` steps (``config.recipe``), ``min(1, (steps - step) / decay_steps)``,
+    so the last step uses ``1 / decay_steps`` of it."""
+    decay = config.recipe.decay_steps
+    return min(1.0, (config.steps - step) / decay) if decay else 1.0
 
 
 def learning_rate_decay(optimizer, config: WorldTrainConfig):
     """The schedule of ``config`` (:func:`decay_factor`); ``None`` when there is none."""
-    if config.decay_steps == 0:
+    if config.recipe.decay_steps == 0:
         return None
     return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: decay_factor(config, step))
 
@@ -310,8 +314,8 @@ def world_model_step(model, optimizer, frames, actions, generator, config, step,
     optimizer.zero_grad(set_to_none=True)
     total.backward()
     distributed.average_gradients(model.parameters())
-    if config.grad_clip:
-        torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+    if recipe.grad_clip:
+        torch.nn.utils.clip_grad_norm_(model.parameters(), recipe.grad_clip)
     optimizer.step()
     if replay is not None:
         replay.add(z, actions)
@@ -335,17 +339,14 @@ def train_world_model(
     """
     per_rank = distributed.per_rank_batch(config.batch_size)  # refuse an uneven split early
     data = make_data(config) if data is None else data
-    device = get_device(device)
+    device, run = get_device(device), identity(config, step)
     layout = torch.channels_last if config.recipe.channels_last else torch.contiguous_format
     model = new_model(config, data).to(device, memory_format=layout)
     optimizer = new_optimizer(model, config)
     scheduler = learning_rate_decay(optimizer, config)
     frames = config.recipe.window or data.positions.shape[1]
     replay = LatentReplay(model, config, frames, device) if config.recipe.replay_steps else None
-    start, history = (0, History())
-    if checkpoint is not None:
-        start, history = resume(checkpoint, model, optimizer, scheduler, identity(config, step),
-                                after_step=replay)
+    start, history = resume(checkpoint, model, optimizer, scheduler, run, after_step=replay)
     batch = _batches(config, data, torch.empty(per_rank, frames, 2, 65, 65), device)
 
     def update(batch, n: int):
@@ -355,11 +356,7 @@ def train_world_model(
         return total, terms
 
     def state(done: int) -> dict:  # what resume() reads back; rank 0 alone writes
-        extra = {} if replay is None else {"after_step": replay.state_dict()}
-        return dict(model=model.state_dict(), optimizer=optimizer.state_dict(),
-                    scheduler=None if scheduler is None else scheduler.state_dict(),
-                    history=dict(history), step=done, config=identity(config, step),
-                    seconds=history.seconds, **extra)
+        return training_state(done, run, history, model, optimizer, scheduler, replay)
 
     run_steps(update, batch, config.steps, start_step=start, history=history,
               log_every=LOG_EVERY, desc="world model", progress=progress,
