@@ -1,15 +1,12 @@
 """Checkers of chapter 04: the wall collision for one step, in two checked steps.
 
-1. ``check_slab_crossing(fn)``: ``fn(x0, x1, x_lo, x_hi) -> (t_in, t_out)``, the
-   fractions of a move at which the dot is inside the wall's slab.
-2. ``check_wall_collision(fn)``: ``fn(positions, moves, layouts) -> new positions``,
-   compared with the reference :func:`wall_collision` on the same cases (through the door,
-   into the wall, into the door's side, into the border, free moves, random ones, huge
-   ones). It says in plain words what went wrong first: leaving the arena, passing through
-   the wall, ending inside it, stopping at an open door, or any other disagreement; and, if
-   the learner's positions match a typical wrong rule on that case (a target not clamped
-   first, cancelling the whole move, no sliding along the wall, no door sides), it names
-   that rule instead.
+1. ``check_slab_crossing(fn)``: ``fn(x0, x1, x_lo, x_hi) -> (t_in, t_out)``, all ``(B,)``,
+   the fractions of a move at which the dot is inside the wall's slab.
+2. ``check_wall_collision(fn)``: ``fn(positions, moves, layouts) -> new positions (B, 2)``,
+   on moves through the door, into the wall, into the door's side, into the border, free,
+   random and huge ones. It says in plain words what went wrong first (leaving the arena,
+   passing through the wall, ending inside it, stopping at an open door), or names the
+   typical wrong rule that gives the learner's positions.
 """
 
 from __future__ import annotations
@@ -38,20 +35,10 @@ from .common import (
 )
 
 
-def _slab_crossing(x0, x1, x_lo, x_hi):
-    """Reference: the fractions ``t_in <= t_out`` of the move ``x0 -> x1`` (all ``(B,)``) spent
-    inside the slab ``x_lo < x < x_hi``; equal when the move never enters it."""
-    moving = x1 != x0
-    dx = torch.where(moving, x1 - x0, torch.ones_like(x0))
-    t_a, t_b = (x_lo - x0) / dx, (x_hi - x0) / dx
-    t_in = torch.where(moving, torch.minimum(t_a, t_b).clamp(0, 1), 0.0)
-    inside = ((x0 > x_lo) & (x0 < x_hi)).to(x0.dtype)
-    t_out = torch.where(moving, torch.maximum(t_a, t_b).clamp(0, 1), inside)
-    return t_in, t_out
-
-
 def _crossing_slip(order=True, clamp=True, still=True, strict=True):
-    """:func:`_slab_crossing` with one mistake (each keyword undoes one step)."""
+    """The fractions ``t_in <= t_out`` of the move ``x0 -> x1`` (all ``(B,)``) spent inside the
+    slab ``x_lo < x < x_hi``, equal when the move never enters it; each keyword, set False,
+    makes one mistake."""
     def slab_crossing(x0, x1, x_lo, x_hi):
         moving = x1 != x0
         dx = torch.where(moving, x1 - x0, torch.ones_like(x0)) if still else x1 - x0
@@ -68,6 +55,7 @@ def _crossing_slip(order=True, clamp=True, still=True, strict=True):
     return slab_crossing
 
 
+_slab_crossing = _crossing_slip()  # the reference: no mistake
 _CROSSING_HINTS = (
     "Follow the move as a straight segment: x goes from x0 to x1 while a fraction t goes "
     "from 0 to 1. The slab is an interval of x; find the range of t for which x is inside "
@@ -137,8 +125,8 @@ def check_slab_crossing(fn) -> bool:
                    diagnoses=_CROSSING_SLIPS)
 
 
-def _cases(seed: int, n: int) -> list[tuple[str, torch.Tensor, torch.Tensor, torch.Tensor]]:
-    """(description, positions (n, 2), moves (n, 2), layouts (n, 2)) for each kind of case."""
+def _cases(seed: int, n: int) -> list[Case]:
+    """Each kind of move: positions (n, 2), moves (n, 2), layouts (n, 2)."""
     g = torch.Generator().manual_seed(seed)
     layouts = random_layouts(n, g)
     x_lo, x_hi, y_lo, y_hi = wall_bounds(layouts)
@@ -157,92 +145,93 @@ def _cases(seed: int, n: int) -> list[tuple[str, torch.Tensor, torch.Tensor, tor
     corridor = torch.stack([wall_x + 4.8 * rand(n) - 2.4, in_door], -1)
     random_pos = sample_positions(layouts, g)
     random_pos[: n // 4] = corridor[: n // 4]
-    return [
-        ("a move far from every wall (it should not change)", free, 2 * rand(n, 2) - 1, layouts),
-        ("a move into the border", free, torch.tensor([-70.0, 70.0]).expand(n, 2), layouts),
+    cases = [
+        ("a move far from every wall (it should not change)", free, 2 * rand(n, 2) - 1),
+        ("a move into the border", free, torch.tensor([-70.0, 70.0]).expand(n, 2)),
         ("a move straight through the door", torch.stack([face + side * gap, in_door], -1),
-         toward, layouts),
+         toward),
         ("a move into the wall above the door", torch.stack([face + side * gap, above], -1),
-         toward, layouts),
+         toward),
         ("a move from inside the doorway out to the other room", corridor,
-         torch.stack([1.8 * side, 0.4 * rand(n) - 0.2], -1), layouts),
+         torch.stack([1.8 * side, 0.4 * rand(n) - 0.2], -1)),
         ("a slanted move from the doorway into the door's side", corridor,
-         torch.stack([side, 1.8 + rand(n)], -1), layouts),
-        ("a random move", random_pos, 1.8 * torch.randn(n, 2, generator=g), layouts),
-        ("a huge random move", random_pos, 40 * torch.randn(n, 2, generator=g), layouts),
+         torch.stack([side, 1.8 + rand(n)], -1)),
+        ("a random move", random_pos, 1.8 * torch.randn(n, 2, generator=g)),
+        ("a huge random move", random_pos, 40 * torch.randn(n, 2, generator=g)),
     ]
+    return [Case(desc, (pos, move, layouts)) for desc, pos, move in cases]
 
 
-def _where(p, move, layout) -> str:
-    return (
-        f"from (x={p[0]:.2f}, y={p[1]:.2f}) moving by ({move[0]:.2f}, {move[1]:.2f}) "
-        f"with wall_x={int(layout[0])}, door_y={int(layout[1])}"
-    )
+_WALL_PROBLEMS = {  # what can go wrong, in the order it is looked for -> its words
+    "nan": "returned NaN or infinity {at}.",
+    "arena": f"moved the dot to {{got}}, outside the arena (the dot centre must stay in "
+             f"[{LOW}, {HIGH}] in x and y), {{at}}: rule 1 clamps the target to the arena "
+             "before anything else.",
+    "through": "let the dot pass through the wall at y={y_cross:.1f} where {door}; {at} it "
+               "ended at {got}.",
+    "inside": "left the dot centre inside the wall at {got} (the slab {x_lo:.1f} < x < "
+              "{x_hi:.1f} is open only for {y_lo:.1f} <= y <= {y_hi:.1f}), {at}.",
+    "door": "stopped the dot at the wall, but the door is open there: {door}; {at} the "
+            "reference goes on to {expected}, yours stopped at {got}.",
+    "other": "gave {got} but the reference gives {expected}, {at}.{rule}",
+}
+_RULE = (" The rule: clamp the target to the arena first; stop only the blocked coordinate (x "
+         "at the wall's face, or y at the door's edge) and let the other one move.")
 
 
-def _first_problem(desc, pos, move, layouts, got, expected, diagnosed: bool) -> str | None:
-    """A plain-words message about the first wrong output, or None if all agree. When a
-    typical wrong rule explains the output (``diagnosed``), only the positions are given:
-    the symptom could mislead (an unclamped target can look like a dot stopped at an open
-    door), and the rule, named after this, says what to change."""
+def _symptoms(pos, layouts, got, expected) -> tuple[dict, torch.Tensor]:
+    """Masks ``(n,)`` of what went wrong with the new positions ``got``, by the keys of
+    ``_WALL_PROBLEMS``, and the height at which each move crosses the wall's line."""
     x_lo, x_hi, y_lo, y_hi = wall_bounds(layouts)
-    wall_x = layouts[:, 0].float()
-    x0, y0 = pos.unbind(-1)
-    x1, y1 = got.unbind(-1)
+    wall_x, tol = layouts[:, 0].float(), 1e-4
+    (x0, y0), (x1, y1) = pos.unbind(-1), got.unbind(-1)
     crossed = (x0 < wall_x) != (x1 < wall_x)
     ref_crossed = (x0 < wall_x) != (expected[:, 0] < wall_x)
     face = torch.where(x0 <= x_lo, x_lo, torch.where(x0 >= x_hi, x_hi, torch.nan))
-    stopped_at_door = ((x1 - face).abs() < 1e-4) & ((expected[:, 0] - face).abs() > 1e-4)
     t = ((wall_x - x0) / torch.where(x1 == x0, torch.ones_like(x1), x1 - x0)).clamp(0, 1)
     y_cross = y0 + t * (y1 - y0)
-    tol = 1e-4
-    wrong = ~torch.isclose(got, expected, atol=1e-4, rtol=0).all(-1)
-    checks = [
-        ~torch.isfinite(got).all(-1),
-        ((got < LOW - tol) | (got > HIGH + tol)).any(-1),
-        crossed & ~ref_crossed & ((y_cross < y_lo - tol) | (y_cross > y_hi + tol)),
-        (x1 > x_lo + tol) & (x1 < x_hi - tol) & ((y1 < y_lo - tol) | (y1 > y_hi + tol)),
-        stopped_at_door,
-        wrong,
-    ]
-    if diagnosed:
-        checks = [torch.zeros_like(wrong)] * 5 + [wrong]
-    for k, mask in enumerate(checks):
-        if not mask.any():
-            continue
-        i = int(mask.nonzero()[0])
-        at = f"{_where(pos[i], move[i], layouts[i])} ({desc})"
-        door = (
-            f"the door spans rows {int(layouts[i, 1]) - 4}..{int(layouts[i, 1]) + 4}, so the dot "
-            f"centre may cross only for {y_lo[i]:.1f} <= y <= {y_hi[i]:.1f}"
-        )
-        got_i, exp_i = [f"({v[i, 0]:.2f}, {v[i, 1]:.2f})" for v in (got, expected)]
-        return [
-            f"your function returned NaN or infinity {at}.",
-            f"your function moved the dot to {got_i}, outside the arena (the dot centre must "
-            f"stay in [{LOW}, {HIGH}] in x and y), {at}: rule 1 clamps the target to the "
-            "arena before anything else.",
-            f"your function let the dot pass through the wall at y={y_cross[i]:.1f} where {door}; "
-            f"{at} it ended at {got_i}.",
-            f"your function left the dot centre inside the wall at {got_i} (the slab "
-            f"{x_lo[i]:.1f} < x < {x_hi[i]:.1f} is open only for {y_lo[i]:.1f} <= y <= "
-            f"{y_hi[i]:.1f}), {at}.",
-            f"your function stopped the dot at the wall, but the door is open there: {door}; "
-            f"{at} the reference goes on to {exp_i}, yours stopped at {got_i}.",
-            f"your function gave {got_i} but the reference gives {exp_i}, {at}."
-            + ("" if diagnosed else " The rule: clamp the target to the arena first; stop "
-               "only the blocked coordinate (x at the wall's face, or y at the door's edge) "
-               "and let the other one move."),
-        ][k]
-    return None
+
+    def shut(y):  # outside the doorway's span
+        return (y < y_lo - tol) | (y > y_hi + tol)
+
+    return {"nan": ~torch.isfinite(got).all(-1),
+            "arena": ((got < LOW - tol) | (got > HIGH + tol)).any(-1),
+            "through": crossed & ~ref_crossed & shut(y_cross),
+            "inside": (x1 > x_lo + tol) & (x1 < x_hi - tol) & shut(y1),
+            "door": ((x1 - face).abs() < tol) & ((expected[:, 0] - face).abs() > tol),
+            "other": ~torch.isclose(got, expected, atol=1e-4, rtol=0).all(-1)}, y_cross
+
+
+def _first_problem(name: str, case: Case, got, expected, diagnosed: bool) -> str | None:
+    """Words for the first wrong position, or None if all agree. When a typical wrong rule
+    explains the output (``diagnosed``), only the positions are given: the symptom could
+    mislead (an unclamped target can look like a dot stopped at an open door), and the
+    rule, named after this, says what to change."""
+    pos, move, layouts = case.args
+    masks, y_cross = _symptoms(pos, layouts, got, expected)
+    kind = next((k for k in (["other"] if diagnosed else _WALL_PROBLEMS) if masks[k].any()), None)
+    if kind is None:
+        return None
+    i = int(masks[kind].nonzero()[0])
+    (x, y), (dx, dy), (wall_x, door_y) = pos[i].tolist(), move[i].tolist(), layouts[i].tolist()
+    x_lo, x_hi, y_lo, y_hi = (float(b[i]) for b in wall_bounds(layouts))
+    words = _WALL_PROBLEMS[kind].format(
+        at=f"from (x={x:.2f}, y={y:.2f}) moving by ({dx:.2f}, {dy:.2f}) with wall_x={wall_x}, "
+           f"door_y={door_y} ({case.description})",
+        door=f"the door spans rows {door_y - 4}..{door_y + 4}, so the dot centre may cross "
+             f"only for {y_lo:.1f} <= y <= {y_hi:.1f}",
+        got="({:.2f}, {:.2f})".format(*got[i].tolist()),
+        expected="({:.2f}, {:.2f})".format(*expected[i].tolist()),
+        y_cross=float(y_cross[i]), x_lo=x_lo, x_hi=x_hi, y_lo=y_lo, y_hi=y_hi,
+        rule="" if diagnosed else _RULE)
+    return f"{name} {words}"
 
 
 def _stay_put(positions, moves, layouts):
     """Cancel the whole move whenever a wall blocks it."""
     target = (positions + moves).clamp(LOW, HIGH)
     expected = wall_collision(positions, moves, layouts)
-    blocked = ~torch.isclose(expected, target).all(-1, keepdim=True)
-    return torch.where(blocked, positions, expected)
+    return torch.where(~torch.isclose(expected, target).all(-1, keepdim=True), positions, expected)
 
 
 def _stop_at_contact(positions, moves, layouts):
@@ -263,23 +252,12 @@ def _no_door_sides(positions, moves, layouts):
     return torch.stack([wall_collision(positions, moves, layouts)[:, 0], target[:, 1]], -1)
 
 
-def _clamped_last(positions, moves, layouts):
-    """The wall rules on the unclamped target, clamped to the arena only at the end."""
-    return stop_at_wall(positions, positions + moves, layouts).clamp(LOW, HIGH)
-
-
-def _never_clamped(positions, moves, layouts):
-    """The wall rules on the unclamped target, never clamped."""
-    return stop_at_wall(positions, positions + moves, layouts)
-
-
 _NOT_CLAMPED_FIRST = (
     "the target was not clamped to the arena first. Rule 1 comes before the walls: the wall "
     "rules follow the segment from the start to the clamped target; from an unclamped one "
     "the segment meets the wall's line at another height, so the dot can stop where the door "
     "is open, or pass where it is shut. Clamp positions + moves to [LOW, HIGH] before the "
     "slab and the door are looked at.")
-
 _WALL_HINTS = (
     "Three rules, in order. First keep the target in the arena. Then the slab decides: if "
     "the dot enters it at a height outside the doorway, the wall's face stops x; if it "
@@ -302,9 +280,9 @@ _WALL_HINTS = (
     "        return <x and y stacked as the last axis>",
 )
 
-_WALL_SLIPS = [
-    (_NOT_CLAMPED_FIRST, _clamped_last),
-    (_NOT_CLAMPED_FIRST, _never_clamped),
+_WALL_SLIPS = [  # the wall rules on the unclamped target, clamped at the end or never
+    (_NOT_CLAMPED_FIRST, lambda p, m, walls: stop_at_wall(p, p + m, walls).clamp(LOW, HIGH)),
+    (_NOT_CLAMPED_FIRST, lambda p, m, walls: stop_at_wall(p, p + m, walls)),
     ("you cancel the whole move when the wall blocks it; stop only the blocked coordinate "
      "(x at the wall's face) and let the other one (y) slide on.", _stay_put),
     ("you stop the dot where its path meets the wall's face, y included; only x stops there: "
@@ -318,32 +296,27 @@ _WALL_SLIPS = [
 @exercise(wall_collision, _WALL_SLIPS, name="wall_collision", hints=_WALL_HINTS,
           answers=(stop_at_wall,))
 def check_wall_collision(fn, n: int = 512, seed: int = 0) -> bool:
-    """Compare ``fn(positions, moves, layouts)`` with the reference; print a verdict or raise
-    :class:`~ebjepa_tutorial.course.exercises.ExerciseError` (an AssertionError) saying
-    which case failed and how."""
+    """Compare ``fn(positions, moves, layouts)`` with the reference on ``n`` moves of each
+    kind; print a verdict or raise :class:`ExerciseError` saying which failed and how."""
     name = getattr(fn, "__name__", "your function")
     cases = _cases(seed, n)
-    labels = ("positions", "moves", "layouts")
-    for desc, pos, move, layouts in cases:
-        case = Case(desc, (pos, move, layouts))
-        expected = wall_collision(pos, move, layouts)
-        got, _ = _run(fn, name, case, labels)
+    for case in cases:
+        expected, desc = wall_collision(*case.args), case.description
+        got, _ = _run(fn, name, case, ("positions", "moves", "layouts"))
         if (problem := _type_problem(got, name, case)):
             raise ExerciseError(problem)
+        if got.shape != expected.shape and _transposition(got, expected, 1e-4) is not None:
+            raise ExerciseError(
+                f"{name} put the right positions in the wrong layout on {desc}: shape "
+                f"{tuple(got.shape)}, where {tuple(expected.shape)} is expected, one row (x, y) "
+                "per world. Look at the axis along which you stack x and y: the last one.")
         if got.shape != expected.shape:
-            if _transposition(got, expected, 1e-4) is not None:
-                raise ExerciseError(
-                    f"{name} put the right positions in the wrong layout on {desc}: shape "
-                    f"{tuple(got.shape)}, where {tuple(expected.shape)} is expected, one row "
-                    "(x, y) per world. Look at the axis along which you stack x and y: the "
-                    "last one.")
             raise ExerciseError(
                 f"{name} returned {_describe(got)} on {desc}; it should return new positions "
                 f"of shape {tuple(expected.shape)}, one (x, y) per world.")
         got = got.detach().float()
         why = diagnose(got, _WALL_SLIPS, case, atol=1e-3)
-        problem = _first_problem(desc, pos, move, layouts, got, expected, bool(why))
-        if problem:
-            raise ExerciseError(problem.replace("your function", name, 1) + why)
+        if (problem := _first_problem(name, case, got, expected, bool(why))):
+            raise ExerciseError(problem + why)
     print(f"Correct: {name} matches the reference wall collision on {n * len(cases)} moves.")
     return True
