@@ -598,6 +598,14 @@ def test_checkpoints_from_before_the_predictor_field_load_as_grus(data):
     tiny_model().load_state_dict(state)
 
 
+def test_checkpoints_that_name_the_frame_size_and_channels_still_load(data):
+    state = tiny_model(data[1]).state_dict()
+    # what the shipped files hold: the frame's sizes were config fields, now constants
+    state["_extra_state"]["config"].update(in_channels=2, image_size=65)
+    assert WorldModel.from_state_dict(state).config == TINY
+    tiny_model().load_state_dict(state)
+
+
 def test_windows_with_stays_splice_still_steps_by_hand():
     from ebjepa_tutorial.training.world import windows_with_stays
 

@@ -37,7 +37,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..envs.two_rooms import IMAGE_SIZE
+
 PREDICTORS = ("gru", "mlp")  # the kinds of WorldConfig.predictor
+CHANNELS = 2  # a Two Rooms frame's channels: the dot and the walls, (2, 65, 65)
 
 
 @dataclass(frozen=True)
@@ -54,15 +57,13 @@ class WorldConfig:
     predictor: str = "gru"  # "gru" (GRUPredictor) or "mlp" (MLPPredictor)
     predictor_hidden: int = 128  # width of the MLP predictor's two hidden layers
     idm_hidden: int = 128  # hidden width of the inverse-dynamics MLP
-    in_channels: int = 2
-    image_size: int = 65
 
     def __post_init__(self):
         object.__setattr__(self, "widths", tuple(int(w) for w in self.widths))
         if not self.widths or min(self.widths) < 1 or self.blocks < 0:
             raise ValueError(f"need >= 1 positive widths and blocks >= 0, got {self}")
-        if not 1 <= self.input_size <= self.image_size:
-            raise ValueError(f"input_size must be in 1..{self.image_size}, got {self.input_size}")
+        if not 1 <= self.input_size <= IMAGE_SIZE:
+            raise ValueError(f"input_size must be in 1..{IMAGE_SIZE}, got {self.input_size}")
         if self.latent_dim < 2:
             raise ValueError(f"latent_dim must be >= 2, got {self.latent_dim}")
         if self.predictor not in PREDICTORS or self.predictor_hidden < 1:
@@ -110,7 +111,7 @@ class ImpalaEncoder(nn.Module):
 
     def __init__(self, config: WorldConfig):
         super().__init__()
-        stacks, channels, side = [], config.in_channels, config.input_size
+        stacks, channels, side = [], CHANNELS, config.input_size
         for width in config.widths:
             stacks.append(ImpalaStack(channels, width, config.blocks))
             channels, side = width, (side + 1) // 2
@@ -173,8 +174,8 @@ class WorldModel(nn.Module):
     def __init__(self, config: WorldConfig | None = None):
         super().__init__()
         self.config = config = WorldConfig() if config is None else config
-        self.register_buffer("input_mean", torch.zeros(config.in_channels))
-        self.register_buffer("input_std", torch.ones(config.in_channels))
+        self.register_buffer("input_mean", torch.zeros(CHANNELS))
+        self.register_buffer("input_std", torch.ones(CHANNELS))
         self.register_buffer("input_stats_fitted", torch.tensor(False))
         self.encoder = ImpalaEncoder(config)
         self.action_encoder = mlp(config.action_dim, config.action_embed_dim,
@@ -194,7 +195,7 @@ class WorldModel(nn.Module):
         A few hundred trajectories are plenty (the statistics barely move).
         """
         frames = self._check_frames(frames)
-        channels = frames.movedim(-3, 0).reshape(self.config.in_channels, -1).float()
+        channels = frames.movedim(-3, 0).reshape(CHANNELS, -1).float()
         self.input_mean.copy_(channels.mean(dim=1))
         self.input_std.copy_(channels.std(dim=1).clamp_min(1e-6))
         self.input_stats_fitted.fill_(True)
@@ -202,7 +203,7 @@ class WorldModel(nn.Module):
 
     def normalize(self, frames: torch.Tensor) -> torch.Tensor:
         """Pool to ``input_size``, standardise each channel: ``(N, C, 65, 65) -> (N, C, s, s)``."""
-        if self.config.input_size != self.config.image_size:
+        if self.config.input_size != IMAGE_SIZE:
             # Averaging first is cheaper and equal: the standardisation is affine per channel.
             frames = F.adaptive_avg_pool2d(frames, self.config.input_size)
         return (frames - self.input_mean[:, None, None]) / self.input_std[:, None, None]
@@ -247,7 +248,7 @@ class WorldModel(nn.Module):
 
     # -- checks --------------------------------------------------------------------------
     def _check_frames(self, frames) -> torch.Tensor:
-        c, s = self.config.in_channels, self.config.image_size
+        c, s = CHANNELS, IMAGE_SIZE
         if not isinstance(frames, torch.Tensor) or frames.ndim not in (4, 5):
             got = tuple(frames.shape) if isinstance(frames, torch.Tensor) else type(frames).__name__
             raise ValueError(
@@ -289,10 +290,15 @@ class WorldModel(nn.Module):
 
     @classmethod
     def from_state_dict(cls, state_dict: dict) -> WorldModel:
-        """Build a model with the config saved in ``state_dict`` and load the weights."""
+        """Build a model with the config saved in ``state_dict`` and load the weights.
+
+        A saved field that the config no longer has (a file's frame size and channels, now
+        :data:`CHANNELS` and the world's ``IMAGE_SIZE``) is left out.
+        """
         if "_extra_state" not in state_dict:
             raise KeyError("this state_dict has no saved WorldConfig (not from a WorldModel)")
-        model = cls(WorldConfig(**state_dict["_extra_state"]["config"]))
+        saved, known = state_dict["_extra_state"]["config"], {f.name for f in fields(WorldConfig)}
+        model = cls(WorldConfig(**{name: v for name, v in saved.items() if name in known}))
         model.load_state_dict(state_dict)
         return model
 
