@@ -151,22 +151,15 @@ def check_covariance_term(fn: Callable) -> bool:
 _vicreg_total = losses.vicreg.vicreg
 
 
-def _vicreg_slip(invariance=losses.invariance_term, views="both", swap=False) -> Callable:
-    """A VICReg loss with one mistake: another ``invariance``, a ``views`` rule (``sum``,
-    ``stacked``, ``z_a``, ``z_b``), or ``swap``ped variance and covariance weights."""
+def _vicreg_slip(views=lambda term, a, b: (term(a) + term(b)) / 2,
+                 invariance=losses.invariance_term, swap=False) -> Callable:
+    """A VICReg loss with one mistake: another rule ``views(term, z_a, z_b)`` for applying
+    the variance and covariance terms, another ``invariance``, or ``swap``ped weights."""
     def vicreg(z_a, z_b, inv_coeff, std_coeff, cov_coeff):
-        v, c = losses.variance_term, losses.covariance_term
-        if views == "sum":
-            var, cov = v(z_a) + v(z_b), c(z_a) + c(z_b)
-        elif views == "stacked":
-            var, cov = v(torch.cat([z_a, z_b])), c(torch.cat([z_a, z_b]))
-        elif views in ("z_a", "z_b"):
-            var, cov = v(z_a if views == "z_a" else z_b), c(z_a if views == "z_a" else z_b)
-        else:
-            var, cov = (v(z_a) + v(z_b)) / 2, (c(z_a) + c(z_b)) / 2
-        if swap:
-            std_coeff, cov_coeff = cov_coeff, std_coeff
-        return inv_coeff * invariance(z_a, z_b) + std_coeff * var + cov_coeff * cov
+        std_coeff, cov_coeff = (cov_coeff, std_coeff) if swap else (std_coeff, cov_coeff)
+        return (inv_coeff * invariance(z_a, z_b)
+                + std_coeff * views(losses.variance_term, z_a, z_b)
+                + cov_coeff * views(losses.covariance_term, z_a, z_b))
 
     return vicreg
 
@@ -190,11 +183,12 @@ _ONE_VIEW = ("you regularised one view only; apply the variance and covariance t
              "view and average the two.")
 _VICREG_SLIPS = [
     ("you added the two views' variance and covariance terms; average them (their sum over "
-     "the two views, divided by 2).", _vicreg_slip(views="sum")),
-    (_ONE_VIEW, _vicreg_slip(views="z_a")),
-    (_ONE_VIEW, _vicreg_slip(views="z_b")),
+     "the two views, divided by 2).", _vicreg_slip(lambda term, a, b: term(a) + term(b))),
+    (_ONE_VIEW, _vicreg_slip(lambda term, a, b: term(a))),
+    (_ONE_VIEW, _vicreg_slip(lambda term, a, b: term(b))),
     ("you computed the variance and covariance on the two views stacked into one batch; "
-     "compute each on one view, then average the two.", _vicreg_slip(views="stacked")),
+     "compute each on one view, then average the two.",
+     _vicreg_slip(lambda term, a, b: term(torch.cat([a, b])))),
     ("you swapped the weights: std_coeff multiplies the variance term, cov_coeff the "
      "covariance term.", _vicreg_slip(swap=True)),
     ("your invariance sums the squared difference over the D dimensions; the invariance "

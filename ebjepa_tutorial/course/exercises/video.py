@@ -1,5 +1,5 @@
-"""Checker of chapter 03: the paper's K-step loss (the parallel unroll, as the model trains),
-its value and its gradients, and its hints."""
+"""Checker of chapter 03: the paper's K-step loss (the parallel unroll the model trains
+with), its value and its gradients."""
 
 from __future__ import annotations
 
@@ -25,9 +25,9 @@ def _toy_predictor(kind: str, weight: torch.Tensor) -> Predictor:
 
 def _case(description: str, kind: str, z: torch.Tensor, context: int, steps: int,
           detach_later: bool, seed: int = 0) -> Case:
-    """One test input: the predictor ``kind`` with its weights, the latents ``z`` split into
-    all frames but the last and the last, which is only ever a target (so that its gradient
-    is checked on its own), and the loss's options."""
+    """The predictor ``kind`` with its weights, the latents ``z`` split into all frames but
+    the last and the last, only ever a target (its gradient is checked on its own), and the
+    loss's options."""
     weight = torch.randn(context, z.shape[2], z.shape[2],
                          generator=torch.Generator().manual_seed(seed)) / z.shape[2] ** 0.5
     return Case(description, (kind, weight, z[:, :-1], z[:, -1], context, steps, detach_later),
@@ -35,7 +35,7 @@ def _case(description: str, kind: str, z: torch.Tensor, context: int, steps: int
 
 
 def _call(loss_fn: Callable) -> Callable:
-    """``loss_fn`` called on one of the cases above, positionally as the training step calls it."""
+    """``loss_fn`` on one of the cases above, called positionally as the training step does."""
     def run(kind, weight, z_first, z_last, context, steps, detach_later):
         z = torch.cat([z_first, z_last[:, None]], dim=1)
         return loss_fn(_toy_predictor(kind, weight), z, context, steps, detach_later)
@@ -156,15 +156,21 @@ _SLIPS = [(words, _slip(**slip)) for words, slip in [  # gradient-only slips fir
           answers=(parallel_unroll, rollout_loss))
 def check_parallel_rollout_loss(fn: Callable) -> bool:
     """Notebook 03: ``parallel_rollout_loss(predictor, z, context=2, steps=4,
-    detach_later=False)`` -> 0-d tensor, called positionally as the training step does.
+    detach_later=False)`` -> 0-d tensor; gradients with respect to the predictor's weights,
+    the last latent (a target only) and the other latents, on toy predictors."""
+    return compare(_call(fn), _call(parallel_rollout_loss), _cases(),
+                   diagnoses=[(w, _call(v)) for w, v in _SLIPS],
+                   labels=["the predictor", "the predictor's weights", "the latents z[:, :-1]",
+                           "the last latent z[:, -1]"],
+                   grad=[(1, "the predictor's weights"), (2, "the other latents z[:, :-1]"),
+                         (3, "the last latent z[:, -1] (only ever a target)")],
+                   factors={"K": "a sum over the K steps where their mean belongs"})
 
-    Compares the loss and its gradients (with respect to the predictor's weights, the
-    last latent, a target only, and the other latents) with the course's on random latents
-    and toy predictors, with and without ``detach_later``.
-    """
+
+def _cases() -> list[Case]:
     g = torch.Generator().manual_seed(7)
     drift = torch.arange(7.0)[None, :, None, None, None] * torch.randn(1, 1, 2, 3, 3, generator=g)
-    cases = [
+    return [
         _case("the predictor 'last latent + 0.5', random latents (2, 8, 3, 4, 4), context 2, "
               "K 3", "shift", torch.randn(2, 8, 3, 4, 4, generator=g), 2, 3, False),
         _case("a constant-velocity predictor on latents moving in straight lines (the loss is "
@@ -186,10 +192,3 @@ def check_parallel_rollout_loss(fn: Callable) -> bool:
         _case("one step (K 1) with detach_later=True (nothing to detach)", "mixer",
               torch.randn(2, 6, 2, 3, 3, generator=g), 2, 1, True),
     ]
-    return compare(_call(fn), _call(parallel_rollout_loss), cases,
-                   diagnoses=[(w, _call(v)) for w, v in _SLIPS],
-                   labels=["the predictor", "the predictor's weights", "the latents z[:, :-1]",
-                           "the last latent z[:, -1]"],
-                   grad=[(1, "the predictor's weights"), (2, "the other latents z[:, :-1]"),
-                         (3, "the last latent z[:, -1] (only ever a target)")],
-                   factors={"K": "a sum over the K steps where their mean belongs"})
