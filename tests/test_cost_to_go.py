@@ -12,6 +12,8 @@ from ebjepa_tutorial.losses.cost import imagination_gap, spread_loss, step_viola
 from ebjepa_tutorial.models.cost import COST_SCALE, CostToGo, WithLearnedCost
 from ebjepa_tutorial.planning import PlannerConfig, planning_cost
 from ebjepa_tutorial.training.cost import (
+    CAP,
+    TOLERANCE,
     CostConfig,
     CostData,
     Multiplier,
@@ -57,15 +59,16 @@ def test_the_objective_on_a_hand_made_trajectory():
     x = torch.tensor([0.0, 2.0, 3.0, 6.0])[:, None] / COST_SCALE
     z, z_next, length = x[:-1], x[1:], torch.full((3,), 2.0)
     other = x.flip(0)[:3]  # pairs (0, 6), (2, 3), (3, 2) px
-    config = CostConfig(tolerance=0.5, consistency=0.0)
+    config = CostConfig(consistency=0.0)
     head, multiplier = Ruler(), Multiplier()
     loss, terms = cost_objective(head, multiplier, (z, z_next, length, other, z, z), config)
     violation = (1 / COST_SCALE) ** 2 / 3  # only the last step: 1 px over, in head units
     assert terms["violation_px"] == pytest.approx(COST_SCALE * violation ** 0.5)
-    spread = sum(math.log(1 + math.exp(15 - d / 10)) for d in (6.0, 1.0, 1.0)) / 3
+    spread = sum(math.log(1 + math.exp((CAP - d) / 10)) for d in (6.0, 1.0, 1.0)) / 3
     # lambda * violation - lambda * (violation - eps) leaves lambda * eps; lambda = 100 log 2
-    assert loss.item() == pytest.approx(spread + 100 * math.log(2) * (0.5 / COST_SCALE) ** 2)
-    loss.backward()  # violation (1/300) above eps (1/400): the multiplier must rise
+    eps = (TOLERANCE / COST_SCALE) ** 2
+    assert loss.item() == pytest.approx(spread + 100 * math.log(2) * eps)
+    loss.backward()  # violation (1/300) above eps (1/10,000): the multiplier must rise
     assert multiplier.raw.grad < 0
     # within tolerance (every step <= its action): the multiplier falls
     multiplier.raw.grad = None
@@ -110,8 +113,7 @@ def test_on_a_line_the_head_learns_the_distance_not_the_random_walks():
     line = torch.stack([x / 10, torch.zeros_like(x)], dim=-1)  # (N, T+1, 2) latents
     imagined = line[:, 1:].reshape(n, 1, steps, 2)  # a perfect predictor
     data = CostData(line, (x[:, 1:] - x[:, :-1]).abs(), imagined, group=n)  # one world
-    config = CostConfig(steps=1000, batch_size=256, hidden=64, dims=4, lr=3e-3, cap=40.0,
-                        imagined=16, trajectory_steps=16)
+    config = CostConfig(steps=1000, batch_size=256, hidden=64, dims=4, trajectory_steps=16)
     head, history = fit_cost_to_go(data, config, progress=False)
     at = torch.tensor([[0.5, 0.0], [1.0, 0.0], [1.5, 0.0]])  # x = 5, 10, 15
     with torch.no_grad():
@@ -163,9 +165,8 @@ def test_a_head_for_other_latents_is_refused():
         WithLearnedCost(Drift(), CostToGo(3))
 
 
-@pytest.mark.parametrize("field, value", [("tolerance", 0.0), ("cap", -1.0),
-                                          ("consistency", -1.0), ("steps", 0), ("dims", 0),
-                                          ("imagined", 48), ("layouts", 3)])
+@pytest.mark.parametrize("field, value", [("consistency", -1.0), ("steps", 0), ("dims", 0),
+                                          ("trajectory_steps", 40), ("layouts", 3)])
 def test_cost_config_refuses_settings_that_cannot_fit(field, value):
     with pytest.raises(ValueError, match=field):
         CostConfig(**{field: value})
@@ -179,7 +180,7 @@ def test_a_fitted_head_is_saved_once_and_loaded_after(tmp_path, monkeypatch):
                         lambda name: (tmp_path / f"{name}.pt", tmp_path / "none.pt"))
     world = WorldTrainConfig(n_trajectories=8, steps=1)
     model = new_model(world, make_data(world)).eval()
-    config = CostConfig(n_trajectories=4, trajectory_steps=8, imagined=4, layouts=2, steps=3,
+    config = CostConfig(n_trajectories=4, trajectory_steps=16, layouts=2, steps=3,
                         batch_size=16, hidden=8, dims=4)
     first = cost.cost_head_or_load(model, identity(world), config, "head")
     assert (tmp_path / "head.pt").exists()

@@ -26,10 +26,16 @@ from ..envs import generate_trajectories, random_layouts
 from ..losses.cost import imagination_gap, spread_loss, step_violation
 from ..models.cost import COST_SCALE, CostToGo
 from ..models.world import WorldModel, trajectory_latents
-from ..utils import check_fields, is_int_at_least, is_positive
+from ..utils import check_fields, is_int_at_least
 from .checkpoints import run_identity
 from .loop import History, fit, load_or_fit, step_generator
-from .world import WALL_FRACTION_RULE
+
+# The fit's constants (every run of the course uses these):
+CAP = 150.0  # C, px: pairs farther apart are hardly pushed (the softplus's hinge)
+TOLERANCE = 0.1  # epsilon, px: the root mean square by which steps may exceed their action
+LR, MULTIPLIER_LR = 1e-3, 1e-2  # Adam's rate for the head; gradient ascent on the multiplier
+WALL_FRACTION = 0.25  # trajectories that start in front of a wall, heading in
+IMAGINED_STEPS = 16  # steps of each imagined rollout (a trajectory's steps are a multiple)
 
 
 @dataclass(frozen=True)
@@ -39,33 +45,25 @@ class CostConfig:
     n_trajectories: int = 5_000  # fresh data-policy trajectories, encoded once
     trajectory_steps: int = 64  # long enough for a random walk to cross a room
     layouts: int = 500  # distinct layouts, each shared by n_trajectories / layouts of them
-    wall_fraction: float = 0.25  # trajectories that start in front of a wall, heading in
     steps: int = 4000  # Adam steps
     batch_size: int = 1024  # pairs, steps and imagined latents, each
-    lr: float = 1e-3
     hidden: int = 256
     dims: int = 32  # the embedding whose distance is the cost
-    cap: float = 150.0  # px: pairs farther apart are hardly pushed (the softplus's hinge)
-    tolerance: float = 0.1  # px: the root mean square by which steps may exceed their action
-    multiplier_lr: float = 1e-2  # gradient ascent on the Lagrange multiplier
     consistency: float = 10.0  # weight of the imagined latents' gap (0: none)
-    imagined: int = 16  # steps of each imagined rollout (trajectory_steps is a multiple)
     walls: int = 1  # 1: Two Rooms; 2: Three Rooms
     seed: int = 7
 
     def __post_init__(self):
         check_fields(self, {name: (is_int_at_least(1), "an int >= 1") for name in
                             ("n_trajectories", "trajectory_steps", "layouts", "steps",
-                             "batch_size", "hidden", "dims", "imagined")})
+                             "batch_size", "hidden", "dims")})
         if self.n_trajectories % self.layouts:
             raise ValueError(f"n_trajectories ({self.n_trajectories}) must be a multiple of "
                              f"layouts ({self.layouts}): each layout has as many trajectories")
-        if self.trajectory_steps % self.imagined:
+        if self.trajectory_steps % IMAGINED_STEPS:
             raise ValueError(f"trajectory_steps ({self.trajectory_steps}) must be a multiple of "
-                             f"imagined ({self.imagined}): each trajectory is imagined in pieces")
-        check_fields(self, {name: (is_positive, "a number > 0") for name in
-                            ("lr", "cap", "tolerance", "multiplier_lr")})
-        check_fields(self, {"wall_fraction": WALL_FRACTION_RULE})
+                             f"{IMAGINED_STEPS}: each trajectory is imagined in pieces of as "
+                             "many steps (IMAGINED_STEPS)")
         if not self.consistency >= 0:
             raise ValueError(f"consistency must be >= 0 (0: none), got {self.consistency}")
 
@@ -92,9 +90,9 @@ def cost_data(model: WorldModel, config: CostConfig) -> CostData:
     group = config.n_trajectories // config.layouts
     layouts = random_layouts(config.layouts, generator, config.walls)
     data = generate_trajectories(config.n_trajectories, config.trajectory_steps, generator,
-                                 wall_fraction=config.wall_fraction,
+                                 wall_fraction=WALL_FRACTION,
                                  layouts=layouts.repeat_interleave(group, dim=0))
-    latents, k = trajectory_latents(model, data), config.imagined
+    latents, k = trajectory_latents(model, data), IMAGINED_STEPS
     imagined = torch.stack([model.rollout(latents[:, s], data.actions[:, s: s + k])
                             for s in range(0, config.trajectory_steps, k)], dim=1)
     return CostData(latents, data.actions.norm(dim=-1), imagined, group)
@@ -133,9 +131,9 @@ def cost_objective(head: CostToGo, multiplier: Multiplier, batch, config: CostCo
     ``-lambda (violation - eps)``, raises lambda while the steps are too long (gradient
     ascent on the multiplier) and lowers it once they hold."""
     z, z_next, length, other, imagined, true = batch
-    lam, eps = multiplier(), (config.tolerance / COST_SCALE) ** 2
+    lam, eps = multiplier(), (TOLERANCE / COST_SCALE) ** 2
     violation = step_violation(head(z, z_next) / COST_SCALE, length / COST_SCALE)
-    loss = (spread_loss(head(z, other) / COST_SCALE, config.cap / COST_SCALE)
+    loss = (spread_loss(head(z, other) / COST_SCALE, CAP / COST_SCALE)
             + lam.detach() * violation - lam * (violation.detach() - eps))
     if config.consistency:
         loss = loss + config.consistency * imagination_gap(head.embed(imagined), head.embed(true))
@@ -155,8 +153,8 @@ def fit_cost_to_go(data: CostData, config: CostConfig,
     torch.manual_seed(config.seed)
     head, multiplier = CostToGo(data.latents.shape[-1], config.hidden, config.dims), Multiplier()
     optimizer = torch.optim.Adam([{"params": head.parameters()},
-                                  {"params": multiplier.parameters(),
-                                   "lr": config.multiplier_lr}], lr=config.lr)
+                                  {"params": multiplier.parameters(), "lr": MULTIPLIER_LR}],
+                                 lr=LR)
     history = fit(head, optimizer,
                   lambda batch: cost_objective(head, multiplier, batch, config),
                   lambda step: sample_batch(data, config.batch_size,
