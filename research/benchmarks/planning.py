@@ -32,10 +32,13 @@ from ebjepa_tutorial.training.world import load_world_model
 from research.benchmarks import command_line
 from tools import figures
 
-# the checkpoints whose success rates notebook 06 prints beside the learner's
+# the checkpoints whose success rates notebook 06 prints beside the learner's, and chapter 05's
+# class run without one loss term (the paper's Table 4 at class length, RESULTS.md)
 RECORDED = {"world_model_class.pt": "planning_success_class",
             "world_model_class_course_long.pt": "planning_success_shipped",
-            "world_model_class_long20k_mlp.pt": "planning_success_refit"}
+            "world_model_class_long20k_mlp.pt": "planning_success_refit",
+            **{f"world_model_class_{suffix}.pt": f"planning_success_{suffix}"
+               for suffix in ("no_variance", "no_covariance", "no_temporal", "no_idm")}}
 
 
 def _yes_no(text: str) -> bool:
