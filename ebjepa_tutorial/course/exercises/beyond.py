@@ -1,4 +1,4 @@
-"""Checkers of chapter 07: the two terms that fit the cost-to-go head, and their hints."""
+"""Checkers of chapter 07: the two terms that fit the cost-to-go head."""
 
 from __future__ import annotations
 

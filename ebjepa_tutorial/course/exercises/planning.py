@@ -1,4 +1,4 @@
-"""Checker of chapter 06: one MPPI update of the plan's mean and spread, and its hints."""
+"""Checker of chapter 06: one MPPI update of the plan's mean and spread."""
 
 from __future__ import annotations
 
@@ -115,12 +115,7 @@ _MPPI_SLIPS = [(words, _mppi_slip(**slip)) for words, slip in [
 @exercise(mppi_update, _MPPI_SLIPS, name="mppi_update", hints=_MPPI_HINTS,
           answers=(planning.mppi_weights, planning.weighted_mean_std, planning.select_elites))
 def check_mppi_update(fn: Callable) -> bool:
-    """Notebook 06: ``mppi_update(actions, costs, elites, temperature) -> (mean, std)``.
-
-    ``actions (B, N, H, A)``, ``costs (B, N)`` -> two ``(B, H, A)`` tensors, compared
-    with :func:`ebjepa_tutorial.planning.mppi_update`. Weights computed without
-    subtracting the minimum cost are accepted where float32 alone makes them differ
-    (the costs near 10,000), and the learner is told why they differ.
-    """
+    """Notebook 06: ``mppi_update(actions, costs, elites, temperature) -> (mean, std)``:
+    ``actions (B, N, H, A)``, ``costs (B, N)`` -> two ``(B, H, A)`` tensors."""
     return compare(fn, mppi_update, _mppi_cases(), diagnoses=_MPPI_SLIPS,
                    parts=("mean", "std"))

@@ -1,4 +1,4 @@
-"""Checker of chapter 02: the Epps-Pulley statistic of SIGReg, and its hints."""
+"""Checker of chapter 02: the Epps-Pulley statistic of SIGReg."""
 
 from __future__ import annotations
 
@@ -91,13 +91,9 @@ _EPPS_PULLEY_SLIPS = [
 @exercise(_epps_pulley_reference, _EPPS_PULLEY_SLIPS, name="epps_pulley_1d",
           hints=_EPPS_PULLEY_HINTS, answers=(epps_pulley, sigreg_loss))
 def check_epps_pulley(fn: Callable) -> bool:
-    """Notebook 02: ``epps_pulley_1d(x, knots=17, t_max=3.0, scale_by_n=True)`` -> a 0-d tensor.
-
-    ``x``: one slice, ``(N,)``. Compared with :func:`ebjepa_tutorial.losses.sigreg.epps_pulley`
-    (weight width ``sigma = 1``) on Gaussian, collapsed and uniform samples,
-    with and without the factor N, and with other knots; value and gradient with
-    respect to ``x``.
-    """
+    """Notebook 02: ``epps_pulley_1d(x, knots=17, t_max=3.0, scale_by_n=True)`` on one slice
+    ``x`` ``(N,)`` -> a 0-d tensor, the course's :func:`~ebjepa_tutorial.losses.sigreg.epps_pulley`
+    with ``sigma = 1``; value and gradient with respect to ``x``."""
     return compare(fn, _epps_pulley_reference, _epps_pulley_cases(), atol=1e-4,
                    diagnoses=_EPPS_PULLEY_SLIPS, grad=[(0, "the sample x")], dims={0: "N"},
                    factors={"N": "with scale_by_n=True the statistic is N times the integral, "
