@@ -1,9 +1,10 @@
-"""Several processes, one model: what DistributedDataParallel training needs beyond DDP itself.
+"""Several processes, one model: what data-parallel training needs beyond averaging gradients.
 
 ``torchrun --nproc_per_node=W`` starts W processes (the *ranks*) and tells each who it is
 through environment variables (``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``, ``MASTER_ADDR``,
-``MASTER_PORT``). Each rank holds a copy of the model and an equal share of every batch; DDP
-averages the gradients over the ranks in ``backward``, so the copies stay equal.
+``MASTER_PORT``). Each rank holds a copy of the model and an equal share of every batch; the
+gradients are averaged over the ranks after ``backward``, by DDP (chapters 01-02) or by the
+training step itself (:func:`average_gradients`, chapters 03 and 05), so the copies stay equal.
 
 The losses in :mod:`ebjepa_tutorial.losses` see one batch in one process. Averaging gradients
 is right for a mean of per-sample terms (an invariance), but VICReg's variance and covariance
@@ -17,12 +18,12 @@ module instead of changing them:
   millions of rows (chapter 03) that would be too many to gather;
 - :func:`rand_rows`: a random draw for the global batch, cut to this rank's rows.
 
-Why the collectives' backward sums over ranks: DDP minimises the mean of the ranks' losses,
+Why the collectives' backward sums over ranks: training minimises the mean of the ranks' losses,
 ``J = (1/W) sum_r L_r``, by averaging each rank's own gradient. Through a collective, every
 rank's loss depends on rank s's tensor ``x_s``, so ``dJ/dx_s = (1/W) sum_r dL_r/dx_s``: the
-backward all-reduces (sums) the incoming gradients before rank s keeps its part, and DDP's
-average supplies the 1/W. Keeping only the local gradient, a common mistake, makes the
-gradient of every batch statistic W times too small.
+backward all-reduces (sums) the incoming gradients before rank s keeps its part, and the
+average over ranks (DDP's or :func:`average_gradients`) supplies the 1/W. Keeping only the
+local gradient, a common mistake, makes the gradient of every batch statistic W times too small.
 
 Everything here is a no-op in a single process (no process group, or a world of one).
 """
@@ -166,7 +167,7 @@ class _MeanAcrossRanks(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
-        return _MeanAcrossRanks.forward(ctx, grad)  # sum_r grad_r / W; DDP adds the other 1/W
+        return _MeanAcrossRanks.forward(ctx, grad)  # sum_r grad_r / W; the average adds a 1/W
 
 
 def gather_rows(x: torch.Tensor) -> torch.Tensor:
@@ -211,23 +212,30 @@ class Forward(nn.Module):
         return self.fn(self.module, *args, **kwargs)
 
 
+def with_sync_batchnorm(module: nn.Module, device: torch.device | str) -> nn.Module:
+    """``module`` with its batch norms turned into SyncBatchNorm, which normalise over the
+    global batch, not each rank's share. Needs a process group and a CUDA ``device`` (torch
+    syncs CUDA inputs only). No DDP wrapper is needed: in training mode SyncBatchNorm gathers
+    its statistics whenever a process group is running. The parameters are kept, so an
+    optimiser built before or after holds the same tensors; state dict keys do not change.
+    """
+    if not running():
+        raise ValueError("sync_batchnorm needs a process group (start with torchrun)")
+    if torch.device(device).type != "cuda":
+        raise ValueError("SyncBatchNorm runs on CUDA devices only in torch; on the CPU "
+                         "(gloo) each rank normalises over its own share of the batch")
+    return nn.SyncBatchNorm.convert_sync_batchnorm(module)
+
+
 def data_parallel(module: nn.Module, device: torch.device | str,
                   sync_batchnorm: bool = False) -> nn.Module:
     """``module`` wrapped in DDP inside a process group; ``module`` itself outside one.
-
-    ``sync_batchnorm`` turns its batch norms into SyncBatchNorm (normalising over the global
-    batch, not each rank's share; CUDA only in torch). It keeps the parameters, so an
-    optimiser built before or after holds the same tensors; state dict keys do not change.
+    ``sync_batchnorm``: its batch norms first become SyncBatchNorm (:func:`with_sync_batchnorm`).
     """
     device = torch.device(device)
-    if not running():
-        if sync_batchnorm:
-            raise ValueError("sync_batchnorm needs a process group (start with torchrun)")
-        return module
     if sync_batchnorm:
-        if device.type != "cuda":
-            raise ValueError("SyncBatchNorm runs on CUDA devices only in torch; on the CPU "
-                             "(gloo) each rank normalises over its own share of the batch")
-        module = nn.SyncBatchNorm.convert_sync_batchnorm(module)
+        module = with_sync_batchnorm(module, device)
+    if not running():
+        return module
     ids = [device.index] if device.type == "cuda" else None
     return nn.parallel.DistributedDataParallel(module, device_ids=ids)
