@@ -5,7 +5,8 @@
     python -m research.train_video --scale class --K 4 --seed 0 \
         --unroll autoregressive --ship
 
-On several devices, one process each (DistributedDataParallel; nccl on GPUs, gloo on CPUs):
+On several devices, one process each (nccl on GPUs, gloo on CPUs; the training step averages
+the gradients over the processes):
 
     torchrun --nproc_per_node=N -m research.train_video --scale full
 

@@ -27,7 +27,8 @@ from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.data.mnist import find_mnist, load_mnist
 from ebjepa_tutorial.data.moving_mnist import split_digits
 from ebjepa_tutorial.envs import generate_trajectories
-from ebjepa_tutorial.losses import vicreg_loss
+from ebjepa_tutorial.losses import variance_and_covariance, vicreg_loss
+from ebjepa_tutorial.losses.rollout import parallel_rollout_loss
 from ebjepa_tutorial.losses.sigreg import sigreg_loss
 from ebjepa_tutorial.losses.world import WorldLossCoeffs, world_model_loss
 from ebjepa_tutorial.models.video import VideoJEPA, VideoModelConfig
@@ -35,6 +36,7 @@ from ebjepa_tutorial.models.world import WorldConfig, WorldModel
 from ebjepa_tutorial.training import image, video, world
 from ebjepa_tutorial.training.checkpoints import load_checkpoint
 from ebjepa_tutorial.training.loop import History, load_or_train
+from ebjepa_tutorial.utils import at_least_float32, mixed_precision
 from research import launch, train_image, train_video, train_world
 
 REPO = Path(__file__).resolve().parents[1]
@@ -117,9 +119,28 @@ def _video_case():
     return VideoJEPA(VIDEO_TINY.model).eval(), torch.rand(4, 4, 1, 64, 64)
 
 
-def _video_loss(model, frames, across_ranks):
-    statistics = distributed.variance_and_covariance if across_ranks else None  # as training
-    return video.video_jepa_loss(model, frames, VIDEO_TINY, statistics=statistics)
+def _video_whole(model, frames):
+    """The video loss of one process on the whole batch, written out with the plain losses,
+    and its gradient in ``.grad``: what the training step must reproduce on every rank."""
+    with mixed_precision(frames.device, cpu=True):  # as training (float32 on most CPUs)
+        z = model.encode(frames)
+        prediction = parallel_rollout_loss(model.predictor, z, 2, VIDEO_TINY.rollout_steps,
+                                           VIDEO_TINY.detach_later_orders)
+        projected = model.project(z)
+    variance, covariance = variance_and_covariance(at_least_float32(projected))
+    total = prediction + VIDEO_TINY.std_coeff * variance + VIDEO_TINY.cov_coeff * covariance
+    total.backward()
+    terms = {"prediction": prediction, "variance": variance, "covariance": covariance}
+    return total.detach(), {name: value.detach() for name, value in terms.items()}
+
+
+def _video_step(model, frames):
+    """The training step itself (``video_jepa_step``) on these rows, at a rate of 0: the
+    weights stay, and the gradients it averaged over the ranks stay in ``.grad``."""
+    optimizer = torch.optim.SGD(model.parameters(), lr=0.0)
+    scheduler = video.new_scheduler(optimizer, VIDEO_TINY)
+    return video.video_jepa_step(model, optimizer, scheduler, frames, VIDEO_TINY.rollout_steps,
+                                 VIDEO_TINY)
 
 
 def _world_case():
@@ -136,22 +157,28 @@ def _world_case():
 def _world_loss(model, frames, actions, across_ranks):
     generator = torch.Generator().manual_seed(5)  # seeded alike on every rank, as in training
     wrappers = dict(batch_rows=distributed.gather_rows, rand=distributed.rand_rows)  # training's
-    return world_model_loss(model, frames, actions, generator=generator, **WORLD_OPTIONS,
-                            **(wrappers if across_ranks else {}))
+    total, terms = world_model_loss(model, frames, actions, generator=generator, **WORLD_OPTIONS,
+                                    **(wrappers if across_ranks else {}))
+    total.backward()
+    if across_ranks:  # as world_model_step: the mean over ranks of the gradients
+        distributed.average_gradients(model.parameters())
+    return total.detach(), terms
 
 
-CHAPTERS = {"video": (_video_case, _video_loss), "world": (_world_case, _world_loss)}
+# chapter -> (its model and inputs, the whole batch in one process, training's code on some rows)
+CHAPTERS = {"video": (_video_case, _video_whole, _video_step),
+            "world": (_world_case, partial(_world_loss, across_ranks=False),
+                      partial(_world_loss, across_ranks=True))}
 
 
 @pytest.mark.parametrize("chapter", CHAPTERS)
-def test_one_process_chapter_losses_give_the_same_bits_with_or_without_the_wrappers(chapter):
-    make, loss_fn = CHAPTERS[chapter]
+def test_one_process_chapter_steps_give_the_same_bits_as_the_plain_losses(chapter):
+    make, *ways = CHAPTERS[chapter]
     runs = []
-    for across_ranks in (False, True):
+    for way in ways:
         model, *inputs = make()
         model.train()  # as in training: one process normalises over its whole batch
-        total, terms = loss_fn(model, *inputs, across_ranks)
-        total.backward()
+        total, terms = way(model, *inputs)
         runs.append((total, terms, [p.grad for p in model.parameters()]))
     (total, terms, grads), (again, terms_again, grads_again) = runs
     assert torch.equal(total, again) and terms == terms_again
@@ -171,6 +198,14 @@ def test_helpers_are_no_ops_in_one_process():
     wrapped = distributed.Forward(module, lambda m, x, scale=1: m(x) * scale)
     assert torch.equal(wrapped(x[:, :2], scale=2), module(x[:, :2]) * 2)
     assert list(wrapped.parameters()) == list(module.parameters())
+    module.weight.grad = torch.ones(2, 2)
+    distributed.average_gradients(module.parameters())  # a bias without a gradient is skipped
+    assert torch.equal(module.weight.grad, torch.ones(2, 2)) and module.bias.grad is None
+    with pytest.raises(ValueError, match="needs a process group"):
+        distributed.with_sync_batchnorm(nn.BatchNorm1d(3), "cpu")
+    with pytest.raises(ValueError, match="needs a process group"):
+        video.train_video_jepa(VIDEO_TINY, torch.zeros(4, 4, 1, 64, 64, dtype=torch.uint8),
+                               progress=False, sync_batchnorm=True)
 
 
 def test_the_global_batch_must_split_evenly():
@@ -296,16 +331,12 @@ def test_two_ranks_give_the_terms_and_gradients_of_one_process():  # VICReg and 
 
 def _chapters_match_one_process(rank):
     torch.set_default_dtype(torch.float64)  # so that "equal" can mean 1e-12, not 1e-6
-    for chapter, (make, loss_fn) in CHAPTERS.items():
+    for chapter, (make, whole, training) in CHAPTERS.items():
         model, *inputs = make()  # the same weights and data on both ranks
         reference = copy.deepcopy(model)
-        total, terms = loss_fn(reference, *inputs, False)
-        total.backward()
-
-        loss_in_one_forward = distributed.Forward(model, partial(loss_fn, across_ranks=True))
-        net = distributed.data_parallel(loss_in_one_forward, "cpu")
-        local, local_terms = net(*map(distributed.local_rows, inputs))  # this rank's half
-        local.backward()  # DDP averages the gradients over the ranks
+        total, terms = whole(reference, *inputs)  # one process, the whole batch
+        # training's code on this rank's half; it averages the gradients over the ranks
+        local, local_terms = training(model, *map(distributed.local_rows, inputs))
 
         mean_total, *mean_terms = distributed.mean_of_floats(
             [float(local), *map(float, local_terms.values())])
@@ -335,6 +366,9 @@ def _refuse_bad_setups(rank):
         world.train_world_model(world.WorldTrainConfig(batch_size=9), progress=False)
     with pytest.raises(ValueError, match="CUDA devices only"):
         distributed.data_parallel(nn.BatchNorm1d(3), "cpu", sync_batchnorm=True)
+    with pytest.raises(ValueError, match="CUDA devices only"):  # the video step has no DDP
+        video.train_video_jepa(VIDEO_TINY, torch.zeros(4, 4, 1, 64, 64, dtype=torch.uint8),
+                               progress=False, sync_batchnorm=True)
 
     def fails_on_rank_0():
         raise OSError("disk gone")

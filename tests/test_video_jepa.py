@@ -280,6 +280,16 @@ def test_training_resumes_and_evaluation_runs(digits, tmp_path):
         assert torch.sigmoid(decoder(z)).shape == (2, 1, 64, 64)
 
 
+def test_the_papers_constant_rate_is_a_scheduler_that_keeps_it(digits, tmp_path):
+    clips = generate_moving_mnist(digits, 8, 10, seed=1).clips
+    config = replace(CI, steps=2, batch_size=2, cosine=False)  # the paper's constant 1e-3 way
+    path = tmp_path / "constant.pt"
+    train_video_jepa(config, clips, checkpoint=path, progress=False)
+    state = load_checkpoint(path)  # the step calls scheduler.step() whatever the config
+    assert state["scheduler"]["last_epoch"] == config.steps
+    assert state["optimizer"]["param_groups"][0]["lr"] == config.lr
+
+
 def test_the_curriculum_trains_one_step_first_then_k_steps(digits, monkeypatch):
     class_ = VIDEO_CONFIGS["class"]  # 2,400 steps, the first half at K = 1
     assert [class_.rollout_steps_at(s) for s in (0, 1199, 1200, 2399)] == [1, 1, 4, 4]

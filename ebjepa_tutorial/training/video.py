@@ -1,29 +1,30 @@
 """Video JEPA on Moving MNIST (notebook 03): the run's config, its clips, training, load-or-train.
 
-The loss of one step, :func:`video_jepa_loss` (notebook 03 shows the same code in a cell
-and can pass an edited copy as ``step``), is the K-step loss
+One training step, :func:`video_jepa_step` (notebook 03 shows the same code in a cell and
+can pass an edited copy as ``step``), takes the K-step loss
 (:mod:`ebjepa_tutorial.losses.rollout`, unrolled the paper's parallel way or
 autoregressively) plus the variance and covariance terms on projected latents (each
 location of each frame is one sample), so that the latent cannot collapse:
 
     L = (1/K) sum_k mean ||zhat_k - z||^2 + std v(P(Z)) + cov c(P(Z))
 
-The class run is a curriculum: its first half trains K = 1 (the encoder learns
-what to predict), its second half K steps with orders 2..K on detached latents (the
-predictor learns to build on its own guesses); the paper trains K steps throughout,
-every order reaching the encoder.
+then its gradient, the optimiser's step and the scheduler's. The class run is a curriculum:
+its first half trains K = 1 (the encoder learns what to predict), its second half K steps
+with orders 2..K on detached latents (the predictor learns to build on its own guesses);
+the paper trains K steps throughout, every order reaching the encoder.
 
 Evaluation lives in :mod:`ebjepa_tutorial.evaluation.detection`; the command
 that trains notebook 03's runs ahead of a class is
 ``python -m research.train_video --scale class``.
 
 Several processes (``torchrun``, see :mod:`ebjepa_tutorial.distributed`): the
-config's ``batch_size`` is the global batch (clips), and global batch = per-rank
-batch x world size. Every rank draws the same global batch (seeded by the step)
-and keeps its own clips; the rollout loss is a mean over them (DDP averages it),
-while the variance and covariance are those of every location of every frame of
-the global batch. Batch norm (in the encoder, the predictor and the projector)
-normalises over each rank's frames, unless ``sync_batchnorm`` (GPUs only).
+config's ``batch_size`` is the global batch (clips), and global batch = per-rank batch x
+world size. Every rank draws the same global batch (seeded by the step) and keeps its own
+clips; the rollout loss is a mean over them, while the variance and covariance are those of
+every location of every frame of the global batch, and the step averages the gradients over
+the ranks itself (as chapter 05's does; no DistributedDataParallel wrapper). Batch norm (in
+the encoder, the predictor and the projector) normalises over each rank's frames, unless
+``sync_batchnorm`` (GPUs only).
 """
 
 from __future__ import annotations
@@ -39,7 +40,6 @@ import torch.nn.functional as F
 
 from .. import distributed
 from ..data.moving_mnist import generate_moving_mnist
-from ..losses import variance_and_covariance
 from ..losses.rollout import UNROLLS, parallel_rollout_loss, rollout_loss
 from ..models.video import VIDEO_MODEL_CONFIGS, FrameDecoder, VideoJEPA, VideoModelConfig
 from ..utils import (
@@ -51,9 +51,12 @@ from ..utils import (
     is_positive,
     mixed_precision,
 )
-from .checkpoints import checkpoint_paths, run_identity, step_identity
-from .loop import History, fit, load_or_train, resume, step_generator
+from .checkpoints import checkpoint_paths, run_identity, save_or_warn, step_identity
+from .loop import History, load_or_train, resume, run_steps, saver, step_generator
 from .optim import warmup_cosine_scheduler
+
+LOG_EVERY = 10  # steps between the history's rows: reading a value waits for the GPU
+CHECKPOINT_EVERY = 100  # steps between saves of a resumable run
 
 
 @dataclass(frozen=True)
@@ -150,31 +153,34 @@ def check_clips(clips: torch.Tensor, min_frames: int) -> None:
                          "(context + prediction steps): generate longer clips")
 
 
-def video_jepa_loss(model, frames, config, rollout_steps=None, statistics=None):
-    """Total loss of a batch of clips ``frames`` ``(B, T, 1, 64, 64)`` and its unweighted terms.
+def video_jepa_step(model, optimizer, scheduler, frames, k, config):
+    """One training step (notebook 03 shows it; tests/test_one_source_video.py keeps the two
+    the same): the loss of a batch of clips, its gradient, the update.
 
-    ``model``: a :class:`VideoJEPA`; ``config``: its :class:`VideoJEPAConfig` (no annotations
-    here: notebook 03 shows this function, and its copy reads as plain Python).
-
-    ``rollout_steps``: K for this batch (default ``config.rollout_steps``; training
-    passes :meth:`VideoJEPAConfig.rollout_steps_at` of the step: 1 in the curriculum's
-    first half). ``statistics``: the variance and covariance terms (default
-    :func:`~ebjepa_tutorial.losses.variance_and_covariance`; training passes
-    :func:`ebjepa_tutorial.distributed.variance_and_covariance`, those of the global batch
-    under torchrun, the same in one process). :func:`train_video_jepa` back-propagates the
-    total and takes the optimiser step.
+    ``model``: a :class:`VideoJEPA` in train mode; ``frames``: this rank's clips, uint8
+    ``(b, T, 1, 64, 64)``; ``k``: K of this step (:meth:`VideoJEPAConfig.rollout_steps_at`:
+    1 in the curriculum's first half); ``config``: the :class:`VideoJEPAConfig` (no
+    annotations here: the notebook's copy reads as plain Python). Under ``torchrun`` the
+    variance and covariance are those of the global batch and the gradients are averaged over
+    the ranks, so every rank takes the update one process would take on the whole batch.
+    Returns ``(total, terms)``, detached: a 0-d tensor and the unweighted terms.
     """
-    k = rollout_steps or config.rollout_steps
     with mixed_precision(frames.device, cpu=True):  # bf16 networks where fast; statistics in fp32
-        z = model.encode(frames)  # (B, T, C, S, S): every frame on its own
+        z = model.encode(frames)  # Z: (b, T, C, S, S), every frame on its own
         multistep_loss = parallel_rollout_loss if config.unroll == "parallel" else rollout_loss
         prediction = multistep_loss(model.predictor, z, model.config.context, k,
-                                    config.detach_later_orders)
-        projected = model.project(z)  # (B*T*S*S, D): every location of every frame is a sample
-    variance, covariance = (statistics or variance_and_covariance)(at_least_float32(projected))
-    total = prediction + config.std_coeff * variance + config.cov_coeff * covariance
+                                    config.detach_later_orders)  # L_pred (exercise 1)
+        projected = model.project(z)  # h(Z): (b*T*S*S, D), every location of every frame a row
+    # v and c of every process's rows under torchrun (the global batch), else of these rows
+    variance, covariance = distributed.variance_and_covariance(at_least_float32(projected))
+    total = prediction + config.std_coeff * variance + config.cov_coeff * covariance  # L
+    optimizer.zero_grad(set_to_none=True)  # drop the last step's gradients
+    total.backward()  # dL/d(every weight): encoder, predictor, projector
+    distributed.average_gradients(model.parameters())  # torchrun: the mean over processes
+    optimizer.step()  # Adam
+    scheduler.step()  # the learning rate of the next step
     terms = {"prediction": prediction, "variance": variance, "covariance": covariance}
-    return total, {name: value.detach() for name, value in terms.items()}
+    return total.detach(), {name: value.detach() for name, value in terms.items()}
 
 
 def _check_run(config: VideoJEPAConfig, clips, handover, both: bool) -> None:
@@ -191,67 +197,98 @@ def _check_run(config: VideoJEPAConfig, clips, handover, both: bool) -> None:
     check_clips(clips, config.model.context + config.rollout_steps)
 
 
+def new_model(config: VideoJEPAConfig, device, sync_batchnorm: bool = False) -> VideoJEPA:
+    """The run's initial model on ``device``, the same on every rank (seeded by the run);
+    ``sync_batchnorm``: its batch norms normalise over the global batch (GPUs, torchrun)."""
+    torch.manual_seed(config.seed)
+    layout = torch.channels_last if config.channels_last else torch.contiguous_format
+    model = VideoJEPA(config.model).to(device, memory_format=layout)
+    return distributed.with_sync_batchnorm(model, device) if sync_batchnorm else model
+
+
+def new_scheduler(optimizer: torch.optim.Optimizer, config: VideoJEPAConfig):
+    """The rate over the run: a half cosine to 0 (``config.cosine``), else constant (the
+    paper's); a scheduler either way, so that the step always calls ``scheduler.step()``."""
+    if config.cosine:
+        return warmup_cosine_scheduler(optimizer, config.steps, 0)
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: 1.0)
+
+
 def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
                      checkpoint: str | Path | None = None, progress: bool = True,
                      device: torch.device | str | None = None,
                      sync_batchnorm: bool = False, after_step=None,
                      handover: Sequence[tuple[VideoJEPAConfig, str | Path]] = (),
                      step=None) -> tuple[VideoJEPA, History]:
-    """Train on uint8 ``clips`` ``(N, T, 1, 64, 64)``; resume from ``checkpoint`` if it exists.
-
-    Batch ``step`` is drawn from a generator seeded by ``(seed, step)``, so a
-    resumed run sees the same batches as an uninterrupted one. Returns the
-    model (in eval mode) and its history.
-
-    Inside a process group (``torchrun``) it trains with DistributedDataParallel:
-    ``config.batch_size`` is the global batch, and global batch = per-rank batch x
-    world size (a world size that does not divide it is refused). Rank 0 alone
-    writes ``checkpoint``, which resumes on any world size. Batch norm normalises
-    over each rank's frames; ``sync_batchnorm`` (GPUs only) over the global batch.
-    ``after_step(model, step)``, called after each optimiser step, can score the model
-    as it trains (``research.benchmarks.video_full``); its state is not checkpointed, so it
-    takes no ``checkpoint``.
-    ``handover``: ``(config, path)`` pairs of runs that are this one with another K; at the
-    switch to the rollout, the state is saved to each ``path`` as that run's checkpoint, which
-    then resumes from it instead of training its K = 1 half again.
-    ``step``: the loss of one step, with :func:`video_jepa_loss`'s signature (its default);
-    notebook 03 passes its cell's copy, which the learner can edit.
+    """Train on uint8 ``clips`` ``(N, T, 1, 64, 64)``, each update a ``step`` (default
+    :func:`video_jepa_step`; notebook 03 passes its cell's); resume from ``checkpoint``.
+    Batches come from generators seeded by ``(seed, step)``, so a resumed run sees the same
+    ones. Under ``torchrun``, ``config.batch_size`` is the global batch (global batch =
+    per-rank batch x world size), rank 0 alone writes ``checkpoint`` (it resumes on any world
+    size), and ``sync_batchnorm`` (GPUs only) normalises over the global batch.
+    ``after_step(model, step)``, after each update, can score the model as it trains (it is
+    not saved: no ``checkpoint``). ``handover``: ``(config, path)`` of runs that are this one
+    with another K, saved to ``path`` at the switch. Returns the model (eval mode), history.
     """
-    step = step or video_jepa_loss
+    step = step or video_jepa_step
     _check_run(config, clips, handover, after_step is not None and checkpoint is not None)
     device = get_device(device)
-    torch.manual_seed(config.seed)
-    layout = torch.channels_last if config.channels_last else torch.contiguous_format
-    model = VideoJEPA(config.model).to(device, memory_format=layout)
-
-    def loss(module: VideoJEPA, frames: torch.Tensor, k: int):  # one forward (DDP)
-        return step(module, frames, config, k, distributed.variance_and_covariance)
-
-    net = distributed.data_parallel(distributed.Forward(model, loss), device, sync_batchnorm)
+    model = new_model(config, device, sync_batchnorm)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
-    scheduler = warmup_cosine_scheduler(optimizer, config.steps, 0) if config.cosine else None
-    start, history = (0, History())
+    scheduler = new_scheduler(optimizer, config)
+    parts = (model, optimizer, scheduler)
+    start, history = 0, History()
     if checkpoint is not None:
-        start, history = resume(checkpoint, model, optimizer, scheduler,
-                                identity(config, step=step))
+        start, history = resume(checkpoint, *parts, identity(config, step=step))
 
-    def batch(step: int) -> tuple[torch.Tensor, int]:  # the step's clips and its K
+    def update(frames_and_k: tuple[torch.Tensor, int], n: int):
+        total, terms = step(*parts, *frames_and_k, config)
+        if after_step is not None:
+            after_step(model, n)
+        return total, terms
+
+    model.train()
+    run_steps(update, _batches(config, clips, device), config.steps, start_step=start,
+              history=history, log_every=LOG_EVERY, desc="video JEPA", progress=progress,
+              after=_saves(config, checkpoint, handover, step, parts, history))
+    return model.eval(), history
+
+
+def _batches(config: VideoJEPAConfig, clips: torch.Tensor, device):
+    """``batch(step) -> (frames, k)``: this rank's clips of step ``step``'s global batch,
+    ``(b, T, 1, 64, 64)`` uint8 on ``device``, and K of that step."""
+
+    def batch(step: int) -> tuple[torch.Tensor, int]:
         generator = step_generator(config.seed, step)
         index = torch.randint(0, len(clips), (config.batch_size,), generator=generator)
-        # every rank drew the global batch and keeps its own rows
-        return clips[distributed.local_rows(index)], config.rollout_steps_at(step)
+        # every rank drew the global batch and keeps its own rows (all of them in one process)
+        return clips[distributed.local_rows(index)].to(device), config.rollout_steps_at(step)
 
-    def step_loss(clips_and_k: tuple[torch.Tensor, int]):
-        frames, k = clips_and_k
-        return net(frames.to(device), k)
+    return batch
 
-    fit(model, optimizer, step_loss, batch, config.steps, scheduler=scheduler, history=history,
-        start_step=start, checkpoint=checkpoint, checkpoint_every=100, log_every=10,
-        desc="video JEPA", progress=progress, config=identity(config, step=step),
-        after_step=None if after_step is None else lambda step: after_step(model, step),
-        snapshots=[(config.switch_step, path, identity(other, step=step))
-                   for other, path in handover])
-    return model.eval(), history
+
+def _saves(config: VideoJEPAConfig, checkpoint, handover, step, parts, history: History):
+    """``after(done)`` for :func:`run_steps`: the state of ``parts`` (model, optimiser,
+    scheduler) saved to ``checkpoint`` every :data:`CHECKPOINT_EVERY` steps and at the end, and
+    at the switch to each ``handover`` path as that run's (its identity), this one up to there.
+    """
+    model, optimizer, scheduler = parts
+
+    def state(done: int, run: dict) -> dict:  # what resume() reads back; rank 0 alone writes
+        return dict(model=model.state_dict(), optimizer=optimizer.state_dict(),
+                    scheduler=scheduler.state_dict(), history=dict(history), step=done,
+                    config=run, seconds=history.seconds)
+
+    own = identity(config, step=step)
+    save = saver(checkpoint, lambda done: state(done, own), config.steps, CHECKPOINT_EVERY)
+
+    def after(done: int) -> None:
+        save(done)
+        for other, path in handover:
+            if done == config.switch_step:
+                save_or_warn(Path(path), **state(done, identity(other, step=step)))
+
+    return after
 
 
 def identity(config: VideoJEPAConfig, train_digits: torch.Tensor | None = None,
@@ -259,7 +296,7 @@ def identity(config: VideoJEPAConfig, train_digits: torch.Tensor | None = None,
     """What a checkpoint stores to recognise its run: ``config``, for a finished run the
     digits its clips were made from (:func:`digits_fingerprint`), and an edited ``step``'s
     code (:func:`~.checkpoints.step_identity`)."""
-    edited = step_identity(step, video_jepa_loss)
+    edited = step_identity(step, video_jepa_step)
     if train_digits is None:  # a run in progress: its clips are fixed by the caller
         return run_identity(config, VIDEO_ALWAYS, **edited)
     return run_identity(config, VIDEO_ALWAYS, train_digits=digits_fingerprint(train_digits),
@@ -295,8 +332,8 @@ def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor
     ``siblings``: ``(config, name)`` of runs that are this one with another K; those not
     saved or started yet get this run's state at the switch as their ``.partial``, so
     they train only their rollout half.
-    ``step``: the loss of one step (:func:`train_video_jepa`). A step whose code differs from
-    :func:`video_jepa_loss` (a learner's edit) is a run of its own: its identity holds a hash
+    ``step``: the training step (:func:`train_video_jepa`). A step whose code differs from
+    :func:`video_jepa_step` (a learner's edit) is a run of its own: its identity holds a hash
     of its code, so it never loads, or replaces, the course's run.
     """
     torch.manual_seed(config.seed)

@@ -81,7 +81,7 @@ def step_split() -> dict[str, float]:
                            dtype=torch.uint8)
 
     def step(repeat: int):
-        with mixed_precision("cpu", cpu=True):  # the networks as video_jepa_loss runs them
+        with mixed_precision("cpu", cpu=True):  # the networks as video_jepa_step runs them
             z = model.encode(frames)
             yield "encoder"
             prediction = UNROLLS[config.unroll](model.predictor, z, config.model.context,
@@ -170,7 +170,7 @@ def main() -> None:
         )
     train_rate, mean_ap, ap3 = float("nan"), float("nan"), float("nan")
     if digits is not None and args.steps != 0:
-        precision = precision_name("cpu", cpu=True)  # what video_jepa_loss trains in here
+        precision = precision_name("cpu", cpu=True)  # what video_jepa_step trains in here
         train_rate, report = model_benchmark(cfg, train_digits, held_out, args.rollout_steps,
                                              args.seed, args.steps, precision)
         mean_ap, ap3 = report["map"], float(report["ap"][2])
