@@ -158,7 +158,7 @@ def test_full_planner_replans_once_with_a_full_world_model(monkeypatch):
     """One re-plan of the full MPPI (H = 90, J = 20) in one episode, through run_episodes."""
     sizes = preset("06", "full")
     config = sizes.planner
-    assert (config.horizon, config.iterations, config.execute, config.noise_period) == (
+    assert (config.horizon, config.iterations, config.execute, config.noise.period) == (
         90, 20, 1, 1)
     model = world.new_model(sizes.world, _trajectories(8))  # full size, untrained
     # An untrained predictor is the identity (its output layer is zero), so every plan
@@ -179,9 +179,9 @@ def test_full_planner_replans_once_with_a_full_world_model(monkeypatch):
     assert len(made.history) == config.iterations
     for actions, costs in made.history:  # (1, N, H, 2) sampled plans, (1, N) their energies
         assert actions.shape == (1, config.samples, config.horizon, 2)
-        assert actions.norm(dim=-1).max() <= config.action_bound + 1e-5
+        assert actions.norm(dim=-1).max() <= config.noise.bound + 1e-5
         assert costs.std() > 0  # the energy tells the plans apart
-    assert ((made.std >= planning.MIN_STD) & (made.std <= config.action_bound)).all()
+    assert ((made.std >= planning.MIN_STD) & (made.std <= config.noise.bound)).all()
     assert result.paths.shape == (1, config.execute + 1, 2)
     moved = transition(result.paths[:, 0], made.mean[:, 0], result.episodes.layouts)
     torch.testing.assert_close(result.paths[:, 1], moved)  # the plan's first action was taken

@@ -18,7 +18,7 @@ from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.envs import SUCCESS_RADIUS, clip_actions, render
 from ebjepa_tutorial.envs.two_rooms import transition
 from ebjepa_tutorial.evaluation.metrics import wilson_interval
-from ebjepa_tutorial.planning import PlannerConfig
+from ebjepa_tutorial.planning import Habits, Noise, PlannerConfig
 
 
 class LinearLatentModel(nn.Module):
@@ -93,8 +93,7 @@ def test_the_iterations_find_the_optimum_of_a_known_energy(method):
     # Cost sum_k ||a_k - target_k|| to the goal 0: the optimum is the target itself.
     target = torch.tensor([[0.7, -0.4], [1.2, 0.3], [-0.5, -1.0]])
     config = PlannerConfig(method=method, horizon=3, samples=300, elites=30, iterations=30,
-                           temperature=1.0, init_std=1.0, execute=1, noise_period=1,
-                           action_bound=2.0)
+                           temperature=1.0, execute=1, noise=Noise(std=1.0, period=1, bound=2.0))
     result = planning.plan(Offset(target), torch.zeros(1, 2), torch.zeros(1, 2), config,
                            generators(1))
     assert torch.allclose(result.mean[0], target, atol=0.05)
@@ -103,7 +102,7 @@ def test_the_iterations_find_the_optimum_of_a_known_energy(method):
 def first_samples(mean, std, samples, gens, bound=1.8):
     """The plans that one iteration samples around ``mean`` (B, H, A) with spread ``std``."""
     config = PlannerConfig(horizon=mean.shape[1], samples=samples, elites=1, iterations=1,
-                           init_std=std, execute=1, noise_period=1, action_bound=bound)
+                           execute=1, noise=Noise(std=std, period=1, bound=bound))
     z = torch.zeros(len(mean), 2)
     return planning.plan(LinearLatentModel(), z, z, config, gens, mean, record=True).history[0][0]
 
@@ -141,7 +140,7 @@ LINEAR = ((0.0, -1.0), (2.0, 0.0))  # a rotation and a stretch: actions do not m
 def test_replanning_reaches_a_goal_under_linear_latent_dynamics(method):
     model = LinearLatentModel(LINEAR)
     config = PlannerConfig(method=method, horizon=12, samples=200, elites=20, iterations=4,
-                           execute=2, init_std=1.0)
+                           execute=2, noise=Noise(std=1.0))
     z, goal = torch.tensor([[0.0, 0.0], [5.0, -3.0]]), torch.tensor([[12.0, -15.0], [-4.0, 9.0]])
     gens, mean = generators(2), None
     for _ in range(20):
@@ -156,7 +155,8 @@ def test_replanning_reaches_a_goal_under_linear_latent_dynamics(method):
 def test_last_state_cost_plans_to_end_at_the_goal(method):
     # Only the end of the plan counts: the imagined last state lands on the goal.
     model = LinearLatentModel(LINEAR)
-    config = PlannerConfig(method=method, cost="last", horizon=12, iterations=15, init_std=1.0)
+    config = PlannerConfig(method=method, cost="last", horizon=12, iterations=15,
+                           noise=Noise(std=1.0))
     z, goal = torch.zeros(2, 2), torch.tensor([[12.0, -15.0], [-4.0, 9.0]])
     result = planning.plan(model, z, goal, config, generators(2))
     assert (model.rollout(z, result.mean)[:, -1] - goal).norm(dim=1).max() < 1.0
@@ -220,12 +220,20 @@ def test_wilson_interval_by_hand():
 @pytest.mark.parametrize("kwargs, words", [
     (dict(horizon=0), "horizon"), (dict(samples=0), "samples"), (dict(elites=300), "elites"),
     (dict(method="adam"), "method"), (dict(execute=100), "execute"),
-    (dict(temperature=0.0), "temperature"), (dict(stop_px=-1.0), "stop_px"),
-    (dict(stop_px=float("nan")), "stop_px"), (dict(warm_iterations=-1), "warm_iterations"),
+    (dict(temperature=0.0), "temperature"),
 ])
 def test_bad_planner_configs_name_the_problem(kwargs, words):
     with pytest.raises(ValueError, match=words):
         PlannerConfig(**kwargs)
+
+
+@pytest.mark.parametrize("kwargs, words", [
+    (dict(stop_px=-1.0), "stop_px"), (dict(stop_px=float("nan")), "stop_px"),
+    (dict(warm_iterations=-1), "warm_iterations"),
+])
+def test_bad_habits_name_the_problem(kwargs, words):
+    with pytest.raises(ValueError, match=words):
+        Habits(**kwargs)
 
 
 def test_a_goal_image_of_the_wrong_shape_is_named():
@@ -298,7 +306,7 @@ def test_the_benchmark_prints_its_figures(tmp_path):
 
 def test_a_collapsed_spread_is_held_at_the_smallest_spread():
     # One elite: its weighted spread is 0, and a search that stops exploring stays stuck.
-    config = PlannerConfig(horizon=6, samples=50, elites=1, iterations=3, noise_period=1)
+    config = PlannerConfig(horizon=6, samples=50, elites=1, iterations=3, noise=Noise(period=1))
     result = planning.plan(LinearLatentModel(), torch.zeros(1, 2), torch.full((1, 2), 5.0),
                            config, generators(1), record=True)
     assert torch.equal(result.std, torch.full((1, 6, 2), planning.MIN_STD))
@@ -478,7 +486,8 @@ def test_an_arrived_agent_stands_still_and_plans_no_more(monkeypatch):
     planning_plan = planning.plan
     monkeypatch.setattr(planning.mpc, "plan", counting_plan)
     model, seeds = LinearLatentModel(), range(6)
-    config = PlannerConfig(horizon=16, samples=64, elites=8, iterations=3, execute=4, stop_px=2.0)
+    config = PlannerConfig(horizon=16, samples=64, elites=8, iterations=3, execute=4,
+                           habits=Habits(stop_px=2.0))
     result = planning.run_episodes(model, seeds, config, steps=120, world="learned")
     arrived = planning.arrival_distance(model, 2.0)
     at_replans = result.paths[:, ::config.execute][:, :-1]  # (B, re-plans, 2)
@@ -506,15 +515,16 @@ def test_warm_replans_refine_the_plan_warm_iterations_times(monkeypatch):
 
     planning_plan = planning.plan
     monkeypatch.setattr(planning.mpc, "plan", recording_plan)
-    config = PlannerConfig(horizon=8, samples=16, elites=4, iterations=5, warm_iterations=2)
+    config = PlannerConfig(horizon=8, samples=16, elites=4, iterations=5,
+                           habits=Habits(warm_iterations=2))
     planning.run_episodes(LinearLatentModel(), [3, 4], config, steps=12)
     assert iterations == [5, 2, 2]  # the cold first plan, then one per re-plan
     iterations.clear()
-    planning.run_episodes(LinearLatentModel(), [3, 4], replace(config, warm_iterations=0),
+    planning.run_episodes(LinearLatentModel(), [3, 4], replace(config, habits=Habits(0)),
                           steps=12)
     assert iterations == [5, 5, 5]
     iterations.clear()
-    planning.run_episodes(LinearLatentModel(), [3, 4], replace(config, warm_iterations=9),
+    planning.run_episodes(LinearLatentModel(), [3, 4], replace(config, habits=Habits(9)),
                           steps=12)
     assert iterations == [5, 5, 5]  # never more than J
 

@@ -15,7 +15,7 @@ from torch import nn
 from ebjepa_tutorial import planning
 from ebjepa_tutorial.envs import Episodes, TwoRoomsEnv, clip_actions, render, transition
 from ebjepa_tutorial.envs.two_rooms import MAX_STEP, wall_collision
-from ebjepa_tutorial.planning import PlannerConfig
+from ebjepa_tutorial.planning import Noise, PlannerConfig
 
 SEEDS = [10600, 10601, 10602]
 TINY = PlannerConfig(horizon=8, samples=32, elites=4, iterations=2, execute=4)
@@ -70,21 +70,28 @@ def test_a_start_that_is_not_a_batch_of_latents_is_refused():
 
 # -- 7: planner settings that cannot work --------------------------------------------------
 @pytest.mark.parametrize("kwargs, words", [
-    (dict(action_bound=0), r"action_bound \(the longest sampled step.*> 0, got 0"),
-    (dict(action_bound=-1.8), "action_bound"),
-    (dict(action_bound=math.inf), "action_bound"),
-    (dict(init_std=-0.5), r"init_std .* > 0, got -0.5"),
-    (dict(init_std=0.0), "init_std"),
     (dict(temperature=math.nan), "temperature"),
     (dict(samples=True), "samples must be an int >= 1"),
     (dict(horizon=8.0), "horizon must be an int >= 1"),
     (dict(iterations=0), "iterations"),
-    (dict(noise_period=0), "noise_period"),
     (dict(elites=201), r"elites \(Q=201\) cannot exceed samples \(N=200\)"),
 ])
 def test_planner_settings_that_cannot_work_name_the_field_and_range(kwargs, words):
     with pytest.raises(ValueError, match=words):
         PlannerConfig(**kwargs)
+
+
+@pytest.mark.parametrize("kwargs, words", [
+    (dict(bound=0), r"Noise.bound \(the longest sampled step.*> 0, got 0"),
+    (dict(bound=-1.8), "bound"),
+    (dict(bound=math.inf), "bound"),
+    (dict(std=-0.5), r"Noise.std .* > 0, got -0.5"),
+    (dict(std=0.0), "std"),
+    (dict(period=0), "period"),
+])
+def test_sampling_noise_that_cannot_work_names_the_field_and_range(kwargs, words):
+    with pytest.raises(ValueError, match=words):
+        Noise(**kwargs)
 
 
 def test_every_shipped_preset_still_builds_its_planner():

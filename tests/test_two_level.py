@@ -11,6 +11,8 @@ from ebjepa_tutorial.envs import MAX_STEP, clip_actions
 from ebjepa_tutorial.losses.world import windows
 from ebjepa_tutorial.models.hierarchy import CoarseModel, macro_actions
 from ebjepa_tutorial.planning import (
+    Habits,
+    Noise,
     PlannerConfig,
     TwoLevel,
     plan,
@@ -37,11 +39,11 @@ class Drift(nn.Module):
         return z0[:, None] + actions.cumsum(dim=1)
 
 
-LOW = PlannerConfig(horizon=8, samples=64, elites=8, iterations=4, warm_iterations=2,
-                    execute=4, stop_px=0)
-HIGH = PlannerConfig(horizon=8, samples=64, elites=8, iterations=4, warm_iterations=2,
-                     execute=1, action_bound=4 * MAX_STEP, init_std=6.0,
-                     noise_period=2, stop_px=0)
+LOW = PlannerConfig(horizon=8, samples=64, elites=8, iterations=4, execute=4,
+                    habits=Habits(warm_iterations=2, stop_px=0))
+HIGH = PlannerConfig(horizon=8, samples=64, elites=8, iterations=4, execute=1,
+                     noise=Noise(std=6.0, period=2, bound=4 * MAX_STEP),
+                     habits=Habits(warm_iterations=2, stop_px=0))
 
 
 def test_macro_actions_sum_each_stride():

@@ -17,7 +17,7 @@ from dataclasses import dataclass, replace
 from ..envs import MAX_STEP
 from ..evaluation.sweeps import FACTORS, Run, projector_runs, sensitivity_runs, shorten
 from ..models.world import WORLD_CONFIGS
-from ..planning import PlannerConfig
+from ..planning import Habits, Noise, PlannerConfig
 from ..training.cost import CostConfig
 from ..training.hierarchy import CoarseConfig, CoarseFit
 from ..training.image import ImageJEPAConfig, SIGReg
@@ -262,17 +262,19 @@ class BeyondPreset:
 # The fine planners keep the spread chapter 07's figures were measured with (1.5 px);
 # chapter 06's planner has since widened to 2.0, not yet measured here.
 _STRIDE = CoarseConfig.stride
-_FLAT_07 = PlannerConfig(init_std=1.5)
+_FLAT_07 = PlannerConfig(noise=Noise(std=1.5))
 _SHORT = replace(_FLAT_07, horizon=16, samples=100, elites=10)
-_HIGH = PlannerConfig(horizon=16, samples=50, elites=5, warm_iterations=2, execute=1,
-                      noise_period=2, action_bound=_STRIDE * MAX_STEP, init_std=_STRIDE * 1.5,
-                      stop_px=0)
+_HIGH = PlannerConfig(horizon=16, samples=50, elites=5, execute=1,
+                      noise=Noise(std=_STRIDE * 1.5, period=2, bound=_STRIDE * MAX_STEP),
+                      habits=Habits(warm_iterations=2, stop_px=0))
 _BEYOND_CLASS = BeyondPreset(
     _WORLD_CLASS, replace(_WORLD_CLASS, walls=2), CostConfig(), CoarseConfig(),
     flat=_FLAT_07, short=_SHORT,
     learned=replace(_SHORT, cost="learned", temperature=1.0),  # the head's costs are px
-    low=replace(_FLAT_07, horizon=8, samples=50, elites=5, warm_iterations=2, execute=_STRIDE),
-    high=(_HIGH, replace(_HIGH, horizon=24, samples=200, elites=20, warm_iterations=3)))
+    low=replace(_FLAT_07, horizon=8, samples=50, elites=5, execute=_STRIDE,
+                habits=Habits(warm_iterations=2)),
+    high=(_HIGH, replace(_HIGH, horizon=24, samples=200, elites=20,
+                         habits=replace(_HIGH.habits, warm_iterations=3))))
 _TINY = PlannerConfig(horizon=4, samples=16, elites=2, iterations=2, execute=4)
 _BEYOND_CI = replace(
     _BEYOND_CLASS, two_rooms=_WORLD_CI, three_rooms=replace(_WORLD_CI, walls=2),
@@ -329,8 +331,8 @@ PRESETS: dict[str, dict[str, object]] = {
                                 course_long=course_long(_WORLD_CLASS, 10_000, 100_000)),
         # the reference code's planner on 500 episodes: 100 for the headline rate, 50 in 8 rows
         "full": PlanningPreset(_WORLD_FULL, PlannerConfig(horizon=90, iterations=20, execute=1,
-                                                             noise_period=1, warm_iterations=0,
-                                                             stop_px=0.0),
+                                                             noise=Noise(period=1),
+                                                             habits=Habits(0, stop_px=0.0)),
                                n_episodes=100, n_compare=50, episode_batch=100),
     },
     "07": {

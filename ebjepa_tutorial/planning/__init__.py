@@ -26,6 +26,8 @@ from .mppi import (
     COSTS,
     METHODS,
     MIN_STD,
+    Habits,
+    Noise,
     Plan,
     PlannerConfig,
     cem_update,
@@ -44,7 +46,8 @@ from .mppi import (
 from .two_level import TwoLevel, two_level_episodes
 
 __all__ = [
-    "COSTS", "METHODS", "MIN_STD", "WORLDS", "EpisodeResults", "Plan", "PlannerConfig",
+    "COSTS", "METHODS", "MIN_STD", "WORLDS", "EpisodeResults", "Habits", "Noise", "Plan",
+    "PlannerConfig",
     "StateEnv", "TrueDynamics", "TwoLevel", "arrival_distance", "cem_update",
     "check_start_and_goal", "dot_grid", "energy_by_distance", "energy_map",
     "episode_generators", "goal_distance", "latent_distance", "mpc_loop", "mppi_iteration",

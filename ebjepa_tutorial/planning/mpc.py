@@ -169,7 +169,7 @@ def mpc_loop(model, env, config, generators, steps, arrived=None, aim=None):
         for action in mean[:, : config.execute].unbind(1)[: steps - env.steps_taken]:
             env.step(action)  # execute the first m actions in the world
         mean = shift_plan(mean, config.execute)  # warm start: the rest of the plan, then zeros
-        config = config.warm()  # later re-plans refine warm_iterations times
+        config = config.warm()  # later re-plans refine habits.warm_iterations times
 
 
 @torch.no_grad()
@@ -187,7 +187,7 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig | None = Non
     planner imagines with: ``"learned"``, the world model (the real task);
     ``"true"`` and ``"true_xy"``, the diagnoses of
     :class:`~ebjepa_tutorial.planning.diagnosis.TrueDynamics`. With
-    ``config.stop_px`` the model's :func:`arrival_distance` is calibrated once, its
+    ``config.habits.stop_px`` the model's :func:`arrival_distance` is calibrated once, its
     CPU time counted. ``two_level``: a :class:`~ebjepa_tutorial.planning.two_level.TwoLevel`
     that picks subgoals (a learned world only; ``config.execute`` must be its stride).
     """
@@ -202,9 +202,9 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig | None = Non
     model.eval()
     cpu, wall = time.process_time(), time.perf_counter()
     arrived = None  # the energy below which the agent stands still: pixels for "true_xy"
-    if config.stop_px:
-        arrived = (config.stop_px if world == "true_xy"
-                   else arrival_distance(model, config.stop_px, walls=walls))
+    stop_px = config.habits.stop_px
+    if stop_px:
+        arrived = stop_px if world == "true_xy" else arrival_distance(model, stop_px, walls=walls)
     if two_level is not None:
         two_level = two_level.calibrate(model, walls)
     cpu, wall = time.process_time() - cpu, time.perf_counter() - wall

@@ -14,8 +14,8 @@ them by ``exp(-(S_i - S_min) / tau)`` and moves the mean plan and its spread to
 their weighted average; :func:`plan` repeats that ``J`` times. CEM is the same
 with equal weights.
 
-Two choices differ from the paper's code: the sampling noise is drawn every
-``noise_period`` steps and joined by straight lines (the paper: i.i.d. per
+Two choices differ from the paper's code (:class:`Noise`): the sampling noise is
+drawn every ``period`` steps and joined by straight lines (the paper: i.i.d. per
 step), so a sampled plan can wander far enough to find the door; and each
 sampled step is clipped on its length, as the world and the data clip it.
 
@@ -27,20 +27,59 @@ network's batched kernels (see :mod:`~ebjepa_tutorial.planning.mpc`).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import torch
 
 from ..envs import MAX_STEP, clip_actions
-from ..utils import check_fields, is_int_at_least, is_positive
+from ..utils import check_fields, is_int_at_least, is_non_negative, is_positive
 
 METHODS = ("mppi", "cem")
 COSTS = ("sum", "last", "learned")
 # The smallest spread after an update, px: a search whose elites agree keeps exploring a little.
 # (Elites are clipped to the step bound, so their spread never exceeds it: no upper clamp.)
 MIN_STD = 0.05
+
+
+@dataclass(frozen=True)
+class Noise:
+    """How a re-plan samples plans around its mean: a spread of ``std`` px at first, a fresh
+    draw every ``period`` steps joined by straight lines, each step clipped to ``bound`` px."""
+
+    # wide enough that some samples of a plan pressed against the wall slide along it to the door
+    std: float = 2.0
+    # 1: i.i.d. noise per step (Algorithm 1); p > 1: smooth noise, a fresh draw every p steps.
+    # White noise averages out over a plan and does not explore far enough around the wall.
+    period: int = 8
+    bound: float = MAX_STEP  # the longest step in the data (the coarse level: its stride's)
+
+    def __post_init__(self):
+        # a zero spread samples N copies of the mean; a zero bound clips every step to nothing
+        check_fields(self, {
+            "std": (is_positive, "a finite number > 0", "the spread of the first samples, px"),
+            "period": (is_int_at_least(1), "an int >= 1"),
+            "bound": (is_positive, "a finite number > 0",
+                      f"the longest sampled step, px (the world allows {MAX_STEP})")})
+
+
+@dataclass(frozen=True)
+class Habits:
+    """Two habits of a sensible agent that cut an episode's cost several times (notebook 06,
+    "Speed"). The paper's agent has neither: ``Habits(warm_iterations=0, stop_px=0)``."""
+
+    # refinements (at most J) of every re-plan after an episode's first, which starts from
+    # the previous plan rather than from standing still; 0: J, as the paper's agent
+    warm_iterations: int = 3
+    # Arrived: while the current state is within stop_px of the goal as the model sees it
+    # (mpc.arrival_distance), the agent stands still and plans nothing. 0: plan at every
+    # re-plan until the step budget ends, as the paper's agent does.
+    stop_px: float = 2.0
+
+    def __post_init__(self):
+        check_fields(self, {
+            "warm_iterations": (is_int_at_least(0), "an int >= 0 (0: iterations)"),
+            "stop_px": (is_non_negative, "a finite number >= 0 (0: never stop)")})
 
 
 @dataclass(frozen=True)
@@ -53,57 +92,30 @@ class PlannerConfig:
     samples: int = 200  # N, action sequences per iteration
     elites: int = 20  # Q, the best of them that move the plan
     iterations: int = 6  # J, refinements per re-plan
-    # refinements (at most J) of every re-plan after an episode's first, which starts from
-    # the previous plan rather than from standing still; 0: J, as the paper's agent
-    warm_iterations: int = 3
     temperature: float = 0.05  # tau, MPPI's softness (latent-distance units)
-    # spread of the sampled actions at the start of a re-plan, px: wide enough that some
-    # samples of a plan pressed against the wall slide along it to the door
-    init_std: float = 2.0
     execute: int = 4  # m, actions executed before re-planning
-    # 1: i.i.d. noise per step (Algorithm 1); p > 1: smooth noise, a fresh draw every p steps.
-    # White noise averages out over a plan and does not explore far enough around the wall.
-    noise_period: int = 8
-    action_bound: float = MAX_STEP  # sampled steps are clipped to the longest in the data, px
-    # Arrived: while the current state is within stop_px of the goal as the model sees it
-    # (mpc.arrival_distance), the agent stands still and plans nothing. 0: plan at every
-    # re-plan until the step budget ends, as the paper's agent does.
-    stop_px: float = 2.0
+    noise: Noise = Noise()  # how the samples are drawn around the plan
+    habits: Habits = Habits()  # fewer refinements of a warm plan; standing still once arrived
 
     def __post_init__(self):
         if self.method not in METHODS or self.cost not in COSTS:
             raise ValueError(f"method must be one of {METHODS} and cost one of {COSTS}, "
                              f"got method={self.method!r}, cost={self.cost!r}")
         check_fields(self, {name: (is_int_at_least(1), "an int >= 1") for name in
-                            ("horizon", "samples", "elites", "iterations", "execute",
-                             "noise_period")})
-        if not is_int_at_least(0)(self.warm_iterations):
-            raise ValueError(f"warm_iterations must be an int >= 0 (0: iterations), got "
-                             f"{self.warm_iterations!r}")
+                            ("horizon", "samples", "elites", "iterations", "execute")})
+        # a zero temperature divides by zero
+        check_fields(self, {"temperature": (is_positive, "a finite number > 0",
+                                            "MPPI's softness in latent-distance units")})
         if self.elites > self.samples:
             raise ValueError(f"elites (Q={self.elites}) cannot exceed samples (N={self.samples})")
         if self.execute > self.horizon:
             raise ValueError(f"execute (m={self.execute}) cannot exceed horizon "
                              f"(H={self.horizon})")
-        check_fields(self, {name: (is_positive, "a finite number > 0", meaning)
-                            for name, meaning in _POSITIVE_FIELDS.items()})
-        if not (math.isfinite(self.stop_px) and self.stop_px >= 0):
-            raise ValueError(f"stop_px must be a finite number >= 0 (0: never stop), got "
-                             f"{self.stop_px!r}")
 
     def warm(self) -> PlannerConfig:
         """This planner for the re-plans after an episode's first: warm_iterations (at most J)."""
-        return replace(self, iterations=min(self.warm_iterations or self.iterations,
+        return replace(self, iterations=min(self.habits.warm_iterations or self.iterations,
                                             self.iterations))
-
-
-# Each must be > 0: a zero spread samples N copies of the mean, a zero bound clips every
-# step to nothing (the agent never moves), a zero temperature divides by zero.
-_POSITIVE_FIELDS = {
-    "temperature": "MPPI's softness in latent-distance units",
-    "init_std": "the spread of the first samples of a re-plan, px",
-    "action_bound": f"the longest sampled step, px (the world allows {MAX_STEP})",
-}
 
 
 # -- the energy ------------------------------------------------------------------------------
@@ -246,12 +258,12 @@ def mppi_iteration(model, z0, z_goal, mean, std, config, generators):
     Returns the new mean and std (B, H, A), the samples (B, N, H, A) and their costs (B, N).
     """
     # 1. Sample N plans around the mean: a_i = mean + std * eps_i, each episode with its own
-    # generator; eps is smooth noise (a fresh draw every noise_period steps).
+    # generator; eps is smooth noise (a fresh draw every noise.period steps).
     eps = torch.stack([smooth_noise(config.samples, config.horizon, mean.shape[-1],
-                                    config.noise_period, g) for g in generators])
+                                    config.noise.period, g) for g in generators])
     eps[:, 0] = 0  # sample 0 is the mean itself: a good plan is never lost to bad luck
     actions = clip_actions(mean[:, None] + std[:, None] * eps.to(mean.device),
-                           config.action_bound)  # (B, N, H, A), no step longer than the data's
+                           config.noise.bound)  # (B, N, H, A), no step longer than the data's
     # 2. Imagine each plan with the predictor, 3. score it: S_i = sum_k ||zhat_k - z_goal||
     costs = planning_cost(model, z0, z_goal, actions, config.cost)  # (B, N)
     # 4. Keep the Q cheapest, weight them by exp(-(S_i - S_min) / tau): the new mean and spread
@@ -294,7 +306,7 @@ def plan(model, z0: torch.Tensor, z_goal: torch.Tensor, config: PlannerConfig,
     if mean.shape != (b, h, model.config.action_dim) or len(generators) != b:
         raise ValueError(f"need a mean plan ({b}, {h}, {model.config.action_dim}) and {b} "
                          f"generators, got {tuple(mean.shape)} and {len(generators)}")
-    std = torch.full_like(mean, config.init_std)
+    std = torch.full_like(mean, config.noise.std)
     best, history = [], [] if record else None
     for _ in range(config.iterations):
         mean, std, actions, costs = iteration(model, z0, z_goal, mean, std, config, generators)

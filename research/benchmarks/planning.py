@@ -47,6 +47,28 @@ def _yes_no(text: str) -> bool:
     return text.lower() in ("true", "yes", "1")
 
 
+def _settings(config, prefix: str = "") -> dict:
+    """``{flag name: default}`` of every setting of ``config``; a nested group's are named
+    ``group_field`` (``noise_period`` for ``noise.period``)."""
+    out = {}
+    for field in dataclasses.fields(config):
+        value, name = getattr(config, field.name), prefix + field.name
+        out.update(_settings(value, name + "_") if dataclasses.is_dataclass(value)
+                   else {name: value})
+    return out
+
+
+def _chosen(config, args, prefix: str = ""):
+    """``config`` with every setting the flags of :func:`_settings` chose."""
+    def value(field):
+        inner = getattr(config, field.name)
+        if dataclasses.is_dataclass(inner):
+            return _chosen(inner, args, f"{prefix}{field.name}_")
+        return getattr(args, prefix + field.name)
+
+    return dataclasses.replace(config, **{f.name: value(f) for f in dataclasses.fields(config)})
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", default="checkpoints/world_model_class_course_long.pt",
@@ -63,15 +85,14 @@ def main() -> None:
                         help="1: Two Rooms; 2: Three Rooms (a model trained with --walls 2)")
     parser.add_argument("--steps", type=int, default=None,
                         help="episode length (default: the world's budget, 200 or 120)")
-    for field in dataclasses.fields(PlannerConfig):  # --method, --cost, --horizon, ...
-        kind = _yes_no if isinstance(field.default, bool) else type(field.default)
-        parser.add_argument(f"--{field.name.replace('_', '-')}", type=kind, default=field.default)
+    for name, default in _settings(PlannerConfig()).items():  # --method, ..., --noise-period
+        kind = _yes_no if isinstance(default, bool) else type(default)
+        parser.add_argument(f"--{name.replace('_', '-')}", type=kind, default=default)
     parser.add_argument("--record", action="store_true",
                         help="store the success rate in checkpoints/reference.json")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    config = PlannerConfig(**{f.name: getattr(args, f.name)
-                              for f in dataclasses.fields(PlannerConfig)})
+    config = _chosen(PlannerConfig(), args)
     key = RECORDED.get(Path(args.checkpoint).name)
     if args.record and (key is None or config != PlannerConfig() or args.first_seed != 10_000
                         or args.walls != 1 or args.steps is not None):
@@ -98,9 +119,10 @@ def main() -> None:
 def agent(config: PlannerConfig) -> str:
     """The planner in a few words, for the record's protocol."""
     warm = config.warm().iterations
-    stop = f"stands still within {config.stop_px:g} px" if config.stop_px else "never stops"
+    stop_px = config.habits.stop_px
+    stop = f"stands still within {stop_px:g} px" if stop_px else "never stops"
     return (f"{config.method.upper()} H{config.horizon} N{config.samples} "
-            f"J{config.iterations} ({warm} warm), first spread {config.init_std:g} px, "
+            f"J{config.iterations} ({warm} warm), first spread {config.noise.std:g} px, "
             f"re-plan every {config.execute}, {stop}")
 
 
