@@ -196,22 +196,6 @@ def variance_and_covariance(z: torch.Tensor, gamma: float = 1.0, eps: float = 1e
     return variance, vicreg.off_diagonal_term(cov)
 
 
-class Forward(nn.Module):
-    """``fn(module, *args, **kwargs)`` as the one forward call of a wrapper around ``module``.
-
-    DDP pairs each forward call with one backward, so a loss that calls several methods of a
-    model (encode, predict, project, ...) must run inside a single forward: wrap
-    ``Forward(model, loss_fn)`` in DDP. Save ``model`` itself, not the wrapper.
-    """
-
-    def __init__(self, module: nn.Module, fn: Callable[..., Any]):
-        super().__init__()
-        self.module, self.fn = module, fn
-
-    def forward(self, *args, **kwargs):
-        return self.fn(self.module, *args, **kwargs)
-
-
 def with_sync_batchnorm(module: nn.Module, device: torch.device | str) -> nn.Module:
     """``module`` with its batch norms turned into SyncBatchNorm, which normalise over the
     global batch, not each rank's share. Needs a process group and a CUDA ``device`` (torch
