@@ -99,19 +99,20 @@ def test_image_training_lowers_the_network_and_not_the_loss(monkeypatch, loss):
 
 def test_video_training_keeps_variance_and_covariance_in_float32(monkeypatch):
     monkeypatch.setattr(video, "mixed_precision", cpu_bf16)
-    received = spy(monkeypatch, video, "variance_and_covariance")
+    received = spy(monkeypatch, distributed, "variance_and_covariance")  # the step's
     config = replace(VIDEO_CONFIGS["ci"], steps=2, batch_size=4)
     digits = torch.randint(0, 256, (20, 1, 28, 28), dtype=torch.uint8)
     clips = generate_moving_mnist(digits, 8, config.n_frames, seed=0).clips
-    model = video.VideoJEPA(config.model)
+    model = video.VideoJEPA(config.model).train()
     encoded = []
     model.encoder.register_forward_hook(lambda module, args, out: encoded.append(out.dtype))
-    loss, terms = video.video_jepa_loss(model, clips[:4], config)
+    optimizer = torch.optim.Adam(model.parameters())
+    loss, terms = video.video_jepa_step(model, optimizer, video.new_scheduler(optimizer, config),
+                                        clips[:4], config.rollout_steps, config)
     assert encoded == [torch.bfloat16] and received == [torch.float32]
     assert loss.dtype == torch.float32 and torch.isfinite(loss)
-    received = spy(monkeypatch, distributed, "variance_and_covariance")  # training's
     _, history = video.train_video_jepa(config, clips, progress=False, device="cpu")
-    assert received == [torch.float32] * 2
+    assert received == [torch.float32] * 3  # the step above, then training's two
     assert all(map(torch.isfinite, map(torch.tensor, history["loss"])))
 
 
