@@ -51,17 +51,18 @@ def shipped_runs() -> dict[str, dict]:
 
 def _world_runs() -> dict[str, dict]:
     cfg = preset("06", "class")
+    longer = cfg.longer
     runs = {"world_model_class": world.identity(cfg.world),
-            "world_model_class_long": world.identity(cfg.long_world),
-            "world_model_class_course_long": world.identity(cfg.course_long),
-            "world_model_class_long20k": world.identity(cfg.refit_base),
+            "world_model_class_long": world.identity(longer.paper),
+            "world_model_class_course_long": world.identity(longer.course),
+            "world_model_class_long20k": world.identity(longer.refit_base),
             "world_model_class_long20k_mlp": world.refit_identity(
-                cfg.refit, world.identity(cfg.refit_base))}
+                longer.refit, world.identity(longer.refit_base))}
     for term, suffix in world.ABLATION_SUFFIXES.items():
         runs[f"world_model_class_{suffix}"] = world.identity(world.ablation_config(cfg.world, term))
-        if term in cfg.long_ablations:
+        if term in longer.ablations:
             runs[f"world_model_class_long_{suffix}"] = world.identity(
-                world.ablation_config(cfg.long_world, term))
+                world.ablation_config(longer.paper, term))
     return runs
 
 

@@ -77,7 +77,7 @@ def test_planning_uses_the_world_model_of_notebook_05(name):
     planning_preset, world_preset = presets.preset("06", name), presets.preset("05", name)
     assert planning_preset.world == world_preset.train
     assert planning_preset.n_compare <= planning_preset.n_episodes
-    assert planning_preset.n_long_ablation <= planning_preset.n_episodes
+    assert planning_preset.longer.n_ablation <= planning_preset.n_episodes
     assert planning_preset.planner.horizon >= planning_preset.planner.execute
 
 

@@ -50,11 +50,12 @@ def test_shipped_video_weights_are_half_precision(runs):
 
 def test_the_refit_and_course_long_runs_are_what_their_names_say():
     cfg = preset("06", "class")
-    assert cfg.refit_base == replace(cfg.long_world, steps=2 * cfg.long_world.steps)
-    assert cfg.refit == world.RefitConfig()  # the command's defaults
-    assert cfg.course_long.model.predictor == cfg.world.model.predictor == "mlp"
-    assert cfg.course_long.steps > cfg.world.steps and cfg.course_long.recipe.grad_clip > 0
-    assert cfg.long_world.n_trajectories == 100_000 and cfg.long_world.steps > cfg.world.steps
+    longer = cfg.longer
+    assert longer.refit_base == replace(longer.paper, steps=2 * longer.paper.steps)
+    assert longer.refit == world.RefitConfig()  # the command's defaults
+    assert longer.course.model.predictor == cfg.world.model.predictor == "mlp"
+    assert longer.course.steps > cfg.world.steps and longer.course.recipe.grad_clip > 0
+    assert longer.paper.n_trajectories == 100_000 and longer.paper.steps > cfg.world.steps
 
 
 def test_resave_refuses_to_relabel_another_run():

@@ -685,7 +685,8 @@ def test_the_two_recipes_differ_only_in_how_they_train():
     assert (paper.recipe, paper.model.predictor) == (world.Recipe(), "gru")
     # notebook 05 trains the course's way; chapter 06's long runs and `full`, the paper's
     assert preset("05", "class").train == course_recipe(replace(paper, steps=2800))
-    assert paper_recipe(preset("06", "class").long_world) == preset("06", "class").long_world
+    long_world = preset("06", "class").longer.paper
+    assert paper_recipe(long_world) == long_world
     assert paper_recipe(preset("05", "full").train) == preset("05", "full").train
 
 
@@ -710,7 +711,7 @@ def test_command_line_trains_the_run_of_a_scale(tmp_path, monkeypatch):
                                      recipe=world.Recipe(window=9, wall_fraction=0.25))
     long_run = ["--paper-recipe", "--steps", "10000", "--trajectories", "100000"]
     train_world.main(["--out", str(tmp_path / "long.pt"), *long_run])  # checkpoints/README.md
-    assert seen["config"] == preset("06", "class").long_world
+    assert seen["config"] == preset("06", "class").longer.paper
     train_world.main(["--out", str(tmp_path / "three.pt"), "--walls", "2"])  # checkpoints/README
     assert seen["config"] == replace(preset("05", "class").train, walls=2)
     train_world.main(["--out", str(tmp_path / "clip.pt"), "--grad-clip", "1"])

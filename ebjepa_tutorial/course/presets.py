@@ -179,6 +179,26 @@ _WORLD_FULL = WorldTrainConfig(  # the paper: batch 384, 12 epochs of 100,000 tr
 
 
 @dataclass(frozen=True)
+class LongerRuns:
+    """Notebook 06's optional section 9: world models trained longer (class: shipped, each past
+    the class budget)."""
+
+    # experiment 3: the paper's recipe trained longer on more data; None: the preset's world is
+    # already the paper's long run
+    paper: WorldTrainConfig | None = None
+    ablations: tuple[str, ...] = ()  # loss terms whose ablation is also trained like `paper`
+    n_ablation: int = 20  # episodes (the first seeds of the list) per long-trained ablation
+    # experiment 4: the model whose predictor is refitted on its frozen latents (class: the
+    # paper's amount of training); None: `paper`, or the preset's world
+    refit_base: WorldTrainConfig | None = None
+    refit: RefitConfig = RefitConfig()
+    # experiment 5: chapter 05's recipe trained longer in one stage with a wider predictor (the
+    # model research.benchmarks.planning plays by default); None: the preset's world is the
+    # long one
+    course: WorldTrainConfig | None = None
+
+
+@dataclass(frozen=True)
 class PlanningPreset:
     """Notebook 06: which world model plans, with which planner, on how many episodes."""
 
@@ -192,20 +212,7 @@ class PlanningPreset:
     episode_steps: int = 200  # the paper's step budget
     first_seed: int = 10_000
     n_wall_test: int = 400  # fresh data-policy trajectories for the one-step wall test
-    # the paper's recipe trained longer on more data (class: shipped); None: `world` is already
-    # the paper's long run
-    long_world: WorldTrainConfig | None = None
-    # loss terms whose ablation is also trained like `long_world` (class: shipped)
-    long_ablations: tuple[str, ...] = ()
-    n_long_ablation: int = 20  # episodes (the first seeds of the list) per long-trained ablation
-    # the model whose predictor is refitted on its frozen latents (class: the paper's amount of
-    # training, shipped with its refit); None: the long model
-    refit_base: WorldTrainConfig | None = None
-    refit: RefitConfig = RefitConfig()  # class: past the class budget, so shipped
-    # chapter 05's recipe trained longer in one stage with a wider predictor (class: shipped,
-    # the model research.benchmarks.planning plays by default); None: chapter 05's run is the
-    # long one
-    course_long: WorldTrainConfig | None = None
+    longer: LongerRuns = LongerRuns()  # the optional section 9's models
 
 
 # class: the paper's recipe for 10,000 steps on its 100,000 trajectories, constant rate
@@ -226,33 +233,50 @@ _PLANNER_CI = PlannerConfig(horizon=8, samples=32, elites=4, iterations=2, execu
 
 
 @dataclass(frozen=True)
+class TwoLevelPreset:
+    """Notebook 07's two-level planner (``planning.TwoLevel``), and the episodes it plays for
+    its coarse model's second fit (:meth:`BeyondPreset.coarse_fit`)."""
+
+    low: PlannerConfig  # the lower level: a few steps to the subgoal
+    high: tuple[PlannerConfig, PlannerConfig]  # the coarse level, in Two and Three Rooms
+    lookahead: int = 2  # the subgoal: the coarse plan's latent this many coarse steps ahead
+    reach_px: float = 4.5  # the final approach: the goal is the subgoal once the plan reaches it
+    visit_episodes: int = 300  # the coarse model's refit on this planner's episodes
+    visit_steps: int = 200
+
+
+@dataclass(frozen=True)
 class BeyondPreset:
     """Notebook 07: two worlds, a cost head and a coarse model fitted on each world model's
     frozen latents, and four planners compared on each world."""
 
-    two_rooms: WorldTrainConfig  # chapter 05's run
-    three_rooms: WorldTrainConfig  # the same recipe on Three Rooms in a row
+    two_rooms: WorldTrainConfig  # chapter 05's run (three_rooms: the same on Three Rooms)
     cost: CostConfig  # the head's fit (its `walls` is set per world)
     coarse: CoarseConfig  # the coarse model's fit (likewise; and its visits: coarse_fit)
     flat: PlannerConfig  # chapter 06's planner
-    short: PlannerConfig  # the same at a short horizon, latent distance
-    learned: PlannerConfig  # the same short horizon, the learned cost
-    low: PlannerConfig  # the two-level planner's lower level: a few steps to the subgoal
-    high: tuple[PlannerConfig, PlannerConfig]  # its coarse level, in Two and Three Rooms
-    lookahead: int = 2  # the subgoal: the coarse plan's latent this many coarse steps ahead
-    reach_px: float = 4.5  # the final approach: the goal is the subgoal once the plan reaches it
+    short: PlannerConfig  # the same at a short horizon, latent distance (learned: its cost)
+    two_level: TwoLevelPreset
     n_episodes: int = 40  # per planner and world
     first_seed: int = 10_000
     episode_batch: int = 10
     episode_steps: int | None = None  # None: each world's step budget (200 and 120 steps)
-    visit_episodes: int = 300  # the coarse model's refit on the two-level planner's episodes
-    visit_steps: int = 200
+
+    @property
+    def three_rooms(self) -> WorldTrainConfig:
+        """Chapter 05's recipe on Three Rooms in a row."""
+        return replace(self.two_rooms, walls=2)
+
+    @property
+    def learned(self) -> PlannerConfig:
+        """The short planner with the learned cost, whose costs are px: a temperature of 1."""
+        return replace(self.short, cost="learned", temperature=1.0)
 
     def coarse_fit(self, walls: int) -> CoarseFit:
         """The coarse model's fit in the world of ``walls`` (1 or 2): the random walks, then
         again with the episodes of this preset's two-level planner there."""
-        return CoarseFit(replace(self.coarse, walls=walls), self.low, self.high[walls - 1],
-                         self.lookahead, self.reach_px, self.visit_episodes, self.visit_steps)
+        two = self.two_level
+        return CoarseFit(replace(self.coarse, walls=walls), two.low, two.high[walls - 1],
+                         two.lookahead, two.reach_px, two.visit_episodes, two.visit_steps)
 
 
 # Chosen on seeds 10,600-10,699 (RESULTS.md, "07 · Beyond the paper"); the visits and Three
@@ -268,22 +292,22 @@ _HIGH = PlannerConfig(horizon=16, samples=50, elites=5, execute=1,
                       noise=Noise(std=_STRIDE * 1.5, period=2, bound=_STRIDE * MAX_STEP),
                       habits=Habits(warm_iterations=2, stop_px=0))
 _BEYOND_CLASS = BeyondPreset(
-    _WORLD_CLASS, replace(_WORLD_CLASS, walls=2), CostConfig(), CoarseConfig(),
-    flat=_FLAT_07, short=_SHORT,
-    learned=replace(_SHORT, cost="learned", temperature=1.0),  # the head's costs are px
-    low=replace(_FLAT_07, horizon=8, samples=50, elites=5, execute=_STRIDE,
-                habits=Habits(warm_iterations=2)),
-    high=(_HIGH, replace(_HIGH, horizon=24, samples=200, elites=20,
-                         habits=replace(_HIGH.habits, warm_iterations=3))))
+    _WORLD_CLASS, CostConfig(), CoarseConfig(), flat=_FLAT_07, short=_SHORT,
+    two_level=TwoLevelPreset(
+        low=replace(_FLAT_07, horizon=8, samples=50, elites=5, execute=_STRIDE,
+                    habits=Habits(warm_iterations=2)),
+        high=(_HIGH, replace(_HIGH, horizon=24, samples=200, elites=20,
+                             habits=replace(_HIGH.habits, warm_iterations=3)))))
 _TINY = PlannerConfig(horizon=4, samples=16, elites=2, iterations=2, execute=4)
 _BEYOND_CI = replace(
-    _BEYOND_CLASS, two_rooms=_WORLD_CI, three_rooms=replace(_WORLD_CI, walls=2),
+    _BEYOND_CLASS, two_rooms=_WORLD_CI,
     cost=CostConfig(n_trajectories=200, trajectory_steps=16, layouts=10, steps=30, batch_size=64,
                     hidden=32, dims=8),
     coarse=CoarseConfig(n_trajectories=200, steps=30, batch_size=64, hidden=32),
-    flat=_PLANNER_CI, short=_TINY, learned=replace(_TINY, cost="learned", temperature=1.0),
-    low=_TINY, high=(replace(_HIGH, horizon=4, samples=16, elites=2),) * 2,
-    n_episodes=2, episode_batch=2, episode_steps=24, visit_episodes=2, visit_steps=16)
+    flat=_PLANNER_CI, short=_TINY,
+    two_level=TwoLevelPreset(_TINY, (replace(_HIGH, horizon=4, samples=16, elites=2),) * 2,
+                             visit_episodes=2, visit_steps=16),
+    n_episodes=2, episode_batch=2, episode_steps=24)
 
 
 PRESETS: dict[str, dict[str, object]] = {
@@ -317,18 +341,19 @@ PRESETS: dict[str, dict[str, object]] = {
     },
     "06": {
         "ci": PlanningPreset(_WORLD_CI, _PLANNER_CI, n_episodes=4, n_compare=2, episode_steps=40,
-                             n_wall_test=100,
-                             long_world=paper_recipe(replace(_WORLD_CI, steps=20)),
-                             course_long=course_long(_WORLD_CI, 20, _WORLD_CI.n_trajectories),
-                             long_ablations=ABLATABLE_TERMS, n_long_ablation=2,
-                             refit=RefitConfig(hidden=32, n_trajectories=200, steps=100,
-                                               batch_size=128)),
+                             n_wall_test=100, longer=LongerRuns(
+                                 paper=paper_recipe(replace(_WORLD_CI, steps=20)),
+                                 ablations=ABLATABLE_TERMS, n_ablation=2,
+                                 refit=RefitConfig(hidden=32, n_trajectories=200, steps=100,
+                                                   batch_size=128),
+                                 course=course_long(_WORLD_CI, 20, _WORLD_CI.n_trajectories))),
         # the shipped checkpoints, with episode counts sized to fit a class period
         # (research.benchmarks.planning plays 100 per model for the results page)
         "class": PlanningPreset(_WORLD_CLASS, PlannerConfig(), n_episodes=40, n_compare=10,
-                                long_world=_WORLD_CLASS_LONG, long_ablations=ABLATABLE_TERMS,
-                                refit_base=replace(_WORLD_CLASS_LONG, steps=20_000),
-                                course_long=course_long(_WORLD_CLASS, 10_000, 100_000)),
+                                longer=LongerRuns(
+                                    paper=_WORLD_CLASS_LONG, ablations=ABLATABLE_TERMS,
+                                    refit_base=replace(_WORLD_CLASS_LONG, steps=20_000),
+                                    course=course_long(_WORLD_CLASS, 10_000, 100_000))),
         # the reference code's planner on 500 episodes: 100 for the headline rate, 50 in 8 rows
         "full": PlanningPreset(_WORLD_FULL, PlannerConfig(horizon=90, iterations=20, execute=1,
                                                              noise=Noise(period=1),
@@ -338,9 +363,7 @@ PRESETS: dict[str, dict[str, object]] = {
     "07": {
         "ci": _BEYOND_CI,
         "class": _BEYOND_CLASS,  # the world models, heads and coarse models are shipped
-        "full": replace(_BEYOND_CLASS, two_rooms=_WORLD_FULL,
-                        three_rooms=replace(_WORLD_FULL, walls=2), n_episodes=200,
-                        episode_batch=100),
+        "full": replace(_BEYOND_CLASS, two_rooms=_WORLD_FULL, n_episodes=200, episode_batch=100),
     },
 }
 

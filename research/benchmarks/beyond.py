@@ -49,10 +49,11 @@ def planners(walls: int) -> dict:
     head = cost_head_or_load(model, identity(config), cost, f"cost_head_{world}_class")
     coarse = coarse_or_load(model, identity(config), coarse, f"coarse_{world}_class",
                             two_level_episodes)
+    two = cfg.two_level
     return {"flat": (model, cfg.flat, None), "short": (model, cfg.short, None),
             "learned_cost": (WithLearnedCost(model, head), cfg.learned, None),
-            "two_level": (model, cfg.low, TwoLevel(coarse, cfg.high[walls - 1], cfg.lookahead,
-                                                         cfg.reach_px))}
+            "two_level": (model, two.low, TwoLevel(coarse, two.high[walls - 1], two.lookahead,
+                                                   two.reach_px))}
 
 
 def main() -> None:
