@@ -6,10 +6,11 @@ Because the batch depends only on ``step`` (draw it from
 :func:`step_generator`), a run that resumes from a checkpoint sees exactly the batches
 it would have seen without the interruption.
 
-Introduced in notebook 00; every training cell of the course goes through
-:func:`fit` or :func:`load_or_train`.
+Introduced in notebook 00; every training run of the course goes through
+:func:`run_steps` (a notebook's whole training step) or :func:`fit` (a loss:
+backward and the optimiser's step), and :func:`load_or_train`.
 
-In a process group (``torchrun``), :func:`fit` logs the mean over ranks of the
+In a process group (``torchrun``), :func:`run_steps` logs the mean over ranks of the
 loss and its terms, shows progress and writes checkpoints on rank 0 only, and
 :func:`resume` and :func:`load_or_train` read the files on rank 0 and send them
 to every rank.
@@ -19,7 +20,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -78,7 +79,7 @@ def _over_ranks(loss: torch.Tensor, terms: dict) -> tuple[float, dict[str, float
     """The loss and terms averaged over ranks (as is in one process): what one device would log.
 
     Every rank gets the same numbers, so a non-finite loss stops all ranks together.
-    Reading them makes the CPU wait for the GPU, so :func:`fit` does it only when it logs.
+    Reading them makes the CPU wait for the GPU, so :func:`run_steps` does it only when it logs.
     """
     values = distributed.mean_of_floats([loss.item(), *map(_number, terms.values())])
     return values[0], dict(zip(terms, values[1:]))
@@ -150,36 +151,23 @@ def fit(
     desc: str = "training",
     progress: bool = True,
     config: dict[str, Any] | None = None,
-    after_step: Any = None,
-    clip_grad_norm: float = 0.0,
-    snapshots: Sequence[tuple[int, str | Path, dict[str, Any]]] = (),
 ) -> History:
     """:func:`run_steps` with :func:`backward_step`'s update; returns the :class:`History`.
 
-    With ``checkpoint``, the model, optimiser, scheduler, history and step (and
-    ``after_step.state_dict()``) are saved every ``checkpoint_every`` steps and at the end,
-    with ``config`` (the run's identity) for :func:`resume`. ``snapshots``: ``(step, path,
-    config)``: after ``step`` steps the state is also saved to ``path`` as the run ``config``,
-    which is this one up to there (notebook 03's K = 1 half). In a process group, ``model`` is
-    the bare module (rank 0 saves it) and ``loss_fn`` calls its DDP wrapper.
+    With ``checkpoint``, the model, optimiser, scheduler, history and step are saved every
+    ``checkpoint_every`` steps and at the end, with ``config`` (the run's identity) for
+    :func:`resume`. In a process group, ``model`` is the bare module (rank 0 saves it) and
+    ``loss_fn`` calls its DDP wrapper.
     """
     history = History() if history is None else history
     model.train()
-    update = backward_step(model, optimizer, loss_fn, scheduler, clip_grad_norm, after_step)
 
-    def state(done: int, identity: dict[str, Any] | None = config) -> dict[str, Any]:
-        return training_state(done, identity, history, model, optimizer, scheduler, after_step)
+    def state(done: int) -> dict[str, Any]:
+        return training_state(done, config, history, model, optimizer, scheduler)
 
-    save = saver(checkpoint, state, steps, checkpoint_every)
-
-    def after(done: int) -> None:
-        save(done)
-        for at, path, other in snapshots:
-            if done == at:
-                save_or_warn(Path(path), **state(done, other))
-
-    return run_steps(update, batch_fn, steps, start_step=start_step, history=history,
-                     log_every=log_every, desc=desc, progress=progress, after=after)
+    return run_steps(backward_step(optimizer, loss_fn, scheduler), batch_fn, steps,
+                     start_step=start_step, history=history, log_every=log_every, desc=desc,
+                     progress=progress, after=saver(checkpoint, state, steps, checkpoint_every))
 
 
 def training_state(done: int, identity: dict[str, Any] | None, history: History,
@@ -195,23 +183,17 @@ def training_state(done: int, identity: dict[str, Any] | None, history: History,
                 seconds=history.seconds, **extra)
 
 
-def backward_step(model, optimizer, loss_fn: LossFn, scheduler=None, clip_grad_norm=0.0,
-                  after_step=None):
+def backward_step(optimizer, loss_fn: LossFn, scheduler=None):
     """``update(batch, step)`` for :func:`run_steps` from a loss: ``loss_fn(batch)``, backward,
-    the gradient clipped to ``clip_grad_norm`` if > 0, the optimiser's and scheduler's steps,
-    then ``after_step(step)``. Returns the loss and its terms."""
+    the optimiser's and scheduler's steps. Returns the loss and its terms."""
 
     def update(batch, step: int):
         loss, terms = loss_fn(batch)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        if clip_grad_norm:
-            torch.nn.utils.clip_grad_norm_(model.parameters(), clip_grad_norm)
         optimizer.step()
         if scheduler is not None:
             scheduler.step()
-        if after_step is not None:
-            after_step(step)
         return loss, terms
 
     return update
@@ -227,7 +209,8 @@ def resume(
 ) -> tuple[int, History]:
     """Restore the state saved by :func:`fit`; return ``(step, history)`` to continue from.
 
-    ``after_step``: the object given to :func:`fit`, whose saved state is loaded too.
+    ``after_step``: an object saved beside the run (:func:`training_state`), whose state is
+    loaded too.
 
     Returns ``(0, History())`` when there is no checkpoint of the run ``config``
     (its identity) yet, or no ``path`` (a run that keeps none). A file at
