@@ -13,7 +13,6 @@ import socket
 import subprocess
 import sys
 from dataclasses import replace
-from functools import partial
 from pathlib import Path
 
 import pytest
@@ -29,8 +28,15 @@ from ebjepa_tutorial.data.moving_mnist import split_digits
 from ebjepa_tutorial.envs import generate_trajectories
 from ebjepa_tutorial.losses import variance_and_covariance, vicreg_loss
 from ebjepa_tutorial.losses.rollout import parallel_rollout_loss
-from ebjepa_tutorial.losses.sigreg import sigreg_loss
-from ebjepa_tutorial.losses.world import WorldLossCoeffs, world_model_loss
+from ebjepa_tutorial.losses.sigreg import sigreg, sigreg_loss
+from ebjepa_tutorial.losses.world import (
+    WorldLossCoeffs,
+    encode_for_loss,
+    inverse_dynamics_loss,
+    multistep_prediction_loss,
+    temporal_similarity_loss,
+    variance_covariance_loss,
+)
 from ebjepa_tutorial.models.video import VideoJEPA, VideoModelConfig
 from ebjepa_tutorial.models.world import WorldConfig, WorldModel
 from ebjepa_tutorial.training import image, video, world
@@ -49,9 +55,10 @@ VIDEO_TINY = video.VideoJEPAConfig(
     n_frames=4, rollout_steps=2, batch_size=4, channels_last=False)
 WORLD_TINY = WorldConfig(widths=(4, 8), blocks=1, input_size=17, latent_dim=8,
                          action_embed_dim=8, idm_hidden=16)
-# every term on, SIGReg included, rollouts from every frame, with still steps: each draws
-# from the generator or reads the whole batch
-WORLD_OPTIONS = dict(coeffs=WorldLossCoeffs(sigreg=0.5), steps=3, stay_probability=0.3)
+# every term on, SIGReg included, with still steps: each draws from the generator or reads
+# the whole batch
+WORLD_RUN = world.WorldTrainConfig(model=WORLD_TINY, coeffs=WorldLossCoeffs(sigreg=0.5),
+                                   rollout_steps=3, recipe=world.Recipe(stay_probability=0.3))
 
 
 def free_port() -> int:
@@ -154,21 +161,34 @@ def _world_case():
     return WorldModel(WORLD_TINY).to(dtype).fit_input_stats(frames), frames, actions
 
 
-def _world_loss(model, frames, actions, across_ranks):
-    generator = torch.Generator().manual_seed(5)  # seeded alike on every rank, as in training
-    wrappers = dict(batch_rows=distributed.gather_rows, rand=distributed.rand_rows)  # training's
-    total, terms = world_model_loss(model, frames, actions, generator=generator, **WORLD_OPTIONS,
-                                    **(wrappers if across_ranks else {}))
+def _world_whole(model, frames, actions):
+    """The world model's loss of one process on the whole batch, written out with the plain
+    terms (no collective), and its gradient in ``.grad``: what the step must reproduce."""
+    generator = torch.Generator().manual_seed(5)  # the still steps', then SIGReg's draws
+    coeffs, z = WORLD_RUN.coeffs, encode_for_loss(model, frames)
+    terms = {"prediction": multistep_prediction_loss(
+                 model.predict, z, actions, WORLD_RUN.rollout_steps,
+                 stay_probability=WORLD_RUN.recipe.stay_probability, generator=generator),
+             "temporal": temporal_similarity_loss(z),
+             "inverse_dynamics": inverse_dynamics_loss(model.predict_actions, z, actions)}
+    terms["variance"], terms["covariance"] = variance_covariance_loss(z)
+    terms["sigreg"] = sigreg(z.reshape(-1, z.shape[-1]), generator=generator)
+    total = sum(getattr(coeffs, name) * value for name, value in terms.items())
     total.backward()
-    if across_ranks:  # as world_model_step: the mean over ranks of the gradients
-        distributed.average_gradients(model.parameters())
-    return total.detach(), terms
+    return total.detach(), {name: value.detach() for name, value in terms.items()}
+
+
+def _world_step(model, frames, actions):
+    """The training step itself (``world_model_step``) on these rows, at a rate of 0: the
+    weights stay, and the gradients it averaged over the ranks stay in ``.grad``."""
+    generator = torch.Generator().manual_seed(5)  # seeded alike on every rank, as in training
+    optimizer = torch.optim.SGD(model.parameters(), lr=0.0)
+    return world.world_model_step(model, optimizer, frames, actions, generator, WORLD_RUN, step=0)
 
 
 # chapter -> (its model and inputs, the whole batch in one process, training's code on some rows)
 CHAPTERS = {"video": (_video_case, _video_whole, _video_step),
-            "world": (_world_case, partial(_world_loss, across_ranks=False),
-                      partial(_world_loss, across_ranks=True))}
+            "world": (_world_case, _world_whole, _world_step)}
 
 
 @pytest.mark.parametrize("chapter", CHAPTERS)

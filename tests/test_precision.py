@@ -120,15 +120,19 @@ def test_world_training_lowers_only_the_encoder(monkeypatch):
     from ebjepa_tutorial.envs import generate_trajectories
     from ebjepa_tutorial.losses import world as world_losses
     from ebjepa_tutorial.models.world import WORLD_CONFIGS, WorldModel
+    from ebjepa_tutorial.training import world
 
-    monkeypatch.setattr(world_losses, "mixed_precision", cpu_bf16)
-    received = spy(monkeypatch, world_losses, "variance_covariance_loss")
+    monkeypatch.setattr(world_losses, "mixed_precision", cpu_bf16)  # encode_for_loss's
+    received = spy(monkeypatch, world, "variance_covariance_loss")  # the step's
     data = generate_trajectories(4, 4, seed=0)
     model = WorldModel(WORLD_CONFIGS["ci"])
     frames = data.frames()  # (4, 5, 2, 65, 65)
     model.fit_input_stats(frames)
     encoded = []
     model.encoder.register_forward_hook(lambda module, args, out: encoded.append(out.dtype))
-    loss, terms = world_losses.world_model_loss(model, frames, data.actions, steps=2)
+    config = world.WorldTrainConfig(model=WORLD_CONFIGS["ci"], rollout_steps=2)
+    loss, terms = world.world_model_step(model, world.new_optimizer(model, config), frames,
+                                         data.actions, torch.Generator().manual_seed(0), config,
+                                         step=0)
     assert encoded == [torch.bfloat16] and received == [torch.float32]
     assert loss.dtype == torch.float32 and torch.isfinite(loss)

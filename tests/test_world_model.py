@@ -180,17 +180,38 @@ def test_variance_covariance_flatten_time():
     assert cov.item() == 0.0
 
 
-def test_world_model_loss_combines_terms(data):
+def first_step(model, frames, actions, coeffs=None, steps=3, seed=0):
+    """The training step's ``(total, terms)`` on these inputs, at a rate of 0: the weights
+    stay, and the gradients of the total stay in ``.grad``."""
+    config = world.WorldTrainConfig(model=model.config, coeffs=coeffs or wl.WorldLossCoeffs(),
+                                    rollout_steps=steps)
+    optimizer = torch.optim.SGD(model.parameters(), lr=0.0)
+    return world.world_model_step(model, optimizer, frames, actions,
+                                  torch.Generator().manual_seed(seed), config, step=0)
+
+
+def test_the_training_step_weighs_the_five_terms(data):
     trajectories, frames = data
     model = tiny_model(frames)
+    with torch.no_grad():  # make the predictor move: its output layer starts at zero
+        model.predictor.out.weight.normal_(0, 0.3, generator=torch.Generator().manual_seed(1))
     coeffs = wl.WorldLossCoeffs()
-    total, terms = wl.world_model_loss(model, frames, trajectories.actions, coeffs, steps=3)
+    total, terms = first_step(model, frames, trajectories.actions, coeffs, steps=3)
     assert set(terms) == {"prediction", "variance", "covariance", "temporal", "inverse_dynamics"}
+    # each term is its function's value on the encoded latents (the step changed no weight)
+    z, actions = model.encode(frames), trajectories.actions
+    variance, covariance = wl.variance_covariance_loss(z)
+    alone = {"prediction": wl.multistep_prediction_loss(model.predict, z, actions, 3),
+             "variance": variance, "covariance": covariance,
+             "temporal": wl.temporal_similarity_loss(z),
+             "inverse_dynamics": wl.inverse_dynamics_loss(model.predict_actions, z, actions)}
+    for name, value in alone.items():
+        assert float(terms[name]) == pytest.approx(value.item(), rel=1e-5), name
     expected = sum(getattr(coeffs, name) * float(value) for name, value in terms.items())
     assert total.item() == pytest.approx(expected, rel=1e-5)
-    total.backward()
     assert model.encoder.linear.weight.grad.abs().sum() > 0
     assert model.inverse_dynamics[0].weight.grad.abs().sum() > 0
+    assert model.predictor.out.weight.grad.abs().sum() > 0
 
 
 def test_sigreg_joins_the_world_model_loss_when_weighted(data):
@@ -199,18 +220,17 @@ def test_sigreg_joins_the_world_model_loss_when_weighted(data):
     trajectories, frames = data
     model = tiny_model(frames)
     coeffs = wl.WorldLossCoeffs(variance=0.0, covariance=0.0, sigreg=0.05)
-    total, terms = wl.world_model_loss(model, frames, trajectories.actions, coeffs, steps=3,
-                                       generator=torch.Generator().manual_seed(7))
-    # the statistic of every frame's latent, with the directions the generator draws
+    total, terms = first_step(model, frames, trajectories.actions, coeffs, steps=3, seed=7)
+    # the statistic of every frame's latent, with the directions the generator draws (no still
+    # steps draw before it: the paper's recipe has none)
     z = model.encode(frames).reshape(-1, model.latent_dim)
     directions = random_directions(model.latent_dim, 256, torch.Generator().manual_seed(7))
     assert float(terms["sigreg"]) == pytest.approx(sigreg(z, directions=directions).item(),
                                                  rel=1e-5)
     expected = sum(getattr(coeffs, name) * float(value) for name, value in terms.items())
     assert total.item() == pytest.approx(expected, rel=1e-5)
-    total.backward()
     assert model.encoder.linear.weight.grad.abs().sum() > 0
-    off = wl.world_model_loss(model, frames, trajectories.actions, wl.WorldLossCoeffs(), 3)[1]
+    off = first_step(model, frames, trajectories.actions, wl.WorldLossCoeffs(), 3)[1]
     assert "sigreg" not in off  # off by default: the paper's recipe costs nothing more
 
 
@@ -470,8 +490,8 @@ def test_bad_inputs_give_clear_errors(data):
     nan_actions[0, 1, 0] = float("nan")
     with pytest.raises(ValueError, match="NaN"):
         model.rollout(z, nan_actions)
-    with pytest.raises(ValueError, match="NaN"):
-        wl.world_model_loss(model, frames, nan_actions)
+    with pytest.raises(ValueError, match="NaN"):  # the training step checks its batch
+        first_step(model, frames, nan_actions)
     with pytest.raises(ValueError, match=r"each frame must be \(2, 65, 65\)"):
         model.encode(frames[:, :, :1])
     with pytest.raises(ValueError, match=r"each frame must be \(2, 65, 65\)"):
@@ -479,11 +499,11 @@ def test_bad_inputs_give_clear_errors(data):
     with pytest.raises(ValueError, match="latents of shape"):
         model.rollout(z[:, :4], trajectories.actions)
     with pytest.raises(ValueError, match=r"time - 1"):
-        wl.world_model_loss(model, frames, trajectories.actions[:, :3])
-    with pytest.raises(ValueError, match="steps must be in"):
-        wl.world_model_loss(model, frames, trajectories.actions, steps=5)
+        first_step(model, frames, trajectories.actions[:, :3])
+    with pytest.raises(ValueError, match="steps must be in"):  # K = 5 > T - 1 = 4
+        first_step(model, frames, trajectories.actions, steps=5)
     with pytest.raises(RuntimeError, match="fit_input_stats"):
-        wl.world_model_loss(tiny_model(), frames, trajectories.actions)
+        first_step(tiny_model(), frames, trajectories.actions)
     with pytest.raises(ValueError, match="same N"):
         fit_position_probe(torch.zeros(5, 3), torch.zeros(4, 2))
 
