@@ -4,7 +4,8 @@
   re-exported here, so ``losses.variance_term`` is the VICReg term
 - ``sigreg``: SIGReg, the Epps-Pulley test on random 1-D projections (chapter 02)
 - ``rollout``: the video JEPA's K-step rollout loss (chapter 03)
-- ``world``: the world model's prediction, similarity and inverse-dynamics terms (chapter 05)
+- ``world``: the world model's prediction, similarity and inverse-dynamics terms (chapter 05);
+  ``training.world.world_model_step`` weighs them with the variance and covariance
 """
 
 from . import rollout, sigreg, vicreg, world

@@ -18,9 +18,11 @@ inverse-dynamics head forces the latent to keep what the action changed
 (the dot), which the static walls cannot explain. Every term averages over
 its elements, so each coefficient does not depend on ``B``, ``T`` or ``D``.
 
-Under ``torchrun`` the training code passes :func:`latent_loss` two functions of
-:mod:`ebjepa_tutorial.distributed` (``batch_rows``, ``rand``) so that the batch
-statistics and the still steps are those of the global batch.
+The weighted total is assembled, and back-propagated, in one place:
+:func:`ebjepa_tutorial.training.world.world_model_step`, the step notebook 05
+shows. Under ``torchrun`` it hands the variance, covariance and SIGReg every
+rank's latents (``distributed.gather_rows``) and draws the still steps with
+``distributed.rand_rows``, so that they are those of the global batch.
 """
 
 from __future__ import annotations
@@ -32,7 +34,6 @@ import torch
 import torch.nn.functional as F
 
 from ..utils import at_least_float32, mixed_precision
-from .sigreg import sigreg
 from .vicreg import covariance_term, variance_term
 
 
@@ -202,53 +203,3 @@ def encode_for_loss(model, frames: torch.Tensor) -> torch.Tensor:
     with mixed_precision(frames.device):
         z = model.encode(frames)
     return at_least_float32(z)
-
-
-def world_model_loss(model, frames: torch.Tensor, actions: torch.Tensor, *args, **kwargs):
-    """The weighted total for a batch of trajectories, and each unweighted term.
-
-    ``model``: a :class:`~ebjepa_tutorial.models.world.WorldModel`; ``frames``:
-    ``(B, T, 2, 65, 65)``; ``actions``: ``(B, T-1, 2)``; the options (``coeffs``,
-    ``steps`` K, ...) are :func:`latent_loss`'s, which this calls on
-    :func:`encode_for_loss`'s latents.
-    """
-    return latent_loss(model, encode_for_loss(model, frames), actions, *args, **kwargs)
-
-
-def latent_loss(
-    model,
-    z: torch.Tensor,
-    actions: torch.Tensor,
-    coeffs: WorldLossCoeffs = WorldLossCoeffs(),
-    steps: int = 8,
-    detach_targets: bool = False,
-    generator: torch.Generator | None = None,
-    stay_probability: float = 0.0,
-    batch_rows: Callable[[torch.Tensor], torch.Tensor] = lambda z: z,
-    rand: Callable = torch.rand,
-) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """:func:`world_model_loss` on latents already encoded, ``z (B, T, D)``.
-
-    ``actions``: ``(B, T-1, 2)``; ``steps``: K; ``stay_probability``: the rollouts' still
-    steps (:func:`multistep_prediction_loss`);
-    ``generator`` draws those and SIGReg's random directions. Returns ``(total,
-    terms)``: a 0-d tensor to back-propagate and a dict of detached 0-d tensors
-    (``prediction``, ``variance``, ``covariance``, ``temporal``,
-    ``inverse_dynamics``, and ``sigreg`` when it is on) for the history.
-    ``batch_rows`` ``(b, T, D) -> (B, T, D)``: the trajectories the variance, covariance and
-    SIGReg see; ``rand`` draws the still steps (under torchrun: all ranks' rows and the
-    global batch's draw, every rank's ``generator`` seeded alike).
-    """
-    _check_sequence(z, actions)
-    terms = {
-        "prediction": multistep_prediction_loss(model.predict, z, actions, steps, detach_targets,
-                                                stay_probability, generator, rand),
-        "temporal": temporal_similarity_loss(z),
-        "inverse_dynamics": inverse_dynamics_loss(model.predict_actions, z, actions),
-    }
-    everyone = batch_rows(z)
-    terms["variance"], terms["covariance"] = variance_covariance_loss(everyone)
-    if coeffs.sigreg:  # the statistics over every frame of every trajectory, like v and c
-        terms["sigreg"] = sigreg(everyone.reshape(-1, z.shape[-1]), generator=generator)
-    total = sum(getattr(coeffs, name) * value for name, value in terms.items())
-    return total, {name: value.detach() for name, value in terms.items()}
