@@ -21,7 +21,7 @@ def _clusters(n, num_classes=4, dim=16, spread=0.3, seed=0):
 def test_linear_probe_separable_data():
     x_train, y_train = _clusters(600, seed=0)
     x_test, y_test = _clusters(300, seed=1)
-    result = linear_probe(x_train, y_train, x_test, y_test, epochs=10)
+    result = linear_probe(x_train, y_train, x_test, y_test)
     assert result.test_accuracy > 0.98 and result.train_accuracy > 0.98
     logits = result.head((x_test - result.mean) / result.std)
     assert logits.shape == (300, 4)
@@ -32,22 +32,21 @@ def test_linear_probe_random_labels_is_at_chance():
     x_train, x_test = torch.randn(1000, 16, generator=gen), torch.randn(1000, 16, generator=gen)
     y_train = torch.randint(0, 10, (1000,), generator=gen)
     y_test = torch.randint(0, 10, (1000,), generator=gen)
-    result = linear_probe(x_train, y_train, x_test, y_test, epochs=5)
+    result = linear_probe(x_train, y_train, x_test, y_test)
     assert 0.04 < result.test_accuracy < 0.17  # chance is 0.10
 
 
 def test_linear_probe_is_seeded():
     x, y = _clusters(200)
-    a = linear_probe(x, y, x, y, epochs=2, seed=3)
-    b = linear_probe(x, y, x, y, epochs=2, seed=3)
+    a = linear_probe(x, y, x, y)
+    b = linear_probe(x, y, x, y)
     assert torch.equal(a.head.weight, b.head.weight)
 
 
 def test_knn_separable_and_random():
     x_train, y_train = _clusters(500, seed=0)
     x_test, y_test = _clusters(200, seed=1)
-    assert knn_accuracy(x_train, y_train, x_test, y_test, k=20) > 0.98
-    assert knn_accuracy(x_train, y_train, x_test, y_test, k=20, temperature=None) > 0.98
+    assert knn_accuracy(x_train, y_train, x_test, y_test) > 0.98
     gen = make_generator(2)
     noise_train, noise_test = (
         torch.randn(2000, 16, generator=gen),
@@ -62,11 +61,10 @@ def test_knn_votes_by_hand():
     train = torch.tensor([[1.0, 0.0], [0.9, 0.1], [0.0, 1.0]])
     labels = torch.tensor([0, 0, 1])
     query = torch.tensor([[0.6, 0.8], [1.0, 0.05]])
-    # k = 3: majority says class 0 for both; the temperature weights favour the
-    # much closer class-1 neighbour for the first query (cosine 0.8 vs 0.6 and 0.68).
-    assert knn_predict(train, labels, query, k=3, temperature=None).tolist() == [0, 0]
-    assert knn_predict(train, labels, query, k=3, temperature=0.05).tolist() == [1, 0]
-    assert knn_predict(train, labels, query, k=1, chunk_size=1).tolist() == [1, 0]
+    # All three train rows vote (k = min(20, 3)): a majority would say class 0 for both,
+    # but the temperature's weights favour the much closer class-1 neighbour for the first
+    # query (cosine 0.8 vs 0.6 and 0.68).
+    assert knn_predict(train, labels, query).tolist() == [1, 0]
 
 
 def test_embed_is_frozen_and_restores_the_mode():
@@ -74,11 +72,11 @@ def test_embed_is_frozen_and_restores_the_mode():
     encoder = ResNet18(widths=(4, 8, 8, 8))
     encoder.train()
     images = torch.randint(0, 256, (10, 3, 32, 32), dtype=torch.uint8, generator=make_generator(0))
-    feats = embed(encoder, images, 32, batch_size=4)
+    feats = embed(encoder, images, 32)
     assert feats.shape == (10, 8) and feats.dtype == torch.float32 and not feats.requires_grad
     assert encoder.training  # the caller's mode is restored
     # Eval mode: each image's features do not depend on the rest of its batch.
-    again = embed(encoder, images[:3], 32, batch_size=1)
+    again = embed(encoder, images[:3], 32)
     assert torch.allclose(feats[:3], again, atol=1e-5)
     with pytest.raises(TypeError, match="uint8"):
         embed(encoder, images.float(), 32)

@@ -6,10 +6,9 @@ the frozen train features and report its accuracy on the test features:
 
 - :func:`linear_probe`: a linear layer on standardised features, trained with
   mini-batch Adam and a cosine learning rate (seconds on a CPU for CIFAR-10).
-- :func:`knn_accuracy`: cosine similarity to every train feature, the ``k``
-  nearest vote for their label with weights ``exp(similarity / temperature)``
-  (the weighted kNN of Wu et al. 2018, InstDisc, also used by DINO), or one
-  vote each with ``temperature=None``.
+- :func:`knn_accuracy`: cosine similarity to every train feature, the 20 nearest
+  vote for their label with weights ``exp(similarity / 0.07)`` (the weighted kNN of
+  Wu et al. 2018, InstDisc, also used by DINO).
 
 Features ``(N, D)``, labels ``(N,)`` int64.
 """
@@ -28,6 +27,8 @@ from torch import nn
 
 from ..data.paths import atomic_file, cache_dir
 from ..training.image import ImageJEPAConfig, resize
+
+KNN_K, KNN_TEMPERATURE = 20, 0.07  # the kNN's neighbours and the softness of their votes
 
 
 def _check_pair(features: torch.Tensor, labels: torch.Tensor, name: str) -> None:
@@ -55,26 +56,25 @@ class ProbeResult:
 
 
 def linear_probe(train_features: torch.Tensor, train_labels: torch.Tensor,
-                 test_features: torch.Tensor, test_labels: torch.Tensor, epochs: int = 30,
-                 batch_size: int = 512, lr: float = 1e-3, weight_decay: float = 1e-4,
-                 seed: int = 0) -> ProbeResult:
+                 test_features: torch.Tensor, test_labels: torch.Tensor) -> ProbeResult:
     """Train a linear classifier on frozen features; report its test accuracy.
 
     Features are standardised with the train split's mean and std, then ``nn.Linear(D, C)``
-    is trained with mini-batch Adam, ``lr`` decaying along a cosine to 0, for ``epochs``
-    passes. ``C`` is ``max(label) + 1``. Never choose ``lr`` or ``epochs`` on the test split.
+    is trained with mini-batch Adam (batches of 512, weight decay 1e-4), the rate 1e-3
+    decaying along a cosine to 0, for 30 passes, seeded. ``C`` is ``max(label) + 1``. Never
+    choose the rate or the passes on the test split.
     """
     _check_pair(train_features, train_labels, "train")
     _check_pair(test_features, test_labels, "test")
     mean, std = train_features.mean(dim=0), train_features.std(dim=0) + 1e-6
     x_train = (train_features - mean) / std
     num_classes = int(max(train_labels.max(), test_labels.max())) + 1
-    generator = torch.Generator().manual_seed(seed)
+    generator, epochs, batch_size = torch.Generator().manual_seed(0), 30, 512
     head = nn.Linear(x_train.shape[1], num_classes).to(x_train.device)
     with torch.no_grad():  # seeded initialisation, independent of the global RNG
         head.weight.copy_(torch.randn(head.weight.shape, generator=generator) * 0.01)
         head.bias.zero_()
-    optimizer = torch.optim.Adam(head.parameters(), lr=lr, weight_decay=weight_decay)
+    optimizer = torch.optim.Adam(head.parameters(), lr=1e-3, weight_decay=1e-4)
     steps = epochs * math.ceil(len(x_train) / batch_size)
     scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps)
     for _ in range(epochs):
@@ -92,60 +92,43 @@ def linear_probe(train_features: torch.Tensor, train_labels: torch.Tensor,
 
 
 @torch.no_grad()
-def knn_predict(
-    train_features: torch.Tensor,
-    train_labels: torch.Tensor,
-    query_features: torch.Tensor,
-    k: int = 20,
-    temperature: float | None = 0.07,
-    chunk_size: int = 512,
-) -> torch.Tensor:
-    """Labels ``(Q,)`` predicted for queries ``(Q, D)`` by their ``k`` nearest train rows.
+def knn_predict(train_features: torch.Tensor, train_labels: torch.Tensor,
+                query_features: torch.Tensor) -> torch.Tensor:
+    """Labels ``(Q,)`` predicted for queries ``(Q, D)`` by their ``KNN_K`` nearest train rows.
 
     Similarity is cosine. Each neighbour votes for its label with weight
-    ``exp(similarity / temperature)``, or 1 when ``temperature`` is None (plain
-    majority; ties go to the smaller label). Queries are processed in chunks of
-    ``chunk_size`` to bound memory (chunk x N similarities at a time).
+    ``exp(similarity / KNN_TEMPERATURE)``. Queries are processed in chunks of 512
+    to bound memory (512 x N similarities at a time).
     """
     _check_pair(train_features, train_labels, "train")
-    k = min(k, len(train_features))
+    k = min(KNN_K, len(train_features))
     num_classes = int(train_labels.max()) + 1
     train = F.normalize(train_features.float(), dim=1)
     predictions = []
-    for start in range(0, len(query_features), chunk_size):
-        query = F.normalize(query_features[start : start + chunk_size].float(), dim=1)
+    for start in range(0, len(query_features), 512):
+        query = F.normalize(query_features[start : start + 512].float(), dim=1)
         similarity, index = (query @ train.T).topk(k, dim=1)  # (q, k)
-        if temperature is None:
-            weights = torch.ones_like(similarity)
-        else:
-            weights = (similarity / temperature).exp()
         votes = torch.zeros(len(query), num_classes, device=query.device)
-        votes.scatter_add_(1, train_labels[index], weights)
+        votes.scatter_add_(1, train_labels[index], (similarity / KNN_TEMPERATURE).exp())
         predictions.append(votes.argmax(dim=1))
     return torch.cat(predictions)
 
 
-def knn_accuracy(
-    train_features: torch.Tensor,
-    train_labels: torch.Tensor,
-    test_features: torch.Tensor,
-    test_labels: torch.Tensor,
-    k: int = 20,
-    temperature: float | None = 0.07,
-) -> float:
-    """Test accuracy (a fraction) of :func:`knn_predict` with ``k`` and ``temperature``.
+def knn_accuracy(train_features: torch.Tensor, train_labels: torch.Tensor,
+                 test_features: torch.Tensor, test_labels: torch.Tensor) -> float:
+    """Test accuracy (a fraction) of :func:`knn_predict`.
 
-    No training, no hyper-parameters beyond ``k`` and ``temperature``, which
+    No training, no hyper-parameters beyond ``KNN_K`` and ``KNN_TEMPERATURE``, which
     makes it a quick check during training; it usually lands a few points
     below the linear probe.
     """
     _check_pair(test_features, test_labels, "test")
-    predicted = knn_predict(train_features, train_labels, test_features, k, temperature)
+    predicted = knn_predict(train_features, train_labels, test_features)
     return (predicted == test_labels).float().mean().item()
 
 
 @torch.no_grad()
-def embed(encoder: nn.Module, images: torch.Tensor, size: int, batch_size: int = 256):
+def embed(encoder: nn.Module, images: torch.Tensor, size: int):
     """Frozen features of un-augmented uint8 images ``(N, 3, 32, 32)`` at ``size``: ``(N, D)``
     float32 on the CPU.
 
@@ -161,15 +144,14 @@ def embed(encoder: nn.Module, images: torch.Tensor, size: int, batch_size: int =
     was_training = encoder.training
     encoder.eval()
     try:
-        chunks = [encoder(resize(images[i:i + batch_size].to(device), size)).float().cpu()
-                  for i in range(0, len(images), batch_size)]
+        chunks = [encoder(resize(images[i:i + 256].to(device), size)).float().cpu()
+                  for i in range(0, len(images), 256)]
     finally:
         encoder.train(was_training)
     return torch.cat(chunks)
 
 
-def probe_encoder(encoder, config: ImageJEPAConfig, train, test, knn_k: int = 20,
-                  cache: bool = False) -> dict:
+def probe_encoder(encoder, config: ImageJEPAConfig, train, test, cache: bool = False) -> dict:
     """Probe and kNN test accuracy of frozen features; ``train``, ``test``: (images, labels).
 
     Both see the images at ``config.eval_image_size`` px, not at the training size.
@@ -178,13 +160,13 @@ def probe_encoder(encoder, config: ImageJEPAConfig, train, test, knn_k: int = 20
     match, so re-running a notebook skips the minute each probe takes at class scale.
     (Delete that folder after editing this module: the digest cannot see code.)
     """
-    path = _scores_path(encoder, config, train, test, knn_k) if cache else None
+    path = _scores_path(encoder, config, train, test) if cache else None
     if path is not None and path.exists():
         return json.loads(path.read_text())
     train_features = embed(encoder, train[0], config.eval_image_size)
     test_features = embed(encoder, test[0], config.eval_image_size)
     probe = linear_probe(train_features, train[1], test_features, test[1])
-    knn = knn_accuracy(train_features, train[1], test_features, test[1], k=knn_k)
+    knn = knn_accuracy(train_features, train[1], test_features, test[1])
     scores = {"probe_acc": probe.test_accuracy, "knn_acc": knn}
     if path is not None:
         with atomic_file(path) as f:  # a killed write leaves no half file under the real name
@@ -192,9 +174,9 @@ def probe_encoder(encoder, config: ImageJEPAConfig, train, test, knn_k: int = 20
     return scores
 
 
-def _scores_path(encoder: nn.Module, config: ImageJEPAConfig, train, test, knn_k: int) -> Path:
+def _scores_path(encoder: nn.Module, config: ImageJEPAConfig, train, test) -> Path:
     """Where :func:`probe_encoder` keeps the scores of this encoder, protocol and data."""
-    digest = hashlib.sha1(protocol(config, knn_k).encode())
+    digest = hashlib.sha1(protocol(config).encode())
     data = [("train", train[0]), ("train labels", train[1]),
             ("test", test[0]), ("test labels", test[1])]
     for name, tensor in [*encoder.state_dict().items(), *data]:
@@ -204,10 +186,10 @@ def _scores_path(encoder: nn.Module, config: ImageJEPAConfig, train, test, knn_k
     return cache_dir() / "probes" / f"{digest.hexdigest()[:16]}.json"
 
 
-def protocol(config: ImageJEPAConfig, knn_k: int = 20) -> str:
+def protocol(config: ImageJEPAConfig) -> str:
     """The evaluation protocol of :func:`probe_encoder`, in words, to print beside its numbers."""
     size = config.eval_image_size
     native = "their native size, no resizing" if size == 32 else "resized from 32 px"
     return (f"linear probe (fit on the train split, scored on the test split) and kNN "
-            f"(k = {knn_k}) on frozen encoder features of un-augmented {size}-px images "
+            f"(k = {KNN_K}) on frozen encoder features of un-augmented {size}-px images "
             f"({native}); the encoder was trained on {config.image_size}-px views")
