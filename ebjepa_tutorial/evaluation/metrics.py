@@ -62,16 +62,16 @@ def average_precision(scores: torch.Tensor, targets: torch.Tensor) -> float:
     return float((recall_step * precision).sum())
 
 
-def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """Wilson score interval of a success rate ``successes / n`` (95% for ``z = 1.96``).
+def wilson_interval(successes: int, n: int) -> tuple[float, float]:
+    """The 95% Wilson score interval of a success rate ``successes / n``.
 
-    ``(p + z^2/2n +- z sqrt(p(1-p)/n + z^2/4n^2)) / (1 + z^2/n)``: unlike the
-    textbook ``p +- z sqrt(p(1-p)/n)`` it stays inside [0, 1] and does not
+    ``(p + z^2/2n +- z sqrt(p(1-p)/n + z^2/4n^2)) / (1 + z^2/n)`` with ``z = 1.96``:
+    unlike the textbook ``p +- z sqrt(p(1-p)/n)`` it stays inside [0, 1] and does not
     shrink to a point at 0% or 100%.
     """
     if not 0 <= successes <= n or n < 1:
         raise ValueError(f"need 0 <= successes <= n and n >= 1, got {successes} of {n}")
-    p = successes / n
+    p, z = successes / n, 1.96
     centre = (p + z**2 / (2 * n)) / (1 + z**2 / n)
     half = z * (p * (1 - p) / n + z**2 / (4 * n**2)) ** 0.5 / (1 + z**2 / n)
     return max(0.0, centre - half), min(1.0, centre + half)

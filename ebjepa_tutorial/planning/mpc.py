@@ -88,9 +88,9 @@ class EpisodeResults:
     def success_rate(self) -> float:
         return self.success.float().mean().item()
 
-    def interval(self, z: float = 1.96) -> tuple[float, float]:
+    def interval(self) -> tuple[float, float]:
         """The Wilson 95% interval of the success rate."""
-        return wilson_interval(int(self.success.sum()), len(self.seeds), z)
+        return wilson_interval(int(self.success.sum()), len(self.seeds))
 
     def mean_first_arrival(self) -> float:
         """Mean first-arrival step over the episodes that arrived (nan if none did)."""
