@@ -38,6 +38,8 @@ from ..utils import as_generator, make_generator
 
 FRAME_SIZE = 64
 DEFAULT_SPEED = 3.6  # px per frame: 0.1 of the free range 64 - 28 = 36
+GRID = 8  # the detection targets' cells per side: 8 px each
+CHUNK = 128  # clips pasted at a time: bounds the index memory, stays in cache
 
 
 @dataclass
@@ -85,17 +87,17 @@ def check_digits(digits) -> torch.Tensor:
     return digits
 
 
-def split_digits(digits, n_train: int = 8000, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+def split_digits(digits, n_train: int = 8000) -> tuple[torch.Tensor, torch.Tensor]:
     """Split digits ``(N, ...)`` into ``n_train`` training and ``N - n_train`` held-out digits.
 
-    The split is a seeded permutation (the official MNIST test file is not in
+    The split is a permutation seeded with 0 (the official MNIST test file is not in
     random order: its two halves come from different writers), so evaluation
-    clips can be built only from digits the model never saw. Same seed, same split.
+    clips can be built only from digits the model never saw, the same every time.
     """
     n = len(digits)
     if not 0 < n_train < n:
         raise ValueError(f"n_train must be between 1 and {n - 1} for {n} digits, got {n_train}")
-    order = torch.randperm(n, generator=make_generator(seed))
+    order = torch.randperm(n, generator=make_generator(0))
     return digits[order[:n_train]], digits[order[n_train:]]
 
 
@@ -163,16 +165,16 @@ def paste_digits(frames: torch.Tensor, patches: torch.Tensor, offsets: torch.Ten
     flat.scatter_reduce_(1, index, patches.reshape(m, k * h * w), reduce="amax")
 
 
-def _check_sizes(digits: torch.Tensor, size: int, speed: float, **counts) -> float:
+def _check_sizes(digits: torch.Tensor, speed: float, **counts) -> float:
     """Raise a clear error for a count < 1, a digit that does not fit, or too high a speed;
-    return the free range ``size - h`` a digit's top-left corner moves in."""
+    return the free range ``64 - h`` a digit's top-left corner moves in."""
     for name, value in counts.items():
         if not isinstance(value, int) or value < 1:
             raise ValueError(f"{name} must be a positive int, got {value!r}")
     h, w = digits.shape[1:]
-    if h != w or h > size:
-        raise ValueError(f"digits must be square and fit in {size}x{size} frames, got {h}x{w}")
-    limit = float(size - h)
+    if h != w or h > FRAME_SIZE:
+        raise ValueError(f"digits must be square and fit in 64x64 frames, got {h}x{w}")
+    limit = float(FRAME_SIZE - h)
     if not 0 <= speed <= limit:
         raise ValueError(f"speed must be in [0, {limit}] px/frame (the free range), got {speed}")
     return limit
@@ -187,18 +189,19 @@ def random_motion(n_clips: int, n_digits: int, speed: float, limit: float,
     return start, speed * torch.stack([angle.cos(), angle.sin()], dim=-1)
 
 
-def paste_clips(digits: torch.Tensor, digit_ids: torch.Tensor, offsets: torch.Tensor,
-                size: int, chunk: int) -> torch.Tensor:
-    """uint8 clips ``(N, T, 1, size, size)``: digit ``digit_ids[n, k]`` ``(N, K)`` of
-    ``digits`` ``(D, h, w)`` pasted at ``offsets[n, t, k]`` ``(N, T, K, 2)``, ``chunk``
-    clips at a time (chunks bound the index memory and stay in cache)."""
+def paste_clips(digits: torch.Tensor, digit_ids: torch.Tensor,
+                offsets: torch.Tensor) -> torch.Tensor:
+    """uint8 clips ``(N, T, 1, 64, 64)``: digit ``digit_ids[n, k]`` ``(N, K)`` of
+    ``digits`` ``(D, h, w)`` pasted at ``offsets[n, t, k]`` ``(N, T, K, 2)``, ``CHUNK``
+    clips at a time."""
     (n_clips, n_frames, n_digits, _), (h, w) = offsets.shape, digits.shape[1:]
-    clips = torch.empty(n_clips, n_frames, 1, size, size, dtype=torch.uint8)
-    for lo in range(0, n_clips, chunk):
-        hi = min(lo + chunk, n_clips)
+    clips = torch.empty(n_clips, n_frames, 1, FRAME_SIZE, FRAME_SIZE, dtype=torch.uint8)
+    for lo in range(0, n_clips, CHUNK):
+        hi = min(lo + CHUNK, n_clips)
         clips[lo:hi].zero_()
         patches = digits[digit_ids[lo:hi]].unsqueeze(1).expand(-1, n_frames, -1, -1, -1)
-        paste_digits(clips[lo:hi].view(-1, size, size), patches.reshape(-1, n_digits, h, w),
+        paste_digits(clips[lo:hi].view(-1, FRAME_SIZE, FRAME_SIZE),
+                     patches.reshape(-1, n_digits, h, w),
                      offsets[lo:hi].reshape(-1, n_digits, 2))
     return clips
 
@@ -209,28 +212,24 @@ def generate_moving_mnist(
     n_frames: int = 10,
     n_digits: int = 2,
     speed: float = DEFAULT_SPEED,
-    size: int = FRAME_SIZE,
     seed: int | torch.Generator = 0,
-    chunk: int = 128,
 ) -> MovingMNISTBatch:
     """Make ``n_clips`` Moving MNIST clips of ``n_frames`` frames from ``digits``.
 
     ``digits``: uint8 ``(D, 1, h, w)`` or ``(D, h, w)`` (for held-out
     evaluation, pass the second half of :func:`split_digits`). Each clip shows
     ``n_digits`` digits drawn with replacement. ``seed`` is an int or a
-    ``torch.Generator``; the same seed gives identical clips. Pasting works on
-    ``chunk`` clips at a time to bound memory. The module docstring says what
-    each field of the returned :class:`MovingMNISTBatch` means.
+    ``torch.Generator``; the same seed gives identical clips. The module docstring
+    says what each field of the returned :class:`MovingMNISTBatch` means.
     """
     digits = check_digits(digits)
-    limit = _check_sizes(digits, size, speed, n_clips=n_clips, n_frames=n_frames,
-                         n_digits=n_digits, chunk=chunk)
+    limit = _check_sizes(digits, speed, n_clips=n_clips, n_frames=n_frames, n_digits=n_digits)
     generator = as_generator(seed)
     digit_ids = torch.randint(len(digits), (n_clips, n_digits), generator=generator)
     start, velocity = random_motion(n_clips, n_digits, speed, limit, generator)
     positions, velocities = bounce_trajectories(start, velocity, n_frames, limit)
     offsets = positions.round().long().transpose(0, 1).contiguous()  # (N, T, K, 2)
-    clips = paste_clips(digits, digit_ids, offsets, size, chunk)
+    clips = paste_clips(digits, digit_ids, offsets)
     ink = ink_boxes(digits[digit_ids.flatten()]).view(n_clips, 1, n_digits, 4)  # in the patch
     boxes = ink + offsets.repeat(1, 1, 1, 2)
     centres = (boxes[..., :2] + boxes[..., 2:]).float() / 2
@@ -239,15 +238,15 @@ def generate_moving_mnist(
                             digit_ids=digit_ids)
 
 
-def centres_to_grid(centres: torch.Tensor, size: int = FRAME_SIZE, grid: int = 8) -> torch.Tensor:
-    """Detection targets: which cells of a ``grid x grid`` tiling hold a digit centre.
+def centres_to_grid(centres: torch.Tensor) -> torch.Tensor:
+    """Detection targets: which cells of a ``GRID x GRID`` (8 x 8) tiling hold a digit centre.
 
-    ``centres``: ``(..., K, 2)`` as ``(x, y)`` pixels in a ``size x size``
-    frame. Returns float32 ``(..., grid, grid)`` of 0/1, indexed ``[row, col]``
+    ``centres``: ``(..., K, 2)`` as ``(x, y)`` pixels in a 64 x 64 frame.
+    Returns float32 ``(..., GRID, GRID)`` of 0/1, indexed ``[row, col]``
     = ``[y cell, x cell]``; a cell with two centres is still 1.
     """
-    cell = torch.div(centres, size / grid, rounding_mode="floor").long().clamp(0, grid - 1)
-    flat = cell[..., 1] * grid + cell[..., 0]  # (..., K)
-    target = torch.zeros(*flat.shape[:-1], grid * grid)
+    cell = torch.div(centres, FRAME_SIZE / GRID, rounding_mode="floor").long().clamp(0, GRID - 1)
+    flat = cell[..., 1] * GRID + cell[..., 0]  # (..., K)
+    target = torch.zeros(*flat.shape[:-1], GRID * GRID)
     target.scatter_(-1, flat, 1.0)
-    return target.view(*flat.shape[:-1], grid, grid)
+    return target.view(*flat.shape[:-1], GRID, GRID)
