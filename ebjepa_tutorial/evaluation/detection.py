@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from ..data.moving_mnist import centres_to_grid, generate_moving_mnist
+from ..data.moving_mnist import GRID, centres_to_grid, generate_moving_mnist
 from ..losses.rollout import UNROLLS, parallel_unroll, rollout
 from ..models.video import DetectionHead, VideoJEPA
 from ..training.video import check_clips
@@ -26,9 +26,9 @@ from .metrics import average_precision
 PROBE_SEED, EVAL_SEED = 1001, 1002  # seeds of the evaluation clips (training clips use 0, 1, ...)
 
 
-def _pool(z: torch.Tensor, grid: int) -> torch.Tensor:
-    """``(B, T, C, S, S) -> (B, T, C, grid, grid)`` by average pooling (the probe's first step)."""
-    return F.adaptive_avg_pool2d(z.flatten(0, 1), grid).unflatten(0, z.shape[:2])
+def _pool(z: torch.Tensor) -> torch.Tensor:
+    """``(B, T, C, S, S) -> (B, T, C, 8, 8)`` by average pooling (the probe's first step)."""
+    return F.adaptive_avg_pool2d(z.flatten(0, 1), GRID).unflatten(0, z.shape[:2])
 
 
 def scored_frames(unroll: str, context: int, horizon: int, n_frames: int) -> slice:
@@ -41,11 +41,12 @@ def scored_frames(unroll: str, context: int, horizon: int, n_frames: int) -> sli
 
 @torch.no_grad()
 def grid_features(model: VideoJEPA, clips: torch.Tensor, horizons: int = 7,
-                  batch_size: int = 100, grid: int = 8, unroll: str = "parallel"):
-    """Pooled latents of uint8 ``clips`` ``(N, T, 1, 64, 64)`` for the probe, on the CPU.
+                  unroll: str = "parallel"):
+    """Pooled latents of uint8 ``clips`` ``(N, T, 1, 64, 64)`` for the probe, on the CPU,
+    100 clips at a time.
 
-    Returns ``encoded`` ``(N, T, C, grid, grid)``, every frame encoded, and
-    ``predicted``, a list over horizons k = 1..``horizons``: ``(N, F_k, C, grid, grid)``,
+    Returns ``encoded`` ``(N, T, C, 8, 8)``, every frame encoded, and
+    ``predicted``, a list over horizons k = 1..``horizons``: ``(N, F_k, C, 8, 8)``,
     the predictions of the frames :func:`scored_frames` gives, made k steps ahead by
     ``unroll`` (:data:`~ebjepa_tutorial.losses.rollout.UNROLLS`).
     """
@@ -56,22 +57,21 @@ def grid_features(model: VideoJEPA, clips: torch.Tensor, horizons: int = 7,
     model.eval()
     device = next(model.parameters()).device
     encoded, predicted = [], []
-    for lo in range(0, len(clips), batch_size):
-        z = model.encode(clips[lo:lo + batch_size].to(device))
+    for lo in range(0, len(clips), 100):
+        z = model.encode(clips[lo:lo + 100].to(device))
         if unroll == "parallel":  # step k's predictions from frame context - 1 + k on
             steps = parallel_unroll(model.predictor, z, context, horizons)
-            predicted.append([_pool(p[:, k:], grid).cpu() for k, p in enumerate(steps)])
+            predicted.append([_pool(p[:, k:]).cpu() for k, p in enumerate(steps)])
         else:  # one rollout from the first context frames: entry k - 1 is k steps ahead
-            steps = _pool(rollout(model.predictor, z[:, :context], horizons), grid).cpu()
+            steps = _pool(rollout(model.predictor, z[:, :context], horizons)).cpu()
             predicted.append(list(steps.split(1, dim=1)))
-        encoded.append(_pool(z, grid).cpu())
+        encoded.append(_pool(z).cpu())
     return torch.cat(encoded), [torch.cat(k_steps) for k_steps in zip(*predicted)]
 
 
 def fit_detection_probe(features: torch.Tensor, targets: torch.Tensor, steps: int = 400,
-                        batch_size: int = 512, lr: float = 3e-3, hidden: int = 32,
-                        seed: int = 0) -> DetectionHead:
-    """Train a :class:`DetectionHead` on frozen latents; sigmoid / binary cross-entropy.
+                        batch_size: int = 512, lr: float = 3e-3) -> DetectionHead:
+    """Train a :class:`DetectionHead` on frozen latents (seeded); sigmoid / binary cross-entropy.
 
     ``features``: ``(M, C, g, g)`` (pooled, from :func:`grid_features`, one row
     per frame); ``targets``: 0/1 ``(M, g, g)`` from ``centres_to_grid``.
@@ -79,9 +79,9 @@ def fit_detection_probe(features: torch.Tensor, targets: torch.Tensor, steps: in
     if features.shape[0] != targets.shape[0] or features.shape[-2:] != targets.shape[-2:]:
         raise ValueError(f"features {tuple(features.shape)} and targets "
                          f"{tuple(targets.shape)} must be (M, C, g, g) and (M, g, g)")
-    generator = torch.Generator().manual_seed(seed)
-    torch.manual_seed(seed)
-    probe = DetectionHead(features.shape[1], hidden, grid=targets.shape[-1])
+    generator = torch.Generator().manual_seed(0)
+    torch.manual_seed(0)
+    probe = DetectionHead(features.shape[1], grid=targets.shape[-1])
     optimizer = torch.optim.Adam(probe.parameters(), lr=lr)
     for _ in range(steps):
         index = torch.randint(0, len(features), (batch_size,), generator=generator)
@@ -94,7 +94,7 @@ def fit_detection_probe(features: torch.Tensor, targets: torch.Tensor, steps: in
 
 @torch.no_grad()
 def detection_report(model: VideoJEPA, probe_data, eval_data, horizons: int = 7,
-                     probe_steps: int = 400, seed: int = 0, unroll: str = "parallel") -> dict:
+                     probe_steps: int = 400, unroll: str = "parallel") -> dict:
     """Fit the probe on ``probe_data``'s encoded frames; AP per horizon on ``eval_data``.
 
     Both are :class:`~ebjepa_tutorial.data.moving_mnist.MovingMNISTBatch`
@@ -112,7 +112,7 @@ def detection_report(model: VideoJEPA, probe_data, eval_data, horizons: int = 7,
     with torch.enable_grad():
         probe = fit_detection_probe(fit_features.flatten(0, 1),
                                     centres_to_grid(probe_data.centres).flatten(0, 1),
-                                    steps=probe_steps, seed=seed)
+                                    steps=probe_steps)
     encoded, predicted = grid_features(model, eval_data.clips, horizons, unroll=unroll)
     cells = centres_to_grid(eval_data.centres)  # (N, T, g, g)
     frames = [scored_frames(unroll, context, k, cells.shape[1]) for k in range(1, horizons + 1)]
