@@ -19,6 +19,8 @@ from ..envs import generate_trajectories
 from ..envs.two_rooms import HIGH, LOW, render, walls_of
 from ..models.world import WorldModel, encode_trajectories
 
+MIN_STOP = 0.8  # px: the wall test's steps, cut short by a wall or free, are at least this long
+
 
 class PositionProbe(nn.Module):
     """Standardise latents with stored statistics, then a head: ``(N, D) -> (N, 2)`` pixels."""
@@ -50,14 +52,12 @@ def fit_position_probe(
     hidden: int = 0,
     ridge: float = 1e-3,
     steps: int = 2000,
-    lr: float = 3e-3,
-    seed: int = 0,
 ) -> PositionProbe:
     """Fit latents ``(N, D)`` -> positions ``(N, 2)``; return the probe (latents are detached).
 
     ``hidden=0``: linear least squares with an L2 penalty ``ridge`` (per
     sample) on the standardised latents, solved exactly. ``hidden > 0``: an MLP
-    ``D -> hidden -> 2`` trained full-batch with Adam for ``steps`` steps, seeded.
+    ``D -> hidden -> 2`` trained full-batch with Adam (rate 3e-3) for ``steps`` steps, seeded.
     The fit and the probe are on the latents' device.
     """
     _check_pair(latents, positions)
@@ -65,7 +65,7 @@ def fit_position_probe(
     y = positions.detach().float().to(x.device)
     mean, std = x.mean(dim=0), x.std(dim=0).clamp_min(1e-6)
     x = (x - mean) / std
-    head = _ridge_head(x, y, ridge) if hidden == 0 else _mlp_head(x, y, hidden, steps, lr, seed)
+    head = _ridge_head(x, y, ridge) if hidden == 0 else _mlp_head(x, y, hidden, steps)
     return PositionProbe(mean, std, head)
 
 
@@ -81,10 +81,9 @@ def _ridge_head(x: torch.Tensor, y: torch.Tensor, ridge: float) -> nn.Linear:
     return head
 
 
-def _mlp_head(x: torch.Tensor, y: torch.Tensor, hidden: int, steps: int, lr: float,
-              seed: int) -> nn.Sequential:
+def _mlp_head(x: torch.Tensor, y: torch.Tensor, hidden: int, steps: int) -> nn.Sequential:
     """An MLP ``D -> hidden -> 2`` fitted to ``x`` (N, D) -> ``y`` (N, 2) by full-batch Adam."""
-    generator = torch.Generator().manual_seed(seed)
+    generator = torch.Generator().manual_seed(0)
     head = nn.Sequential(nn.Linear(x.shape[1], hidden), nn.ReLU(), nn.Linear(hidden, y.shape[1]))
     with torch.no_grad():
         for layer in (head[0], head[2]):
@@ -93,7 +92,7 @@ def _mlp_head(x: torch.Tensor, y: torch.Tensor, hidden: int, steps: int, lr: flo
             layer.bias.zero_()
         head = head.to(x.device)  # initialised on the CPU: the same start on every device
         head[2].bias.copy_(y.mean(dim=0))
-    optimizer = torch.optim.Adam(head.parameters(), lr=lr)
+    optimizer = torch.optim.Adam(head.parameters(), lr=3e-3)
     for _ in range(steps):
         loss = (head(x) - y).pow(2).mean()
         optimizer.zero_grad()
@@ -115,18 +114,18 @@ def mean_baseline_px(train_positions: torch.Tensor, test_positions: torch.Tensor
     return (test_positions - train_positions.mean(dim=0)).norm(dim=1).mean().item()
 
 
-def _wall_steps(trajectories, min_stop: float):
-    """Steps a wall cut short by more than ``min_stop`` px (those whose action would leave
-    the arena skipped) and free steps of at least ``min_stop`` px: two ``(B, T)`` masks."""
+def _wall_steps(trajectories):
+    """Steps a wall cut short by more than ``MIN_STOP`` px (those whose action would leave
+    the arena skipped) and free steps of at least ``MIN_STOP`` px: two ``(B, T)`` masks."""
     positions, actions = trajectories.positions, trajectories.actions
     intended = positions[:, :-1] + actions
     shortfall = (positions[:, 1:] - intended).norm(dim=-1)  # how much a wall took away
     inside = ((intended >= LOW) & (intended <= HIGH)).all(dim=-1)
-    stopped = (shortfall > min_stop) & inside
+    stopped = (shortfall > MIN_STOP) & inside
     if not stopped.any():
         raise ValueError(f"the walls stopped no step of these {len(positions)} "
-                         "trajectories by more than min_stop; use more of them")
-    return stopped, (shortfall < 1e-4) & (actions.norm(dim=-1) >= min_stop)
+                         f"trajectories by more than {MIN_STOP} px; use more of them")
+    return stopped, (shortfall < 1e-4) & (actions.norm(dim=-1) >= MIN_STOP)
 
 
 def _nearer(model, trajectories, steps, max_steps: int | None, through_wall: bool):
@@ -148,20 +147,20 @@ def _nearer(model, trajectories, steps, max_steps: int | None, through_wall: boo
 
 
 @torch.no_grad()
-def middle_wall_test(model, trajectories, min_stop: float = 0.8, max_steps: int = 1000) -> dict:
+def middle_wall_test(model, trajectories, max_steps: int = 1000) -> dict:
     """Does the predictor stop the dot at a wall, and move it elsewhere? Step by step.
 
     ``stopped``: on the steps a wall (any wall of the layouts) cut short by more
-    than ``min_stop`` px, the fraction of one-step predictions ``Pred(Enc(o_t), a_t)``
+    than ``MIN_STOP`` = 0.8 px, the fraction of one-step predictions ``Pred(Enc(o_t), a_t)``
     nearer the real ``Enc(o_{t+1})`` than ``Enc`` of the dot moved by the action
     alone, into the wall: 1 for a predictor that knows the wall, about 0 for one
     that ignores it. A predictor that never moves anything also scores 1, so the
-    control is ``moved``: on free steps of at least ``min_stop`` px, the fraction
+    control is ``moved``: on free steps of at least ``MIN_STOP`` px, the fraction
     of predictions nearer the real next latent than the current one. Each is over
     the first ``max_steps`` steps of its kind (``n_stopped``, ``n_moved``).
     ``model``: encode ``(B, 2, 65, 65) -> (B, D)``, predict ``(B, D), (B, 2) -> (B, D)``.
     """
-    stopped_steps, moved_steps = _wall_steps(trajectories, min_stop)
+    stopped_steps, moved_steps = _wall_steps(trajectories)
     stopped = _nearer(model, trajectories, stopped_steps, max_steps, through_wall=True)[0]
     moved = _nearer(model, trajectories, moved_steps, max_steps, through_wall=False)[0]
     return {"stopped": stopped.float().mean().item(), "moved": moved.float().mean().item(),
@@ -169,8 +168,7 @@ def middle_wall_test(model, trajectories, min_stop: float = 0.8, max_steps: int 
 
 
 @torch.no_grad()
-def wall_test_by_door_distance(model, trajectories, edges=(0, 8, 12, 16, 24, 65),
-                               min_stop: float = 0.8) -> list[dict]:
+def wall_test_by_door_distance(model, trajectories, edges=(0, 8, 12, 16, 24, 65)) -> list[dict]:
     """:func:`middle_wall_test`'s ``stopped``, split by where along the wall the dot was.
 
     Every wall-stopped step goes in a bin by ``|y_t - door_y|``, its distance
@@ -179,7 +177,7 @@ def wall_test_by_door_distance(model, trajectories, edges=(0, 8, 12, 16, 24, 65)
     that the door's sides stop it). One dict per bin ``[lo, hi)`` of ``edges``:
     ``lo``, ``hi``, ``stopped`` (NaN for an empty bin) and ``n``.
     """
-    flags, b, t = _nearer(model, trajectories, _wall_steps(trajectories, min_stop)[0], None,
+    flags, b, t = _nearer(model, trajectories, _wall_steps(trajectories)[0], None,
                           through_wall=True)
     here = trajectories.positions[b, t]
     along = (here[:, 1] - stopping_doors(here, trajectories.layouts[b])).abs()
