@@ -48,13 +48,13 @@ def plot_embedding(z: torch.Tensor, labels: torch.Tensor, ax=None, title: str = 
     return ax
 
 
-def plot_energy_map(coords, energy, anchor, points=None, ax=None, title: str = ""):
-    """Heat map of ``E(anchor, y)`` over a grid of ``y`` (from :func:`toy.energy_map`)."""
+def plot_energy_map(coords, energy, anchor, points, ax=None, title: str = ""):
+    """Heat map of ``E(anchor, y)`` over a grid of ``y`` (from :func:`toy.energy_map`), the
+    data ``points`` ``(N, 2)`` over it."""
     ax = _axes(ax)
     extent = [coords[0], coords[-1], coords[0], coords[-1]]
     image = ax.imshow(energy, origin="lower", extent=extent, cmap="viridis")
-    if points is not None:
-        ax.scatter(points[:, 0], points[:, 1], s=1, c="white", alpha=0.3)
+    ax.scatter(points[:, 0], points[:, 1], s=1, c="white", alpha=0.3)
     ax.scatter([anchor[0]], [anchor[1]], marker="*", s=150, c="red")
     ax.set(title=title, xticks=[], yticks=[])
     plt.colorbar(image, ax=ax, fraction=0.046)
@@ -78,14 +78,14 @@ _PLAYER_ICONS = {"minus": "\u2212", "fast-backward": "\u23ee", "step-backward": 
                  "fast-forward": "\u23ed", "plus": "+"}
 
 
-def play(animation, mode: str = "loop"):
+def play(animation):
     """Show a ``matplotlib.animation.Animation`` as an HTML player that needs no network.
 
     Close its figure first (``plt.close(fig)``) so the last frame is not shown twice.
     """
     from IPython.display import HTML
 
-    html = animation.to_jshtml(default_mode=mode)
+    html = animation.to_jshtml(default_mode="loop")
     html = re.sub(r'<link rel="stylesheet"\s+href="https://[^"]*font-awesome[^"]*">', "", html)
     rules = "".join(f".anim-buttons .fa-{name}::before {{content: '{char}';}}"
                     for name, char in _PLAYER_ICONS.items())
@@ -265,32 +265,29 @@ def plot_characteristic_functions(samples: dict[str, torch.Tensor]):
     return axes
 
 
-def plot_sweep(rows: list[dict], ax=None, baseline: float | None = None,
-               labels: dict[str, str] | None = None):
+def plot_sweep(rows: list[dict], baseline: float, labels: dict[str, str]):
     """Probe accuracy against each coefficient's multiple of its default (log x), per sweep.
 
     ``rows``: result rows of :func:`ebjepa_tutorial.evaluation.sweeps.run_sweep` with a
-    ``factor``. ``baseline``: the random-init encoder's accuracy, drawn dashed.
+    ``factor``. ``baseline``: the random-init encoder's accuracy, drawn dashed. ``labels``:
+    each sweep's name in the legend.
     """
-    ax = _axes(ax)
-    labels = labels or {}
+    ax = _axes(None)
     for sweep in dict.fromkeys(row["sweep"] for row in rows):
         points = sorted((row["factor"], row["probe_acc"]) for row in rows if row["sweep"] == sweep)
         xs, ys = zip(*points)
         ax.semilogx(xs, [100 * y for y in ys], marker="o", label=labels.get(sweep, sweep))
-    if baseline is not None:
-        ax.axhline(100 * baseline, color="k", ls="--", lw=0.8, label="random init")
+    ax.axhline(100 * baseline, color="k", ls="--", lw=0.8, label="random init")
     ax.axvline(1.0, color="0.7", lw=0.8)
     ax.set(xlabel="coefficient, as a multiple of its default", ylabel="linear probe (%)")
     ax.legend(fontsize=8)
     return ax
 
 
-def plot_projector_ablation(rows: list[dict], ax=None, baseline: float | None = None,
-                            labels: dict[str, str] | None = None):
-    """Grouped bars: probe accuracy per projector output width (``None``: no projector)."""
-    ax = _axes(ax)
-    labels = labels or {}
+def plot_projector_ablation(rows: list[dict], baseline: float, labels: dict[str, str]):
+    """Grouped bars: probe accuracy per projector output width (``None``: no projector), the
+    random-init encoder's ``baseline`` dashed; ``labels``: each sweep's name in the legend."""
+    ax = _axes(None)
     sweeps = list(dict.fromkeys(row["sweep"] for row in rows))
     values = list(dict.fromkeys(row["value"] for row in rows))
     width = 0.8 / len(sweeps)
@@ -299,9 +296,8 @@ def plot_projector_ablation(rows: list[dict], ax=None, baseline: float | None = 
         xs = [j + (i - (len(sweeps) - 1) / 2) * width for j in range(len(values))]
         ax.bar(xs, [accuracy.get(v, float("nan")) for v in values], width,
                label=labels.get(sweep, sweep))
-    if baseline is not None:
-        ax.axhline(100 * baseline, color="k", ls="--", lw=0.8, label="random init")
-    lowest = min([100 * row["probe_acc"] for row in rows] + [100 * (baseline or 1.0)])
+    ax.axhline(100 * baseline, color="k", ls="--", lw=0.8, label="random init")
+    lowest = min([100 * row["probe_acc"] for row in rows] + [100 * baseline])
     ax.set_ylim(bottom=max(0.0, lowest - 5))  # bars from 0 would hide differences of a point
     ax.set_xticks(range(len(values)), ["none" if v is None else str(v) for v in values])
     ax.set(xlabel="projector output width", ylabel="linear probe (%)")
@@ -367,7 +363,7 @@ def plot_energy_shapes(profiles: dict[str, torch.Tensor], edges, ax=None, title:
     return ax
 
 
-def draw_two_rooms(ax, layout: torch.Tensor, goal=None, start=None):
+def draw_two_rooms(ax, layout: torch.Tensor, goal, start):
     """The walls of ``layout`` ``(2W,)`` on ``ax`` (pixel coordinates), goal and start marked.
 
     ``(2,)`` is Two Rooms; ``(4,)``, Three Rooms, shows both walls.
@@ -376,11 +372,9 @@ def draw_two_rooms(ax, layout: torch.Tensor, goal=None, start=None):
 
     walls = wall_images(layout.view(1, -1))[0].float()
     ax.imshow(two_rooms_rgb(torch.stack([torch.zeros_like(walls), walls])), origin="upper")
-    if goal is not None:
-        ax.add_patch(plt.Circle(tuple(goal.tolist()), 4.5, fill=False, color="green", lw=1.5))
-        ax.scatter([goal[0]], [goal[1]], marker="*", s=120, c="green", zorder=3)
-    if start is not None:
-        ax.scatter([start[0]], [start[1]], marker="o", s=40, c="black", zorder=3)
+    ax.add_patch(plt.Circle(tuple(goal.tolist()), 4.5, fill=False, color="green", lw=1.5))
+    ax.scatter([goal[0]], [goal[1]], marker="*", s=120, c="green", zorder=3)
+    ax.scatter([start[0]], [start[1]], marker="o", s=40, c="black", zorder=3)
     ax.set(xticks=[], yticks=[], xlim=(-0.5, 64.5), ylim=(64.5, -0.5))
     return ax
 
@@ -398,11 +392,11 @@ def plot_imagined_paths(ax, paths: torch.Tensor, costs: torch.Tensor, layout, go
     return ax
 
 
-def animate_episodes(results, indices: list[int], every: int = 2, titles: list[str] | None = None):
+def animate_episodes(results, indices: list[int], every: int, titles: list[str]):
     """An animation of some episodes of a :class:`~ebjepa_tutorial.planning.EpisodeResults`.
 
-    Each panel shows the walls, the goal (green, with the 4.5 px success circle)
-    and the dot's trail. ``every``: steps per frame. Show it with :func:`play`.
+    Each panel (titled by ``titles``) shows the walls, the goal (green, with the 4.5 px
+    success circle) and the dot's trail. ``every``: steps per frame. Show it with :func:`play`.
     """
     from matplotlib.animation import FuncAnimation
 
@@ -411,7 +405,7 @@ def animate_episodes(results, indices: list[int], every: int = 2, titles: list[s
     for k, (ax, i) in enumerate(zip(axes[0], indices)):
         draw_two_rooms(ax, results.episodes.layouts[i], results.episodes.goals[i],
                        results.episodes.starts[i])
-        ax.set_title(titles[k] if titles else f"seed {results.seeds[i]}", fontsize=9)
+        ax.set_title(titles[k], fontsize=9)
         trails.append(ax.plot([], [], color="tab:red", lw=1)[0])
         dots.append(ax.plot([], [], "o", color="tab:red", ms=6)[0])
     steps = list(range(0, results.paths.shape[1], every))
