@@ -73,19 +73,18 @@ def _all_wall_bounds(layouts: torch.Tensor, dtype=torch.float32):
     return wall_x - half_wall, wall_x + half_wall, door_y - half_door, door_y + half_door
 
 
-def wall_bounds(layouts: torch.Tensor, dtype=torch.float32, wall: int | None = None):
-    """Where the dot centre is blocked by one wall. layouts (B, 2W) -> four (B,) tensors.
+def wall_bounds(layouts: torch.Tensor, dtype=torch.float32):
+    """Where the dot centre is blocked by one wall. layouts (B, 2) -> four (B,) tensors.
 
     ``x_lo < x < x_hi`` is the wall's slab; inside it the centre must keep
-    ``y_lo <= y <= y_hi`` (the doorway). ``wall``: which wall, 0..W-1 from the
-    left; it may be left out only for Two Rooms' (B, 2). For all walls at once
-    use :func:`in_wall`.
+    ``y_lo <= y <= y_hi`` (the doorway). One wall: Two Rooms' layouts, or one wall's
+    columns ``layouts[:, 2k:2k + 2]`` of several. For all walls at once use :func:`in_wall`.
     """
     walls = wall_count(layouts)
-    if wall is None and walls != 1:
-        raise ValueError(f"layouts hold {walls} walls; pass wall=0..{walls - 1} for one wall's "
-                         "bounds, or use in_wall(positions, layouts) to test all of them")
-    return tuple(b[:, wall or 0] for b in _all_wall_bounds(layouts, dtype))
+    if walls != 1:
+        raise ValueError(f"layouts hold {walls} walls; pass one wall's columns, "
+                         "layouts[:, 2k:2k + 2], or use in_wall(positions, layouts) to test all")
+    return tuple(b[:, 0] for b in _all_wall_bounds(layouts, dtype))
 
 
 def in_wall(positions: torch.Tensor, layouts: torch.Tensor) -> torch.Tensor:
@@ -181,14 +180,14 @@ def transition(positions: torch.Tensor, actions: torch.Tensor, layouts: torch.Te
     return wall_collision(positions, clip_actions(actions), layouts)
 
 
-def shortest_path_length(starts: torch.Tensor, goals: torch.Tensor, layouts: torch.Tensor,
-                         points: int = 29) -> torch.Tensor:
+def shortest_path_length(starts: torch.Tensor, goals: torch.Tensor,
+                         layouts: torch.Tensor) -> torch.Tensor:
     """Length in px of the shortest way of the dot centre from ``starts`` to ``goals``.
 
     starts, goals (B, 2), layouts (B, 2W) -> (B,). Each wall's slab is a gate at
     each of its two faces, ``x_lo`` and ``x_hi``, open on the doorway's rows; the
     rooms and the doorways are convex, so the shortest way is straight between
-    gate points. Gates are crossed in order; each is tried at ``points`` evenly
+    gate points. Gates are crossed in order; each is tried at 29 evenly
     spaced rows (0.25 px apart for the 7 px doorway), and a minimum over them is
     taken one gate at a time (dynamic programming). Gates the way does not cross
     collapse onto its start or goal.
@@ -203,7 +202,7 @@ def shortest_path_length(starts: torch.Tensor, goals: torch.Tensor, layouts: tor
     start, goal = starts * torch.cat([sign, torch.ones_like(sign)], 1), goals.clone()
     goal[:, 0] = goals[:, 0] * sign[:, 0]
     rows = gate_lo[..., None] + (gate_hi - gate_lo)[..., None] * torch.linspace(
-        0, 1, points, device=starts.device, dtype=starts.dtype)  # (B, 2W, P)
+        0, 1, 29, device=starts.device, dtype=starts.dtype)  # (B, 2W, P = 29)
     gate = torch.stack([gate_x[..., None].expand_as(rows), rows], dim=-1)  # (B, 2W, P, 2)
     before = (gate_x <= start[:, :1])[..., None, None]
     after = (gate_x >= goal[:, :1])[..., None, None]
