@@ -15,7 +15,6 @@ from ebjepa_tutorial.training.world import Recipe, RefitConfig, WorldTrainConfig
 
 
 @pytest.mark.parametrize("config, change, message", [
-    (ImageJEPAConfig, {"lr": -1}, "ImageJEPAConfig.lr must be a number > 0, got -1"),
     (ImageJEPAConfig, {"projector": (64,)}, "projector must be None or two positive ints"),
     (ImageJEPAConfig, {"batch_size": 0}, "batch_size must be an int >= 2"),
     (ImageJEPAConfig, {"steps": 100}, "warmup_steps must be an int in 0..steps-1 = 99, got 200"),

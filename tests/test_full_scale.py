@@ -79,8 +79,8 @@ def _check_adamw_step(config, before, model) -> None:
     assert _unchanged(before, model) == []
     moved = {name: (p.detach() - before[name]).abs().max().item()
              for name, p in model.named_parameters()}
-    assert max(moved.values()) == pytest.approx(config.lr, rel=1e-2)
-    assert all(m <= config.lr * 1.01 for m in moved.values()), moved
+    assert max(moved.values()) == pytest.approx(image.LR, rel=1e-2)
+    assert all(m <= image.LR * 1.01 for m in moved.values()), moved
 
 
 def _image_weights(config) -> dict[str, float]:

@@ -38,17 +38,25 @@ from ..utils import (
     check_fields,
     is_int_at_least,
     is_non_negative,
-    is_positive,
     memory_format,
     mixed_precision,
 )
 from .checkpoints import checkpoint_paths, run_identity, step_identity
-from .loop import History, load_or_train, resume, run_steps, saver, step_generator
+from .loop import (
+    History,
+    load_or_train,
+    resume,
+    run_steps,
+    saver,
+    step_generator,
+    training_state,
+)
 from .optim import split_decay_params, warmup_cosine_scheduler
 
 EVAL_FIELDS = ("eval_image_size",)  # how a run is scored, not how it is trained
 LOG_EVERY = 10  # steps between the history's rows: reading a value waits for the GPU
 WEIGHT_DECAY = 1e-4  # AdamW's, on weight matrices only (optim.split_decay_params)
+LR = 2e-3  # AdamW's peak rate (warm-up, then cosine to 0), the same at every scale
 
 
 @dataclass(frozen=True)
@@ -99,8 +107,7 @@ class ImageJEPAConfig:
     projector: tuple[int, int] | None = (1024, 1024)  # (hidden, output); None: no projector
     batch_size: int = 256  # the global batch: per-rank batch x world size under torchrun
     steps: int = 2000
-    warmup_steps: int = 200  # linear warm-up from step 0, then cosine to 0
-    lr: float = 2e-3  # AdamW's
+    warmup_steps: int = 200  # linear warm-up from step 0 to LR, then cosine to 0
     seed: int = 0
 
     def __post_init__(self):
@@ -119,7 +126,6 @@ class ImageJEPAConfig:
             "blocks_per_stage": (is_int_at_least(1), "an int >= 1 (2: ResNet-18, 1: ResNet-10)"),
             "projector": (lambda p: p is None or (len(p) == 2 and all(map(is_int_at_least(1), p))),
                           "None or two positive ints (hidden, output)"),
-            "lr": (is_positive, "a number > 0"),
         })
 
     @property
@@ -175,8 +181,8 @@ def jepa_loss(config: ImageJEPAConfig, z_a, z_b, generator=None):
 
 
 def make_optimizer(model: nn.Module, config: ImageJEPAConfig) -> torch.optim.AdamW:
-    """AdamW, with biases and norm parameters excluded from weight decay."""
-    return torch.optim.AdamW(split_decay_params(model, WEIGHT_DECAY), lr=config.lr)
+    """AdamW at :data:`LR`, with biases and norm parameters excluded from weight decay."""
+    return torch.optim.AdamW(split_decay_params(model, WEIGHT_DECAY), lr=LR)
 
 
 def embed(net: nn.Module, views) -> tuple[torch.Tensor, torch.Tensor]:
@@ -250,15 +256,12 @@ def train_image_jepa(config: ImageJEPAConfig, images: torch.Tensor,
     net = distributed.data_parallel(AllViews(model), device, sync_batchnorm)
     optimizer = make_optimizer(model, config)
     scheduler = warmup_cosine_scheduler(optimizer, config.steps, config.warmup_steps)
-    start, history, run = 0, History(), identity(config, step=step)
-    if checkpoint is not None:
-        start, history = resume(checkpoint, model, optimizer, scheduler, run)
+    run = identity(config, step=step)
+    start, history = resume(checkpoint, model, optimizer, scheduler, run)  # (0, empty): none
     batch = _batches(config, images.to(device), layout)  # CIFAR-10 stays on the GPU (150 MB)
 
     def state(done: int) -> dict:  # what resume() reads back; rank 0 alone writes
-        return dict(model=model.state_dict(), optimizer=optimizer.state_dict(),
-                    scheduler=scheduler.state_dict(), history=dict(history), step=done,
-                    config=run, seconds=history.seconds)
+        return training_state(done, run, history, model, optimizer, scheduler)
 
     model.train()
     step = package_step(config) if step is None else step
@@ -312,9 +315,12 @@ def identity(config: ImageJEPAConfig, encoder_only: bool = False, step=None) -> 
     code differs from :func:`package_step`'s (an edited cell) is another run
     (:func:`~.checkpoints.step_identity`).
     """
-    always = ("loss", "steps", "batch_size", "lr", "seed")
+    always = ("loss", "steps", "batch_size", "seed")
     extra = {"weights": "encoder only"} if encoder_only else {}
-    stored = run_identity(config, always, **extra, **step_identity(step, package_step(config)))
+    # the rate stays recorded as when it was a field: the shipped files keep loading, and
+    # files of another LR would not
+    stored = run_identity(config, always, lr=LR, **extra,
+                          **step_identity(step, package_step(config)))
     return {k: v for k, v in stored.items() if k not in EVAL_FIELDS}
 
 
