@@ -11,6 +11,7 @@ from ebjepa_tutorial.losses.sigreg import sigreg_loss
 from ebjepa_tutorial.models.video import VideoJEPA
 from ebjepa_tutorial.training.image import ImageJEPAConfig, SIGReg, VICReg
 from ebjepa_tutorial.training.video import VIDEO_CONFIGS, VideoJEPAConfig
+from ebjepa_tutorial.training.video import Recipe as VideoRecipe
 from ebjepa_tutorial.training.world import Recipe, RefitConfig, WorldTrainConfig
 
 
@@ -25,8 +26,8 @@ from ebjepa_tutorial.training.world import Recipe, RefitConfig, WorldTrainConfig
     (VideoJEPAConfig, {"n_frames": 5}, "n_frames must be an int >= context \\+ rollout_steps = 6"),
     (VideoJEPAConfig, {"rollout_steps": 0}, "rollout_steps must be an int >= 1"),
     (VideoJEPAConfig, {"unroll": "teacher"}, "unroll must be one of \\['autoregressive', "),
-    (VideoJEPAConfig, {"one_step_fraction": 1.0},
-     "one_step_fraction must be a number in \\[0, 1\\)"),
+    (VideoRecipe, {"one_step_fraction": 1.0},
+     "Recipe.one_step_fraction must be a number in \\[0, 1\\)"),
     (WorldTrainConfig, {"batch_size": 0}, "WorldTrainConfig.batch_size must be an int >= 2"),
     (WorldTrainConfig, {"rollout_steps": 17}, "rollout_steps must be an int in 1..16"),
     (Recipe, {"stay_probability": 1.0}, "Recipe.stay_probability must be a number in \\[0, 1"),

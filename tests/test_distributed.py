@@ -52,7 +52,7 @@ TINY = image.ImageJEPAConfig(widths=(4, 4, 8, 8), projector=(16, 16), batch_size
 VIDEO_TINY = video.VideoJEPAConfig(
     model=VideoModelConfig(encoder_width=4, stem_stride=1, latent_channels=4, strides=(2, 2, 2),
                            predictor_width=4, predictor_levels=1, projector_dim=8),
-    n_frames=4, rollout_steps=2, batch_size=4, channels_last=False)
+    n_frames=4, rollout_steps=2, batch_size=4, recipe=video.Recipe(channels_last=False))
 WORLD_TINY = WorldConfig(widths=(4, 8), blocks=1, input_size=17, latent_dim=8,
                          action_embed_dim=8, idm_hidden=16)
 # every term on, SIGReg included, with still steps: each draws from the generator or reads
@@ -132,10 +132,10 @@ def _video_whole(model, frames):
     with mixed_precision(frames.device, cpu=True):  # as training (float32 on most CPUs)
         z = model.encode(frames)
         prediction = parallel_rollout_loss(model.predictor, z, 2, VIDEO_TINY.rollout_steps,
-                                           VIDEO_TINY.detach_later_orders)
+                                           VIDEO_TINY.recipe.detach_later_orders)
         projected = model.project(z)
     variance, covariance = variance_and_covariance(at_least_float32(projected))
-    total = prediction + VIDEO_TINY.std_coeff * variance + VIDEO_TINY.cov_coeff * covariance
+    total = prediction + video.STD_COEFF * variance + video.COV_COEFF * covariance
     total.backward()
     terms = {"prediction": prediction, "variance": variance, "covariance": covariance}
     return total.detach(), {name: value.detach() for name, value in terms.items()}

@@ -115,8 +115,8 @@ def test_full_video_jepa_takes_a_step():
     before = _initial(lambda: VideoJEPA(config.model), config.seed)
     model, history = video.train_video_jepa(config, clips, progress=False, device="cpu")
     assert _unchanged(before, model) == []  # Adam: every parameter with a gradient moves
-    _check_total(history, {"prediction": 1.0, "variance": config.std_coeff,
-                           "covariance": config.cov_coeff})
+    _check_total(history, {"prediction": 1.0, "variance": video.STD_COEFF,
+                           "covariance": video.COV_COEFF})
     with torch.no_grad():  # the paper's full-resolution latent: 16 channels on 64 x 64
         z = model.encode(clips)
         window = z[:, : config.model.context]

@@ -19,8 +19,9 @@ from test_one_source import code_of, notebook_function
 from ebjepa_tutorial.training import video
 
 NOTEBOOK = "03_video_jepa.ipynb"
+# 2 steps of K = 1, 2 of K = 4
 CONFIG = video.VideoJEPAConfig(model=video.VIDEO_MODEL_CONFIGS["ci"], n_clips=16, batch_size=4,
-                               steps=4, channels_last=False)  # 2 steps of K = 1, 2 of K = 4
+                               steps=4, recipe=video.Recipe(channels_last=False))
 
 
 def _define(code: str):
@@ -51,7 +52,7 @@ def test_the_notebook_shows_the_step_the_package_trains_with():
 
 def test_an_edit_to_the_step_changes_what_trains_and_the_cell_as_shown_does_not():
     source = notebook_function(NOTEBOOK, "video_jepa_step")
-    edited = source.replace("config.cov_coeff * covariance", "0.0 * covariance")
+    edited = source.replace("COV_COEFF * covariance", "0.0 * covariance")
     assert edited != source
     clips = _clips()
     package, package_history = video.train_video_jepa(CONFIG, clips, progress=False)

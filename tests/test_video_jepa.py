@@ -32,6 +32,7 @@ from ebjepa_tutorial.models.video import (
 from ebjepa_tutorial.training import video as video_training
 from ebjepa_tutorial.training.checkpoints import load_checkpoint
 from ebjepa_tutorial.training.video import (
+    PAPER_RECIPE,
     VIDEO_CONFIGS,
     ablation_configs,
     fit_decoder,
@@ -270,7 +271,8 @@ def test_training_resumes_and_evaluation_runs(digits, tmp_path):
             assert report[name].shape == (7,) and ((report[name] >= 0) & (report[name] <= 1)).all()
         assert report["map"] == pytest.approx(float(report["ap"].mean()))
     cosine = tmp_path / "cosine.pt"  # the rate falls to 0 at the last step
-    train_video_jepa(replace(config, cosine=True), clips, checkpoint=cosine, progress=False)
+    train_video_jepa(replace(config, recipe=replace(CI.recipe, cosine=True)), clips,
+                     checkpoint=cosine, progress=False)
     state = load_checkpoint(cosine)
     assert state["scheduler"]["last_epoch"] == config.steps
     assert state["optimizer"]["param_groups"][0]["lr"] == pytest.approx(0.0, abs=1e-12)
@@ -282,7 +284,8 @@ def test_training_resumes_and_evaluation_runs(digits, tmp_path):
 
 def test_the_papers_constant_rate_is_a_scheduler_that_keeps_it(digits, tmp_path):
     clips = generate_moving_mnist(digits, 8, 10, seed=1).clips
-    config = replace(CI, steps=2, batch_size=2, cosine=False)  # the paper's constant 1e-3 way
+    # the paper's constant 1e-3 way
+    config = replace(CI, steps=2, batch_size=2, recipe=replace(CI.recipe, cosine=False))
     path = tmp_path / "constant.pt"
     train_video_jepa(config, clips, checkpoint=path, progress=False)
     state = load_checkpoint(path)  # the step calls scheduler.step() whatever the config
@@ -293,7 +296,7 @@ def test_the_papers_constant_rate_is_a_scheduler_that_keeps_it(digits, tmp_path)
 def test_the_curriculum_trains_one_step_first_then_k_steps(digits, monkeypatch):
     class_ = VIDEO_CONFIGS["class"]  # 2,400 steps, the first half at K = 1
     assert [class_.rollout_steps_at(s) for s in (0, 1199, 1200, 2399)] == [1, 1, 4, 4]
-    paper = replace(class_, one_step_fraction=0.0)
+    paper = replace(class_, recipe=PAPER_RECIPE)
     assert {paper.rollout_steps_at(s) for s in (0, 2399)} == {4}
     seen = []  # K of every loss the training loop computes
 
@@ -303,19 +306,21 @@ def test_the_curriculum_trains_one_step_first_then_k_steps(digits, monkeypatch):
 
     monkeypatch.setattr(video_training, "parallel_rollout_loss", recording)
     clips = generate_moving_mnist(digits, 8, 10, seed=1).clips
-    config = replace(CI, steps=5, batch_size=2, rollout_steps=3, one_step_fraction=0.4)
+    config = replace(CI, steps=5, batch_size=2, rollout_steps=3,
+                     recipe=replace(CI.recipe, one_step_fraction=0.4))
     train_video_jepa(config, clips, progress=False)
     assert seen == [1, 1, 3, 3, 3]
 
 
 def test_a_run_hands_its_one_step_half_to_the_same_run_with_another_k(digits, tmp_path):
     clips = generate_moving_mnist(digits, 8, 10, seed=1).clips
-    one = replace(CI, steps=6, batch_size=2, rollout_steps=1, one_step_fraction=0.5)
+    one = replace(CI, steps=6, batch_size=2, rollout_steps=1)  # the first half at K = 1
     three = replace(one, rollout_steps=3)
     assert one.switch_step == 3 and one.shares_start_with(three)
     assert not one.shares_start_with(replace(three, seed=1))
-    assert not replace(one, one_step_fraction=0.0).shares_start_with(
-        replace(three, one_step_fraction=0.0))  # the paper's runs differ from the first step
+    no_curriculum = replace(CI.recipe, one_step_fraction=0.0)
+    assert not replace(one, recipe=no_curriculum).shares_start_with(
+        replace(three, recipe=no_curriculum))  # the paper's runs differ from the first step
     scratch, scratch_history = train_video_jepa(three, clips, progress=False)
     handed = tmp_path / "three.partial"
     train_video_jepa(one, clips, progress=False, handover=[(three, handed)])

@@ -8,6 +8,8 @@ location of each frame is one sample), so that the latent cannot collapse:
 
     L = (1/K) sum_k mean ||zhat_k - z||^2 + std v(P(Z)) + cov c(P(Z))
 
+(std = :data:`STD_COEFF`, cov = :data:`COV_COEFF`: the paper's weights, in every run)
+
 then its gradient, the optimiser's step and the scheduler's. The class run is a curriculum:
 its first half trains K = 1 (the encoder learns what to predict), its second half K steps
 with orders 2..K on detached latents (the predictor learns to build on its own guesses);
@@ -52,11 +54,49 @@ from ..utils import (
     mixed_precision,
 )
 from .checkpoints import checkpoint_paths, run_identity, save_or_warn, step_identity
-from .loop import History, load_or_train, resume, run_steps, saver, step_generator
+from .loop import (
+    History,
+    load_or_train,
+    resume,
+    run_steps,
+    saver,
+    step_generator,
+    training_state,
+)
 from .optim import warmup_cosine_scheduler
 
 LOG_EVERY = 10  # steps between the history's rows: reading a value waits for the GPU
 CHECKPOINT_EVERY = 100  # steps between saves of a resumable run
+STD_COEFF = 10.0  # std, the variance term's weight: the paper's, in every run of the course
+COV_COEFF = 100.0  # cov, the covariance term's weight: likewise
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """Where the class run trains otherwise than the paper, to learn more per CPU-minute
+    (notebook 03, section 6 and the optional section's curriculum). The defaults are the
+    class run's; :data:`PAPER_RECIPE` is the paper's (the ``full`` preset)."""
+
+    cosine: bool = True  # decay the rate to 0 by a half cosine (the paper: constant)
+    # convolutions in channels_last: faster on CPUs too. PyTorch's CPU backward in
+    # this layout crashes on some strided 1x1 convolutions at 64x64 (the ci encoder's);
+    # a test checks each class-encoder convolution against the default layout
+    channels_last: bool = True
+    # a curriculum: this fraction of the steps trains one-step prediction (K = 1), the
+    # rest the K-step rollout (the paper: 0, K steps throughout). Runs of one seed that
+    # differ only in K are then the same run until the switch
+    one_step_fraction: float = 0.5
+    # orders 2..K unroll from detached latents: they train the predictor alone, and the
+    # encoder learns from one-step errors only (the paper: False)
+    detach_later_orders: bool = True
+
+    def __post_init__(self):
+        check_fields(self, {"one_step_fraction": (lambda f: is_non_negative(f) and f < 1,
+                                                  "a number in [0, 1)")})
+
+
+PAPER_RECIPE = Recipe(cosine=False, channels_last=False, one_step_fraction=0.0,
+                      detach_later_orders=False)
 
 
 @dataclass(frozen=True)
@@ -69,24 +109,11 @@ class VideoJEPAConfig:
     batch_size: int = 16  # clips per step (the paper: 64; per clip, small batches run faster here)
     steps: int = 2400  # sized for a class period on a laptop CPU
     lr: float = 3e-3  # Adam's base rate (the paper: 1e-3, constant)
-    cosine: bool = True  # decay the rate to 0 by a half cosine (the paper: constant)
-    # convolutions in channels_last: faster on CPUs too. PyTorch's CPU backward in
-    # this layout crashes on some strided 1x1 convolutions at 64x64 (the ci encoder's);
-    # a test checks each class-encoder convolution against the default layout
-    channels_last: bool = True
-    std_coeff: float = 10.0  # the paper's weights
-    cov_coeff: float = 100.0
     rollout_steps: int = 4  # K
-    # a curriculum: this fraction of the steps trains one-step prediction (K = 1), the
-    # rest the K-step rollout (the paper: 0, K steps throughout). Runs of one seed that
-    # differ only in K are then the same run until the switch
-    one_step_fraction: float = 0.5
     # how the K-step loss unrolls (losses.rollout.UNROLLS): "parallel", the paper's, or
     # "autoregressive", one true context rolled forward as a planner does (the same at K = 1)
     unroll: str = "parallel"
-    # orders 2..K unroll from detached latents: they train the predictor alone, and the
-    # encoder learns from one-step errors only (the paper: False)
-    detach_later_orders: bool = True
+    recipe: Recipe = field(default_factory=Recipe)  # the class run's; PAPER_RECIPE: the paper's
     seed: int = 0
 
     def __post_init__(self):
@@ -99,20 +126,17 @@ class VideoJEPAConfig:
             "n_frames": (is_int_at_least(frames),
                          f"an int >= context + rollout_steps = {frames}"),
             "lr": (is_positive, "a number > 0"),
-            "std_coeff": (is_non_negative, "a number >= 0"),
-            "cov_coeff": (is_non_negative, "a number >= 0"),
-            "one_step_fraction": (lambda f: is_non_negative(f) and f < 1, "a number in [0, 1)"),
             "unroll": (lambda u: u in UNROLLS, f"one of {sorted(UNROLLS)}"),
         })
 
     def rollout_steps_at(self, step: int) -> int:
-        """K at optimiser step ``step``: 1 during the first ``one_step_fraction`` of the run."""
+        """K at optimiser step ``step``: 1 during the recipe's ``one_step_fraction`` of the run."""
         return 1 if step < self.switch_step else self.rollout_steps
 
     @property
     def switch_step(self) -> int:
         """The steps trained at K = 1 before the rollout begins (0 without a curriculum)."""
-        return math.ceil(self.one_step_fraction * self.steps)
+        return math.ceil(self.recipe.one_step_fraction * self.steps)
 
     def shares_start_with(self, other: VideoJEPAConfig) -> bool:
         """Whether ``other`` is this run with another K, hence the same run until the switch."""
@@ -122,13 +146,11 @@ class VideoJEPAConfig:
 
 VIDEO_CONFIGS = {
     "ci": VideoJEPAConfig(model=VIDEO_MODEL_CONFIGS["ci"], n_clips=256, batch_size=8, steps=20,
-                          channels_last=False),
+                          recipe=Recipe(channels_last=False)),
     "class": VideoJEPAConfig(),
     # the paper: 18,000 clips of 10 frames, batch 64, 50 epochs at a constant 1e-3
     "full": VideoJEPAConfig(model=VIDEO_MODEL_CONFIGS["full"], n_clips=18_000, batch_size=64,
-                            steps=50 * 18_000 // 64, lr=1e-3, cosine=False,
-                            channels_last=False, one_step_fraction=0.0,
-                            detach_later_orders=False),
+                            steps=50 * 18_000 // 64, lr=1e-3, recipe=PAPER_RECIPE),
 }
 
 
@@ -169,11 +191,11 @@ def video_jepa_step(model, optimizer, scheduler, frames, k, config):
         z = model.encode(frames)  # Z: (b, T, C, S, S), every frame on its own
         multistep_loss = parallel_rollout_loss if config.unroll == "parallel" else rollout_loss
         prediction = multistep_loss(model.predictor, z, model.config.context, k,
-                                    config.detach_later_orders)  # L_pred (exercise 1)
+                                    config.recipe.detach_later_orders)  # L_pred (exercise 1)
         projected = model.project(z)  # h(Z): (b*T*S*S, D), every location of every frame a row
     # v and c of every process's rows under torchrun (the global batch), else of these rows
     variance, covariance = distributed.variance_and_covariance(at_least_float32(projected))
-    total = prediction + config.std_coeff * variance + config.cov_coeff * covariance  # L
+    total = prediction + STD_COEFF * variance + COV_COEFF * covariance  # L
     optimizer.zero_grad(set_to_none=True)  # drop the last step's gradients
     total.backward()  # dL/d(every weight): encoder, predictor, projector
     distributed.average_gradients(model.parameters())  # torchrun: the mean over processes
@@ -201,15 +223,15 @@ def new_model(config: VideoJEPAConfig, device, sync_batchnorm: bool = False) -> 
     """The run's initial model on ``device``, the same on every rank (seeded by the run);
     ``sync_batchnorm``: its batch norms normalise over the global batch (GPUs, torchrun)."""
     torch.manual_seed(config.seed)
-    layout = torch.channels_last if config.channels_last else torch.contiguous_format
+    layout = torch.channels_last if config.recipe.channels_last else torch.contiguous_format
     model = VideoJEPA(config.model).to(device, memory_format=layout)
     return distributed.with_sync_batchnorm(model, device) if sync_batchnorm else model
 
 
 def new_scheduler(optimizer: torch.optim.Optimizer, config: VideoJEPAConfig):
-    """The rate over the run: a half cosine to 0 (``config.cosine``), else constant (the
+    """The rate over the run: a half cosine to 0 (``config.recipe.cosine``), else constant (the
     paper's); a scheduler either way, so that the step always calls ``scheduler.step()``."""
-    if config.cosine:
+    if config.recipe.cosine:
         return warmup_cosine_scheduler(optimizer, config.steps, 0)
     return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: 1.0)
 
@@ -237,9 +259,7 @@ def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
     scheduler = new_scheduler(optimizer, config)
     parts = (model, optimizer, scheduler)
-    start, history = 0, History()
-    if checkpoint is not None:
-        start, history = resume(checkpoint, *parts, identity(config, step=step))
+    start, history = resume(checkpoint, *parts, identity(config, step=step))  # (0, empty): none
 
     def update(frames_and_k: tuple[torch.Tensor, int], n: int):
         total, terms = step(*parts, *frames_and_k, config)
@@ -275,9 +295,7 @@ def _saves(config: VideoJEPAConfig, checkpoint, handover, step, parts, history: 
     model, optimizer, scheduler = parts
 
     def state(done: int, run: dict) -> dict:  # what resume() reads back; rank 0 alone writes
-        return dict(model=model.state_dict(), optimizer=optimizer.state_dict(),
-                    scheduler=scheduler.state_dict(), history=dict(history), step=done,
-                    config=run, seconds=history.seconds)
+        return training_state(done, run, history, model, optimizer, scheduler)
 
     own = identity(config, step=step)
     save = saver(checkpoint, lambda done: state(done, own), config.steps, CHECKPOINT_EVERY)

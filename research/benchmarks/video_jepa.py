@@ -37,6 +37,8 @@ from ebjepa_tutorial.losses import variance_and_covariance
 from ebjepa_tutorial.losses.rollout import UNROLLS
 from ebjepa_tutorial.models.video import VideoJEPA
 from ebjepa_tutorial.training.video import (
+    COV_COEFF,
+    STD_COEFF,
     VIDEO_CONFIGS,
     make_clips,
     train_video_jepa,
@@ -74,7 +76,7 @@ def time_generator(digits: torch.Tensor, clips: int, frames: int, seed: int) -> 
 def step_split() -> dict[str, float]:
     """Median seconds of each part of one class-scale training step (forward parts, backward)."""
     config = VIDEO_CONFIGS["class"]
-    layout = torch.channels_last if config.channels_last else torch.contiguous_format
+    layout = torch.channels_last if config.recipe.channels_last else torch.contiguous_format
     model = VideoJEPA(config.model).to(memory_format=layout)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
     frames = torch.randint(0, 256, (config.batch_size, config.n_frames, 1, 64, 64),
@@ -84,12 +86,13 @@ def step_split() -> dict[str, float]:
         with mixed_precision("cpu", cpu=True):  # the networks as video_jepa_step runs them
             z = model.encode(frames)
             yield "encoder"
-            prediction = UNROLLS[config.unroll](model.predictor, z, config.model.context,
-                                                config.rollout_steps, config.detach_later_orders)
+            prediction = UNROLLS[config.unroll](
+                model.predictor, z, config.model.context, config.rollout_steps,
+                config.recipe.detach_later_orders)
             yield "rollout"
             projected = model.project(z)
         variance, covariance = variance_and_covariance(at_least_float32(projected))
-        loss = prediction + config.std_coeff * variance + config.cov_coeff * covariance
+        loss = prediction + STD_COEFF * variance + COV_COEFF * covariance
         yield "projector+regulariser"
         yield from backward_and_step(optimizer, loss)
 
