@@ -302,7 +302,7 @@ def test_three_room_episodes_go_between_the_outer_rooms_within_budget():
 def test_environment_runs_three_rooms():
     env = TwoRoomsEnv()
     assert env.reset(n=4, seed=0).shape == (4, 2, 65, 65) and env.step_budget == 200
-    obs = env.reset(n=4, seed=0, walls=2)
+    obs = env.reset(episodes=make_episodes(4, 0, walls=2))
     assert obs.shape == (4, 2, 65, 65) and env.layouts.shape == (4, 4)
     assert env.step_budget == THREE_ROOMS_EPISODE_STEPS
     assert set(env.rooms().tolist()) <= {0, 2}

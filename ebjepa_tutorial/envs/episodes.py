@@ -118,8 +118,8 @@ class TwoRoomsEnv:
     State: ``positions`` (B, 2), ``goals`` (B, 2), ``layouts`` (B, 2W),
     ``steps_taken`` (int); the episode so far: ``path`` (the positions (B, 2), start
     first) and ``actions`` (each step's (B, 2)). Steps use :func:`transition`, the same function
-    that made the training data. ``reset(n, seed, walls=2)`` runs Three Rooms;
-    ``step_budget`` is the steps its episodes allow (the caller stops there).
+    that made the training data. ``reset(episodes=make_episodes(n, seed, walls=2))`` runs
+    Three Rooms; ``step_budget`` is the steps its episodes allow (the caller stops there).
     """
 
     def __init__(self, device: str | torch.device = "cpu"):
@@ -128,13 +128,12 @@ class TwoRoomsEnv:
         self.positions: torch.Tensor | None = None
         self.steps_taken, self.path, self.actions = 0, [], []
 
-    def reset(self, n: int = 1, seed=0, episodes: Episodes | None = None,
-              walls: int = 1) -> torch.Tensor:
-        """Start ``n`` new episodes of ``walls`` walls from ``seed`` (or the given ones).
+    def reset(self, n: int = 1, seed=0, episodes: Episodes | None = None) -> torch.Tensor:
+        """Start ``n`` new Two Rooms episodes from ``seed`` (or the given ones).
 
         Returns the observations (B, 2, 65, 65).
         """
-        episodes = make_episodes(n, seed, walls) if episodes is None else episodes
+        episodes = make_episodes(n, seed) if episodes is None else episodes
         check_layouts(episodes.layouts)
         check_positions(episodes.starts, episodes.layouts)
         self.episodes = episodes.to(self.device)
@@ -182,9 +181,9 @@ class TwoRoomsEnv:
         """Euclidean distance from dot to goal, px: (B,)."""
         return (self.positions - self.goals).norm(dim=-1)
 
-    def success(self, radius: float = SUCCESS_RADIUS) -> torch.Tensor:
-        """Whether each dot is within ``radius`` px of its goal: (B,) bool."""
-        return self.distance_to_goal() <= radius
+    def success(self) -> torch.Tensor:
+        """Whether each dot is within ``SUCCESS_RADIUS`` px of its goal: (B,) bool."""
+        return self.distance_to_goal() <= SUCCESS_RADIUS
 
     def rooms(self) -> torch.Tensor:
         """Room of each dot, 0 (leftmost) .. W: (B,) long."""
