@@ -1,6 +1,6 @@
 """The image encoder of notebooks 01-02: the CIFAR ResNet-18 of the EB-JEPA paper.
 
-It maps normalised images ``(B, C, H, W)`` to one embedding per image ``(B, out_dim)``.
+It maps normalised images ``(B, 3, H, W)`` to one embedding per image ``(B, out_dim)``.
 A 3x3 stride-1 stem and no max-pool, so 32x32 inputs keep 32x32 maps in the first stage.
 The stem uses padding 1; the paper's reference code uses padding 2, which turns 32x32
 inputs into 34x34 maps (an extra ring of zeros convolved into every layer). Widths shrink
@@ -14,19 +14,19 @@ import torch.nn.functional as F
 from torch import nn
 
 
-def check_images(x: torch.Tensor, in_channels: int) -> None:
-    """Raise a clear error unless ``x`` is a float ``(B, in_channels, H, W)`` tensor."""
+def check_images(x: torch.Tensor) -> None:
+    """Raise a clear error unless ``x`` is a float ``(B, 3, H, W)`` tensor."""
     if not isinstance(x, torch.Tensor) or x.ndim != 4:
         shape = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
         raise ValueError(
-            f"the encoder expects images of shape (batch, {in_channels}, height, width), got "
+            f"the encoder expects images of shape (batch, 3, height, width), got "
             f"{shape}; use x.unsqueeze(0) for one image, or flatten time into the batch for videos"
         )
-    if x.shape[1] != in_channels:
+    if x.shape[1] != 3:
         raise ValueError(
-            f"the encoder was built for {in_channels} input channels, got {x.shape[1]} "
+            f"the encoder was built for 3 input channels, got {x.shape[1]} "
             f"(shape {tuple(x.shape)}); channels go in dimension 1 (use x.permute(0, 3, 1, 2) "
-            "for channels-last arrays) or build the encoder with in_channels=..."
+            "for channels-last arrays)"
         )
     if not x.is_floating_point():
         raise TypeError(
@@ -59,7 +59,7 @@ class BasicBlock(nn.Module):
 
 
 class ResNet18(nn.Module):
-    """CIFAR ResNet-18: ``(B, C, H, W) -> (B, widths[-1])``.
+    """CIFAR ResNet-18: ``(B, 3, H, W) -> (B, widths[-1])``.
 
     Stem: 3x3 convolution, stride 1, padding 1, BatchNorm, ReLU (no max-pool).
     Then 4 stages of ``blocks_per_stage`` BasicBlocks; stages 2-4 halve the
@@ -67,19 +67,14 @@ class ResNet18(nn.Module):
     ``widths[-1]``-d embedding (512 at full width).
     """
 
-    def __init__(
-        self,
-        widths: tuple[int, int, int, int] = (64, 128, 256, 512),
-        in_channels: int = 3,
-        blocks_per_stage: int = 2,
-    ):
+    def __init__(self, widths: tuple[int, int, int, int] = (64, 128, 256, 512),
+                 blocks_per_stage: int = 2):
         super().__init__()
         if len(widths) != 4 or any(int(w) < 1 for w in widths):
             raise ValueError(f"widths must be 4 positive channel counts, got {widths}")
-        self.in_channels = in_channels
         self.out_dim = widths[-1]
         self.stem = nn.Sequential(
-            nn.Conv2d(in_channels, widths[0], 3, stride=1, padding=1, bias=False),
+            nn.Conv2d(3, widths[0], 3, stride=1, padding=1, bias=False),
             nn.BatchNorm2d(widths[0]),
             nn.ReLU(inplace=True),
         )
@@ -96,5 +91,5 @@ class ResNet18(nn.Module):
                 nn.init.kaiming_normal_(module.weight, mode="fan_out", nonlinearity="relu")
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        check_images(x, self.in_channels)
+        check_images(x)
         return self.stages(self.stem(x)).mean(dim=(2, 3))  # (B, widths[-1], H/8, W/8) pooled
