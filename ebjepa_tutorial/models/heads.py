@@ -14,14 +14,12 @@ from torch import nn
 class Projector(nn.Sequential):
     """MLP ``(B, in_dim) -> (B, out_dim)``: ``depth - 1`` Linear-BN-ReLU layers, then a Linear.
 
-    ``depth=3`` (the default) is the VICReg / EB-JEPA projector:
+    ``depth=3`` is the VICReg / EB-JEPA projector (notebooks 01-02; the video's has 2):
     Linear-BN-ReLU, Linear-BN-ReLU, Linear. The hidden Linears have no bias
     because the BatchNorm that follows removes it anyway.
     """
 
-    def __init__(self, in_dim: int, hidden_dim: int = 2048, out_dim: int = 2048, depth: int = 3):
-        if depth < 1:
-            raise ValueError(f"a projector needs depth >= 1 Linear layers, got {depth}")
+    def __init__(self, in_dim: int, hidden_dim: int, out_dim: int, depth: int):
         layers: list[nn.Module] = []
         width = in_dim
         for _ in range(depth - 1):
@@ -33,9 +31,7 @@ class Projector(nn.Sequential):
         self.in_dim, self.out_dim = in_dim, out_dim
 
 
-def build_projector(
-    in_dim: int, hidden_dim: int = 2048, out_dim: int = 2048, depth: int = 3
-) -> nn.Module:
+def build_projector(in_dim: int, hidden_dim: int, out_dim: int, depth: int) -> nn.Module:
     """A :class:`Projector`, or ``nn.Identity()`` when ``depth == 0`` (no projector).
 
     The identity keeps the regulariser on the encoder's features directly
