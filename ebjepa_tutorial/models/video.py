@@ -115,11 +115,10 @@ class ResidualBlock(nn.Module):
 class FrameEncoder(nn.Module):
     """ResNet-5-style: stem conv, blocks of widths h, 2h, C: ``(N, 1, 64, 64) -> (N, C, S, S)``."""
 
-    def __init__(self, config: VideoModelConfig, in_channels: int = 1):
+    def __init__(self, config: VideoModelConfig):
         super().__init__()
         h, (s1, s2, s3) = config.encoder_width, config.strides
-        self.stem = nn.Sequential(nn.Conv2d(in_channels, h, 3, config.stem_stride, padding=1,
-                                            bias=False),
+        self.stem = nn.Sequential(nn.Conv2d(1, h, 3, config.stem_stride, padding=1, bias=False),
                                   nn.BatchNorm2d(h), nn.ReLU(inplace=True))
         self.blocks = nn.Sequential(
             ResidualBlock(h, h, s1),
@@ -207,14 +206,14 @@ class DetectionHead(nn.Module):
 
     Average-pools the latent to the grid (a no-op when it is already there),
     then conv3x3-ReLU-conv3x3: each cell looks at its 3x3 neighbourhood of
-    cells. Trained with a sigmoid / binary cross-entropy on frozen latents.
+    cells (32 hidden channels). Trained with a sigmoid / binary cross-entropy on frozen latents.
     """
 
-    def __init__(self, channels: int, hidden: int = 32, grid: int = 8):
+    def __init__(self, channels: int, grid: int = 8):
         super().__init__()
         self.grid = grid
-        self.net = nn.Sequential(nn.Conv2d(channels, hidden, 3, padding=1), nn.ReLU(inplace=True),
-                                 nn.Conv2d(hidden, 1, 3, padding=1))
+        self.net = nn.Sequential(nn.Conv2d(channels, 32, 3, padding=1), nn.ReLU(inplace=True),
+                                 nn.Conv2d(32, 1, 3, padding=1))
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         return self.net(F.adaptive_avg_pool2d(z, self.grid)).squeeze(1)
@@ -223,12 +222,13 @@ class DetectionHead(nn.Module):
 class FrameDecoder(nn.Module):
     """Pictures from latents, for looking only: ``(N, C, S, S) -> logits (N, 1, 64, 64)``.
 
-    A conv, then one transposed conv per doubling from ``S`` to 64, then a conv
-    to one channel; ``torch.sigmoid`` of the output is an image in [0, 1].
+    A conv, then one transposed conv per doubling from ``S`` to 64 (16 channels), then a
+    conv to one channel; ``torch.sigmoid`` of the output is an image in [0, 1].
     """
 
-    def __init__(self, channels: int, latent_side: int, width: int = 16):
+    def __init__(self, channels: int, latent_side: int):
         super().__init__()
+        width = 16
         doublings = int(math.log2(FRAME_SIZE // latent_side))
         if latent_side * 2**doublings != FRAME_SIZE:
             raise ValueError(f"latent side {latent_side} must be 64 / 2**n")
