@@ -13,8 +13,8 @@ makes to imagine ``B`` futures of ``H`` steps.
   and std, computed from data with :meth:`WorldModel.fit_input_stats` and kept
   as buffers, so every checkpoint carries them.
 - Encoder: IMPALA stacks (conv 3x3 -> max-pool 3x3 stride 2 -> residual
-  blocks ReLU-conv-ReLU-conv), ReLU, flatten, linear to ``D``, optional
-  LayerNorm. ``input_size < 65`` first average-pools the frame (33 halves the
+  blocks ReLU-conv-ReLU-conv), ReLU, flatten, linear to ``D``, LayerNorm.
+  ``input_size < 65`` first average-pools the frame (33 halves the
   side: ~4x cheaper, the Gaussian dot stays visible).
 - Predictor: a ``GRUCell`` whose hidden state is the latent; the step is
   residual, ``z' = z + W GRU(e(a), z)`` with ``W`` zero at initialisation, so
@@ -51,7 +51,6 @@ class WorldConfig:
     blocks: int = 1  # residual blocks per stack (IMPALA and the paper: 2)
     input_size: int = 33  # frames are average-pooled to this side (65: full resolution)
     latent_dim: int = 64  # D
-    layer_norm: bool = True  # LayerNorm on the latent
     action_dim: int = 2
     action_embed_dim: int = 32  # width of the action MLP's output
     predictor: str = "gru"  # "gru" (GRUPredictor) or "mlp" (MLPPredictor)
@@ -98,7 +97,7 @@ class ResidualBlock(nn.Module):
 class ImpalaStack(nn.Sequential):
     """Conv 3x3, max-pool 3x3 stride 2, ``blocks`` residual blocks: side ``s -> ceil(s/2)``."""
 
-    def __init__(self, in_channels: int, out_channels: int, blocks: int = 2):
+    def __init__(self, in_channels: int, out_channels: int, blocks: int):
         super().__init__(
             nn.Conv2d(in_channels, out_channels, 3, padding=1),
             nn.MaxPool2d(3, stride=2, padding=1),
@@ -117,7 +116,7 @@ class ImpalaEncoder(nn.Module):
             channels, side = width, (side + 1) // 2
         self.stacks = nn.Sequential(*stacks)
         self.linear = nn.Linear(channels * side * side, config.latent_dim)
-        self.norm = nn.LayerNorm(config.latent_dim) if config.layer_norm else nn.Identity()
+        self.norm = nn.LayerNorm(config.latent_dim)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.norm(self.linear(F.relu(self.stacks(x)).flatten(1)))
@@ -293,7 +292,8 @@ class WorldModel(nn.Module):
         """Build a model with the config saved in ``state_dict`` and load the weights.
 
         A saved field that the config no longer has (a file's frame size and channels, now
-        :data:`CHANNELS` and the world's ``IMAGE_SIZE``) is left out.
+        :data:`CHANNELS` and the world's ``IMAGE_SIZE``; its ``layer_norm``, always on) is
+        left out.
         """
         if "_extra_state" not in state_dict:
             raise KeyError("this state_dict has no saved WorldConfig (not from a WorldModel)")
@@ -340,7 +340,8 @@ def encode_trajectories(model, trajectories, batch_size: int = 64):
     return torch.cat(chunks), trajectories.positions.reshape(-1, 2)
 
 
-def trajectory_latents(model, trajectories, batch_size: int = 200) -> torch.Tensor:
-    """Every frame's latent, trajectory by trajectory: ``(N, T+1, D)``, without gradients."""
-    latents = encode_trajectories(model, trajectories, batch_size)[0]
+def trajectory_latents(model, trajectories) -> torch.Tensor:
+    """Every frame's latent, trajectory by trajectory: ``(N, T+1, D)``, without gradients
+    (200 trajectories rendered at a time)."""
+    latents = encode_trajectories(model, trajectories, 200)[0]
     return latents.view(len(trajectories), -1, latents.shape[-1])
