@@ -118,9 +118,9 @@ def test_settings_a_two_level_planner_cannot_use_are_refused():
         TwoLevel(Drift(4), HIGH, lookahead=9)
     with pytest.raises(ValueError, match="execute equal to its stride"):
         run_episodes(Drift(), [10600], PlannerConfig(execute=2), two_level=TwoLevel(
-            CoarseModel(2, stride=4), HIGH))
+            CoarseModel(2, stride=4, hidden=8), HIGH))
     with pytest.raises(ValueError, match="stride"):
-        CoarseModel(2, stride=0)
+        CoarseConfig(stride=0)
     with pytest.raises(ValueError, match="reach_px"):
         TwoLevel(Drift(4), HIGH, reach_px=-1.0)
     with pytest.raises(ValueError, match="episodes"):

@@ -24,10 +24,8 @@ from ..envs import MAX_STEP
 class CoarseModel(nn.Module):
     """Latents ``stride`` steps apart: ``rollout(z0 (R, D), macro (R, H, 2)) -> (R, H, D)``."""
 
-    def __init__(self, latent_dim: int, stride: int = 4, hidden: int = 256):
-        super().__init__()
-        if stride < 1:
-            raise ValueError(f"stride must be >= 1 environment step, got {stride}")
+    def __init__(self, latent_dim: int, stride: int, hidden: int):
+        super().__init__()  # stride >= 1: CoarseConfig checks it
         self.latent_dim, self.stride = latent_dim, stride
         self.config = SimpleNamespace(action_dim=2)  # what the planner reads
         self.body = nn.Sequential(nn.Linear(latent_dim + 2, hidden), nn.GELU(),
