@@ -125,6 +125,7 @@ def main() -> None:
                      protocol=f"{config.steps} steps in {precision}; {protocol(config)}")
         figures.record(f"{args.loss}_probe_acc", trained["probe_acc"], **where)
         figures.record(f"{args.loss}_random_init_probe_acc", random_init["probe_acc"], **where)
+        figures.record(f"{args.loss}_train_min", seconds / 60, **where)
 
 
 if __name__ == "__main__":

@@ -108,11 +108,13 @@ def main() -> None:
     print(f"traj_per_s={speed['traj_per_s']:.0f} train_traj_per_s={train_speed:.1f} "
           f"probe_px={report['probe_px']:.3f}")
     if args.record:
-        figures.record("world_probe_px", report["probe_px"], threads=args.threads,
-                         command=command_line(__spec__.name),
-                         protocol=f"{config.steps} steps; linear probe fitted on "
-                                  f"{CLASS_RUN.n_probe} trajectories, scored on "
-                                  f"{CLASS_RUN.n_test} held-out ones of {CLASS_RUN.horizon} steps")
+        where = dict(threads=args.threads, command=command_line(__spec__.name))
+        figures.record("world_probe_px", report["probe_px"], **where,
+                       protocol=f"{config.steps} steps; linear probe fitted on "
+                                f"{CLASS_RUN.n_probe} trajectories, scored on "
+                                f"{CLASS_RUN.n_test} held-out ones of {CLASS_RUN.horizon} steps")
+        figures.record("world_train_min", seconds / 60, **where,
+                       protocol=f"{config.steps} steps, training alone (no probe), idle cores")
 
 
 if __name__ == "__main__":

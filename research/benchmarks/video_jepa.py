@@ -129,7 +129,7 @@ def model_benchmark(cfg, train_digits, held_out, rollout_steps: int, seed: int,
         aps = " ".join(f"{ap:.3f}" for ap in r["ap"].tolist())
         print(f"{name}: AP per horizon {aps}; mAP {r['map']:.3f} (true encodings "
               f"{r['map_encoded']:.3f}, copy last frame {r['map_copy']:.3f})")
-    report = reports["parallel"]
+    report = dict(reports["parallel"], seconds=seconds)
     return config.steps * config.batch_size / seconds, report
 
 
@@ -185,6 +185,10 @@ def main() -> None:
                              f"probe fitted on {cfg.n_probe} clips of training digits, AP on "
                              f"{cfg.n_eval} clips of held-out digits, horizons 1..{cfg.horizons}, "
                              "the paper's parallel unroll")
+            figures.record("video_train_min", report["seconds"] / 60,
+                           command=command_line(__spec__.name), threads=args.threads,
+                           protocol=f"K = {args.rollout_steps}, seed {args.seed}, {precision}, "
+                                    f"{cfg.train.steps} steps, training alone, idle cores")
     print(f"clips_per_s={statistics.median(rates):.0f} train_clips_per_s={train_rate:.1f} "
           f"map={mean_ap:.3f} ap3={ap3:.3f}")
 
