@@ -114,7 +114,7 @@ def test_on_a_line_the_head_learns_the_distance_not_the_random_walks():
     imagined = line[:, 1:].reshape(n, 1, steps, 2)  # a perfect predictor
     data = CostData(line, (x[:, 1:] - x[:, :-1]).abs(), imagined, group=n)  # one world
     config = CostConfig(steps=1000, batch_size=256, hidden=64, dims=4, trajectory_steps=16)
-    head, history = fit_cost_to_go(data, config, progress=False)
+    head, history = fit_cost_to_go(data, config)
     at = torch.tensor([[0.5, 0.0], [1.0, 0.0], [1.5, 0.0]])  # x = 5, 10, 15
     with torch.no_grad():
         near, far = head(at[1], at[0]), head(at[2], at[0])

@@ -141,14 +141,12 @@ def cost_objective(head: CostToGo, multiplier: Multiplier, batch, config: CostCo
                   "multiplier": lam.detach()}
 
 
-def fit_cost_head(model: WorldModel, config: CostConfig = CostConfig(),
-                  progress: bool = True) -> tuple[CostToGo, History]:
+def fit_cost_head(model: WorldModel, config: CostConfig) -> tuple[CostToGo, History]:
     """A :class:`CostToGo` fitted on ``model``'s frozen latents; returns ``(head, history)``."""
-    return fit_cost_to_go(cost_data(model, config), config, progress)
+    return fit_cost_to_go(cost_data(model, config), config)
 
 
-def fit_cost_to_go(data: CostData, config: CostConfig,
-                   progress: bool = True) -> tuple[CostToGo, History]:
+def fit_cost_to_go(data: CostData, config: CostConfig) -> tuple[CostToGo, History]:
     """Fit a head on ``data`` (:func:`cost_data`) by :func:`cost_objective`."""
     torch.manual_seed(config.seed)
     head, multiplier = CostToGo(data.latents.shape[-1], config.hidden, config.dims), Multiplier()
@@ -159,7 +157,7 @@ def fit_cost_to_go(data: CostData, config: CostConfig,
                   lambda batch: cost_objective(head, multiplier, batch, config),
                   lambda step: sample_batch(data, config.batch_size,
                                             step_generator(config.seed, step)),
-                  config.steps, log_every=50, desc="cost-to-go", progress=progress)
+                  config.steps, log_every=50, desc="cost-to-go")
     return head.eval(), history
 
 
