@@ -81,8 +81,8 @@ def test_true_dynamics_moves_each_row_in_its_own_three_room_layout():
 
 def test_true_dynamics_tables_encode_the_three_room_frames():
     model = LinearLatentModel()
-    imagine = planning.TrueDynamics(LAYOUT, model, spacing=4.0)
-    on_grid = torch.tensor([[33.5, 25.5]])  # LOW = 1.5, spacing 4
+    imagine = planning.TrueDynamics(LAYOUT, model)
+    on_grid = torch.tensor([[33.5, 25.5]])  # LOW = 1.5, spacing 1
     state = torch.cat([torch.zeros(1, 1), on_grid], dim=1)  # episode 0
     assert torch.equal(imagine.embed(state), model.encode(render(on_grid, LAYOUT)))
 

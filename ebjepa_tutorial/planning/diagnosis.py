@@ -51,17 +51,17 @@ class TrueDynamics:
     Its state is ``[episode, x, y]`` (what :class:`StateEnv` observes); ``rollout``
     moves the dot by :func:`~ebjepa_tutorial.envs.two_rooms.transition` in its
     episode's layout, and ``distance`` looks each position up in a table of
-    ``model``'s encodings of the dot at every point of a grid (``spacing`` px,
-    nearest point) and measures the latent distance there. ``model=None``: the
+    ``model``'s encodings of the dot at every point of a 1-px grid (nearest point)
+    and measures the latent distance there. ``model=None``: the
     table holds the grid positions, so the energy is the Euclidean distance in
     pixels, the best a distance can do without knowing about walls.
     ``layouts``: ``(B, 2W)``, one per episode (any number W of walls).
     """
 
-    def __init__(self, layouts: torch.Tensor, model=None, spacing: float = 1.0):
+    def __init__(self, layouts: torch.Tensor, model=None):
         self.config = SimpleNamespace(action_dim=2)
-        self.layouts, self.spacing = layouts, spacing
-        coords, grid = dot_grid(spacing, layouts.device)
+        self.layouts = layouts
+        coords, grid = dot_grid(1.0, layouts.device)
         self.side = len(coords)
         if model is None:
             self.tables = grid.expand(len(layouts), -1, -1)
@@ -77,7 +77,7 @@ class TrueDynamics:
 
     def embed(self, states: torch.Tensor) -> torch.Tensor:
         """The table's latents at states ``(..., 3)`` -> ``(..., D)``."""
-        ij = ((states[..., 1:] - LOW) / self.spacing).round().long().clamp(0, self.side - 1)
+        ij = (states[..., 1:] - LOW).round().long().clamp(0, self.side - 1)  # the 1-px grid
         return self.tables[states[..., 0].long(), ij[..., 1] * self.side + ij[..., 0]]
 
     def distance(self, z: torch.Tensor, z_goal: torch.Tensor) -> torch.Tensor:
