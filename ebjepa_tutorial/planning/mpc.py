@@ -125,16 +125,16 @@ def episode_generators(seeds: Sequence[int],
 
 
 @torch.no_grad()
-def arrival_distance(model, px: float, n: int = 512, seed: int = 0, walls: int = 1) -> float:
+def arrival_distance(model, px: float, walls: int = 1) -> float:
     """The latent distance that means "within ``px`` of the goal" to ``model``.
 
-    The median of ``||Enc(o') - Enc(o)||`` over ``n`` random frames ``o`` (fresh
-    layouts of ``walls`` walls, dots anywhere on the floor) and ``o'``, the same
+    The median of ``||Enc(o') - Enc(o)||`` over 512 random frames ``o`` (fresh
+    layouts of ``walls`` walls, dots anywhere on the floor, seed 0) and ``o'``, the same
     frame with the dot moved ``px`` in a random direction (a wall may cut the
     move short). The agent that stops below it still decides from its
     observation and the goal image alone.
     """
-    generator = torch.Generator().manual_seed(seed)
+    n, generator = 512, torch.Generator().manual_seed(0)
     layouts = random_layouts(n, generator, walls)
     here = sample_positions(layouts, generator)
     angle = 2 * math.pi * torch.rand(n, generator=generator)
@@ -173,11 +173,11 @@ def mpc_loop(model, env, config, generators, steps, arrived=None, aim=None):
 
 
 @torch.no_grad()
-def run_episodes(model, seeds: Sequence[int], config: PlannerConfig | None = None,
-                 steps: int | None = None, batch: int | None = None, world: str = "learned",
-                 walls: int = 1, two_level=None, loop=mpc_loop) -> EpisodeResults:
+def run_episodes(model, seeds: Sequence[int], config: PlannerConfig, steps: int | None = None,
+                 batch: int | None = None, world: str = "learned", walls: int = 1,
+                 two_level=None, loop=mpc_loop) -> EpisodeResults:
     """Plan and act in one episode per seed with ``loop`` (default :func:`mpc_loop`) and
-    ``config`` (default: notebook 06's class-scale planner).
+    the planner ``config``.
 
     Episode ``seed`` draws its layout, start and goal (the two outer rooms) and
     then its planner's noise from ``torch.Generator().manual_seed(seed)``.
@@ -191,7 +191,7 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig | None = Non
     CPU time counted. ``two_level``: a :class:`~ebjepa_tutorial.planning.two_level.TwoLevel`
     that picks subgoals (a learned world only; ``config.execute`` must be its stride).
     """
-    seeds, batch, config = list(seeds), batch or len(seeds), config or PlannerConfig()
+    seeds, batch = list(seeds), batch or len(seeds)
     if world not in WORLDS:
         raise ValueError(f"world must be one of {WORLDS}, got {world!r}")
     if two_level is not None and (world != "learned"
