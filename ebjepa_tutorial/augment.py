@@ -10,7 +10,8 @@ on 2 CPU cores) without a data-loader worker.
 Recipe (the usual SimCLR / VICReg CIFAR recipe, used by the EB-JEPA paper):
 random resized crop to 32 px with scale (0.2, 1.0), horizontal flip p 0.5,
 colour jitter (brightness 0.4, contrast 0.4, saturation 0.2, hue 0.1) p 0.8,
-grayscale p 0.2, solarize p 0.1, then normalisation with CIFAR-10 statistics.
+grayscale p 0.2, solarize p 0.1, then normalisation with CIFAR-10 statistics
+(``CIFAR10_MEAN``, ``CIFAR10_STD``).
 
 Determinism: kornia draws its random parameters from torch's *global* RNG.
 :func:`augment` therefore draws one integer seed from the caller's
@@ -45,11 +46,11 @@ class AugmentConfig:
     grayscale_p: float = 0.2
     solarize_p: float = 0.1
     flip_p: float = 0.5
-    normalize: bool = True  # subtract CIFAR10_MEAN and divide by CIFAR10_STD at the end
 
 
-def build_augmentation(config: AugmentConfig | None = None) -> K.AugmentationSequential:
-    """The augmentation pipeline as a kornia module: ``(B, 3, H, W) -> (B, 3, size, size)``.
+def build_augmentation(config: AugmentConfig = AugmentConfig()) -> K.AugmentationSequential:
+    """The augmentation pipeline as a kornia module: ``(B, 3, H, W) -> (B, 3, size, size)``,
+    standardised as :func:`normalize` does.
 
     Every random parameter is drawn per image (``same_on_batch=False``), except
     that kornia's ``ColorJitter`` applies its four steps in one random order
@@ -57,18 +58,15 @@ def build_augmentation(config: AugmentConfig | None = None) -> K.AugmentationSeq
     formulas, the ones the SSL literature tuned these strengths for. Solarize
     inverts pixels above 0.5 (a fixed threshold, as in BYOL).
     """
-    config = config or AugmentConfig()
     brightness, contrast, saturation, hue = config.jitter
-    steps: list[nn.Module] = [
+    return K.AugmentationSequential(
         K.RandomResizedCrop((config.size, config.size), scale=config.crop_scale),
         K.RandomHorizontalFlip(p=config.flip_p),
         K.ColorJitter(brightness, contrast, saturation, hue, p=config.jitter_p),
         K.RandomGrayscale(p=config.grayscale_p),
         K.RandomSolarize(thresholds=0.0, additions=0.0, p=config.solarize_p),
-    ]
-    if config.normalize:
-        steps.append(K.Normalize(mean=torch.tensor(CIFAR10_MEAN), std=torch.tensor(CIFAR10_STD)))
-    return K.AugmentationSequential(*steps)
+        K.Normalize(mean=torch.tensor(CIFAR10_MEAN), std=torch.tensor(CIFAR10_STD)),
+    )
 
 
 def to_float_images(images: torch.Tensor) -> torch.Tensor:
@@ -110,22 +108,14 @@ def _global_rng_devices(device: torch.device) -> tuple[list[int], str]:
     return [], "cuda"
 
 
-def augment(
-    images: torch.Tensor,
-    pipeline: nn.Module | None = None,
-    generator: torch.Generator | None = None,
-) -> torch.Tensor:
+def augment(images: torch.Tensor, pipeline: nn.Module, generator: torch.Generator) -> torch.Tensor:
     """One random view of each image: ``(B, 3, H, W)`` -> ``(B, 3, size, size)`` float32.
 
-    ``pipeline`` defaults to :func:`build_augmentation` (build it once and pass
-    it in a training loop). With a ``generator``, the views depend only on its
-    state (see the module docstring); without one, on torch's global RNG.
-    The output is on the images' device.
+    ``pipeline``: :func:`build_augmentation`'s (build it once, pass it at every step). The
+    views depend only on the ``generator``'s state (see the module docstring). The output
+    is on the images' device.
     """
     images = to_float_images(images)
-    pipeline = pipeline if pipeline is not None else build_augmentation()
-    if generator is None:
-        return pipeline(images)
     seed = int(torch.randint(0, 2**62, (1,), generator=generator, device=generator.device))
     devices, device_type = _global_rng_devices(images.device)
     with torch.random.fork_rng(devices=devices, device_type=device_type):
@@ -133,13 +123,9 @@ def augment(
         return pipeline(images)
 
 
-def two_views(
-    images: torch.Tensor,
-    pipeline: nn.Module | None = None,
-    generator: torch.Generator | None = None,
-) -> tuple[torch.Tensor, torch.Tensor]:
+def two_views(images: torch.Tensor, pipeline: nn.Module,
+              generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """Two independent views of each image, each ``(B, 3, size, size)``."""
-    pipeline = pipeline if pipeline is not None else build_augmentation()
     return augment(images, pipeline, generator), augment(images, pipeline, generator)
 
 

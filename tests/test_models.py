@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from ebjepa_tutorial.augment import two_views
+from ebjepa_tutorial.augment import build_augmentation, two_views
 from ebjepa_tutorial.losses import vicreg_loss
 from ebjepa_tutorial.models import Projector, ResNet18, build_projector
 from ebjepa_tutorial.utils import make_generator
@@ -61,7 +61,7 @@ def test_one_vicreg_training_step_runs():
     params = list(encoder.parameters()) + list(projector.parameters())
     optimizer = torch.optim.SGD(params, lr=0.01)
     images = torch.randint(0, 256, (8, 3, 32, 32), dtype=torch.uint8, generator=make_generator(0))
-    view_a, view_b = two_views(images, generator=make_generator(1))
+    view_a, view_b = two_views(images, build_augmentation(), make_generator(1))
     z = projector(encoder(torch.cat([view_a, view_b])))  # both views in one batch
     loss, terms = vicreg_loss(*z.chunk(2), inv_coeff=25.0, std_coeff=25.0, cov_coeff=1.0)
     optimizer.zero_grad()
