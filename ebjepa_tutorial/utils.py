@@ -77,11 +77,11 @@ def seed_everything(seed: int) -> torch.Generator:
     return generator
 
 
-def make_generator(seed: int, device: str | torch.device = "cpu") -> torch.Generator:
-    """A fresh ``torch.Generator`` on ``device`` seeded with the int ``seed``."""
+def make_generator(seed: int) -> torch.Generator:
+    """A fresh CPU ``torch.Generator`` seeded with the int ``seed``."""
     if not isinstance(seed, int) or isinstance(seed, bool):
         raise TypeError(f"seed must be an int (or a torch.Generator), got {type(seed).__name__}")
-    return torch.Generator(device=device).manual_seed(seed)
+    return torch.Generator().manual_seed(seed)
 
 
 def as_generator(seed: int | torch.Generator) -> torch.Generator:
