@@ -214,15 +214,11 @@ class WorldModel(nn.Module):
         z = self.encoder(self.normalize(frames.flatten(0, frames.ndim - 4)))
         return z.view(*frames.shape[:-3], -1)
 
-    def embed_actions(self, actions: torch.Tensor) -> torch.Tensor:
-        """Actions ``(..., 2)`` -> embeddings ``(..., action_embed_dim)``."""
-        return self.action_encoder(actions)
-
     def predict(self, z: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """One step: latents ``(B, D)`` and actions ``(B, 2)`` -> next latents ``(B, D)``."""
         self._check_latents(z)
         self._check_actions(actions, (z.shape[0], self.config.action_dim))
-        return self.predictor(z, self.embed_actions(actions))
+        return self.predictor(z, self.action_encoder(actions))  # actions embedded: (B, E)
 
     def rollout(self, z0: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """Unroll ``H`` steps on the model's own predictions: ``(B, D), (B, H, 2) -> (B, H, D)``.
@@ -234,7 +230,7 @@ class WorldModel(nn.Module):
         self._check_latents(z0, "z0")
         steps = actions.shape[1] if isinstance(actions, torch.Tensor) and actions.ndim == 3 else 0
         self._check_actions(actions, (z0.shape[0], steps or "H", self.config.action_dim))
-        embeddings = self.embed_actions(actions)
+        embeddings = self.action_encoder(actions)  # (B, H, E), E = action_embed_dim
         z, out = z0, []
         for k in range(actions.shape[1]):
             z = self.predictor(z, embeddings[:, k])
