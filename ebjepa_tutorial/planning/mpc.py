@@ -92,20 +92,16 @@ class EpisodeResults:
         """The Wilson 95% interval of the success rate."""
         return wilson_interval(int(self.success.sum()), len(self.seeds))
 
-    def mean_first_arrival(self) -> float:
-        """Mean first-arrival step over the episodes that arrived (nan if none did)."""
-        arrived = self.first_arrival[self.first_arrival >= 0]
-        return arrived.float().mean().item() if len(arrived) else math.nan
-
     @property
     def cpu_seconds_per_episode(self) -> float:
         return self.cpu_seconds / len(self.seeds)
 
     def summary(self) -> str:
+        """Success, its interval, the mean first-arrival step of those that arrived, CPU time."""
         low, high = self.interval()
-        arrival = self.mean_first_arrival()
-        arrived = ("no episode reached the goal" if arrival != arrival  # NaN: none arrived
-                   else f"mean first arrival {arrival:.0f} steps")
+        steps = self.first_arrival[self.first_arrival >= 0].float()  # the episodes that arrived
+        arrived = (f"mean first arrival {steps.mean().item():.0f} steps" if len(steps)
+                   else "no episode reached the goal")
         return (f"success {self.success_rate:.0%} (95% CI {low:.0%}-{high:.0%}) over "
                 f"{len(self.seeds)} episodes, {arrived}, "
                 f"{self.cpu_seconds_per_episode:.2f} s CPU per episode")
