@@ -107,6 +107,7 @@ def test_render_pages_rewrites_only_the_figures_and_keeps_a_notebooks_layout(tmp
     source = NOTEBOOKS / "04_two_rooms_world.ipynb"
     notebook = json.loads(source.read_text(encoding="utf-8"))
     cell = notebook["cells"][0]["source"]  # a list of lines, each but the last ending in \n
+    cell[:] = [figs.FIGURE.sub(lambda m: m[3], line) for line in cell]  # its own figures unmarked
     cell[-1] += "\n"
     cell.append("probe <!--fig:world_probe_px-->9.99 px<!--/fig-->")
     page = tmp_path / "notebooks" / source.name
@@ -122,3 +123,53 @@ def test_render_pages_rewrites_only_the_figures_and_keeps_a_notebooks_layout(tmp
         assert figs.check_pages(tmp_path) == []
     assert page.read_text(encoding="utf-8") == before.replace("9.99 px", "2.44 px")
     assert (tmp_path / "README.md").read_text() == "<!--fig:world_probe_px-->2.44 px<!--/fig-->\n"
+
+
+# ---- nothing a run measures is typed into a notebook's text --------------------------------
+
+# What notebook markdown may type: constants of the method, the world or an exercise, arithmetic
+# on them, and the paper's own figures. A figure a run measures is marked (or printed by a cell).
+CONSTANTS = {
+    "01": {"10%",  # chance on ten classes
+           "20%", "100%",  # the crops' area range
+           "8 px", "16 px", "32 px",  # view, crop and image sizes
+           "90%", "90.1%", "91.0%"},  # the paper
+    "02": {"0.01",  # the sweep's smallest multiplier
+           "16 px", "32 px", "90.1%", "91.0%"},
+    "03": {"4%"},  # a class run's share of the paper's clip samples
+    "04": {"0%", "100%",  # where the textbook interval breaks down
+           "0.5 px", "1 px", "1.3 px", "1.5 px", "1.8 px", "2 px", "4 px", "4.5 px",  # the world
+           "35%",  # the data policy's door starts
+           "97%"},  # the paper
+    "05": {"1%", "61%", "89%", "97%",  # the paper's Tables
+           "1.8 px", "5%", "15%",  # the data's largest step, the recipe's still steps
+           "8%"},  # a class run's share of the paper's frames
+    "06": {"0%", "100%",  # the wall test's ends
+           "0.005",  # an exercise's temperature
+           "1.8 px", "2 px", "2 s", "3.5 px", "4.5 px", "40 px",  # the world, the budget
+           "11%", "30%", "60%",  # 3 of 10 and its interval, worked in the text
+           "15%", "40%",  # the refit's still steps, the long run's decay
+           "95%", "97%"},  # the interval's level, the paper
+    "07": {"0.1 px", "150 px",  # the head's tolerance and cap
+           "1.5 px", "1.8 px", "2 px", "4.5 px", "7.2 px", "29 px",  # steps, reach, spreads
+           "95%"},  # the interval's level
+}
+
+
+def test_a_typed_figure_is_found_outside_markers_maths_and_code():
+    text = ("Trains in 9 minutes to 62.5%, <!--fig:vicreg_probe_acc-->62.5%<!--/fig--> marked; "
+            "$x = 3\\%$ and `lr=0.005` are not prose; a nine-minute run; mAP 0.526.")
+    assert figs.typed_figures(text) == ["9 minutes", "62.5%", "nine-minute", "0.526"]
+
+
+@pytest.mark.parametrize("path", sorted(NOTEBOOKS.glob("*.ipynb")), ids=lambda p: p.name[:2])
+def test_a_notebooks_text_types_no_figure_a_run_measures(path):
+    cells = json.loads(path.read_text(encoding="utf-8"))["cells"]
+    typed = {figure for cell in cells if cell["cell_type"] == "markdown"
+             for figure in figs.typed_figures("".join(cell["source"]))}
+    allowed = CONSTANTS.get(path.name[:2], set())
+    assert not typed - allowed, (
+        f"{path.name} types {sorted(typed - allowed)}: mark a measured figure "
+        "<!--fig:KEY-->...<!--/fig--> (checkpoints/reference.json) or print it from a cell; "
+        "a constant of the method or a paper's figure goes into CONSTANTS with why")
+    assert not allowed - typed, f"CONSTANTS lists {sorted(allowed - typed)}, no longer in the text"

@@ -86,6 +86,22 @@ def mismatches(text: str, figures: dict | None = None) -> list[str]:
     return wrong
 
 
+# A figure typed into prose: a number with a unit a run measures (a share, pixels, a time) or
+# an AP-like fraction. Markers, maths, code, links and the study-time line are skipped first.
+_WORDS = "a|an|one|two|three|four|five|six|seven|eight|nine|ten|eleven|twelve|fifteen|twenty|thirty"
+TYPED = re.compile(r"(?<![\w.,-])(\d[\d,]*(?:\.\d+)?\s*(?:%|px\b|CPU-(?:s|minutes|hours)\b|"
+                   r"s\b|seconds?\b|min\b|minutes?\b|h\b|hours?\b)|0\.\d{2,3}\b|"
+                   rf"\b(?:{_WORDS})[\s-](?:minute|hour)s?\b)", re.I)
+_SKIPPED = re.compile(r"<!--fig:.*?<!--/fig-->|<!--.*?-->|\$\$.*?\$\$|\$[^$]*\$|```.*?```|"
+                      r"`[^`]*`|\]\([^)]*\)|^\*\*Study time[^\n]*", re.S | re.M)
+
+
+def typed_figures(text: str) -> list[str]:
+    """The figures typed into Markdown ``text`` outside the markers, as written (one space
+    before a unit): what :data:`TYPED` finds once markers, maths and code are removed."""
+    return [re.sub(r"\s+", " ", m) for m in TYPED.findall(_SKIPPED.sub(" ", text))]
+
+
 def _pages(root: Path) -> list[Path]:
     return [path for pattern in PAGES for path in sorted(root.glob(pattern))]
 

@@ -94,7 +94,7 @@ _NOTEBOOKS = "python -m research.benchmarks.notebooks"
 METRICS |= {  # compute times: a whole notebook, and one live class run of a chapter's model
     **{f"notebook_{nb}_ci": Metric(f"notebook {nb} at ci", "{:.0f} s", benchmark=_NOTEBOOKS)
        for nb in ("00", "01", "02", "03", "04", "05", "06", "07")},
-    **{f"notebook_{nb}_class": Metric(f"notebook {nb} at class", "{:.1f} min",
+    **{f"notebook_{nb}_class": Metric(f"notebook {nb} at class", "{:.0f} s",
                                       benchmark=_NOTEBOOKS)
        for nb in ("00", "01", "02", "03", "04", "05", "06", "07")},
     "vicreg_train_min": Metric("VICReg class run", "{:.1f} min", benchmark=_IMAGE),

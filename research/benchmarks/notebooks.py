@@ -9,8 +9,8 @@ would, with ``EBJEPA_SCALE`` set. ``--cold`` moves ``data/cache/checkpoints`` an
 ``data/cache/probes`` aside first (and puts them back after), so chapters 01 and 02 train
 their class runs live, as on a learner's first run; the shipped ``checkpoints/`` always
 load. ``--record`` stores each wall time as ``notebook_NN_<scale>`` in
-``checkpoints/reference.json`` (seconds at ``ci``, minutes at ``class``). Time only on idle
-cores: a second job on a 2-core machine slows both by far more than hosts differ.
+``checkpoints/reference.json``, in seconds. Time only on idle cores: a second job on a
+2-core machine slows both by far more than hosts differ.
 """
 
 from __future__ import annotations
@@ -87,8 +87,7 @@ def main() -> None:
             if args.record:
                 state = "a first run (no trained runs in data/cache)" if args.cold else \
                     "data/cache as left by earlier runs"
-                value = seconds if args.scale == "ci" else seconds / 60  # class: in minutes
-                figures.record(f"notebook_{path.name[:2]}_{args.scale}", value,
+                figures.record(f"notebook_{path.name[:2]}_{args.scale}", seconds,
                                command=command_line(__spec__.name),
                                protocol=f"one run top to bottom in a fresh kernel, "
                                         f"EBJEPA_SCALE={args.scale}, shipped checkpoints "
