@@ -124,14 +124,16 @@ def load(path: Path = REFERENCE_FILE) -> dict:
 
 def references(key: str, path: Path = REFERENCE_FILE) -> list[str]:
     """The course's recorded class run (where a benchmark records it) and the paper's figure."""
-    metric, parts = METRICS[key], []
-    if metric.benchmark is not None:
-        ours = load(path).get(key)
-        parts.append(f"{metric.ours}: not recorded (run {metric.benchmark} --record)"
-                     if ours is None else
-                     f"{metric.ours} {metric.fmt.format(ours['value'])} "
-                     f"({ours['threads']} CPU thread{'s' * (ours['threads'] != 1)}, "
+    metric, parts, ours = METRICS[key], [], load(path).get(key)
+    if ours is not None:  # with its range where one was measured (seeds, runs, hosts)
+        low, high = ours.get("spread", (None, None))
+        spread = "" if low is None else \
+            f"range {metric.fmt.format(low)} to {metric.fmt.format(high)}, "
+        parts.append(f"{metric.ours} {metric.fmt.format(ours['value'])} ({spread}"
+                     f"{ours['threads']} CPU thread{'s' * (ours['threads'] != 1)}, "
                      f"{ours['date']})")
+    elif metric.benchmark is not None:
+        parts.append(f"{metric.ours}: not recorded (run {metric.benchmark} --record)")
     if metric.paper is not None:
         parts.append(f"the paper {metric.fmt.format(metric.paper)} ({metric.paper_setting})")
     return parts
