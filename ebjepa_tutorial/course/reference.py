@@ -92,11 +92,9 @@ METRICS |= {  # figures of the longer runs, and class runs pooled over seeds or 
 
 _NOTEBOOKS = "python -m research.benchmarks.notebooks"
 METRICS |= {  # compute times: a whole notebook, and one live class run of a chapter's model
-    **{f"notebook_{nb}_ci": Metric(f"notebook {nb} at ci", "{:.0f} s", benchmark=_NOTEBOOKS)
-       for nb in ("00", "01", "02", "03", "04", "05", "06", "07")},
-    **{f"notebook_{nb}_class": Metric(f"notebook {nb} at class", "{:.0f} s",
-                                      benchmark=_NOTEBOOKS)
-       for nb in ("00", "01", "02", "03", "04", "05", "06", "07")},
+    **{f"notebook_{nb:02d}_{scale}": Metric(f"notebook {nb:02d} at {scale}", "{:.0f} s",
+                                            benchmark=_NOTEBOOKS)
+       for nb in range(8) for scale in ("ci", "class")},
     "vicreg_train_min": Metric("VICReg class run", "{:.1f} min", benchmark=_IMAGE),
     "sigreg_train_min": Metric("SIGReg class run", "{:.1f} min", benchmark=_IMAGE),
     "video_train_min": Metric("video JEPA class run (K = 4)", "{:.1f} min",
