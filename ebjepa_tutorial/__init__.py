@@ -9,5 +9,3 @@ Tensor layout, used everywhere in this package:
 
 Every random function takes a ``seed`` or a ``torch.Generator``.
 """
-
-__version__ = "0.1.0"

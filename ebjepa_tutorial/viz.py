@@ -1,8 +1,4 @@
-"""Figures the notebooks share: training curves, eigenvalue spectra, embeddings.
-
-Every function draws on a matplotlib ``Axes`` it is given (or a new one) and
-returns it, so notebooks can lay out several panels side by side.
-"""
+"""Figures the notebooks draw, each on the matplotlib ``Axes`` it is given (or a new one)."""
 
 from __future__ import annotations
 
@@ -10,10 +6,29 @@ import re
 
 import matplotlib.pyplot as plt
 import torch
+from matplotlib.animation import FuncAnimation
+
+from .augment import denormalize, to_float_images
+from .envs.two_rooms import wall_images
+from .losses.sigreg import epps_pulley
 
 
 def _axes(ax):
     return plt.subplots(figsize=(4.5, 3.2))[1] if ax is None else ax
+
+
+def _legend(ax, **props):
+    ax.set(**props)
+    ax.legend(fontsize=8)
+    return ax
+
+
+def _side_by_side(ax, series: list[tuple[str, list]]):
+    """Grouped bars: bar ``i`` of each ``(label, heights)`` around ``x = i``, side by side."""
+    width = 0.8 / len(series)
+    for k, (label, heights) in enumerate(series):
+        shift = (k - (len(series) - 1) / 2) * width
+        ax.bar([i + shift for i in range(len(heights))], heights, width, label=label)
 
 
 def plot_history(history: dict, names: list[str], ax=None):
@@ -22,20 +37,19 @@ def plot_history(history: dict, names: list[str], ax=None):
     for name in names:
         ax.plot(history["step"], history[name], label=name)
     ax.set_yscale("symlog", linthresh=1e-3)
-    ax.set(xlabel="step", ylabel="loss term")
-    ax.legend(fontsize=8)
-    return ax
+    return _legend(ax, xlabel="step", ylabel="loss term")
+
+
+def _by_rank(ax, series: dict[str, torch.Tensor], **style):
+    for label, values in series.items():
+        ax.semilogy(torch.arange(1, len(values) + 1), values.clamp_min(1e-8), label=label, **style)
 
 
 def plot_spectrum(eigenvalues: dict[str, torch.Tensor], ax=None):
     """Covariance eigenvalues (largest first, log scale), one line per labelled run."""
     ax = _axes(ax)
-    for label, values in eigenvalues.items():
-        ranks = torch.arange(1, len(values) + 1)
-        ax.semilogy(ranks, values.clamp_min(1e-8), marker="o", label=label)
-    ax.set(xlabel="eigenvalue rank", ylabel="eigenvalue of Cov(z)")
-    ax.legend(fontsize=8)
-    return ax
+    _by_rank(ax, eigenvalues, marker="o")
+    return _legend(ax, xlabel="eigenvalue rank", ylabel="eigenvalue of Cov(z)")
 
 
 def plot_embedding(z: torch.Tensor, labels: torch.Tensor, ax=None, title: str = ""):
@@ -49,8 +63,7 @@ def plot_embedding(z: torch.Tensor, labels: torch.Tensor, ax=None, title: str = 
 
 
 def plot_energy_map(coords, energy, anchor, points, ax=None, title: str = ""):
-    """Heat map of ``E(anchor, y)`` over a grid of ``y`` (from :func:`toy.energy_map`), the
-    data ``points`` ``(N, 2)`` over it."""
+    """Heat map of ``E(anchor, y)`` over a grid of ``y``, the data ``points`` ``(N, 2)`` over it."""
     ax = _axes(ax)
     extent = [coords[0], coords[-1], coords[0], coords[-1]]
     image = ax.imshow(energy, origin="lower", extent=extent, cmap="viridis")
@@ -61,28 +74,22 @@ def plot_energy_map(coords, energy, anchor, points, ax=None, title: str = ""):
     return ax
 
 
-# -- Two Rooms (notebooks 04 to 07) ---------------------------------------------------------
 def two_rooms_rgb(obs: torch.Tensor):
-    """One Two Rooms observation ``(2, H, W)`` (dot, walls) -> an ``(H, W, 3)`` picture:
-    white floor, grey walls, a red dot."""
+    """A Two Rooms observation ``(2, H, W)`` (dot, walls) -> ``(H, W, 3)``: red dot, grey walls."""
     obs = obs.detach().cpu().float()
     dot, wall = obs[0, ..., None], obs[1, ..., None]
     floor = 1 - wall * (1 - torch.tensor([0.35, 0.4, 0.5]))
     return (floor * (1 - dot) + torch.tensor([0.85, 0.1, 0.1]) * dot).numpy()
 
 
-# Matplotlib's HTML animation player takes its button icons from a web font on
-# a CDN; offline (a class, the book) they would be blank. Plain characters instead.
+# The HTML player's button icons come from a web font on a CDN: blank offline. Characters instead.
 _PLAYER_ICONS = {"minus": "\u2212", "fast-backward": "\u23ee", "step-backward": "\u23f4\u23f4",
                  "play": "\u25b6", "pause": "\u23f8", "step-forward": "\u23f5\u23f5",
                  "fast-forward": "\u23ed", "plus": "+"}
 
 
 def play(animation):
-    """Show a ``matplotlib.animation.Animation`` as an HTML player that needs no network.
-
-    Close its figure first (``plt.close(fig)``) so the last frame is not shown twice.
-    """
+    """A ``matplotlib.animation.Animation`` as an HTML player that needs no network."""
     from IPython.display import HTML
 
     html = animation.to_jshtml(default_mode="loop")
@@ -95,7 +102,6 @@ def play(animation):
     return HTML(style + html)
 
 
-# -- Moving MNIST (notebook 03) -------------------------------------------------------------
 def _gray(frame: torch.Tensor):
     """One frame ``(1, H, W)`` or ``(H, W)``, uint8 or float in [0, 1] -> ``(H, W)`` array."""
     frame = frame.detach().cpu()
@@ -103,27 +109,20 @@ def _gray(frame: torch.Tensor):
     return frame.reshape(frame.shape[-2:]).numpy()
 
 
-def animate_clips(clips: torch.Tensor, centres: torch.Tensor, grid: int = 0):
-    """Clips side by side as an animation for :func:`play`; closes its own figure.
-
-    ``clips``: ``(N, T, 1, H, W)`` uint8 or float in [0, 1]; ``centres``:
-    ``(N, T, K, 2)`` ``(x, y)`` pixels, drawn as red crosses; ``grid``: if > 0,
-    the ``grid x grid`` cells of the detection targets, drawn as lines.
-    """
-    from matplotlib.animation import FuncAnimation
-
+def animate_clips(clips: torch.Tensor, centres: torch.Tensor, grid: int):
+    """Clips ``(N, T, 1, H, W)`` side by side, their digits' ``centres`` ``(N, T, K, 2)`` (x, y
+    pixels) as red crosses, the ``grid x grid`` detection cells as lines: an animation."""
     n, t, size = clips.shape[0], clips.shape[1], clips.shape[-1]
     fig, axes = plt.subplots(1, n, figsize=(1.9 * n, 2.2), dpi=80, squeeze=False)
     fig.subplots_adjust(left=0.01, right=0.99, bottom=0.02, top=0.85, wspace=0.05)
-    images = [ax.imshow(_gray(clips[i, 0]), cmap="gray", vmin=0, vmax=1)
-              for i, ax in enumerate(axes[0])]
-    marks = [ax.plot([], [], "+", color="tab:red", ms=10, mew=2)[0] for ax in axes[0]]
+    images, marks = [], []
     for i, ax in enumerate(axes[0]):
-        for line in torch.arange(1, grid) * size / max(grid, 1) - 0.5:
+        images.append(ax.imshow(_gray(clips[i, 0]), cmap="gray", vmin=0, vmax=1))
+        marks.append(ax.plot([], [], "+", color="tab:red", ms=10, mew=2)[0])
+        for line in torch.arange(1, grid) * size / grid - 0.5:
             ax.axhline(line, color="tab:blue", lw=0.4, alpha=0.6)
             ax.axvline(line, color="tab:blue", lw=0.4, alpha=0.6)
-        ax.set(xticks=[], yticks=[], title=f"clip {i}")
-        ax.title.set_fontsize(9)
+        ax.set(xticks=[], yticks=[])
 
     def draw(frame: int):
         for i in range(n):
@@ -139,12 +138,8 @@ def animate_clips(clips: torch.Tensor, centres: torch.Tensor, grid: int = 0):
 
 
 def show_frame_rows(rows: dict[str, tuple[int, torch.Tensor]], n_frames: int):
-    """A grid of frames: one labelled row per entry, column ``t`` is frame ``t``.
-
-    ``rows``: ``{label: (first, frames)}``, ``frames`` ``(n, 1, H, W)`` or
-    ``(n, H, W)`` shown in columns ``first .. first + n - 1`` (earlier columns
-    stay blank). Returns the axes ``(len(rows), n_frames)``.
-    """
+    """One labelled row of frames per ``label: (first, frames)``, ``frames`` ``(n, [1,] H, W)``
+    in columns ``first .. first + n - 1``. Returns the axes ``(len(rows), n_frames)``."""
     fig, axes = plt.subplots(len(rows), n_frames, figsize=(0.95 * n_frames, 0.95 * len(rows)),
                              squeeze=False)
     for row, (label, (first, frames)) in zip(axes, rows.items()):
@@ -156,9 +151,7 @@ def show_frame_rows(rows: dict[str, tuple[int, torch.Tensor]], n_frames: int):
                 ax.axis("off")
         row[0].set_ylabel(label, fontsize=8, rotation=0, ha="right", va="center")
         row[0].axis("on")
-        row[0].set(xticks=[], yticks=[])
-        for spine in row[0].spines.values():
-            spine.set_visible(first == 0)
+        row[0].spines[:].set_visible(first == 0)
     for t, ax in enumerate(axes[0]):
         ax.set_title(f"t={t}", fontsize=8)
     return axes
@@ -166,12 +159,8 @@ def show_frame_rows(rows: dict[str, tuple[int, torch.Tensor]], n_frames: int):
 
 def plot_ap_curves(curves: dict[str, torch.Tensor], ax=None, spread: dict | None = None,
                    styles: dict[str, dict] | None = None):
-    """Detection AP against the prediction horizon ``k = 1 .. H``, one line per label.
-
-    ``curves``: ``{label: (H,) AP}``; ``spread``: optional ``{label: (low, high)}``
-    (e.g. the smallest and largest over seeds), drawn as a band; ``styles``:
-    optional matplotlib keyword arguments per label.
-    """
+    """Detection AP ``(H,)`` against the horizon ``k = 1 .. H`` per label; ``spread``:
+    ``{label: (low, high)}`` drawn as a band; ``styles``: keyword arguments per label."""
     ax = _axes(ax)
     spread, styles = spread or {}, styles or {}
     for label, ap in curves.items():
@@ -179,23 +168,13 @@ def plot_ap_curves(curves: dict[str, torch.Tensor], ax=None, spread: dict | None
         style = {"marker": "o", "ms": 4, **styles.get(label, {})}
         line = ax.plot(horizons, ap, label=label, **style)[0]
         if label in spread:
-            low, high = spread[label]
-            ax.fill_between(horizons, low, high, color=line.get_color(), alpha=0.2, lw=0)
-    ax.set(xlabel="steps ahead k", ylabel="detection AP", ylim=(0, 1))
-    ax.legend(fontsize=8)
-    return ax
+            ax.fill_between(horizons, *spread[label], color=line.get_color(), alpha=0.2, lw=0)
+    return _legend(ax, xlabel="steps ahead k", ylabel="detection AP", ylim=(0, 1))
 
 
-# -- CIFAR-10 (notebooks 01 and 02) ---------------------------------------------------------
 def show_views(images: torch.Tensor, views):
-    """A grid of images and their augmented views: one column per image, one row per view.
-
-    ``images``: ``(N, 3, H, W)`` uint8 or float in ``[0, 1]``; ``views``: a list of
-    tensors ``(N, 3, S, S)``, standardised as the augmentation pipeline returns
-    them. Returns the axes, ``(1 + len(views), N)``.
-    """
-    from .augment import denormalize, to_float_images
-
+    """Images ``(N, 3, H, W)`` (uint8 or float) over their standardised ``views``, a list of
+    ``(N, 3, S, S)``: one column per image. Returns the axes ``(1 + len(views), N)``."""
     n = len(images)
     rows = [to_float_images(images)] + [denormalize(v.float()) for v in views]
     fig, axes = plt.subplots(len(rows), n, figsize=(1.2 * n, 1.25 * len(rows)), squeeze=False)
@@ -209,34 +188,19 @@ def show_views(images: torch.Tensor, views):
 
 
 def plot_dimension_std(stds: dict[str, torch.Tensor], ax=None, target: float | None = None):
-    """Standard deviation of each embedding dimension, sorted (log scale), one line per run.
-
-    ``stds``: ``{label: (D,) tensor}``. ``target`` draws the variance hinge's
-    threshold (gamma = 1 for VICReg's embeddings) as a dashed line.
-    """
+    """Each embedding dimension's std ``(D,)``, sorted, per run; ``target``: the hinge's, dashed."""
     ax = _axes(ax)
-    for label, values in stds.items():
-        values = values.detach().cpu().sort(descending=True).values
-        ax.semilogy(torch.arange(1, len(values) + 1), values.clamp_min(1e-8), label=label)
+    _by_rank(ax, {label: v.detach().cpu().sort(descending=True).values
+                  for label, v in stds.items()})
     if target is not None:
         ax.axhline(target, color="k", ls="--", lw=0.8, label=f"hinge threshold {target:g}")
-    ax.set(xlabel="dimension (sorted)", ylabel="std over images")
-    ax.legend(fontsize=8)
-    return ax
+    return _legend(ax, xlabel="dimension (sorted)", ylabel="std over images")
 
 
-# -- SIGReg (notebook 02) -------------------------------------------------------------------
 def plot_characteristic_functions(samples: dict[str, torch.Tensor]):
-    """Three panels: the samples, their characteristic functions, the weighted gap.
-
-    ``samples``: ``{label: (N,) tensor}``, 1-D samples to test against N(0, 1).
-    Left: histograms and the N(0, 1) density. Middle: Re and |phi_N(t)| of each
-    sample against exp(-t^2/2). Right: ``N w(t) |phi_N(t) - phi(t)|^2`` with
-    ``w(t) = exp(-t^2 / 2)``, whose area over [-3, 3] is the Epps-Pulley
-    statistic (printed in the legend). Returns the three axes.
-    """
-    from .losses.sigreg import epps_pulley
-
+    """Three panels for 1-D samples ``(N,)`` tested against N(0, 1): histograms; Re and |phi_N(t)|
+    against exp(-t^2/2); ``N w(t) |phi_N(t) - phi(t)|^2`` with ``w(t) = exp(-t^2 / 2)``, whose
+    area over [-3, 3] is the Epps-Pulley statistic (in the legend). Returns the axes."""
     axes = plt.subplots(1, 3, figsize=(13, 3.4))[1]
     t = torch.linspace(-3.0, 3.0, 241)
     gaussian_cf = torch.exp(-(t**2) / 2)
@@ -252,10 +216,8 @@ def plot_characteristic_functions(samples: dict[str, torch.Tensor]):
         real, imag = torch.cos(xt).mean(dim=0), torch.sin(xt).mean(dim=0)
         axes[1].plot(t, real, color=color, label=label)
         axes[1].plot(t, torch.sqrt(real**2 + imag**2), color=color, ls=":")
-        gap = len(x) * torch.exp(-(t**2) / 2) * ((real - gaussian_cf) ** 2 + imag**2)
-        statistic = epps_pulley(x).item()
-        gap = gap.clamp_min(1e-4)  # log scale
-        axes[2].semilogy(t, gap, color=color, label=f"{label}: EP = {statistic:.3g}")
+        gap = (len(x) * gaussian_cf * ((real - gaussian_cf) ** 2 + imag**2)).clamp_min(1e-4)
+        axes[2].semilogy(t, gap, color=color, label=f"{label}: EP = {epps_pulley(x).item():.3g}")
         axes[2].fill_between(t, 1e-4, gap, color=color, alpha=0.15)
     axes[0].set(xlabel="x", ylabel="density", ylim=(0, 0.8), title="samples")
     axes[1].set(xlabel="t", title="Re φ_N(t) (solid) and |φ_N(t)| (dotted)")
@@ -265,59 +227,47 @@ def plot_characteristic_functions(samples: dict[str, torch.Tensor]):
     return axes
 
 
-def plot_sweep(rows: list[dict], baseline: float, labels: dict[str, str]):
-    """Probe accuracy against each coefficient's multiple of its default (log x), per sweep.
+def _beside_random_init(ax, baseline: float, xlabel: str):
+    ax.axhline(100 * baseline, color="k", ls="--", lw=0.8, label="random init")
+    return _legend(ax, xlabel=xlabel, ylabel="linear probe (%)")
 
-    ``rows``: result rows of :func:`ebjepa_tutorial.evaluation.sweeps.run_sweep` with a
-    ``factor``. ``baseline``: the random-init encoder's accuracy, drawn dashed. ``labels``:
-    each sweep's name in the legend.
-    """
+
+def plot_sweep(rows: list[dict], baseline: float, labels: dict[str, str]):
+    """Probe accuracy per sweep against each coefficient's multiple of its default (log x)."""
     ax = _axes(None)
     for sweep in dict.fromkeys(row["sweep"] for row in rows):
         points = sorted((row["factor"], row["probe_acc"]) for row in rows if row["sweep"] == sweep)
         xs, ys = zip(*points)
         ax.semilogx(xs, [100 * y for y in ys], marker="o", label=labels.get(sweep, sweep))
-    ax.axhline(100 * baseline, color="k", ls="--", lw=0.8, label="random init")
+    _beside_random_init(ax, baseline, "coefficient, as a multiple of its default")
     ax.axvline(1.0, color="0.7", lw=0.8)
-    ax.set(xlabel="coefficient, as a multiple of its default", ylabel="linear probe (%)")
-    ax.legend(fontsize=8)
     return ax
 
 
 def plot_projector_ablation(rows: list[dict], baseline: float, labels: dict[str, str]):
-    """Grouped bars: probe accuracy per projector output width (``None``: no projector), the
-    random-init encoder's ``baseline`` dashed; ``labels``: each sweep's name in the legend."""
+    """Grouped bars: probe accuracy per projector output width (``None``: no projector)."""
     ax = _axes(None)
-    sweeps = list(dict.fromkeys(row["sweep"] for row in rows))
+    sweeps = dict.fromkeys(row["sweep"] for row in rows)
     values = list(dict.fromkeys(row["value"] for row in rows))
-    width = 0.8 / len(sweeps)
-    for i, sweep in enumerate(sweeps):
-        accuracy = {row["value"]: 100 * row["probe_acc"] for row in rows if row["sweep"] == sweep}
-        xs = [j + (i - (len(sweeps) - 1) / 2) * width for j in range(len(values))]
-        ax.bar(xs, [accuracy.get(v, float("nan")) for v in values], width,
-               label=labels.get(sweep, sweep))
-    ax.axhline(100 * baseline, color="k", ls="--", lw=0.8, label="random init")
+    accuracy = {(row["sweep"], row["value"]): 100 * row["probe_acc"] for row in rows}
+    _side_by_side(ax, [(labels.get(s, s), [accuracy.get((s, v), float("nan")) for v in values])
+                       for s in sweeps])
+    _beside_random_init(ax, baseline, "projector output width")
     lowest = min([100 * row["probe_acc"] for row in rows] + [100 * baseline])
     ax.set_ylim(bottom=max(0.0, lowest - 5))  # bars from 0 would hide differences of a point
     ax.set_xticks(range(len(values)), ["none" if v is None else str(v) for v in values])
-    ax.set(xlabel="projector output width", ylabel="linear probe (%)")
-    ax.legend(fontsize=8)
     return ax
 
 
 def plot_success_rates(rows: dict[str, tuple[float, float, float]], ax=None,
                        reference: dict[str, float] | None = None, colors=None):
-    """Bars of success rates with their 95% intervals, one per ``name: (rate, low, high)``.
-
-    ``reference``: rates to compare with (e.g. the paper's), drawn as black
-    ticks across the bars of the same names.
-    """
+    """Bars of ``name: (rate, low, high)``; ``reference`` rates as black ticks across their bars."""
     ax = _axes(ax)
     names = list(rows)
-    rates, lows, highs = zip(*rows.values())
-    below = [rate - low for rate, low in zip(rates, lows)]
-    above = [high - rate for rate, high in zip(rates, highs)]
-    ax.bar(range(len(names)), rates, yerr=[below, above], color=colors, capsize=3)
+    yerr = [[rate - low for rate, low, _ in rows.values()],
+            [high - rate for rate, _, high in rows.values()]]
+    ax.bar(range(len(names)), [rate for rate, _, _ in rows.values()], yerr=yerr, color=colors,
+           capsize=3)
     marked = [(i, reference[name]) for i, name in enumerate(names) if name in (reference or {})]
     if marked:
         xs, ys = zip(*marked)
@@ -331,16 +281,10 @@ def plot_success_rates(rows: dict[str, tuple[float, float, float]], ax=None,
 
 
 def plot_stopped_by_door_distance(by_distance: dict[str, list[dict]], ax=None, title: str = ""):
-    """The wall test's ``stopped`` by distance along the wall from the door, grouped bars with
-    one series per ``name: bins`` of
-    :func:`~ebjepa_tutorial.evaluation.position.wall_test_by_door_distance` (same edges)."""
+    """Grouped bars: the wall test's ``stopped`` per distance from the door, per ``name: bins``."""
     ax = _axes(ax)
+    _side_by_side(ax, [(name, [b["stopped"] for b in bins]) for name, bins in by_distance.items()])
     first = next(iter(by_distance.values()))
-    width = 0.8 / len(by_distance)
-    for k, (name, bins) in enumerate(by_distance.items()):
-        shift = (k - (len(by_distance) - 1) / 2) * width  # the series side by side, centred
-        ax.bar([i + shift for i in range(len(bins))], [b["stopped"] for b in bins], width=width,
-               label=name)
     ax.set_xticks(range(len(first)), [f"{b['lo']}-{b['hi']} px\n({b['n']} steps)" for b in first])
     ax.set(xlabel="distance along the wall from the door's centre", ylabel="stopped (wall test)",
            ylim=(0, 1.3), yticks=[0, 0.25, 0.5, 0.75, 1], title=title)
@@ -349,27 +293,17 @@ def plot_stopped_by_door_distance(by_distance: dict[str, list[dict]], ax=None, t
 
 
 def plot_energy_shapes(profiles: dict[str, torch.Tensor], edges, ax=None, title: str = ""):
-    """Each ``name: profile`` of :func:`~ebjepa_tutorial.planning.energy_by_distance` (one
-    value per ring between ``edges``) over its ring middles, divided by its own maximum so
-    that the shapes of energies of any scale can be compared.
-    """
+    """Each ``name: profile`` over its rings' middles (``edges``), divided by its maximum."""
     ax = _axes(ax)
     middles = [(low + high) / 2 for low, high in zip(edges[:-1], edges[1:])]
     for name, profile in profiles.items():
         ax.plot(middles, profile / profile.max(), "o-", ms=3, label=name)
-    ax.set(xlabel="dot's distance to the goal, px (ring middle)", ylim=(0, 1.05),
-           ylabel="latent distance / its maximum", title=title)
-    ax.legend(fontsize=8)
-    return ax
+    return _legend(ax, xlabel="dot's distance to the goal, px (ring middle)", ylim=(0, 1.05),
+                   ylabel="latent distance / its maximum", title=title)
 
 
 def draw_two_rooms(ax, layout: torch.Tensor, goal, start):
-    """The walls of ``layout`` ``(2W,)`` on ``ax`` (pixel coordinates), goal and start marked.
-
-    ``(2,)`` is Two Rooms; ``(4,)``, Three Rooms, shows both walls.
-    """
-    from .envs.two_rooms import wall_images
-
+    """The walls of ``layout`` (``(2,)`` Two Rooms, ``(4,)`` Three Rooms), goal and start."""
     walls = wall_images(layout.view(1, -1))[0].float()
     ax.imshow(two_rooms_rgb(torch.stack([torch.zeros_like(walls), walls])), origin="upper")
     ax.add_patch(plt.Circle(tuple(goal.tolist()), 4.5, fill=False, color="green", lw=1.5))
@@ -393,13 +327,8 @@ def plot_imagined_paths(ax, paths: torch.Tensor, costs: torch.Tensor, layout, go
 
 
 def animate_episodes(results, indices: list[int], every: int, titles: list[str]):
-    """An animation of some episodes of a :class:`~ebjepa_tutorial.planning.EpisodeResults`.
-
-    Each panel (titled by ``titles``) shows the walls, the goal (green, with the 4.5 px
-    success circle) and the dot's trail. ``every``: steps per frame. Show it with :func:`play`.
-    """
-    from matplotlib.animation import FuncAnimation
-
+    """The episodes ``indices`` of an :class:`~ebjepa_tutorial.planning.EpisodeResults`, the
+    dot's trail over the walls and goal, ``every`` steps a frame: an animation."""
     fig, axes = plt.subplots(1, len(indices), figsize=(3 * len(indices), 3.2), squeeze=False)
     trails, dots = [], []
     for k, (ax, i) in enumerate(zip(axes[0], indices)):
@@ -408,7 +337,6 @@ def animate_episodes(results, indices: list[int], every: int, titles: list[str])
         ax.set_title(titles[k], fontsize=9)
         trails.append(ax.plot([], [], color="tab:red", lw=1)[0])
         dots.append(ax.plot([], [], "o", color="tab:red", ms=6)[0])
-    steps = list(range(0, results.paths.shape[1], every))
 
     def draw(t):
         for line, dot, i in zip(trails, dots, indices):
@@ -418,6 +346,7 @@ def animate_episodes(results, indices: list[int], every: int, titles: list[str])
         fig.suptitle(f"step {t}", fontsize=10)
         return trails + dots
 
-    animation = FuncAnimation(fig, draw, frames=steps, interval=80, blit=False)
+    steps = list(range(0, results.paths.shape[1], every))
+    animation = FuncAnimation(fig, draw, frames=steps, interval=80)
     plt.close(fig)
     return animation

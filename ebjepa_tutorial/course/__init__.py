@@ -1,4 +1,2 @@
-"""The teaching layer: the scales' presets, the exercises' checkers, student versions, the book.
-
-Nothing below this layer imports it.
-"""
+"""The teaching layer: the scales' presets, the exercises and the reference figures. Nothing
+below this layer imports it."""
