@@ -1,4 +1,5 @@
-"""Notebook 02's sweeps: the plan of runs, the JSON file they are stored in, and resuming."""
+"""Notebook 02's sweeps: the plan of runs (research.sweep), the JSON file they are stored in,
+resuming, and the shipped file the notebook reads (evaluation.sweeps)."""
 
 import dataclasses
 import json
@@ -8,9 +9,9 @@ import pytest
 import torch
 from torch import nn
 
-from ebjepa_tutorial.course import presets
 from ebjepa_tutorial.course.presets import preset
-from ebjepa_tutorial.evaluation import sweeps
+from ebjepa_tutorial.evaluation.sweeps import load_sweeps
+from ebjepa_tutorial.training.checkpoints import SHIPPED_DIR
 from ebjepa_tutorial.training.image import ImageJEPAConfig, SIGReg, VICReg
 from research import sweep
 
@@ -25,13 +26,13 @@ def _data(n, seed):
 
 
 def _unique(runs):
-    return {sweeps.key(run.config, 0, 0) for run in runs}
+    return {sweep.key(run.config, 0, 0) for run in runs}
 
 
 def test_class_plan_sweeps_each_coefficient_alone():
-    plan = presets.sweep_plan("class")
+    plan = sweep.sweep_plan("class")
     sensitivity, projector = plan["sensitivity"], plan["projector"]
-    assert len(sensitivity) == 3 * len(sweeps.FACTORS["class"]) and len(projector) == 8
+    assert len(sensitivity) == 3 * len(sweep.FACTORS["class"]) and len(projector) == 8
     steps = preset("02", "class").sweep_steps
     for run in sensitivity + projector:
         assert run.config.steps == steps and run.config.warmup_steps <= steps // 10
@@ -41,7 +42,7 @@ def test_class_plan_sweeps_each_coefficient_alone():
     vicreg = preset("01", "class").config  # each VICReg weight is swept around its default
     covs = [r for r in sensitivity if r.sweep == "cov_coeff"]
     assert [r.config.loss.cov_coeff for r in covs] == pytest.approx(
-        [f * vicreg.loss.cov_coeff for f in sweeps.FACTORS["class"]])
+        [f * vicreg.loss.cov_coeff for f in sweep.FACTORS["class"]])
     assert all(isinstance(r.config.loss, VICReg)
                and r.config.loss.std_coeff == vicreg.loss.std_coeff for r in covs)
     assert [r.config.projector for r in projector[:4]] == [None, (1024, 64), (1024, 256),
@@ -52,7 +53,7 @@ def test_class_plan_sweeps_each_coefficient_alone():
 
 
 def test_ci_plan_is_small():
-    plan = presets.sweep_plan("ci")
+    plan = sweep.sweep_plan("ci")
     assert len(_unique(plan["sensitivity"] + plan["projector"])) <= 11
     assert [r.value for r in plan["projector"]] == [None, 16, None, 16]  # SIGReg's own output
 
@@ -60,9 +61,9 @@ def test_ci_plan_is_small():
 def test_run_sweep_writes_each_run_and_reloads_instead_of_training(tmp_path, monkeypatch):
     train, test = _data(48, 0), _data(20, 1)
     vicreg = dataclasses.replace(TINY, loss=VICReg())
-    runs = sweeps.sensitivity_runs(TINY, vicreg, factors=(0.5, 2.0))[:2]  # two lambdas
+    runs = sweep.sensitivity_runs(TINY, vicreg, (0.5, 2.0))[:2]  # two lambdas
     path = tmp_path / "sweep.json"
-    rows = sweeps.run_sweep(runs, train, test, path=path, progress=False)
+    rows = sweep.run_sweep(runs, train, test, path=path, progress=False)
     assert [r["value"] for r in rows] == [0.05, 0.2]
     assert all(0.0 <= r["probe_acc"] <= 1.0 and 0.0 <= r["knn_acc"] <= 1.0 for r in rows)
     stored = json.loads(path.read_text())
@@ -72,12 +73,12 @@ def test_run_sweep_writes_each_run_and_reloads_instead_of_training(tmp_path, mon
     def no_training(*args, **kwargs):
         raise AssertionError("a stored run was trained again")
 
-    monkeypatch.setattr(sweeps, "train_and_probe", no_training)
-    again = sweeps.run_sweep(runs, train, test, path=path, progress=False)
+    monkeypatch.setattr(sweep, "train_and_probe", no_training)
+    again = sweep.run_sweep(runs, train, test, path=path, progress=False)
     assert [r["probe_acc"] for r in again] == [r["probe_acc"] for r in rows]
-    # a stored row from the shipped file is relabelled for the sweep that asks for it
-    relabelled = sweeps.Run("other_sweep", 7, runs[0].config)
-    assert sweeps.run_sweep([relabelled], train, test, shipped=path)[0]["sweep"] == "other_sweep"
+    # a stored row is relabelled for the sweep that asks for it
+    relabelled = sweep.Run("other_sweep", 7, runs[0].config)
+    assert sweep.run_sweep([relabelled], train, test, path=path)[0]["sweep"] == "other_sweep"
 
 
 def _record_training(monkeypatch) -> list:
@@ -89,28 +90,28 @@ def _record_training(monkeypatch) -> list:
         return {"probe_acc": 0.5, "knn_acc": 0.5, "seconds": 0.0, "n_train": len(train[0]),
                 "n_test": len(test[0]), "config": asdict(run.config)}
 
-    monkeypatch.setattr(sweeps, "train_and_probe", fake)
+    monkeypatch.setattr(sweep, "train_and_probe", fake)
     return calls
 
 
 def test_rows_of_other_data_sizes_are_not_reused(tmp_path, monkeypatch):
     path = tmp_path / "sweep.json"
-    runs = [sweeps.Run("sigreg_lambda", 0.1, TINY, 1.0)]
-    sweeps.run_sweep(runs, _data(48, 0), _data(20, 1), path=path, progress=False)
+    runs = [sweep.Run("sigreg_lambda", 0.1, TINY, 1.0)]
+    sweep.run_sweep(runs, _data(48, 0), _data(20, 1), path=path, progress=False)
     calls = _record_training(monkeypatch)
-    sweeps.run_sweep(runs, _data(40, 0), _data(20, 1), path=path, progress=False)
+    sweep.run_sweep(runs, _data(40, 0), _data(20, 1), path=path, progress=False)
     assert len(calls) == 1
-    assert len(sweeps.load_results(path)) == 2
+    assert len(sweep.load_results(path)) == 2
 
 
 def test_rows_probed_at_another_size_are_not_reused(tmp_path, monkeypatch):
     path = tmp_path / "sweep.json"
     train, test = _data(48, 0), _data(20, 1)
-    sweeps.run_sweep([sweeps.Run("sigreg_lambda", 0.1, TINY, 1.0)], train, test, path=path,
+    sweep.run_sweep([sweep.Run("sigreg_lambda", 0.1, TINY, 1.0)], train, test, path=path,
                      progress=False)
     calls = _record_training(monkeypatch)
     at_16 = dataclasses.replace(TINY, eval_image_size=16)
-    sweeps.run_sweep([sweeps.Run("sigreg_lambda", 0.1, at_16, 1.0)], train, test, path=path,
+    sweep.run_sweep([sweep.Run("sigreg_lambda", 0.1, at_16, 1.0)], train, test, path=path,
                      progress=False)
     assert [run.config.eval_image_size for run in calls] == [16]
 
@@ -128,31 +129,46 @@ def test_sweep_runs_are_probed_at_eval_image_size(monkeypatch):
     encoder = Recorder()
     model = nn.Module()
     model.encoder = encoder
-    monkeypatch.setattr(sweeps, "train_image_jepa", lambda *a, **k: (model, {"loss": [1.0]}))
+    monkeypatch.setattr(sweep, "train_image_jepa", lambda *a, **k: (model, {"loss": [1.0]}))
     for size in (32, 24):
         encoder.shapes.clear()
-        run = sweeps.Run("sigreg_lambda", 0.1, dataclasses.replace(TINY, eval_image_size=size))
-        row = sweeps.train_and_probe(run, _data(40, 0), _data(20, 1), progress=False)
+        run = sweep.Run("sigreg_lambda", 0.1, dataclasses.replace(TINY, eval_image_size=size))
+        row = sweep.train_and_probe(run, _data(40, 0), _data(20, 1), progress=False)
         assert set(encoder.shapes) == {(3, size, size)}
         assert row["config"]["eval_image_size"] == size
 
 
-def test_command_runs_the_selected_sweep_once_per_config(tmp_path, monkeypatch):
+def test_command_trains_each_config_once_and_stores_every_run_in_plan_order(tmp_path,
+                                                                           monkeypatch):
     monkeypatch.setattr(sweep, "load_cifar10", lambda split: _data(30, 0))
-    seen = {}
-
-    def capture(runs, train, test, path=None, device="cpu", meta=None, **kwargs):
-        seen.update(runs=runs, path=path, meta=meta, sizes=(len(train[0]), len(test[0])))
-
-    monkeypatch.setattr(sweep, "run_sweep", capture)
+    calls = _record_training(monkeypatch)
     out = tmp_path / "sweeps_ci.json"
-    sweep.main(["--scale", "ci", "--out", str(out), "--only", "sensitivity"])
-    assert len(seen["runs"]) == 8  # 3 x 3 runs, the VICReg default shared
-    assert seen["path"] == str(out) and "--only sensitivity" in seen["meta"]["command"]
+    sweep.main(["--scale", "ci", "--out", str(out)])
+    plan = [run for group in sweep.sweep_plan("ci").values() for run in group]
+    assert len(calls) == len(_unique(plan)) < len(plan)  # shared defaults trained once
     size = preset("02", "ci").config.eval_image_size
-    assert f"{size}-px images" in seen["meta"]["protocol"]
-    assert all(run.config.eval_image_size == size for run in seen["runs"])
-    assert seen["sizes"] == (30, 30)
+    assert all(run.config.eval_image_size == size for run in calls)
+    meta, rows = load_sweeps(out)
+    assert f"{size}-px images" in meta["protocol"] and meta["command"].endswith(str(out))
+    stored = rows["sensitivity"] + rows["projector"]
+    assert [(r["sweep"], r["value"]) for r in stored] == [(r.sweep, r.value) for r in plan]
+    assert all(r["n_train"] == r["n_test"] == 30 for r in stored)
+
+
+def test_the_shipped_file_holds_every_run_of_notebook_02():
+    cfg = preset("02", "class")
+    runs = [run for group in sweep.sweep_plan("class").values() for run in group]
+    path = SHIPPED_DIR / "sweeps_class.json"
+    assert path.is_file(), f"{path} is documented in checkpoints/README.md but missing"
+    stored = [sweep.key(row["config"], row["n_train"], row["n_test"])
+              for row in sweep.load_results(path)]
+    assert stored == [sweep.key(run.config, cfg.train_images, cfg.test_images) for run in runs]
+    meta, rows = load_sweeps(path)
+    assert meta["scale"] == "class" and [len(rows[name]) for name in rows] == [15, 8]
+    assert [(r["sweep"], r["value"], r["factor"]) for r in rows["sensitivity"] + rows["projector"]
+            ] == [(run.sweep, run.value, run.factor) for run in runs]
+    defaults = [r for r in rows["sensitivity"] if r["factor"] == 1.0]
+    assert defaults[1]["probe_acc"] == defaults[2]["probe_acc"]  # VICReg's default, run once
 
 
 def test_bad_scale_is_refused():

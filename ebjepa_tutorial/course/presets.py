@@ -15,20 +15,11 @@ import os
 from dataclasses import dataclass, replace
 
 from ..envs import MAX_STEP
-from ..evaluation.sweeps import FACTORS, Run, projector_runs, sensitivity_runs, shorten
 from ..models.world import WORLD_CONFIGS
 from ..planning import Habits, Noise, PlannerConfig
-from ..training.cost import CostConfig
-from ..training.hierarchy import CoarseConfig, CoarseFit
 from ..training.image import ImageJEPAConfig, SIGReg
 from ..training.video import VIDEO_CONFIGS, VideoJEPAConfig, ablation_configs
-from ..training.world import (
-    ABLATABLE_TERMS,
-    RefitConfig,
-    WorldTrainConfig,
-    course_recipe,
-    paper_recipe,
-)
+from ..training.world import ABLATABLE_TERMS, WorldTrainConfig, course_recipe, paper_recipe
 
 SCALES = ("ci", "class", "full")
 DEFAULT_SCALE = "class"
@@ -188,10 +179,6 @@ class LongerRuns:
     paper: WorldTrainConfig | None = None
     ablations: tuple[str, ...] = ()  # loss terms whose ablation is also trained like `paper`
     n_ablation: int = 20  # episodes (the first seeds of the list) per long-trained ablation
-    # experiment 4: the model whose predictor is refitted on its frozen latents (class: the
-    # paper's amount of training); None: `paper`, or the preset's world
-    refit_base: WorldTrainConfig | None = None
-    refit: RefitConfig = RefitConfig()
     # experiment 5: chapter 05's recipe trained longer in one stage with a wider predictor (the
     # model research.benchmarks.planning plays by default); None: the preset's world is the
     # long one
@@ -234,25 +221,20 @@ _PLANNER_CI = PlannerConfig(horizon=8, samples=32, elites=4, iterations=2, execu
 
 @dataclass(frozen=True)
 class TwoLevelPreset:
-    """Notebook 07's two-level planner (``planning.TwoLevel``), and the episodes it plays for
-    its coarse model's second fit (:meth:`BeyondPreset.coarse_fit`)."""
+    """Notebook 07's two-level planner (``planning.TwoLevel``)."""
 
     low: PlannerConfig  # the lower level: a few steps to the subgoal
     high: tuple[PlannerConfig, PlannerConfig]  # the coarse level, in Two and Three Rooms
     lookahead: int = 2  # the subgoal: the coarse plan's latent this many coarse steps ahead
     reach_px: float = 4.5  # the final approach: the goal is the subgoal once the plan reaches it
-    visit_episodes: int = 300  # the coarse model's refit on this planner's episodes
-    visit_steps: int = 200
 
 
 @dataclass(frozen=True)
 class BeyondPreset:
-    """Notebook 07: two worlds, a cost head and a coarse model fitted on each world model's
-    frozen latents, and four planners compared on each world."""
+    """Notebook 07: the shipped world models, cost heads and coarse models of two worlds (the
+    same at every scale), and four planners compared on each world."""
 
-    two_rooms: WorldTrainConfig  # chapter 05's run (three_rooms: the same on Three Rooms)
-    cost: CostConfig  # the head's fit (its `walls` is set per world)
-    coarse: CoarseConfig  # the coarse model's fit (likewise; and its visits: coarse_fit)
+    two_rooms: WorldTrainConfig  # chapter 05's class run (three_rooms: the same on Three Rooms)
     flat: PlannerConfig  # chapter 06's planner
     short: PlannerConfig  # the same at a short horizon, latent distance (learned: its cost)
     two_level: TwoLevelPreset
@@ -271,42 +253,29 @@ class BeyondPreset:
         """The short planner with the learned cost, whose costs are px: a temperature of 1."""
         return replace(self.short, cost="learned", temperature=1.0)
 
-    def coarse_fit(self, walls: int) -> CoarseFit:
-        """The coarse model's fit in the world of ``walls`` (1 or 2): the random walks, then
-        again with the episodes of this preset's two-level planner there."""
-        two = self.two_level
-        return CoarseFit(replace(self.coarse, walls=walls), two.low, two.high[walls - 1],
-                         two.lookahead, two.reach_px, two.visit_episodes, two.visit_steps)
 
-
-# Chosen on seeds 10,600-10,699 (RESULTS.md, "07 · Beyond the paper"); the visits and Three
-# Rooms' 200 coarse samples on 10,600-10,999 at 120 steps (RESULTS.md, "07 · The coarse
-# model fitted again on its planner's episodes"). The coarse level plans macro-actions of
-# `stride` steps: their bound and spread scale with the stride.
+# Chosen on seeds 10,600-10,699 (RESULTS.md, "07 · Beyond the paper"); Three Rooms' 200 coarse
+# samples on 10,600-10,999 at 120 steps. The coarse level plans macro-actions of `stride` steps
+# (models.hierarchy.CoarseModel's): their bound and spread scale with the stride.
 # The fine planners keep the spread chapter 07's figures were measured with (1.5 px);
 # chapter 06's planner has since widened to 2.0, not yet measured here.
-_STRIDE = CoarseConfig.stride
+_STRIDE = 4
 _FLAT_07 = PlannerConfig(noise=Noise(std=1.5))
 _SHORT = replace(_FLAT_07, horizon=16, samples=100, elites=10)
 _HIGH = PlannerConfig(horizon=16, samples=50, elites=5, execute=1,
                       noise=Noise(std=_STRIDE * 1.5, period=2, bound=_STRIDE * MAX_STEP),
                       habits=Habits(warm_iterations=2, stop_px=0))
 _BEYOND_CLASS = BeyondPreset(
-    _WORLD_CLASS, CostConfig(), CoarseConfig(), flat=_FLAT_07, short=_SHORT,
+    _WORLD_CLASS, flat=_FLAT_07, short=_SHORT,
     two_level=TwoLevelPreset(
         low=replace(_FLAT_07, horizon=8, samples=50, elites=5, execute=_STRIDE,
                     habits=Habits(warm_iterations=2)),
         high=(_HIGH, replace(_HIGH, horizon=24, samples=200, elites=20,
                              habits=replace(_HIGH.habits, warm_iterations=3)))))
 _TINY = PlannerConfig(horizon=4, samples=16, elites=2, iterations=2, execute=4)
-_BEYOND_CI = replace(
-    _BEYOND_CLASS, two_rooms=_WORLD_CI,
-    cost=CostConfig(n_trajectories=200, trajectory_steps=16, layouts=10, steps=30, batch_size=64,
-                    hidden=32, dims=8),
-    coarse=CoarseConfig(n_trajectories=200, steps=30, batch_size=64, hidden=32),
-    flat=_PLANNER_CI, short=_TINY,
-    two_level=TwoLevelPreset(_TINY, (replace(_HIGH, horizon=4, samples=16, elites=2),) * 2,
-                             visit_episodes=2, visit_steps=16),
+_BEYOND_CI = replace(  # the class models with tiny planners
+    _BEYOND_CLASS, flat=_PLANNER_CI, short=_TINY,
+    two_level=TwoLevelPreset(_TINY, (replace(_HIGH, horizon=4, samples=16, elites=2),) * 2),
     n_episodes=2, episode_batch=2, episode_steps=24)
 
 
@@ -344,15 +313,12 @@ PRESETS: dict[str, dict[str, object]] = {
                              n_wall_test=100, longer=LongerRuns(
                                  paper=paper_recipe(replace(_WORLD_CI, steps=20)),
                                  ablations=ABLATABLE_TERMS, n_ablation=2,
-                                 refit=RefitConfig(hidden=32, n_trajectories=200, steps=100,
-                                                   batch_size=128),
                                  course=course_long(_WORLD_CI, 20, _WORLD_CI.n_trajectories))),
         # the shipped checkpoints, with episode counts sized to fit a class period
         # (research.benchmarks.planning plays 100 per model for the results page)
         "class": PlanningPreset(_WORLD_CLASS, PlannerConfig(), n_episodes=40, n_compare=10,
                                 longer=LongerRuns(
                                     paper=_WORLD_CLASS_LONG, ablations=ABLATABLE_TERMS,
-                                    refit_base=replace(_WORLD_CLASS_LONG, steps=20_000),
                                     course=course_long(_WORLD_CLASS, 10_000, 100_000))),
         # the reference code's planner on 500 episodes: 100 for the headline rate, 50 in 8 rows
         "full": PlanningPreset(_WORLD_FULL, PlannerConfig(horizon=90, iterations=20, execute=1,
@@ -363,7 +329,7 @@ PRESETS: dict[str, dict[str, object]] = {
     "07": {
         "ci": _BEYOND_CI,
         "class": _BEYOND_CLASS,  # the world models, heads and coarse models are shipped
-        "full": replace(_BEYOND_CLASS, two_rooms=_WORLD_FULL, n_episodes=200, episode_batch=100),
+        "full": replace(_BEYOND_CLASS, n_episodes=200, episode_batch=100),
     },
 }
 
@@ -376,16 +342,3 @@ def preset(notebook: str, scale: str | None = None):
     if notebook not in PRESETS:
         raise KeyError(f"no presets for notebook {notebook!r}; known: {', '.join(PRESETS)}")
     return PRESETS[notebook][scale]
-
-
-def sweep_plan(scale: str) -> dict[str, list[Run]]:
-    """Notebook 02's runs of both sweeps at ``scale``: ``{"sensitivity": [...],
-    "projector": [...]}``."""
-    sizes = preset("02", scale)
-    sigreg_config = shorten(sizes.config, sizes.sweep_steps)
-    vicreg_config = shorten(preset("01", scale).config, sizes.sweep_steps)
-    hidden = (sigreg_config.projector or (1024, 1024))[0]
-    outputs = (None, hidden // 16, hidden // 4, hidden)  # class: none, 64, 256, 1024
-    outputs = (None, hidden // 4) if scale == "ci" else outputs  # ci: fewer runs, it only checks
-    return {"sensitivity": sensitivity_runs(sigreg_config, vicreg_config, FACTORS[scale]),
-            "projector": projector_runs(sigreg_config, vicreg_config, outputs)}

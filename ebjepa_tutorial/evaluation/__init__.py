@@ -5,7 +5,7 @@
 - ``detection``: chapter 03's detection probe and AP per horizon
 - ``position``: chapter 05's position probes and the middle-wall test
 - ``metrics``: average precision and confidence intervals
-- ``sweeps``: chapter 02's grids of short runs, trained and scored
+- ``sweeps``: chapter 02's class-scale sweeps, read back from their file
 """
 
 from . import classify, cost, detection, metrics, position, sweeps
