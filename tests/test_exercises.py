@@ -697,11 +697,13 @@ def test_a_failed_check_offers_the_next_hint_without_code():
     assert common.HINTS["covariance_term"][2] not in "".join(offered)
 
 
-def test_every_exercise_has_three_hints():
+def test_every_exercise_has_three_hints_and_its_checker_names_each_mistake_in_hints_yaml():
+    assert set(common.TEXTS) == set(CHECKERS)
     for name, checker in CHECKERS.items():
         assert checker.exercise == name
         idea, formula, outline = common.HINTS[name]
         assert len(idea) > 80 and len(formula) > 80 and outline
+        assert {words for words, _ in checker.mistakes} == set(common.TEXTS[name]["slips"].values())
 
 
 # --------------------------------------------------- the student version shows no solution

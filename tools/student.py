@@ -5,8 +5,8 @@ the lines between ``### BEGIN SOLUTION`` and ``### END SOLUTION``, inside the
 function that is the exercise. The student version replaces each region by a
 comment and a ``raise NotImplementedError`` at the same indentation: they ask
 the learner to write the function and say how to get a hint. The hints
-themselves (the idea, the formula, an outline of the code) live beside each
-checker in :mod:`ebjepa_tutorial.course.exercises`, one place per exercise, and
+themselves (the idea, the formula, an outline of the code) live beside the
+checkers, in ``ebjepa_tutorial/course/exercises/hints.yaml``, one place per exercise, and
 come from ``exercises.hint("name")`` or a failed check, so no code of the
 solution stays in the student version; a ``# HINT:`` line inside a region is an
 error. The student version also drops the text of markdown cells between

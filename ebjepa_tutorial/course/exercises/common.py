@@ -1,19 +1,12 @@
-"""What every checker shares.
-
-- :class:`ExerciseError`, the error a check raises, and :class:`Case`, one test input;
-- the graded hints, :func:`hint`: 1 the idea, 2 the formula with the shapes, 3 an outline of
-  the code;
-- :func:`compare`: the learner's function against the course's on every case, values and,
-  where the output trains something, gradients. A wrong answer is named in words: one of
-  the exercise's own typical mistakes (:func:`diagnose`), or a general one (a sign flip, a
-  factor off, an input changed in place, a gradient that does not flow and what cut it, the
-  wrong axis, a transposed result, a float, a tuple or numpy where a tensor belongs);
-- :func:`exercise`, which lets a notebook run on past an exercise not yet done.
+"""What every checker shares: :class:`ExerciseError`, the test inputs (:class:`Case`), the graded
+hints (:func:`hint`), :class:`Comparison` of a learner's function with the course's, which names
+a wrong answer in words, and :func:`exercise`, which lets a notebook run on past an exercise not
+yet done. What a learner reads about each exercise, its hints and the words for its typical
+mistakes (:func:`slips`), is in ``hints.yaml`` beside this file.
 """
 
 from __future__ import annotations
 
-import functools
 import inspect
 import itertools
 import sys
@@ -23,8 +16,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
+import yaml
 
 Diagnosis = tuple[str, Callable]  # (the mistake in plain words, a function that makes it)
+TEXTS = yaml.safe_load(Path(__file__).with_name("hints.yaml").read_text(encoding="utf-8"))
+HINTS = {name: tuple(texts["hints"]) for name, texts in TEXTS.items()}
+LEVELS = ("the idea", "the formula", "an outline of the code")
+_shown: dict[str, int] = {}  # exercise -> the highest hint level shown in this session
 
 
 class ExerciseError(AssertionError):
@@ -35,12 +33,17 @@ class NotImplementedYet(ExerciseError):
     """The learner's function still raises ``NotImplementedError`` (the student stub)."""
 
 
+def slips(exercise: str, **variants) -> list[Diagnosis]:
+    """``(words, variant)`` for each typical mistake of ``exercise``, in the order given (on a
+    tie the first wins: list the slips that change only a gradient first). A variant has the
+    exercise's signature and makes the mistake (a tuple: several ways to make it); its words
+    are hints.yaml's under the same key."""
+    words = TEXTS[exercise]["slips"]
+    return [(words[key], f) for key, fs in variants.items()
+            for f in (fs if isinstance(fs, tuple) else (fs,))]
+
+
 # ------------------------------------------------------------------------------ graded hints
-
-LEVELS = ("the idea", "the formula", "an outline of the code")
-HINTS: dict[str, tuple[str, str, str]] = {}  # exercise -> its hints, in the order of LEVELS
-_shown: dict[str, int] = {}  # exercise -> the highest level shown in this session
-
 
 def hint(name, level: int | None = None) -> None:
     """Print hint ``level`` of the exercise ``name`` (its function's name, or the function):
@@ -56,11 +59,10 @@ def hint(name, level: int | None = None) -> None:
         raise ValueError(f"level is 1 (the idea), 2 (the formula) or 3 (an outline of the "
                          f"code), not {level!r}")
     _shown[name] = max(_shown.get(name, 0), level)
-    print(hint_text(name, level))
+    print(_hint_text(name, level))
 
 
-def hint_text(name: str, level: int) -> str:
-    """Hint ``level`` of the exercise ``name``, with a heading and how to get the next one."""
+def _hint_text(name: str, level: int) -> str:
     body = HINTS[name][level - 1]  # the outline keeps its lines; the words are wrapped
     body = body if level == len(LEVELS) else textwrap.fill(body, 88)
     text = f"Hint {level} of {len(LEVELS)} for {name}, {LEVELS[level - 1]}:\n{body}"
@@ -70,12 +72,12 @@ def hint_text(name: str, level: int) -> str:
 
 
 def _offer(name: str) -> str:
-    """What a failed check adds: the next hint not shown yet while it holds no code (levels 1
-    and 2), then how to ask for the outline."""
+    """What a failed check adds: the next hint while it holds no code, then how to ask for the
+    outline."""
     level = _shown.get(name, 0) + 1
     if level < len(LEVELS):
         _shown[name] = level
-        return "\n\n" + hint_text(name, level)
+        return "\n\n" + _hint_text(name, level)
     return f"\n\nStill stuck? exercises.hint({name!r}, level=3) shows an outline of the code."
 
 
@@ -131,6 +133,20 @@ class _Spy:
                 _Spy.called.setdefault(_Spy.answers[code])
 
 
+@dataclass
+class Case:
+    """One test input. ``sizes``: named sizes (``{"K": 3}``) the factor detector tries besides
+    the shapes' (``dims``); ``atol``: a looser tolerance where float32 cannot do better, and
+    ``why_loose`` the note printed when an answer needed it (``{diff}``: the largest gap)."""
+
+    description: str
+    args: tuple
+    kwargs: dict = field(default_factory=dict)
+    sizes: dict = field(default_factory=dict)
+    atol: float | None = None
+    why_loose: str = ""
+
+
 def _run(fn: Callable, name: str, case: Case, labels: Sequence[str] = ()):
     """``fn`` on its own copy of ``case``'s inputs -> ``(output, spy)``; raises
     :class:`ExerciseError` if it crashes or changes an input in place."""
@@ -164,25 +180,7 @@ def _run(fn: Callable, name: str, case: Case, labels: Sequence[str] = ()):
     return out, spy
 
 
-# ---------------------------------------------------------------------------- test cases
-
-@dataclass
-class Case:
-    """One test input: a description for the learner and the arguments to call with.
-
-    ``sizes``: named sizes of the inputs (``{"K": 3}``) the factor detector tries, besides
-    those :func:`compare` reads off the shapes (its ``dims``). ``atol``: a looser tolerance
-    on this case, where float32 cannot do better; ``why_loose`` says why, printed beside the
-    verdict when an answer needed it (``{diff}``: the largest difference).
-    """
-
-    description: str
-    args: tuple
-    kwargs: dict = field(default_factory=dict)
-    sizes: dict = field(default_factory=dict)
-    atol: float | None = None
-    why_loose: str = ""
-
+# -------------------------------------------------------------- naming what went wrong
 
 def _describe(value) -> str:
     if isinstance(value, torch.Tensor):
@@ -216,8 +214,7 @@ def _type_problem(got, name: str, case: Case, label: str = "") -> str | None:
 
 
 def _numbers(value) -> torch.Tensor | None:
-    """``value`` as a float64 tensor (a tensor, a tuple of tensors flattened and joined, or
-    numbers), else None."""
+    """``value`` as a float64 tensor (a tuple of tensors flattened and joined), else None."""
     if isinstance(value, torch.Tensor):
         return value.detach().double()
     if isinstance(value, (tuple, list)) and value and all(
@@ -229,16 +226,9 @@ def _numbers(value) -> torch.Tensor | None:
         return None
 
 
-# ------------------------------------------------------------------------ known mistakes
-
 def diagnose(got, diagnoses: Sequence[Diagnosis], case: Case, atol: float = 1e-5) -> str:
-    """Name the known mistake that gives ``got`` on ``case``: `` Likely cause: ...`` or ``''``.
-
-    Each diagnosis is ``(words, variant)``: ``variant`` has the exercise's
-    signature and makes one typical mistake. The variant closest to ``got``
-    (within a tolerance ten times tighter than the check's) names the slip; on a
-    tie the first listed wins, so list the slips that change only a gradient first.
-    """
+    """`` Likely cause: <words>`` of the variant closest to ``got`` on ``case`` (within a
+    tolerance ten times tighter than the check's; a tie goes to the first), else ``''``."""
     got, matches = _numbers(got), []
     for order, (words, variant) in enumerate(diagnoses if got is not None else ()):
         try:
@@ -250,8 +240,6 @@ def diagnose(got, diagnoses: Sequence[Diagnosis], case: Case, atol: float = 1e-5
             matches.append((float((got - wrong).abs().nan_to_num(0.0).sum()), order, words))
     return f" Likely cause: {min(matches)[2]}" if matches else ""
 
-
-# ---------------------------------------------------------------------- general mistakes
 
 def _factors(sizes: dict) -> list[tuple[str, float, str]]:
     """``(words, value, what to look at)`` for each factor a value can be off by: for each
@@ -274,8 +262,8 @@ def _factors(sizes: dict) -> list[tuple[str, float, str]]:
 
 
 def _factor_off(got, expected, sizes: dict, advice: dict) -> tuple[str, str, str] | None:
-    """``(what was found, '', what to look at)`` when ``got`` is ``expected`` times one of
-    :func:`_factors` (``advice``, by the factor's words, replaces the general one)."""
+    """The cause when ``got`` is ``expected`` times one of :func:`_factors` (``advice``, by the
+    factor's words, replaces the general one), else None."""
     big = expected.abs() > 1e-8
     if not big.any() or not torch.isfinite(got).all():
         return None
@@ -293,21 +281,18 @@ def _factor_off(got, expected, sizes: dict, advice: dict) -> tuple[str, str, str
     return None
 
 
-def _transposition(got, expected, atol: float) -> tuple[int, ...] | None:
-    """The axis order ``p`` with ``expected.permute(p) == got``, if there is one."""
+def _transposed(got, expected, atol: float) -> bool:
+    """Whether ``got`` is ``expected`` with its axes in another order."""
     if got.ndim != expected.ndim or got.ndim < 2 or got.shape == expected.shape:
-        return None
-    for order in itertools.permutations(range(expected.ndim)):
-        if tuple(expected.shape[i] for i in order) == tuple(got.shape) and torch.allclose(
-                expected.permute(order).double(), got.double(), atol=atol, rtol=1e-4):
-            return order
-    return None
+        return False
+    return any(tuple(expected.shape[i] for i in order) == tuple(got.shape) and torch.allclose(
+        expected.permute(order).double(), got.double(), atol=atol, rtol=1e-4)
+        for order in itertools.permutations(range(expected.ndim)))
 
 
 def _shape_problem(got, expected, name: str, case: Case, label: str, atol: float) -> str:
-    """Words for one output ``got`` of the wrong shape: transposed, or otherwise."""
     yours = f"your {label}" if label else "your output"
-    if _transposition(got, expected, atol) is not None:
+    if _transposed(got, expected, atol):
         return (f"{name} put the right numbers in the wrong layout on {case.description}: "
                 f"{yours} has shape {tuple(got.shape)} where {tuple(expected.shape)} is "
                 "expected, and holds the answer with its axes in another order. Look at the "
@@ -333,8 +318,8 @@ def _disagreement(got, expected, atol: float) -> str:
 
 def gradient(fn: Callable, index: int) -> Callable:
     """``fn`` returning the gradient of its output's sum with respect to positional argument
-    ``index`` instead: zeros where no gradient reaches that argument. After a call,
-    ``.connected`` says whether the output was connected to the autograd graph at all."""
+    ``index`` instead (zeros where none reaches it); ``.connected``, after a call: whether the
+    output was connected to the autograd graph at all."""
     def run(*args, **kwargs):
         x = args[index].detach().clone().requires_grad_()
         out = fn(*args[:index], x.clone(), *args[index + 1:], **kwargs)  # clone: in place is ok
@@ -372,31 +357,53 @@ def _no_flow(name: str, case: Case, label: str, cuts: Sequence[str], connected: 
 # ---------------------------------------------------------------------- the comparison
 
 @dataclass
-class _Comparison:
-    """The learner's ``fn`` against ``reference`` on one case at a time (see :func:`compare`)."""
+class Comparison:
+    """Checks a learner's function against ``reference`` on ``cases()``: every value, then the
+    gradient with respect to each ``grad`` ``(argument index, its label)``; prints a verdict or
+    raises :class:`ExerciseError`. A wrong answer is named by one of the exercise's own
+    ``diagnoses`` (:func:`diagnose`), else by a general mistake: NaN, a sign flip, a factor off
+    (the sizes of the axes ``dims`` names, ``{index: "BD"}``, ``_`` skipping one; ``factors``:
+    advice by the factor's words), the wrong axis (``swap``: ``(index, a, b, what it means,
+    what to look at)``, axes ``a`` and ``b`` of one argument exchanged), a transposed result,
+    a non-tensor. ``parts``: the outputs' names when a tuple is returned; ``labels``: the
+    arguments' (default: the reference's parameters)."""
 
-    fn: Callable
     reference: Callable
-    name: str
-    atol: float
-    diagnoses: Sequence[Diagnosis]
-    parts: Sequence[str] | None
-    labels: Sequence[str]
-    dims: dict
-    swap: tuple | None
-    factors: dict
+    cases: Callable[[], list[Case]]
+    diagnoses: Sequence[Diagnosis] = ()
+    atol: float = 1e-5
+    parts: Sequence[str] | None = None
+    grad: Sequence[tuple[int, str]] = ()
+    labels: Sequence[str] | None = None
+    dims: dict = field(default_factory=dict)
+    swap: tuple | None = None
+    factors: dict = field(default_factory=dict)
 
-    def check_values(self, case: Case) -> str:
-        """Raise :class:`ExerciseError` unless ``fn`` agrees with the reference on ``case``;
-        returns a note when it agreed only within the case's looser tolerance."""
+    def __post_init__(self):
+        self.labels = self.labels or list(inspect.signature(self.reference).parameters)
+
+    def __call__(self, fn: Callable) -> None:
+        name, cases = getattr(fn, "__name__", "your function"), self.cases()
+        notes = [self._values(fn, name, case) for case in cases]
+        for case in cases:
+            for index, label in self.grad:
+                self._gradient(fn, name, case, index, label)
+        labels = [label for _, label in self.grad]
+        what = f" (values, and gradients with respect to {_and(labels)})" if labels else ""
+        print(f"Correct: {name} matches the reference on {len(cases)} test inputs{what}.")
+        for note in dict.fromkeys(n for n in notes if n):
+            print(note)
+
+    def _values(self, fn: Callable, name: str, case: Case) -> str:
+        """Raise unless ``fn`` agrees with the reference on ``case``; returns the case's note
+        when it agreed only within the case's looser tolerance."""
         expected = self.reference(*case.args, **case.kwargs)
-        got, _ = _run(self.fn, self.name, case, self.labels)
-        atol, name, parts = self.atol if case.atol is None else case.atol, self.name, self.parts
+        got, _ = _run(fn, name, case, self.labels)
+        atol, parts, note = self.atol if case.atol is None else case.atol, self.parts, ""
         if parts and (not isinstance(got, (tuple, list)) or len(got) != len(parts)):
             raise ExerciseError(
                 f"{name} returned {_describe(got)} on {case.description}; it must return a pair "
                 f"({', '.join(parts)}), {len(parts)} tensors.")
-        note = ""
         for label, g, e in zip(parts, got, expected) if parts else [("", got, expected)]:
             if (problem := _type_problem(g, name, case, label)):
                 raise ExerciseError(problem)
@@ -405,26 +412,24 @@ class _Comparison:
                                     + diagnose(got, self.diagnoses, case, atol))
             g, e = g.double(), e.double()
             if not torch.allclose(g, e, atol=atol, rtol=1e-4):
-                raise ExerciseError(self._value_problem(got, g, e, case, label, atol))
+                raise ExerciseError(self._value_problem(name, got, g, e, case, label, atol))
             if not torch.allclose(g, e, atol=self.atol, rtol=1e-4):
                 note = case.why_loose.format(diff=float((g - e).abs().max()))
         return note
 
-    def _value_problem(self, got, g, e, case: Case, label: str, atol: float) -> str:
+    def _value_problem(self, name, got, g, e, case: Case, label: str, atol: float) -> str:
         """Words for a wrong output ``g`` (a part of ``got``; ``e`` the answer): one of the
         exercise's own mistakes, else a general one, else only the numbers."""
         numbers = f"{'your ' + label + ' ' if label else ''}{_disagreement(g, e, atol)}"
         why = diagnose(got, self.diagnoses, case, atol)
         if why or not (general := self._general_cause(g, e, case)):
-            return f"{self.name} gave {numbers} on {case.description}.{why}"
+            return f"{name} gave {numbers} on {case.description}.{why}"
         found, meaning, look = general
         where = f" (your {label})" if label else ""
-        return (f"{self.name} {found} on {case.description}{where}{meaning}. {look}. "
-                f"Yours: {numbers}.")
+        return f"{name} {found} on {case.description}{where}{meaning}. {look}. Yours: {numbers}."
 
     def _general_cause(self, got, expected, case: Case) -> tuple[str, str, str] | None:
-        """``(what was found, ': what it means' or '', what to look at)`` for a general
-        mistake of value, or None."""
+        """``(what was found, ': what it means' or '', what to look at)``, or None."""
         if torch.isfinite(expected).all() and not torch.isfinite(got).all():
             return ("returned NaN or infinity", "",
                     "Look for 0/0 (exponentials that underflowed to 0, then divided by their "
@@ -440,8 +445,6 @@ class _Comparison:
                 or self._wrong_axis(got, case))
 
     def _wrong_axis(self, got, case: Case) -> tuple[str, str, str] | None:
-        """The cause when ``got`` is the answer with two axes of one input exchanged (``swap``:
-        ``(index, a, b, what that means, what to look at)``), else None."""
         if self.swap is None:
             return None
         index, a, b, means, look = self.swap
@@ -457,61 +460,26 @@ class _Comparison:
                     f": it gives what the answer would be with {means}", look)
         return None
 
-    def check_gradient(self, case: Case, index: int, label: str) -> None:
-        """Raise :class:`ExerciseError` unless ``fn``'s gradient with respect to argument
-        ``index`` agrees with the reference's."""
+    def _gradient(self, fn: Callable, name: str, case: Case, index: int, label: str) -> None:
+        """Raise unless ``fn``'s gradient with respect to argument ``index`` is the reference's."""
         atol = self.atol if case.atol is None else case.atol
         expected = gradient(self.reference, index)(*case.args, **case.kwargs)
-        probe = gradient(self.fn, index)
+        probe = gradient(fn, index)
         try:
-            got, spy = _run(probe, self.name, case, self.labels)
+            got, spy = _run(probe, name, case, self.labels)
         except ExerciseError as error:  # numpy refuses a tensor that requires a gradient
             if "numpy" in str(error) and "grad" in str(error):
-                raise _no_flow(self.name, case, label, ["numpy"], False) from None
+                raise _no_flow(name, case, label, ["numpy"], False) from None
             raise
         if torch.allclose(got.double(), expected.double(), atol=atol, rtol=1e-4):
             return
         why = diagnose(got, [(w, gradient(v, index)) for w, v in self.diagnoses], case, atol)
         if expected.abs().max() > 0 and not got.any():  # an own slip explains only a partial cut
-            raise _no_flow(self.name, case, label, list(spy.cuts), probe.connected,
+            raise _no_flow(name, case, label, list(spy.cuts), probe.connected,
                            why if probe.connected else "")
         raise ExerciseError(
-            f"{self.name} has the right value on {case.description}, but not the right gradient "
+            f"{name} has the right value on {case.description}, but not the right gradient "
             f"with respect to {label}: it gave {_disagreement(got, expected, atol)}.{why}")
-
-
-def compare(fn: Callable, reference: Callable, cases: list[Case], atol: float = 1e-5,
-            diagnoses: Sequence[Diagnosis] = (), parts: Sequence[str] | None = None,
-            grad: Sequence[tuple[int, str]] = (), labels: Sequence[str] | None = None,
-            dims: dict | None = None, swap: tuple | None = None,
-            factors: dict | None = None) -> bool:
-    """Check ``fn`` against ``reference`` on every case; print a verdict or raise ExerciseError.
-
-    ``diagnoses``: the exercise's known mistakes, ``(words, variant)``, named when
-    ``fn`` makes one (see :func:`diagnose`); otherwise the general mistakes are
-    looked for. ``parts``: names of the outputs when ``fn`` returns several
-    tensors (a tuple). ``grad``: ``(index, label)`` of each positional argument
-    whose gradient must agree too, checked once every value agrees. ``labels``:
-    the arguments' names in messages (default: the reference's parameters).
-    ``dims``: ``{index: "BD"}``, names of an argument's axes, whose sizes the
-    factor detector tries (``_`` skips an axis). ``swap``: ``(index, a, b, what
-    it means, what to look at)``: the wrong-axis mistake of exchanging axes ``a``
-    and ``b`` of one argument. ``factors``: advice for a factor off, by its name
-    (``"D - 1"``).
-    """
-    name = getattr(fn, "__name__", "your function")
-    labels = list(inspect.signature(reference).parameters) if labels is None else labels
-    check = _Comparison(fn, reference, name, atol, diagnoses, parts, labels, dims or {}, swap,
-                        factors or {})
-    notes = [check.check_values(case) for case in cases]
-    for case in cases:
-        for index, label in grad:
-            check.check_gradient(case, index, label)
-    what = f" (values, and gradients with respect to {_and([g[1] for g in grad])})" if grad else ""
-    print(f"Correct: {name} matches the reference on {len(cases)} test inputs{what}.")
-    for note in dict.fromkeys(n for n in notes if n):
-        print(note)
-    return True
 
 
 # -------------------------------------------------------------------------- the exercises
@@ -525,54 +493,42 @@ def whose(fn: Callable) -> str:
     return "the course's" if any(fn is r for r in _REFERENCES) else "your"
 
 
-def _qualified(fn: Callable) -> str:
-    module = getattr(fn, "__module__", "") or ""
-    return f"{module.removeprefix('ebjepa_tutorial.')}.{fn.__name__}".lstrip(".")
-
-
-def exercise(reference: Callable, mistakes: Sequence[Diagnosis] = (), *, name: str,
-             hints: Sequence[str], answers: Sequence[Callable] = ()) -> Callable:
-    """Make ``check(fn)`` return the function the rest of the notebook should use.
-
-    ``fn`` when it is right; ``reference`` (the course's implementation, same
-    signature) when ``fn`` is still the student stub, so that "Run All" reaches
-    the end of the chapter; an :class:`ExerciseError` naming the mistake when
-    ``fn`` is wrong, followed by the next hint. ``mistakes``: the typical wrong
-    versions the check names, ``(words, function)``, kept as ``check.mistakes``.
-    ``name``: the exercise's function, as the notebook calls it. ``hints``: the
-    idea, the formula, an outline of the code (:func:`hint`). ``answers``: the
-    course's functions that compute the answer besides ``reference``: a right
-    ``fn`` that only calls one of them is told so.
-    """
-    if len(hints) != len(LEVELS):
-        raise ValueError(f"{name}: give {len(LEVELS)} hints, one per level {LEVELS}")
-    HINTS[name] = tuple(hints)
+def exercise(name: str, reference: Callable, mistakes: Sequence[Diagnosis] = (),
+             cases: Callable[[], list[Case]] | None = None, *, check: Callable | None = None,
+             answers: Sequence[Callable] = (), **options) -> Callable:
+    """The check of the exercise ``name``: ``check_name(fn)`` returns the function the notebook
+    goes on with. That is ``fn`` when it is right; ``reference`` (the course's, same signature)
+    while ``fn`` is the student stub, so that "Run All" reaches the end of the chapter; when
+    ``fn`` is wrong, an :class:`ExerciseError` names the mistake and offers the next hint.
+    ``check(fn)`` judges, by default a :class:`Comparison` of ``fn`` with ``reference`` on
+    ``cases()`` naming ``mistakes``, with ``options``. ``answers``: the course's other
+    functions that compute the answer: a right ``fn`` that only calls one is told so."""
     _REFERENCES.append(reference)
-    codes = {f.__code__: _qualified(f) for f in (reference, *answers) if hasattr(f, "__code__")}
+    check = check or Comparison(reference, cases, mistakes, **options)
+    codes = {f.__code__: f"{f.__module__.removeprefix('ebjepa_tutorial.')}.{f.__name__}"
+             for f in (reference, *answers) if hasattr(f, "__code__")}
 
-    def decorate(check: Callable) -> Callable:
-        @functools.wraps(check)
-        def run(fn: Callable, *args, **kwargs) -> Callable:
-            verdict = _judge(check, fn, args, kwargs, reference, name, codes)
-            if isinstance(verdict, ExerciseError):  # raised here, its traceback shows the
-                raise verdict from None  # learner's cell, not the checker's insides
-            return verdict
-        run.__annotations__ = {"fn": "Callable", "return": "Callable"}  # not check's bool
-        run.reference, run.mistakes, run.exercise = reference, tuple(mistakes), name
-        return run
-    return decorate
+    def run(fn: Callable) -> Callable:
+        verdict = _judge(check, fn, reference, name, codes)
+        if isinstance(verdict, ExerciseError):  # raised here, its traceback shows the
+            raise verdict from None  # learner's cell, not the checker's insides
+        return verdict
+
+    run.reference, run.mistakes, run.exercise = reference, tuple(mistakes), name
+    run.__doc__ = f"Check your {name}; returns the function the notebook goes on with."
+    return run
 
 
-def _judge(check: Callable, fn: Callable, args, kwargs, reference: Callable, name: str,
+def _judge(check: Callable, fn: Callable, reference: Callable, name: str,
            codes: dict) -> Callable | ExerciseError:
-    """Run ``check(fn, ...)``: the function the notebook goes on with, or the error to raise."""
+    """Run ``check(fn)``: the function the notebook goes on with, or the error to raise."""
     if fn is reference:  # this cell ran again after handing the course's one over
         print("This is still the course's implementation: run the cell with your "
               "function first, then this check.")
         return reference
     _Spy.answers, _Spy.called = codes, {}
     try:
-        check(fn, *args, **kwargs)
+        check(fn)
     except NotImplementedYet:
         print(f"{getattr(fn, '__name__', 'your function')} is not implemented yet: the "
               "rest of this notebook uses the course's implementation. Write yours in "

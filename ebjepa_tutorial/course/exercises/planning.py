@@ -1,14 +1,13 @@
-"""Checker of chapter 06: one MPPI update of the plan's mean and spread."""
+"""Checker of chapter 06: one MPPI update of the plan's mean and spread, ``actions (B, N, H, A)``,
+``costs (B, N)`` -> two ``(B, H, A)`` tensors."""
 
 from __future__ import annotations
-
-from collections.abc import Callable
 
 import torch
 
 from ... import planning
 from ...planning import mppi_update
-from .common import Case, compare, exercise
+from .common import Case, exercise, slips
 
 _FLOAT32_STEP = 2.0**-24  # float32 keeps a number to within about this fraction of itself
 
@@ -41,7 +40,7 @@ def _mppi_cases() -> list[Case]:
     ]
 
 
-def _mppi_slip(weights=None, std=None, elites_of=None, largest=False) -> Callable:
+def _mppi_slip(weights=None, std=None, elites_of=None, largest=False):
     """An MPPI update with one mistake: ``weights(elite_costs, tau)``, ``std(elites, w, mean)``,
     the number of elites ``elites_of(N, Q)``, or the ``largest`` costs taken as elites."""
     def mppi_update(actions, costs, elites, temperature):
@@ -61,61 +60,19 @@ def _shifted(costs: torch.Tensor) -> torch.Tensor:
     return costs - costs.min(dim=1, keepdim=True).values
 
 
-_MPPI_HINTS = (
-    "Keep the cheapest plans. Each pulls the new plan toward itself with a weight that "
-    "falls exponentially with its cost, the temperature setting how fast; the new spread is "
-    "how far the kept plans lie from the new mean, with the same weights.",
-    "Per episode, the elites are the Q = elites plans of lowest cost (along axis 1 of costs, "
-    "which is (B, N)); gathering them from actions (B, N, H, A) gives (B, Q, H, A). Weights: "
-    "w_i = exp(-(S_i - S_min) / tau) divided by their sum over the Q elites (the same "
-    "formula as a softmax of -(S - S_min) / tau over the elites; subtracting S_min keeps "
-    "the exponentials from underflowing). Then mean = sum_i w_i a_i and std = "
-    "sqrt(sum_i w_i (a_i - mean)^2), both sums over the elites: two (B, H, A) tensors.",
-    "elite_costs, index = <the `elites` smallest costs of each episode and where they are: "
-    "topk with largest=False, along dim 1>\n"
-    "elite = <the plans at those indices, (B, Q, H, A): gather along dim 1, or index with a "
-    "batch arange>\n"
-    "w = <softmax over the elites of -(elite_costs - their minimum) / temperature>, shaped "
-    "(B, Q, 1, 1)\n"
-    "mean = <the sum over the elites (dim 1) of w * elite>\n"
-    "std = <the square root of the sum over the elites of w * (elite - mean)^2>\n"
-    "return mean, std",
-)
-
-_MPPI_SLIPS = [(words, _mppi_slip(**slip)) for words, slip in [
-    ("your weights do not subtract the minimum cost: exp(-S / tau) underflows to 0 when the "
-     "costs are large, and 0 / 0 gives NaN. Subtract the elites' minimum cost inside the "
-     "exponential: it cancels in the ratio and keeps the exponents near 0.",
-     {"weights": lambda s, tau: torch.exp(-s / tau) / torch.exp(-s / tau).sum(1, keepdim=True)}),
-    ("you weighted all N sampled plans; MPPI weighs only the Q elites, the cheapest.",
-     {"elites_of": lambda n, q: n}),
-    ("you kept the Q most expensive plans: the elites are the cheapest.", {"largest": True}),
-    ("you multiplied by the temperature; divide: exp(-(S - S_min) / tau), so that a larger "
-     "tau gives softer weights.",
-     {"weights": lambda s, tau: torch.softmax(-_shifted(s) * tau, dim=1)}),
-    ("your weights grow with the cost: the exponent is -(S - S_min) / tau.",
-     {"weights": lambda s, tau: torch.softmax(_shifted(s) / tau, dim=1)}),
-    ("you gave every elite the same weight (the CEM update); MPPI weighs each by "
-     "exp(-(S - S_min) / tau), normalised.",
-     {"weights": lambda s, tau: torch.full_like(s, 1 / s.shape[1])}),
-    ("your weights do not sum to 1: divide exp(-(S - S_min) / tau) by its sum over the "
-     "elites.", {"weights": lambda s, tau: torch.exp(-_shifted(s) / tau)}),
-    ("your std is the weighted variance: take its square root.",
-     {"std": lambda a, w, m: (w * (a - m[:, None]).pow(2)).sum(1)}),
-    ("your std ignores the weights (the plain std of the elites); use "
-     "sqrt(sum_i w_i (a_i - mean)^2) with the new mean.", {"std": lambda a, w, m: a.std(1)}),
-    ("your std ignores the weights (the plain std of the elites); use "
-     "sqrt(sum_i w_i (a_i - mean)^2) with the new mean.",
-     {"std": lambda a, w, m: a.std(1, unbiased=False)}),
-    ("your std does not subtract the mean: sqrt(sum_i w_i (a_i - mean)^2).",
-     {"std": lambda a, w, m: (w * a.pow(2)).sum(1).sqrt()}),
-]]
-
-
-@exercise(mppi_update, _MPPI_SLIPS, name="mppi_update", hints=_MPPI_HINTS,
-          answers=(planning.mppi_weights, planning.weighted_mean_std, planning.select_elites))
-def check_mppi_update(fn: Callable) -> bool:
-    """Notebook 06: ``mppi_update(actions, costs, elites, temperature) -> (mean, std)``:
-    ``actions (B, N, H, A)``, ``costs (B, N)`` -> two ``(B, H, A)`` tensors."""
-    return compare(fn, mppi_update, _mppi_cases(), diagnoses=_MPPI_SLIPS,
-                   parts=("mean", "std"))
+check_mppi_update = exercise(
+    "mppi_update", mppi_update, slips(
+        "mppi_update",
+        no_min_shift=_mppi_slip(weights=lambda s, tau: torch.exp(-s / tau) / torch.exp(
+            -s / tau).sum(1, keepdim=True)),
+        all_samples=_mppi_slip(elites_of=lambda n, q: n), most_expensive=_mppi_slip(largest=True),
+        times_tau=_mppi_slip(weights=lambda s, tau: torch.softmax(-_shifted(s) * tau, dim=1)),
+        growing_weights=_mppi_slip(weights=lambda s, tau: torch.softmax(_shifted(s) / tau, 1)),
+        equal_weights=_mppi_slip(weights=lambda s, tau: torch.full_like(s, 1 / s.shape[1])),
+        unnormalised=_mppi_slip(weights=lambda s, tau: torch.exp(-_shifted(s) / tau)),
+        variance=_mppi_slip(std=lambda a, w, m: (w * (a - m[:, None]).pow(2)).sum(1)),
+        unweighted_std=(_mppi_slip(std=lambda a, w, m: a.std(1)),
+                        _mppi_slip(std=lambda a, w, m: a.std(1, unbiased=False))),
+        uncentred_std=_mppi_slip(std=lambda a, w, m: (w * a.pow(2)).sum(1).sqrt())),
+    _mppi_cases, answers=(planning.mppi_weights, planning.weighted_mean_std,
+                          planning.select_elites), parts=("mean", "std"))

@@ -1,13 +1,12 @@
-"""Checker of chapter 02: the Epps-Pulley statistic of SIGReg."""
+"""Checker of chapter 02: the Epps-Pulley statistic of SIGReg on one slice ``x`` ``(N,)``, the
+course's :func:`~ebjepa_tutorial.losses.sigreg.epps_pulley` with ``sigma = 1``."""
 
 from __future__ import annotations
-
-from collections.abc import Callable
 
 import torch
 
 from ...losses.sigreg import epps_pulley, sigreg_loss
-from .common import Case, compare, exercise
+from .common import Case, exercise, slips
 
 
 def _epps_pulley_reference(x, knots=17, t_max=3.0, scale_by_n=True):
@@ -34,7 +33,7 @@ def _epps_pulley_cases() -> list[Case]:
 
 
 def _epps_pulley_slip(weight=True, imag=True, square=True, rule="trapezoid", average=True,
-                      symmetric=False) -> Callable:
+                      symmetric=False):
     """The notebook's statistic with one mistake (each keyword undoes one step)."""
     def epps_pulley_1d(x, knots=17, t_max=3.0, scale_by_n=True):
         t = torch.linspace(-t_max if symmetric else 0.0, t_max, knots)
@@ -51,52 +50,14 @@ def _epps_pulley_slip(weight=True, imag=True, square=True, rule="trapezoid", ave
     return epps_pulley_1d
 
 
-_EPPS_PULLEY_HINTS = (
-    "A sample looks Gaussian when its characteristic function, the average over the sample "
-    "of exp(i t x), matches the Gaussian's, exp(-t^2/2), at every t. Measure the squared gap "
-    "between the two at a handful of values of t, weight it so that small t counts most, "
-    "and add it up over t (a numerical integral).",
-    "Knots: K values of t equally spaced from 0 to t_max. Empirical characteristic "
-    "function: Re = the mean over the N samples of cos(t x_n), Im = the mean of sin(t x_n), "
-    "one value per knot. Integrand: exp(-t^2/2) * ((Re - exp(-t^2/2))^2 + Im^2). Integrate "
-    "it over [0, t_max] with the trapezoid rule, double the result (the integrand is even in "
-    "t), and multiply by N when scale_by_n is true. Shapes: x is (N,), the knots (K,), all "
-    "the products t x_n form an (N, K) table, averaged over its N rows.",
-    "t = <K equally spaced knots from 0 to t_max>\n"
-    "xt = <the (N, K) table of products x_n * t_k>  # broadcast x as a column against t\n"
-    "real, imag = <cos and sin of xt, each averaged over the sample (dim 0)>\n"
-    "gaussian = torch.exp(-t**2 / 2)\n"
-    "integrand = gaussian * ((real - gaussian)**2 + imag**2)\n"
-    "statistic = 2 * <the trapezoid rule of integrand over t>\n"
-    "return <statistic times N if scale_by_n, else statistic>",
-)
-
-_EPPS_PULLEY_SLIPS = [
-    ("the weight w(t) = exp(-t^2/2) is missing from the integrand: integrate "
-     "w(t) |phi_N(t) - phi(t)|^2.", _epps_pulley_slip(weight=False)),
-    ("the imaginary part is missing: |phi_N - phi|^2 = (mean cos(tx) - exp(-t^2/2))^2 "
-     "+ (mean sin(tx))^2.", _epps_pulley_slip(imag=False)),
-    ("you integrated |phi_N - phi| unsquared; the statistic integrates its square.",
-     _epps_pulley_slip(square=False)),
-    ("you used a plain sum times the knot spacing (a rectangle rule); the course integrates "
-     "with the trapezoid rule, which halves the two end knots.", _epps_pulley_slip(rule="sum")),
-    ("you summed cos(tx) and sin(tx) over the sample; the empirical characteristic function "
-     "averages them.", _epps_pulley_slip(average=False)),
-    ("you spread the knots over [-t_max, t_max]; the course puts them on [0, t_max] and "
-     "doubles the integral (the integrand is even): the same integral on a finer grid.",
-     _epps_pulley_slip(symmetric=True)),
-]
-
-
-@exercise(_epps_pulley_reference, _EPPS_PULLEY_SLIPS, name="epps_pulley_1d",
-          hints=_EPPS_PULLEY_HINTS, answers=(epps_pulley, sigreg_loss))
-def check_epps_pulley(fn: Callable) -> bool:
-    """Notebook 02: ``epps_pulley_1d(x, knots=17, t_max=3.0, scale_by_n=True)`` on one slice
-    ``x`` ``(N,)`` -> a 0-d tensor, the course's :func:`~ebjepa_tutorial.losses.sigreg.epps_pulley`
-    with ``sigma = 1``; value and gradient with respect to ``x``."""
-    return compare(fn, _epps_pulley_reference, _epps_pulley_cases(), atol=1e-4,
-                   diagnoses=_EPPS_PULLEY_SLIPS, grad=[(0, "the sample x")], dims={0: "N"},
-                   factors={"N": "with scale_by_n=True the statistic is N times the integral, "
-                                 "with scale_by_n=False the integral alone",
-                            "2": "integrate over [0, t_max], then double once: the integrand "
-                                 "is even in t"})
+check_epps_pulley = exercise(
+    "epps_pulley_1d", _epps_pulley_reference, slips(
+        "epps_pulley_1d", unweighted=_epps_pulley_slip(weight=False),
+        real_only=_epps_pulley_slip(imag=False), unsquared=_epps_pulley_slip(square=False),
+        rectangle_rule=_epps_pulley_slip(rule="sum"), summed=_epps_pulley_slip(average=False),
+        symmetric_knots=_epps_pulley_slip(symmetric=True)),
+    _epps_pulley_cases, answers=(epps_pulley, sigreg_loss), atol=1e-4,
+    grad=[(0, "the sample x")], dims={0: "N"},
+    factors={"N": "with scale_by_n=True the statistic is N times the integral, with "
+                  "scale_by_n=False the integral alone",
+             "2": "integrate over [0, t_max], then double once: the integrand is even in t"})

@@ -1,12 +1,9 @@
-"""Checkers of chapter 04: the wall collision for one step, in two checked steps.
-
-1. ``check_slab_crossing(fn)``: ``fn(x0, x1, x_lo, x_hi) -> (t_in, t_out)``, all ``(B,)``,
-   the fractions of a move at which the dot is inside the wall's slab.
-2. ``check_wall_collision(fn)``: ``fn(positions, moves, layouts) -> new positions (B, 2)``,
-   on moves through the door, into the wall, into the door's side, into the border, free,
-   random and huge ones. It says in plain words what went wrong first (leaving the arena,
-   passing through the wall, ending inside it, stopping at an open door), or names the
-   typical wrong rule that gives the learner's positions.
+"""Checkers of chapter 04: the wall collision for one step, in two checked steps:
+``slab_crossing(x0, x1, x_lo, x_hi) -> (t_in, t_out)``, all ``(B,)``, the fractions of a move
+spent inside the wall's slab; then ``wall_collision(positions, moves, layouts)`` -> new positions
+``(B, 2)``. For the second, the checker says in plain words what went wrong first (leaving the
+arena, passing through the wall, ending inside it, stopping at an open door), or names the
+typical wrong rule that gives the learner's positions.
 """
 
 from __future__ import annotations
@@ -27,11 +24,11 @@ from .common import (
     ExerciseError,
     _describe,
     _run,
-    _transposition,
+    _transposed,
     _type_problem,
-    compare,
     diagnose,
     exercise,
+    slips,
 )
 
 
@@ -56,44 +53,13 @@ def _crossing_slip(order=True, clamp=True, still=True, strict=True):
 
 
 _slab_crossing = _crossing_slip()  # the reference: no mistake
-_CROSSING_HINTS = (
-    "Follow the move as a straight segment: x goes from x0 to x1 while a fraction t goes "
-    "from 0 to 1. The slab is an interval of x; find the range of t for which x is inside "
-    "it. A move may enter from either side, or not move in x at all.",
-    "x(t) = x0 + t (x1 - x0). It reaches the slab's two faces at t_a = (x_lo - x0) / "
-    "(x1 - x0) and t_b = (x_hi - x0) / (x1 - x0); t_in is the smaller of the two and t_out "
-    "the larger, each clamped to [0, 1] (a move that stops short, or starts inside, uses "
-    "only part of the slab). If x1 equals x0 there is nothing to divide by: the dot is then "
-    "inside for the whole move (t_in = 0, t_out = 1) if x_lo < x0 < x_hi, and never "
-    "(t_in = t_out = 0) otherwise. All four inputs are (B,): decide per move with "
-    "torch.where, not with if.",
-    "moving = <x1 differs from x0>\n"
-    "dx = <x1 - x0 where moving, else 1, so that nothing divides by zero>\n"
-    "t_a, t_b = <the fractions at which x reaches x_lo and x_hi>\n"
-    "t_in = torch.where(moving, <the smaller of t_a, t_b, clamped to [0, 1]>, 0.0)\n"
-    "t_out = torch.where(moving, <the larger, clamped>, <1.0 if x0 is strictly inside the "
-    "slab, else 0.0>)\n"
-    "return t_in, t_out",
-)
-
-_CROSSING_SLIPS = [
-    ("a move to the left reaches x_hi first: t_in is the smaller of the two fractions and "
-     "t_out the larger, whichever face each belongs to.", _crossing_slip(order=False)),
-    ("you did not clamp the fractions to [0, 1]: a move that stops before the slab, or "
-     "starts inside it, uses only the part of the slab between its start and its end.",
-     _crossing_slip(clamp=False)),
-    ("a move with no change in x divides by zero: handle it apart (inside for the whole move "
-     "if x_lo < x0 < x_hi, never otherwise).", _crossing_slip(still=False)),
-    ("a dot exactly on a face (x0 = x_lo or x0 = x_hi) is not inside the slab: the slab is "
-     "the open interval x_lo < x < x_hi.", _crossing_slip(strict=False)),
-]
 
 
-def _crossing_cases(seed: int = 1, n: int = 64) -> list[Case]:
-    g = torch.Generator().manual_seed(seed)
+def _crossing_cases(n: int = 64) -> list[Case]:
+    g = torch.Generator().manual_seed(1)
 
-    def rand(*shape, dtype=torch.float32):
-        return torch.rand(*shape, generator=g, dtype=dtype)
+    def rand(n):
+        return torch.rand(n, generator=g)
 
     wall_x = 14.0 + torch.randint(0, 36, (n,), generator=g).float()
     x_lo, x_hi = wall_x - 2.5, wall_x + 2.5
@@ -117,30 +83,29 @@ def _crossing_cases(seed: int = 1, n: int = 64) -> list[Case]:
     ]
 
 
-@exercise(_slab_crossing, _CROSSING_SLIPS, name="slab_crossing", hints=_CROSSING_HINTS)
-def check_slab_crossing(fn) -> bool:
-    """Notebook 04, step 1: ``slab_crossing(x0, x1, x_lo, x_hi) -> (t_in, t_out)``, all
-    ``(B,)``."""
-    return compare(fn, _slab_crossing, _crossing_cases(), atol=1e-5, parts=("t_in", "t_out"),
-                   diagnoses=_CROSSING_SLIPS)
+check_slab_crossing = exercise(
+    "slab_crossing", _slab_crossing, slips(
+        "slab_crossing", unordered=_crossing_slip(order=False),
+        unclamped=_crossing_slip(clamp=False), division_by_zero=_crossing_slip(still=False),
+        closed_slab=_crossing_slip(strict=False)),
+    _crossing_cases, parts=("t_in", "t_out"))
 
 
-def _cases(seed: int, n: int) -> list[Case]:
-    """Each kind of move: positions (n, 2), moves (n, 2), layouts (n, 2)."""
-    g = torch.Generator().manual_seed(seed)
-    layouts = random_layouts(n, g)
-    x_lo, x_hi, y_lo, y_hi = wall_bounds(layouts)
-    wall_x, door_y = layouts.float().unbind(-1)
-    side = torch.randint(0, 2, (n,), generator=g).float() * 2 - 1  # -1 left, +1 right
-    face = torch.where(side < 0, x_lo, x_hi)
-    gap = 1.5 * torch.rand(n, generator=g)
-    in_door = door_y + 6.8 * torch.rand(n, generator=g) - 3.4
-    above = y_lo - 1 - (y_lo - LOW - 1) * torch.rand(n, generator=g)  # rows above the door
-    toward = -side[:, None] * torch.stack([1.2 + torch.rand(n, generator=g), torch.zeros(n)], -1)
+def _wall_cases(n: int = 512) -> list[Case]:
+    """``n`` moves of each kind: positions (n, 2), moves (n, 2), layouts (n, 2)."""
+    g = torch.Generator().manual_seed(0)
 
     def rand(*shape):
         return torch.rand(*shape, generator=g)
 
+    layouts = random_layouts(n, g)
+    x_lo, x_hi, y_lo, y_hi = wall_bounds(layouts)
+    wall_x, door_y = layouts.float().unbind(-1)
+    side = torch.randint(0, 2, (n,), generator=g).float() * 2 - 1  # -1 left, +1 right
+    face, gap = torch.where(side < 0, x_lo, x_hi), 1.5 * rand(n)
+    in_door = door_y + 6.8 * rand(n) - 3.4
+    above = y_lo - 1 - (y_lo - LOW - 1) * rand(n)  # rows above the door
+    toward = -side[:, None] * torch.stack([1.2 + rand(n), torch.zeros(n)], -1)
     free = torch.stack([LOW + 2 + (x_lo - LOW - 4) * rand(n), LOW + 2 + 50 * rand(n)], -1)
     corridor = torch.stack([wall_x + 4.8 * rand(n) - 2.4, in_door], -1)
     random_pos = sample_positions(layouts, g)
@@ -252,60 +217,22 @@ def _no_door_sides(positions, moves, layouts):
     return torch.stack([wall_collision(positions, moves, layouts)[:, 0], target[:, 1]], -1)
 
 
-_NOT_CLAMPED_FIRST = (
-    "the target was not clamped to the arena first. Rule 1 comes before the walls: the wall "
-    "rules follow the segment from the start to the clamped target; from an unclamped one "
-    "the segment meets the wall's line at another height, so the dot can stop where the door "
-    "is open, or pass where it is shut. Clamp positions + moves to [LOW, HIGH] before the "
-    "slab and the door are looked at.")
-_WALL_HINTS = (
-    "Three rules, in order. First keep the target in the arena. Then the slab decides: if "
-    "the dot enters it at a height outside the doorway, the wall's face stops x; if it "
-    "enters through the doorway but would leave the door's span while still inside the "
-    "slab, the door's edge stops y. Only the blocked coordinate stops; the other one moves "
-    "on. slab_crossing gives the fractions of the move spent inside the slab.",
-    "Target (x1, y1): positions + moves, each coordinate clamped to [LOW, HIGH]. With t_in, "
-    "t_out from slab_crossing, the segment enters the slab if t_out > t_in, at height y_in "
-    "= y(t_in), and leaves it at y_out = y(t_out), where y(t) = y0 + t (y1 - y0). Rule 2 "
-    "(face): it enters and y_in is outside [y_lo, y_hi]: x becomes the face it came from "
-    "(x_lo if x0 <= x_lo, else x_hi). Rule 3 (door side): it enters, rule 2 does not apply, "
-    "and y_out is outside [y_lo, y_hi]: y becomes y1 clamped to [y_lo, y_hi]. Otherwise "
-    "(x1, y1). Decide per row with torch.where; return (B, 2).",
-    "step 1: x1, y1 = <positions + moves clamped to [LOW, HIGH], split into its columns>\n"
-    "step 2: enters = t_out > t_in\n"
-    "        hits_face = enters & <y_in outside [y_lo, y_hi]>\n"
-    "        hits_side = enters & ~hits_face & <y_out outside [y_lo, y_hi]>\n"
-    "        x = torch.where(hits_face, <the face the dot came from>, x1)\n"
-    "        y = torch.where(hits_side, <y1 clamped to the doorway>, y1)\n"
-    "        return <x and y stacked as the last axis>",
-)
-
-_WALL_SLIPS = [  # the wall rules on the unclamped target, clamped at the end or never
-    (_NOT_CLAMPED_FIRST, lambda p, m, walls: stop_at_wall(p, p + m, walls).clamp(LOW, HIGH)),
-    (_NOT_CLAMPED_FIRST, lambda p, m, walls: stop_at_wall(p, p + m, walls)),
-    ("you cancel the whole move when the wall blocks it; stop only the blocked coordinate "
-     "(x at the wall's face) and let the other one (y) slide on.", _stay_put),
-    ("you stop the dot where its path meets the wall's face, y included; only x stops there: "
-     "y still moves the whole way (the dot slides along the wall).", _stop_at_contact),
-    ("you handled the wall's faces but not the door's sides: a move that enters the doorway "
-     "and would leave its span inside the slab must stop y at the door's edge (y_lo or y_hi).",
-     _no_door_sides),
-]
+_WALL_SLIPS = slips(  # the wall rules on the unclamped target, clamped at the end or never
+    "wall_collision",
+    not_clamped_first=(lambda p, m, walls: stop_at_wall(p, p + m, walls).clamp(LOW, HIGH),
+                       lambda p, m, walls: stop_at_wall(p, p + m, walls)),
+    stay_put=_stay_put, stop_at_contact=_stop_at_contact, no_door_sides=_no_door_sides)
 
 
-@exercise(wall_collision, _WALL_SLIPS, name="wall_collision", hints=_WALL_HINTS,
-          answers=(stop_at_wall,))
-def check_wall_collision(fn, n: int = 512, seed: int = 0) -> bool:
-    """Compare ``fn(positions, moves, layouts)`` with the reference on ``n`` moves of each
-    kind; print a verdict or raise :class:`ExerciseError` saying which failed and how."""
+def _check_wall_collision(fn) -> None:
     name = getattr(fn, "__name__", "your function")
-    cases = _cases(seed, n)
+    cases = _wall_cases()
     for case in cases:
         expected, desc = wall_collision(*case.args), case.description
         got, _ = _run(fn, name, case, ("positions", "moves", "layouts"))
         if (problem := _type_problem(got, name, case)):
             raise ExerciseError(problem)
-        if got.shape != expected.shape and _transposition(got, expected, 1e-4) is not None:
+        if got.shape != expected.shape and _transposed(got, expected, 1e-4):
             raise ExerciseError(
                 f"{name} put the right positions in the wrong layout on {desc}: shape "
                 f"{tuple(got.shape)}, where {tuple(expected.shape)} is expected, one row (x, y) "
@@ -318,5 +245,9 @@ def check_wall_collision(fn, n: int = 512, seed: int = 0) -> bool:
         why = diagnose(got, _WALL_SLIPS, case, atol=1e-3)
         if (problem := _first_problem(name, case, got, expected, bool(why))):
             raise ExerciseError(problem + why)
-    print(f"Correct: {name} matches the reference wall collision on {n * len(cases)} moves.")
-    return True
+    moves = sum(len(case.args[0]) for case in cases)
+    print(f"Correct: {name} matches the reference wall collision on {moves} moves.")
+
+
+check_wall_collision = exercise("wall_collision", wall_collision, _WALL_SLIPS,
+                                check=_check_wall_collision, answers=(stop_at_wall,))

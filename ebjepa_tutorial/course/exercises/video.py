@@ -1,5 +1,7 @@
-"""Checker of chapter 03: the paper's K-step loss (the parallel unroll the model trains
-with), its value and its gradients."""
+"""Checker of chapter 03: the paper's K-step loss (the parallel unroll the model trains with),
+``parallel_rollout_loss(predictor, z, context=2, steps=4, detach_later=False)`` -> a 0-d tensor,
+its value and its gradients with respect to the predictor's weights, the last latent (a target
+only) and the other latents, on toy predictors."""
 
 from __future__ import annotations
 
@@ -8,7 +10,7 @@ from collections.abc import Callable
 import torch
 
 from ...losses.rollout import Predictor, parallel_rollout_loss, parallel_unroll, rollout_loss
-from .common import Case, compare, exercise
+from .common import Case, Comparison, exercise, slips
 
 
 def _toy_predictor(kind: str, weight: torch.Tensor) -> Predictor:
@@ -83,90 +85,6 @@ def _autoregressive(predictor, z, context=2, steps=4, detach_later=False):
     return rollout_loss(predictor, z, context, steps, detach_later)
 
 
-_HINTS = (
-    "Unroll the predictor on its own predictions, the paper's way: step 1 predicts every frame "
-    "of the clip from the true latents before it; each later step predicts every frame again, "
-    "from the sequence the previous step made (the true context in front). Score each step "
-    "against the true latents; the loss is the mean over the K steps. With detach_later, "
-    "steps 2..K work on detached latents, so they train the predictor but not the encoder.",
-    "z is (B, T, C, S, S). A step takes a sequence (the true z at step 1), builds for each "
-    "frame t = context .. T-1 the window of frames t - context .. t - 1 of that sequence, "
-    "(B, T - context, context, C, S, S), flattens B and T - context to call the predictor, "
-    "and gets predictions (B, T - context, C, S, S). The error of step k is the mean squared "
-    "difference between its predictions and z[:, context:]; the next sequence is the true "
-    "z[:, :context] followed by the predictions. L = (1/K) sum_k error_k. With detach_later "
-    "(and K > 1): error_1 on z as above; steps 2..K are unrolled again from z.detach(), "
-    "their inputs and targets both detached (step 1 is computed twice).",
-    "errors = []\n"
-    "if detach_later and steps > 1:\n"
-    "    errors.append(<this loss of z with steps=1>)\n"
-    "    z = <z, detached>\n"
-    "sequence = z\n"
-    "for k in range(steps):\n"
-    "    n = <the number of predicted frames, T - context>\n"
-    "    windows = <stack sequence[:, j:j + n] for j in range(context), along a new dim 2>\n"
-    "    predictions = <predictor on windows with B and n flattened, then unflattened>\n"
-    "    if <k >= len of the errors you already hold>:\n"
-    "        errors.append(<mean squared difference of predictions and z[:, context:]>)\n"
-    "    sequence = <z[:, :context] followed by predictions, along the time axis>\n"
-    "return <the mean of the errors, stacked into one tensor>",
-)
-
-_SLIPS = [(words, _slip(**slip)) for words, slip in [  # gradient-only slips first
-    ("with detach_later, steps 2..K still reach the encoder: unroll them from z.detach() and "
-     "score them against z.detach(), so only the step-1 error trains the encoder.",
-     {"detach": "ignored"}),
-    ("with detach_later, steps 2..K unroll from z.detach() but still aim at z: their targets "
-     "must be detached too, or the encoder learns from their errors through the targets.",
-     {"detach": "inputs"}),
-    ("you detached the predictions between steps: detach_later detaches the latents z (the "
-     "inputs and targets of steps 2..K), and the predictor still learns through every step "
-     "of the unroll.", {"detach": "predictions"}),
-    ("no gradient reaches the target latents: did you .detach() them? The course keeps the "
-     "targets' gradient, as the paper does (only steps 2..K with detach_later aim at detached "
-     "latents).", {"detach_targets": True}),
-    ("teacher forcing: every step predicted from the true latents; step k predicts from the "
-     "sequence step k - 1 made, the true context in front.", {"teacher_forcing": True}),
-    ("an off-by-one target: the prediction made from frames t - context .. t - 1 is compared "
-     "with z_t, the frame just after its window (z[:, context:]); you compared it with the "
-     "frame before.", {"early": 1}),
-    ("you averaged the error over all T frames, the true context in front included (its error "
-     "is 0, as in the paper's reference code); the course averages the predicted frames "
-     "t >= context only.", {"with_context": True}),
-    ("you scored only the last step; the loss is the mean of the errors of all K steps.",
-     {"last_only": True}),
-    ("you unrolled along the batch axis: time is axis 1 of z (B, T, C, S, S), so the windows "
-     "are z[:, j:j + n], not z[j:j + n].", {"batch_axis": True}),
-    ("you ignored the context argument (your windows always hold 2 latents).", {"context": 2}),
-    ("you summed the squared error over each latent's elements; the error of a step is their "
-     "mean.", {"error": lambda d: d.pow(2).flatten(1).sum(1).mean()}),
-    ("an unsquared distance: the loss is the mean *squared* error, not its square root.",
-     {"error": lambda d: d.pow(2).mean().sqrt()}),
-    ("you used the absolute error; the loss is the mean squared error.",
-     {"error": lambda d: d.abs().mean()}),
-]] + [
-    ("this is the autoregressive rollout loss, one true context rolled forward from every "
-     "start as a planner does; the model trains with the paper's parallel unroll: each step "
-     "predicts every frame t >= context from the whole sequence the previous step made.",
-     _autoregressive),
-]
-
-
-@exercise(parallel_rollout_loss, _SLIPS, name="parallel_rollout_loss", hints=_HINTS,
-          answers=(parallel_unroll, rollout_loss))
-def check_parallel_rollout_loss(fn: Callable) -> bool:
-    """Notebook 03: ``parallel_rollout_loss(predictor, z, context=2, steps=4,
-    detach_later=False)`` -> 0-d tensor; gradients with respect to the predictor's weights,
-    the last latent (a target only) and the other latents, on toy predictors."""
-    return compare(_call(fn), _call(parallel_rollout_loss), _cases(),
-                   diagnoses=[(w, _call(v)) for w, v in _SLIPS],
-                   labels=["the predictor", "the predictor's weights", "the latents z[:, :-1]",
-                           "the last latent z[:, -1]"],
-                   grad=[(1, "the predictor's weights"), (2, "the other latents z[:, :-1]"),
-                         (3, "the last latent z[:, -1] (only ever a target)")],
-                   factors={"K": "a sum over the K steps where their mean belongs"})
-
-
 def _cases() -> list[Case]:
     g = torch.Generator().manual_seed(7)
     drift = torch.arange(7.0)[None, :, None, None, None] * torch.randn(1, 1, 2, 3, 3, generator=g)
@@ -192,3 +110,25 @@ def _cases() -> list[Case]:
         _case("one step (K 1) with detach_later=True (nothing to detach)", "mixer",
               torch.randn(2, 6, 2, 3, 3, generator=g), 2, 1, True),
     ]
+
+
+_SLIPS = slips(  # gradient-only slips first
+    "parallel_rollout_loss", detach_ignored=_slip(detach="ignored"),
+    targets_not_detached=_slip(detach="inputs"), predictions_detached=_slip(detach="predictions"),
+    targets_detached=_slip(detach_targets=True), teacher_forcing=_slip(teacher_forcing=True),
+    off_by_one=_slip(early=1), context_averaged=_slip(with_context=True),
+    last_step_only=_slip(last_only=True), batch_axis=_slip(batch_axis=True),
+    context_ignored=_slip(context=2),
+    summed_elements=_slip(error=lambda d: d.pow(2).flatten(1).sum(1).mean()),
+    unsquared=_slip(error=lambda d: d.pow(2).mean().sqrt()),
+    absolute=_slip(error=lambda d: d.abs().mean()), autoregressive=_autoregressive)
+_COMPARISON = Comparison(
+    _call(parallel_rollout_loss), _cases, [(w, _call(v)) for w, v in _SLIPS],
+    labels=["the predictor", "the predictor's weights", "the latents z[:, :-1]",
+            "the last latent z[:, -1]"],
+    grad=[(1, "the predictor's weights"), (2, "the other latents z[:, :-1]"),
+          (3, "the last latent z[:, -1] (only ever a target)")],
+    factors={"K": "a sum over the K steps where their mean belongs"})
+check_parallel_rollout_loss = exercise(
+    "parallel_rollout_loss", parallel_rollout_loss, _SLIPS,
+    check=lambda fn: _COMPARISON(_call(fn)), answers=(parallel_unroll, rollout_loss))

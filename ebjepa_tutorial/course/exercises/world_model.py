@@ -1,18 +1,15 @@
-"""Checkers of chapter 05: the temporal-similarity and inverse-dynamics terms, values and
-gradients with respect to the latents."""
+"""Checkers of chapter 05: the temporal-similarity and inverse-dynamics terms on latents ``z``
+``(B, T, D)``, values and gradients with respect to the latents."""
 
 from __future__ import annotations
-
-from collections.abc import Callable
 
 import torch
 
 from ...losses import world as world_losses
-from .common import Case, compare, exercise
+from .common import Case, exercise, slips
 
 
 def _trajectory_latents() -> list[Case]:
-    """Latent sequences ``(B, T, D)`` of several kinds."""
     g = torch.Generator().manual_seed(3)
     drift = torch.linspace(0, 1, 9)[None, :, None] * torch.tensor([[[1.0, -2.0, 0.5, 0.0]]])
     return [
@@ -32,48 +29,21 @@ def _change(z: torch.Tensor) -> torch.Tensor:
     return z[:, 1:] - z[:, :-1]
 
 
-_TEMPORAL_HINTS = (
-    "An encoder watching a trajectory should move its latent only a little from one frame to "
-    "the next. Measure each step's change of latent and penalise its size, on average.",
-    "The T - 1 changes z_(t+1) - z_t run along axis 1, time; each is (B, D). Square every "
-    "element and average over all B (T - 1) D of them: L = (1 / (B (T - 1) D)) * sum over "
-    "b, t of ||z_(b,t+1) - z_(b,t)||^2, a 0-d tensor.",
-    "changes = <z at times 1 .. T-1 minus z at times 0 .. T-2, slicing axis 1>\n"
-    "return <the mean of changes squared, over every element>",
-)
-
-_TEMPORAL_SLIPS = [
-    ("an unsquared distance ||z_t+1 - z_t||: the term is the mean *squared* change.",
-     lambda z: _change(z).norm(dim=-1).mean()),
-    ("you used the absolute change; the term squares it.",
-     lambda z: _change(z).abs().mean()),
-    ("you summed instead of averaging: the term is the mean over every element.",
-     lambda z: _change(z).pow(2).sum()),
-    ("the gradient reaches z_t+1 but not z_t: you detached the earlier latent of each pair; "
-     "both latents of a pair must be pulled toward each other.",
-     lambda z: (z[:, 1:] - z[:, :-1].detach()).pow(2).mean()),
-    ("the gradient reaches z_t but not z_t+1: you detached the later latent of each pair; "
-     "both latents of a pair must be pulled toward each other.",
-     lambda z: (z[:, 1:].detach() - z[:, :-1]).pow(2).mean()),
-]
+check_temporal_similarity = exercise(
+    "temporal_similarity", world_losses.temporal_similarity_loss, slips(
+        "temporal_similarity", unsquared=lambda z: _change(z).norm(dim=-1).mean(),
+        absolute=lambda z: _change(z).abs().mean(), summed=lambda z: _change(z).pow(2).sum(),
+        earlier_detached=lambda z: (z[:, 1:] - z[:, :-1].detach()).pow(2).mean(),
+        later_detached=lambda z: (z[:, 1:].detach() - z[:, :-1]).pow(2).mean()),
+    _trajectory_latents, grad=[(0, "the latents z")], dims={0: "BTD"},
+    swap=(0, 0, 1, "the batch and the time axes of z exchanged",
+          "Here z is (B, T, D): consecutive latents of one trajectory are neighbours along "
+          "axis 1, time, not along axis 0"),
+    factors={"D": "the change is averaged over the D dimensions too, not summed over them",
+             "T/(T - 1)": "T latents make T - 1 changes: average over those"})
 
 
-@exercise(world_losses.temporal_similarity_loss, _TEMPORAL_SLIPS, name="temporal_similarity",
-          hints=_TEMPORAL_HINTS)
-def check_temporal_similarity(fn: Callable) -> bool:
-    """Notebook 05: ``temporal_similarity(z)`` on latents ``(B, T, D)`` -> a 0-d tensor."""
-    return compare(fn, world_losses.temporal_similarity_loss, _trajectory_latents(),
-                   diagnoses=_TEMPORAL_SLIPS, grad=[(0, "the latents z")], dims={0: "BTD"},
-                   swap=(0, 0, 1, "the batch and the time axes of z exchanged",
-                         "Here z is (B, T, D): consecutive latents of one trajectory are "
-                         "neighbours along axis 1, time, not along axis 0"),
-                   factors={"D": "the change is averaged over the D dimensions too, not "
-                                 "summed over them",
-                            "T/(T - 1)": "T latents make T - 1 changes: average over those"})
-
-
-def _linear_inverse_model(latent_dim: int, action_dim: int, seed: int,
-                          dtype=torch.float32) -> Callable:
+def _linear_inverse_model(latent_dim: int, action_dim: int, seed: int, dtype=torch.float32):
     """A fixed random map ``g(z_t, z_next) = W [z_t, z_next] + b``: ``(..., D) x2 -> (..., A)``."""
     g = torch.Generator().manual_seed(seed)
     weight = torch.randn(2 * latent_dim, action_dim, generator=g, dtype=dtype) / latent_dim**0.5
@@ -90,47 +60,8 @@ def _difference_model(z, z_next):
     return (z_next - z)[..., :2]
 
 
-_INVERSE_HINTS = (
-    "If the latent keeps what the agent did, a small head can read the action back from two "
-    "consecutive latents. The loss scores that reading against the actions that were really "
-    "taken, so that training makes the latent keep them.",
-    "The pairs are (z_t, z_(t+1)) for t = 0 .. T - 2: the first T - 1 latents and the last "
-    "T - 1 latents, each (B, T - 1, D). predict_actions takes all pairs in one call, the "
-    "earlier latent first, and gives (B, T - 1, A), one action per pair, like actions. "
-    "L = the mean over all B (T - 1) A elements of (predicted - a)^2.",
-    "predicted = predict_actions(<latents 0 .. T-2>, <latents 1 .. T-1>)  # (B, T-1, A)\n"
-    "return <the mean of (predicted - actions) squared>",
-)
-
-_INVERSE_SLIPS = [
-    ("you gave g the pair in the wrong order: the action is read as g(z_t, z_t+1), the "
-     "earlier latent first.",
-     lambda g, z, a: (g(z[:, 1:], z[:, :-1]) - a).pow(2).mean()),
-    ("an unsquared distance ||g - a||: the loss is the mean *squared* error.",
-     lambda g, z, a: (g(z[:, :-1], z[:, 1:]) - a).norm(dim=-1).mean()),
-    ("you used the absolute error; the loss is the mean squared error.",
-     lambda g, z, a: (g(z[:, :-1], z[:, 1:]) - a).abs().mean()),
-    ("you summed instead of averaging: the loss is the mean over every element.",
-     lambda g, z, a: (g(z[:, :-1], z[:, 1:]) - a).pow(2).sum()),
-    ("the gradient reaches z_t but not z_t+1: you detached the later latent of each pair; "
-     "both latents must receive it.",
-     lambda g, z, a: (g(z[:, :-1], z[:, 1:].detach()) - a).pow(2).mean()),
-    ("the gradient reaches z_t+1 but not z_t: you detached the earlier latent of each pair; "
-     "both latents must receive it.",
-     lambda g, z, a: (g(z[:, :-1].detach(), z[:, 1:]) - a).pow(2).mean()),
-]
-
-
-@exercise(world_losses.inverse_dynamics_loss, _INVERSE_SLIPS, name="inverse_dynamics",
-          hints=_INVERSE_HINTS)
-def check_inverse_dynamics(fn: Callable) -> bool:
-    """Notebook 05: ``inverse_dynamics(predict_actions, z, actions)`` -> a 0-d tensor.
-
-    ``z``: latents ``(B, T, D)``; ``actions``: ``(B, T-1, A)``; ``predict_actions``
-    maps ``(z_t, z_next)``, each ``(..., D)``, to actions ``(..., A)``. The gradient
-    with respect to ``z`` is what makes the encoder keep the dot in the latent (only
-    the dot explains the action).
-    """
+def _inverse_cases() -> list[Case]:
+    """``(predict_actions, z (B, T, D), actions (B, T - 1, A))``."""
     g, cases = torch.Generator().manual_seed(4), []
     for b, t, d, a, dtype in [(4, 17, 8, 2, torch.float32), (3, 2, 5, 2, torch.float32),
                               (2, 9, 6, 3, torch.float32), (5, 7, 4, 2, None),
@@ -142,7 +73,21 @@ def check_inverse_dynamics(fn: Callable) -> bool:
         cases.append(Case(f"{what}, latents ({b}, {t}, {d}) and actions ({b}, {t - 1}, {a})",
                           (model, torch.randn(b, t, d, generator=g, dtype=dtype),
                            torch.randn(b, t - 1, a, generator=g, dtype=dtype))))
-    return compare(fn, world_losses.inverse_dynamics_loss, cases, diagnoses=_INVERSE_SLIPS,
-                   grad=[(1, "the latents z")], dims={1: "BTD", 2: "__A"},
-                   factors={"A": "the error is averaged over the A action dimensions too, "
-                                 "not summed over them"})
+    return cases
+
+
+def _pairs(g, z, a, earlier=lambda z: z, later=lambda z: z):
+    return g(earlier(z[:, :-1]), later(z[:, 1:])) - a
+
+
+check_inverse_dynamics = exercise(
+    "inverse_dynamics", world_losses.inverse_dynamics_loss, slips(
+        "inverse_dynamics",
+        wrong_order=lambda g, z, a: (g(z[:, 1:], z[:, :-1]) - a).pow(2).mean(),
+        unsquared=lambda g, z, a: _pairs(g, z, a).norm(dim=-1).mean(),
+        absolute=lambda g, z, a: _pairs(g, z, a).abs().mean(),
+        summed=lambda g, z, a: _pairs(g, z, a).pow(2).sum(),
+        later_detached=lambda g, z, a: _pairs(g, z, a, later=torch.detach).pow(2).mean(),
+        earlier_detached=lambda g, z, a: _pairs(g, z, a, earlier=torch.detach).pow(2).mean()),
+    _inverse_cases, grad=[(1, "the latents z")], dims={1: "BTD", 2: "__A"},
+    factors={"A": "the error is averaged over the A action dimensions too, not summed over them"})
