@@ -6,32 +6,14 @@
 - ``diagnosis``: the energy's pictures and a planner that imagines with the true motion
 """
 
-from .diagnosis import (
-    StateEnv,
-    TrueDynamics,
-    dot_grid,
-    energy_by_distance,
-    energy_map,
-    latent_distance,
-)
-from .mpc import (
-    WORLDS,
-    EpisodeResults,
-    arrival_distance,
-    episode_generators,
-    mpc_loop,
-    run_episodes,
-)
+from .diagnosis import TrueDynamics, dot_grid, energy_by_distance, energy_map
+from .mpc import EpisodeResults, arrival_distance, episode_generators, mpc_loop, run_episodes
 from .mppi import (
-    COSTS,
-    METHODS,
     MIN_STD,
     Habits,
     Noise,
-    Plan,
     PlannerConfig,
     cem_update,
-    check_start_and_goal,
     goal_distance,
     mppi_iteration,
     mppi_update,
@@ -43,14 +25,12 @@ from .mppi import (
     smooth_noise,
     weighted_mean_std,
 )
-from .two_level import TwoLevel, two_level_episodes
+from .two_level import TwoLevel
 
 __all__ = [
-    "COSTS", "METHODS", "MIN_STD", "WORLDS", "EpisodeResults", "Habits", "Noise", "Plan",
-    "PlannerConfig",
-    "StateEnv", "TrueDynamics", "TwoLevel", "arrival_distance", "cem_update",
-    "check_start_and_goal", "dot_grid", "energy_by_distance", "energy_map",
-    "episode_generators", "goal_distance", "latent_distance", "mpc_loop", "mppi_iteration",
-    "mppi_update", "mppi_weights", "plan", "planning_cost", "run_episodes", "select_elites",
-    "shift_plan", "smooth_noise", "two_level_episodes", "weighted_mean_std",
+    "MIN_STD", "EpisodeResults", "Habits", "Noise", "PlannerConfig", "TrueDynamics", "TwoLevel",
+    "arrival_distance", "cem_update", "dot_grid", "energy_by_distance", "energy_map",
+    "episode_generators", "goal_distance", "mpc_loop", "mppi_iteration", "mppi_update",
+    "mppi_weights", "plan", "planning_cost", "run_episodes", "select_elites", "shift_plan",
+    "smooth_noise", "weighted_mean_std",
 ]

@@ -1,10 +1,8 @@
 """Is it the predictor or the energy that fails? The energy's pictures and a true-motion planner.
 
-:func:`energy_map` and :func:`energy_by_distance` show the landscape the
-planner searches (notebooks 06 and 07). :class:`TrueDynamics` is a stand-in
-world model that imagines with the world's TRUE motion, so that
-``run_episodes(..., world="true")`` plans with a perfect predictor and the
-learned energy, and ``world="true_xy"`` with the Euclidean distance in pixels.
+:func:`energy_map` and :func:`energy_by_distance` show the landscape the planner searches;
+with :class:`TrueDynamics`, ``run_episodes(..., world="true")`` plans with a perfect
+predictor and the learned energy, ``world="true_xy"`` with the Euclidean distance in pixels.
 """
 
 from __future__ import annotations
@@ -48,14 +46,10 @@ class StateEnv(TwoRoomsEnv):
 class TrueDynamics:
     """A stand-in world model that imagines with the TRUE motion of its world (a diagnosis).
 
-    Its state is ``[episode, x, y]`` (what :class:`StateEnv` observes); ``rollout``
-    moves the dot by :func:`~ebjepa_tutorial.envs.two_rooms.transition` in its
-    episode's layout, and ``distance`` looks each position up in a table of
-    ``model``'s encodings of the dot at every point of a 1-px grid (nearest point)
-    and measures the latent distance there. ``model=None``: the
-    table holds the grid positions, so the energy is the Euclidean distance in
-    pixels, the best a distance can do without knowing about walls.
-    ``layouts``: ``(B, 2W)``, one per episode (any number W of walls).
+    Its state is ``[episode, x, y]`` (what :class:`StateEnv` observes); ``rollout`` moves
+    the dot by ``envs.two_rooms.transition`` in its episode's layout (``layouts`` ``(B, 2W)``),
+    and ``distance`` measures the latent distance between ``model``'s encodings of the
+    nearest points of a 1-px grid (``model=None``: the Euclidean distance in pixels).
     """
 
     def __init__(self, layouts: torch.Tensor, model=None):
@@ -105,10 +99,8 @@ def energy_map(model, layout: torch.Tensor, goal: torch.Tensor, spacing: float =
     """The planner's view of one layout: ``distance(Enc(o_x), Enc(o_goal))`` for every dot
     position x (default: the latent distance; notebook 07 passes a cost-to-go head).
 
-    ``layout``: ``(2W,)`` long, W walls (``(2,)`` for Two Rooms); ``goal``: ``(2,)``
-    px. Returns ``(coords (G,), energy (G, G))`` with ``energy[i, j]`` at
-    ``(x=coords[j], y=coords[i])`` (image orientation), NaN where the dot cannot
-    be (inside any wall). Frames are encoded on the model's device; the map is on the CPU.
+    ``layout``: ``(2W,)`` long; ``goal``: ``(2,)`` px. Returns ``(coords (G,), energy (G, G))``
+    on the CPU, ``energy[i, j]`` at ``(x=coords[j], y=coords[i])``, NaN inside the walls.
     """
     device = next(model.parameters()).device
     layout, goal = layout.cpu(), goal.cpu()
@@ -128,11 +120,9 @@ def energy_by_distance(model, episodes: Episodes, edges=(0, 5, 10, 15, 20, 30, 4
                        spacing: float = 2.0) -> torch.Tensor:
     """The energy's shape: its mean in rings of pixel distance from the goal, ``(len(edges)-1,)``.
 
-    Each episode's layout and goal give an :func:`energy_map`; every free dot
-    position falls in ring ``i`` when ``edges[i] <= distance < edges[i + 1]``,
-    and each ring is averaged over all positions of all episodes (NaN if empty).
-    A useful energy keeps rising with distance; a flat tail means the planner
-    is blind out there.
+    Every free dot position of each episode's :func:`energy_map` falls in ring ``i`` when
+    ``edges[i] <= distance < edges[i + 1]``; each ring is averaged over all episodes (NaN if
+    empty). A useful energy keeps rising with distance.
     """
     edges = torch.as_tensor(edges, dtype=torch.float32)
     rings = len(edges) - 1

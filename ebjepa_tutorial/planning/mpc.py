@@ -1,21 +1,14 @@
 """The agent: model-predictive control in Two Rooms, and the batched episode runner (notebook 06).
 
-:func:`mpc_loop` is the re-planning loop: encode the observation and the goal,
-plan ``H`` actions (:func:`~ebjepa_tutorial.planning.mppi.plan`), execute the
-first ``m``, observe, re-plan from the previous plan shifted by ``m`` steps
-(warm start). :func:`run_episodes` plays one episode per seed with it, in
-batches, and returns what happened (:class:`EpisodeResults`).
+:func:`mpc_loop` encodes the observation and the goal, plans ``H`` actions, executes the
+first ``m``, observes and re-plans from the rest of the plan (warm start);
+:func:`run_episodes` plays one episode per seed with it, in batches.
 
-Each episode has its own seed, which fixes its task and its planner's noise,
-and nothing couples the episodes of a batch. What the batch does change is
-floating-point rounding: a network's batched kernels may sum in an order that
-depends on the batch size (as on the number of torch threads), so an
-episode's latents can differ in their last bits when it is encoded alone, and
-after a few re-plans that can change which samples are the elites. So an
-episode is reproduced exactly by rerunning its whole batch with the same
-thread count; alone or in another batch it agrees up to that rounding. With
-exact per-row dynamics (``world="true_xy"``) an episode is the same alone and
-in any batch.
+Each episode's seed fixes its task and its planner's noise, and nothing couples the
+episodes of a batch but floating-point rounding: a network's batched kernels may sum in an
+order that depends on the batch size (and thread count), which after a few re-plans can
+change the elites. So an episode reproduces exactly with its whole batch and the same
+threads; alone it agrees up to that rounding (exactly with ``world="true_xy"``).
 """
 
 from __future__ import annotations
@@ -52,8 +45,7 @@ class EpisodeResults:
     @classmethod
     def of(cls, seeds: list[int], episodes: Episodes, env: TwoRoomsEnv, cpu: float,
            wall: float) -> EpisodeResults:
-        """The ``episodes`` that ``env`` has played (its recorded path), timed from ``cpu`` and
-        ``wall``."""
+        """The ``episodes`` that ``env`` has played, timed from ``cpu`` and ``wall``."""
         paths, actions = torch.stack(env.path, dim=1).cpu(), torch.stack(env.actions, dim=1).cpu()
         within = (paths[:, 1:] - episodes.goals[:, None]).norm(dim=-1) <= SUCCESS_RADIUS  # (B, T)
         first = torch.where(within.any(dim=1), within.long().argmax(dim=1) + 1, -1)
@@ -79,8 +71,7 @@ class EpisodeResults:
                               self.cpu_seconds * share, self.wall_seconds * share)
 
     def as_trajectories(self) -> Trajectories:
-        """The episodes as offline data: what the agent saw and did, as
-        :func:`~ebjepa_tutorial.envs.generate_trajectories` stores a random walk."""
+        """The episodes as offline data, as ``envs.generate_trajectories`` stores a random walk."""
         return Trajectories(self.paths, self.actions, self.episodes.layouts,
                             torch.zeros(len(self.seeds), dtype=torch.bool))
 
@@ -109,11 +100,8 @@ class EpisodeResults:
 
 def episode_generators(seeds: Sequence[int],
                        walls: int = 1) -> tuple[Episodes, list[torch.Generator]]:
-    """The task of each seed and the generator its planner continues with.
-
-    ``walls``: 1 for Two Rooms, 2 for Three Rooms (layouts ``(B, 2 * walls)``,
-    start and goal in the outer rooms; see :func:`~ebjepa_tutorial.envs.make_episodes`).
-    """
+    """The task of each seed and the generator its planner continues with; ``walls``: 1 for
+    Two Rooms, 2 for Three Rooms (start and goal in the outer rooms)."""
     if len(seeds) < 1:
         raise ValueError("need at least one episode seed")
     generators = [torch.Generator().manual_seed(int(seed)) for seed in seeds]
@@ -124,11 +112,9 @@ def episode_generators(seeds: Sequence[int],
 def arrival_distance(model, px: float, walls: int = 1) -> float:
     """The latent distance that means "within ``px`` of the goal" to ``model``.
 
-    The median of ``||Enc(o') - Enc(o)||`` over 512 random frames ``o`` (fresh
-    layouts of ``walls`` walls, dots anywhere on the floor, seed 0) and ``o'``, the same
-    frame with the dot moved ``px`` in a random direction (a wall may cut the
-    move short). The agent that stops below it still decides from its
-    observation and the goal image alone.
+    The median of ``||Enc(o') - Enc(o)||`` over 512 random frames ``o`` (fresh layouts of
+    ``walls`` walls, seed 0) and ``o'``, the dot moved ``px`` in a random direction (a wall
+    may cut the move short).
     """
     n, generator = 512, torch.Generator().manual_seed(0)
     layouts = random_layouts(n, generator, walls)
@@ -172,20 +158,14 @@ def mpc_loop(model, env, config, generators, steps, arrived=None, aim=None):
 def run_episodes(model, seeds: Sequence[int], config: PlannerConfig, steps: int | None = None,
                  batch: int | None = None, world: str = "learned", walls: int = 1,
                  two_level=None, loop=mpc_loop) -> EpisodeResults:
-    """Plan and act in one episode per seed with ``loop`` (default :func:`mpc_loop`) and
-    the planner ``config``.
+    """Plan and act in one episode per seed with ``loop`` and the planner ``config``.
 
-    Episode ``seed`` draws its layout, start and goal (the two outer rooms) and
-    then its planner's noise from ``torch.Generator().manual_seed(seed)``.
-    ``walls``: 1 for Two Rooms, 2 for Three Rooms. ``steps``: the episode's
-    length; None gives the world's step budget (200 steps with one wall, 120
-    with two). ``batch`` episodes run at once (default: all). ``world``: what the
-    planner imagines with: ``"learned"``, the world model (the real task);
-    ``"true"`` and ``"true_xy"``, the diagnoses of
-    :class:`~ebjepa_tutorial.planning.diagnosis.TrueDynamics`. With
-    ``config.habits.stop_px`` the model's :func:`arrival_distance` is calibrated once, its
-    CPU time counted. ``two_level``: a :class:`~ebjepa_tutorial.planning.two_level.TwoLevel`
-    that picks subgoals (a learned world only; ``config.execute`` must be its stride).
+    Episode ``seed`` draws its layout, start and goal, then its planner's noise, from
+    ``torch.Generator().manual_seed(seed)``. ``steps``: None gives the world's step budget.
+    ``batch`` episodes run at once (default: all). ``world``: ``"learned"`` imagines with
+    the world model; ``"true"`` and ``"true_xy"`` are the diagnoses of
+    :class:`~ebjepa_tutorial.planning.diagnosis.TrueDynamics`. ``two_level``: a
+    :class:`~ebjepa_tutorial.planning.two_level.TwoLevel` that picks subgoals.
     """
     seeds, batch = list(seeds), batch or len(seeds)
     if world not in WORLDS:
@@ -213,7 +193,7 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig, steps: int 
 
 def _run_batch(model, seeds: list[int], config: PlannerConfig, steps: int | None, world: str,
                arrived: float | None, walls: int, two_level, loop) -> EpisodeResults:
-    """:func:`run_episodes` for one batch, all at once; ``arrived``: the stopping distance."""
+    """:func:`run_episodes` for one batch; ``arrived``: the stopping distance."""
     episodes, generators = episode_generators(seeds, walls)
     env = (TwoRoomsEnv if world == "learned" else StateEnv)(next(model.parameters()).device)
     cpu, wall = time.process_time(), time.perf_counter()

@@ -1,28 +1,19 @@
 """MPPI and CEM on a latent energy: one re-plan of notebook 06's agent.
 
-The planner never sees positions. From the start latent ``z0 = Enc(o_t)`` it
-imagines ``N`` action sequences of ``H`` steps with the world model's
-predictor and scores each with the planning energy (the paper's Eq. 13):
+From the start latent ``z0 = Enc(o_t)`` the planner imagines ``N`` action sequences of
+``H`` steps with the world model's predictor and scores each with the planning energy
+(the paper's Eq. 13):
 
     S(a_1..a_H) = sum_{k=1..H} || zhat_k - z_goal ||       (cost="sum", the paper's)
     S(a_1..a_H) =               || zhat_H - z_goal ||       (cost="last", its ablation)
     S(a_1..a_H) =               d(zhat_H, z_goal)           (cost="learned", notebook 07)
 
-where ``d`` is a learned cost-to-go (``models.cost.WithLearnedCost``). MPPI (the
-paper's Algorithm 1) keeps the ``Q`` cheapest sequences (the elites), weights
-them by ``exp(-(S_i - S_min) / tau)`` and moves the mean plan and its spread to
-their weighted average; :func:`plan` repeats that ``J`` times. CEM is the same
-with equal weights.
-
-Two choices differ from the paper's code (:class:`Noise`): the sampling noise is
-drawn every ``period`` steps and joined by straight lines (the paper: i.i.d. per
-step), so a sampled plan can wander far enough to find the door; and each
-sampled step is clipped on its length, as the world and the data clip it.
-
-Each episode ``b`` of a batch draws its noise from its own generator and its
-elites, weights, mean and spread come from its own samples alone, so nothing
-couples the episodes of a batch except floating-point rounding in the
-network's batched kernels (see :mod:`~ebjepa_tutorial.planning.mpc`).
+MPPI (the paper's Algorithm 1) keeps the ``Q`` cheapest sequences (the elites), weights
+them by ``exp(-(S_i - S_min) / tau)`` and moves the mean plan and its spread to their
+weighted average; :func:`plan` repeats that ``J`` times. CEM weights the elites equally.
+Unlike the paper's code (:class:`Noise`), the noise is drawn every ``period`` steps and
+joined by straight lines, and each sampled step is clipped on its length. Each episode of a
+batch draws its noise from its own generator; nothing else couples them.
 """
 
 from __future__ import annotations
@@ -37,9 +28,7 @@ from ..utils import check_fields, is_int_at_least, is_non_negative, is_positive
 
 METHODS = ("mppi", "cem")
 COSTS = ("sum", "last", "learned")
-# The smallest spread after an update, px: a search whose elites agree keeps exploring a little.
-# (Elites are clipped to the step bound, so their spread never exceeds it: no upper clamp.)
-MIN_STD = 0.05
+MIN_STD = 0.05  # the smallest spread after an update, px: agreeing elites still explore
 
 
 @dataclass(frozen=True)
@@ -47,15 +36,11 @@ class Noise:
     """How a re-plan samples plans around its mean: a spread of ``std`` px at first, a fresh
     draw every ``period`` steps joined by straight lines, each step clipped to ``bound`` px."""
 
-    # wide enough that some samples of a plan pressed against the wall slide along it to the door
-    std: float = 2.0
-    # 1: i.i.d. noise per step (Algorithm 1); p > 1: smooth noise, a fresh draw every p steps.
-    # White noise averages out over a plan and does not explore far enough around the wall.
-    period: int = 8
+    std: float = 2.0  # wide enough for samples pressed on the wall to slide along it to the door
+    period: int = 8  # 1: i.i.d. noise per step (Algorithm 1); white noise explores too little
     bound: float = MAX_STEP  # the longest step in the data (the coarse level: its stride's)
 
     def __post_init__(self):
-        # a zero spread samples N copies of the mean; a zero bound clips every step to nothing
         check_fields(self, {
             "std": (is_positive, "a finite number > 0", "the spread of the first samples, px"),
             "period": (is_int_at_least(1), "an int >= 1"),
@@ -68,12 +53,11 @@ class Habits:
     """Two habits of a sensible agent that cut an episode's cost several times (notebook 06,
     "Speed"). The paper's agent has neither: ``Habits(warm_iterations=0, stop_px=0)``."""
 
-    # refinements (at most J) of every re-plan after an episode's first, which starts from
-    # the previous plan rather than from standing still; 0: J, as the paper's agent
+    # refinements (at most J) of each re-plan after the first, which starts from the previous
+    # plan; 0: J, as the paper's agent
     warm_iterations: int = 3
-    # Arrived: while the current state is within stop_px of the goal as the model sees it
-    # (mpc.arrival_distance), the agent stands still and plans nothing. 0: plan at every
-    # re-plan until the step budget ends, as the paper's agent does.
+    # within stop_px of the goal as the model sees it (mpc.arrival_distance), the agent stands
+    # still and plans nothing; 0: plan until the step budget ends, as the paper's agent
     stop_px: float = 2.0
 
     def __post_init__(self):
@@ -103,7 +87,6 @@ class PlannerConfig:
                              f"got method={self.method!r}, cost={self.cost!r}")
         check_fields(self, {name: (is_int_at_least(1), "an int >= 1") for name in
                             ("horizon", "samples", "elites", "iterations", "execute")})
-        # a zero temperature divides by zero
         check_fields(self, {"temperature": (is_positive, "a finite number > 0",
                                             "MPPI's softness in latent-distance units")})
         if self.elites > self.samples:
@@ -118,13 +101,9 @@ class PlannerConfig:
                                             self.iterations))
 
 
-# -- the energy ------------------------------------------------------------------------------
 def check_start_and_goal(z0, z_goal) -> None:
-    """Raise a clear error unless ``z0`` is ``(B, D)`` and ``z_goal`` is ``(B, D)``.
-
-    One goal row per episode: a goal batch of 1 for ``B > 1`` starts would
-    broadcast silently, every episode planning towards the first goal.
-    """
+    """Raise a clear error unless ``z0`` and ``z_goal`` are both ``(B, D)`` (one goal per
+    episode: a goal batch of 1 would broadcast silently towards the first goal)."""
     for name, z in (("z0", z0), ("z_goal", z_goal)):
         if not isinstance(z, torch.Tensor):
             raise TypeError(f"{name} must be a tensor of latents (B, D), got {type(z).__name__}")
@@ -148,11 +127,8 @@ def _goal_hint(batch: int, z_goal: torch.Tensor) -> str:
 
 
 def goal_distance(model, z: torch.Tensor, z_goal: torch.Tensor) -> torch.Tensor:
-    """The energy of single states, ``||z - z_goal||`` over the last dimension: ``(...)``.
-
-    A stand-in model with a ``distance`` of its own (the diagnosis's
-    :class:`~ebjepa_tutorial.planning.diagnosis.TrueDynamics`) measures its way.
-    """
+    """The energy of single states, ``||z - z_goal||`` over the last dimension: ``(...)``
+    (a model with a ``distance`` of its own, like ``TrueDynamics``, measures its way)."""
     if hasattr(model, "distance"):
         return model.distance(z, z_goal)
     return (z - z_goal).norm(dim=-1)
@@ -162,10 +138,9 @@ def planning_cost(model, z0: torch.Tensor, z_goal: torch.Tensor, actions: torch.
                   cost: str = "sum") -> torch.Tensor:
     """Energy of each imagined plan: ``z0 (B, D), z_goal (B, D), actions (B, N, H, A) -> (B, N)``.
 
-    ``model.rollout`` imagines the ``H`` latents of each of the ``B x N`` plans in
-    one batch; the cost is the latent distance to the goal, summed over the
-    horizon (``"sum"``) or at the last step (``"last"``); or (``"learned"``)
-    ``model.cost_to_go`` from the last latent.
+    ``model.rollout`` imagines the ``B x N`` plans in one batch; the cost is the latent
+    distance to the goal summed over the horizon (``"sum"``), at the last step (``"last"``),
+    or ``model.cost_to_go`` from the last latent (``"learned"``).
     """
     if cost not in COSTS:
         raise ValueError(f"cost must be one of {COSTS}, got {cost!r}")
@@ -188,14 +163,8 @@ def planning_cost(model, z0: torch.Tensor, z_goal: torch.Tensor, actions: torch.
     return energy.sum(dim=-1) if cost == "sum" else energy[..., -1]
 
 
-# -- one update of the plan: MPPI and CEM ----------------------------------------------------
 def select_elites(actions: torch.Tensor, costs: torch.Tensor, elites: int):
     """The ``Q`` cheapest plans of each episode, cheapest first: ``(B, Q, H, A), (B, Q)``."""
-    if actions.ndim != 4 or costs.shape != actions.shape[:2]:
-        raise ValueError(f"need actions (B, N, H, A) and costs (B, N), got "
-                         f"{tuple(actions.shape)} and {tuple(costs.shape)}")
-    if not 1 <= elites <= actions.shape[1]:
-        raise ValueError(f"elites must be in 1..N={actions.shape[1]}, got {elites}")
     elite_costs, index = costs.topk(elites, dim=1, largest=False)
     elite_actions = actions.gather(1, index[:, :, None, None].expand(-1, -1, *actions.shape[2:]))
     return elite_actions, elite_costs
@@ -204,8 +173,7 @@ def select_elites(actions: torch.Tensor, costs: torch.Tensor, elites: int):
 def mppi_weights(elite_costs: torch.Tensor, temperature: float) -> torch.Tensor:
     """``w_i = exp(-(S_i - S_min) / tau) / sum_j exp(-(S_j - S_min) / tau)``: ``(B, Q) -> (B, Q)``.
 
-    Subtracting ``S_min`` changes nothing mathematically (it cancels in the
-    ratio) but keeps ``exp`` from underflowing to 0/0 when costs are large.
+    ``S_min`` cancels in the ratio but keeps ``exp`` from underflowing to 0/0.
     """
     shifted = elite_costs - elite_costs.min(dim=1, keepdim=True).values
     return torch.softmax(-shifted / temperature, dim=1)
@@ -232,15 +200,13 @@ def cem_update(actions: torch.Tensor, costs: torch.Tensor, elites: int):
     return weighted_mean_std(elite_actions, uniform)
 
 
-# -- one iteration, and a whole re-plan ------------------------------------------------------
 def smooth_noise(samples: int, horizon: int, dims: int, period: int,
                  generator: torch.Generator) -> torch.Tensor:
     """Standard normal noise ``(samples, horizon, dims)``, correlated over ``period`` steps.
 
-    Independent draws at steps ``0, period, 2 period, ...`` joined by straight
-    lines (``period=1``: i.i.d. per step). Smooth perturbations move a plan
-    coherently, so a few iterations explore much farther than white noise,
-    whose displacement grows only as the square root of the horizon.
+    Independent draws at steps ``0, period, 2 period, ...`` joined by straight lines
+    (``period=1``: i.i.d.): they move a plan coherently, so they explore much farther than
+    white noise, whose displacement grows only as the square root of the horizon.
     """
     knots = torch.randn(samples, dims, horizon // period + 2, generator=generator)
     if period == 1:
@@ -277,12 +243,9 @@ def mppi_iteration(model, z0, z_goal, mean, std, config, generators):
 
 @dataclass
 class Plan:
-    """The result of :func:`plan`: the mean plan ``(B, H, A)``, its spread, the cost history.
-
-    ``costs``: ``(B, J)``, the cost of the cheapest sampled plan at each
-    iteration. ``history`` (when recorded): per iteration, the sampled plans
-    ``(B, N, H, A)`` and their costs ``(B, N)``, for pictures.
-    """
+    """The result of :func:`plan`: the mean plan ``(B, H, A)``, its spread, ``costs`` ``(B, J)``
+    (the cheapest sample's at each iteration) and, when recorded, the ``history`` of each
+    iteration's samples ``(B, N, H, A)`` and costs ``(B, N)``."""
 
     mean: torch.Tensor
     std: torch.Tensor
@@ -294,11 +257,8 @@ class Plan:
 def plan(model, z0: torch.Tensor, z_goal: torch.Tensor, config: PlannerConfig,
          generators: Sequence[torch.Generator], mean: torch.Tensor | None = None,
          record: bool = False, iteration=mppi_iteration) -> Plan:
-    """Run ``J`` iterations from latents ``z0`` to goals ``z_goal`` (both ``(B, D)``).
-
-    ``mean``: a warm start ``(B, H, A)`` (default zeros: stand still);
-    ``iteration``: one iteration (default :func:`mppi_iteration`; notebook 06 passes its own).
-    """
+    """Run ``J`` iterations from latents ``z0`` to goals ``z_goal`` (both ``(B, D)``) from the
+    warm start ``mean`` ``(B, H, A)`` (default zeros: stand still) with ``iteration``."""
     check_start_and_goal(z0, z_goal)
     b, h = z0.shape[0], config.horizon
     if mean is None:
