@@ -1,25 +1,8 @@
-"""Batched image augmentations on tensors, for two-view self-supervised learning.
+"""Batched two-view image augmentations on tensors, drawn per image, on the images' device.
 
-A joint-embedding model learns what two *views* of one image have in common,
-so the views must differ in everything we want it to ignore: framing, colour,
-orientation. Each view here is drawn with its own random parameters per image
-(crop box, jitter factors, flips...), on whatever device the images live on,
-so a batch of 256 CIFAR-10 images is augmented in one call (about 0.1-0.2 s
-on 2 CPU cores) without a data-loader worker.
-
-Recipe (the usual SimCLR / VICReg CIFAR recipe, used by the EB-JEPA paper):
-random resized crop to 32 px with scale (0.2, 1.0), horizontal flip p 0.5,
-colour jitter (brightness 0.4, contrast 0.4, saturation 0.2, hue 0.1) p 0.8,
-grayscale p 0.2, solarize p 0.1, then normalisation with CIFAR-10 statistics
-(``CIFAR10_MEAN``, ``CIFAR10_STD``).
-
-Determinism: kornia draws its random parameters from torch's *global* RNG.
-:func:`augment` therefore draws one integer seed from the caller's
-``torch.Generator``, and runs the pipeline inside ``torch.random.fork_rng``
-after ``torch.manual_seed(seed)``: the same generator state gives the same
-views, and the global RNG is left exactly as it was.
-
-Images: ``(B, 3, H, W)``, float in ``[0, 1]`` or uint8 in ``[0, 255]``.
+kornia draws from torch's global RNG, so :func:`augment` draws a seed from the caller's
+generator and runs under ``fork_rng``: same generator state, same views, and the global RNG
+is left as it was. Images: ``(B, 3, H, W)``, float in ``[0, 1]`` or uint8 in ``[0, 255]``.
 """
 
 from __future__ import annotations
@@ -37,7 +20,7 @@ CIFAR10_STD = (0.2470, 0.2435, 0.2616)
 
 @dataclass(frozen=True)
 class AugmentConfig:
-    """The knobs of the two-view recipe; the defaults are the paper's CIFAR-10 settings."""
+    """The two-view recipe; the defaults are the usual SimCLR / VICReg CIFAR-10 settings."""
 
     size: int = 32  # output side, pixels
     crop_scale: tuple[float, float] = (0.2, 1.0)  # fraction of the image area kept by the crop
@@ -49,14 +32,10 @@ class AugmentConfig:
 
 
 def build_augmentation(config: AugmentConfig = AugmentConfig()) -> K.AugmentationSequential:
-    """The augmentation pipeline as a kornia module: ``(B, 3, H, W) -> (B, 3, size, size)``,
-    standardised as :func:`normalize` does.
+    """The pipeline as a kornia module: ``(B, 3, H, W) -> (B, 3, size, size)``, normalised.
 
-    Every random parameter is drawn per image (``same_on_batch=False``), except
-    that kornia's ``ColorJitter`` applies its four steps in one random order
-    shared by the batch. ``ColorJitter`` (not ``ColorJiggle``) uses torchvision's
-    formulas, the ones the SSL literature tuned these strengths for. Solarize
-    inverts pixels above 0.5 (a fixed threshold, as in BYOL).
+    ``ColorJitter`` (not ``ColorJiggle``) has torchvision's formulas, which the SSL
+    literature tuned these strengths for; solarize inverts pixels above 0.5, as in BYOL.
     """
     brightness, contrast, saturation, hue = config.jitter
     return K.AugmentationSequential(
@@ -70,55 +49,38 @@ def build_augmentation(config: AugmentConfig = AugmentConfig()) -> K.Augmentatio
 
 
 def to_float_images(images: torch.Tensor) -> torch.Tensor:
-    """Check ``(B, 3, H, W)`` images and return them as float32 in ``[0, 1]``.
-
-    uint8 images are divided by 255; float images must already lie in ``[0, 1]``.
-    """
-    if not isinstance(images, torch.Tensor) or images.ndim != 4:
-        shape = tuple(images.shape) if isinstance(images, torch.Tensor) else type(images).__name__
-        raise ValueError(
-            f"images must be a (batch, 3, height, width) tensor, got {shape}; "
-            "add a batch dimension with images.unsqueeze(0) for a single image"
-        )
+    """Check ``(B, 3, H, W)`` images (uint8, or float in ``[0, 1]``); return float32 in [0, 1]."""
+    if images.ndim != 4:
+        raise ValueError(f"images must be a (batch, 3, height, width) tensor, got "
+                         f"{tuple(images.shape)}; add a batch dimension with images.unsqueeze(0)")
     if images.shape[1] != 3:
-        raise ValueError(
-            f"images must have 3 colour channels in dimension 1, got shape {tuple(images.shape)}; "
-            "channels-last arrays need images.permute(0, 3, 1, 2)"
-        )
+        raise ValueError(f"images must have 3 colour channels in dimension 1, got shape "
+                         f"{tuple(images.shape)}; channels-last arrays need .permute(0, 3, 1, 2)")
     if images.dtype == torch.uint8:
         return images.float().div_(255)
     if not images.is_floating_point():
         raise TypeError(f"images must be uint8 or float, got {images.dtype}")
     low, high = images.min().item(), images.max().item()
     if low < -1e-6 or high > 1 + 1e-6:
-        raise ValueError(
-            f"float images must lie in [0, 1], got values in [{low:.3g}, {high:.3g}]; "
-            "augment raw images (uint8, or float / 255), not normalised ones"
-        )
+        raise ValueError(f"float images must lie in [0, 1], got values in [{low:.3g}, {high:.3g}]; "
+                         "augment raw images (uint8, or float / 255), not normalised ones")
     return images.float()
-
-
-def _global_rng_devices(device: torch.device) -> tuple[list[int], str]:
-    """Which accelerator RNG states ``fork_rng`` must save and restore for ``device``."""
-    if device.type == "cuda":
-        index = device.index if device.index is not None else torch.cuda.current_device()
-        return [index], "cuda"
-    if device.type == "mps":
-        return [0], "mps"
-    return [], "cuda"
 
 
 def augment(images: torch.Tensor, pipeline: nn.Module, generator: torch.Generator) -> torch.Tensor:
     """One random view of each image: ``(B, 3, H, W)`` -> ``(B, 3, size, size)`` float32.
 
-    ``pipeline``: :func:`build_augmentation`'s (build it once, pass it at every step). The
-    views depend only on the ``generator``'s state (see the module docstring). The output
-    is on the images' device.
+    ``pipeline``: :func:`build_augmentation`'s, built once. The views depend only on the
+    ``generator``'s state.
     """
     images = to_float_images(images)
     seed = int(torch.randint(0, 2**62, (1,), generator=generator, device=generator.device))
-    devices, device_type = _global_rng_devices(images.device)
-    with torch.random.fork_rng(devices=devices, device_type=device_type):
+    device = images.device  # fork_rng saves and restores this accelerator's RNG state too
+    if device.type == "cuda":
+        devices = [torch.cuda.current_device() if device.index is None else device.index]
+    else:
+        devices = [0] if device.type == "mps" else []
+    with torch.random.fork_rng(devices=devices, device_type=device.type if devices else "cuda"):
         torch.manual_seed(seed)
         return pipeline(images)
 
@@ -130,11 +92,8 @@ def two_views(images: torch.Tensor, pipeline: nn.Module,
 
 
 def normalize(images: torch.Tensor) -> torch.Tensor:
-    """Standardise ``(B, 3, H, W)`` images in ``[0, 1]`` (or uint8) with the CIFAR-10 statistics.
-
-    The un-augmented images seen at evaluation time must go through this too,
-    so that they match what the encoder saw in training.
-    """
+    """Standardise ``(B, 3, H, W)`` images in ``[0, 1]`` (or uint8) with CIFAR-10's statistics,
+    as the pipeline does: evaluation images must match what the encoder saw in training."""
     images = to_float_images(images)
     mean = torch.tensor(CIFAR10_MEAN, device=images.device).view(1, 3, 1, 1)
     std = torch.tensor(CIFAR10_STD, device=images.device).view(1, 3, 1, 1)

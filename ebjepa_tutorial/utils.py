@@ -16,16 +16,11 @@ def get_device(prefer: str | None = None) -> torch.device:
         return torch.device(prefer)
     if torch.cuda.is_available():
         return torch.device("cuda")
-    if getattr(torch.backends, "mps", None) is not None and torch.backends.mps.is_available():
-        return torch.device("mps")
-    return torch.device("cpu")
+    return torch.device("mps" if torch.backends.mps.is_available() else "cpu")
 
 
 def cpu_has_bf16() -> bool:
-    """Whether this CPU computes bfloat16 natively (x86 AVX-512 BF16 or AMX).
-
-    Elsewhere a CPU emulates it, slower than float32.
-    """
+    """Whether this CPU computes bfloat16 natively (AVX-512 BF16 or AMX); else it emulates it."""
     checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
     return any(getattr(torch.cpu, name, lambda: False)() for name in checks)
 
@@ -42,11 +37,8 @@ def mixed_precision(device: torch.device | str, cpu: bool = False
                     ) -> contextlib.AbstractContextManager:
     """bfloat16 autocast where :func:`network_dtype` says so; elsewhere, nothing.
 
-    Training loops run their networks under it and compute the losses after it,
-    on ``.float()`` outputs: the batch statistics (variance, covariance, the
-    Epps-Pulley test) lose their digits in bfloat16. ``cpu=True`` is for the
-    image and video networks, whose class training steps are about 1.3x faster
-    in bf16 on such a CPU; the world models of chapters 05-07 stay in float32.
+    Losses are computed after it, on ``.float()`` outputs: batch statistics lose their
+    digits in bfloat16. ``cpu=True`` is for the image and video networks only.
     """
     dtype = network_dtype(device, cpu)
     if dtype == torch.float32:
@@ -65,11 +57,7 @@ def memory_format(device: torch.device | str) -> torch.memory_format:
 
 
 def seed_everything(seed: int) -> torch.Generator:
-    """Seed Python, NumPy and torch; return a CPU ``torch.Generator`` seeded with ``seed``.
-
-    Same seed, same numbers: pass the returned generator to every function that
-    draws random numbers.
-    """
+    """Seed Python, NumPy and torch; return a CPU ``torch.Generator`` seeded with ``seed``."""
     generator = make_generator(seed)
     random.seed(seed)
     np.random.seed(seed % 2**32)
@@ -110,9 +98,7 @@ def is_non_negative(v) -> bool:
 def check_fields(config, rules: dict) -> None:
     """Raise ValueError naming the first field of ``config`` that breaks its rule.
 
-    ``rules`` maps a field name to ``(predicate, "what it must be")``, e.g.
-    ``{"lr": (is_positive, "a number > 0")}``, optionally with a third element
-    saying what the field means, shown beside its name.
+    ``rules`` maps a field name to ``(predicate, "what it must be"[, "what it means"])``.
     """
     for name, (ok, rule, *meaning) in rules.items():
         value = getattr(config, name)

@@ -1,8 +1,6 @@
-"""Datasets as uint8 tensors: CIFAR-10 and MNIST, through torchvision.datasets, cached.
+"""CIFAR-10 and MNIST as uint8 ``(N, C, H, W)`` images and int64 ``(N,)`` labels, cached.
 
-Images come back as uint8 ``(N, C, H, W)`` tensors with int64 labels ``(N,)``.
-Where the files are looked for, and how to bring your own, is described in
-``data/README.md``.
+Where the files are looked for, and how to bring your own: ``data/README.md``.
 """
 
 import torch
@@ -15,11 +13,8 @@ from .paths import CorruptDataError, DataNotFoundError, cache_dir, data_dir
 def random_subset(
     images: torch.Tensor, labels: torch.Tensor, n: int, seed: int = 0
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """``n`` of the ``(N, ...)`` images and their labels, drawn at random with ``seed``.
-
-    All of them, unchanged, when ``n >= N``. Never take the first ``n``: a copy
-    stored class by class (like the JPEG folders) would give a single class.
-    """
+    """``n`` of the ``(N, ...)`` images and their labels, drawn with ``seed`` (all when ``n >= N``):
+    never the first ``n``, which in a copy stored class by class would be one class."""
     if n >= len(images):
         return images, labels
     keep = torch.randperm(len(images), generator=torch.Generator().manual_seed(seed))[:n]

@@ -1,20 +1,9 @@
-"""CIFAR-10 as uint8 tensors, read through ``torchvision.datasets``.
+"""CIFAR-10 (Krizhevsky, 2009) as uint8 tensors, read through ``torchvision.datasets``.
 
-CIFAR-10 (Krizhevsky, 2009): 60,000 colour images of 32x32 pixels in 10
-classes, 50,000 for training and 10,000 for testing. :func:`load_cifar10`
-looks inside the data directory (see ``paths.data_dir``), in this order, for:
-
-1. ``cifar-10-batches-py/``: the official release, extracted (torchvision's
-   ``CIFAR10`` layout; torchvision checks every file against its published MD5
-   before it unpickles anything, so a foreign or damaged file is refused);
-2. a tree of class folders, ``cifar10/<split>/<class>/*.jpg`` (also ``cifar-10/``,
-   ``cifar10-jpeg/``, or ``<split>/<class>/`` directly), read by ``ImageFolder``;
-3. such a tree packed as ``cifar10*.tar.gz`` (for example the JPEG copy
-   ``cifar10-jpeg.tar.gz``), unpacked once into the cache folder;
-
-and, only when none is there, downloads the official archive with
-``CIFAR10(download=True)`` (MD5-checked, then extracted). Decoded image
-folders are cached as arrays, so only their first load is slow.
+:func:`load_cifar10` looks in the data directory for the official release extracted, then a
+tree of class folders, then such a tree packed as ``cifar10*.tar.gz``, and downloads the
+official archive (MD5-checked) only when none is there; ``data/README.md`` gives the paths.
+Decoded image folders are cached as arrays, so only their first load is slow.
 """
 
 from __future__ import annotations
@@ -25,8 +14,8 @@ import shutil
 import tarfile
 import tempfile
 import zlib
-from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -49,15 +38,13 @@ from .paths import (
 CIFAR10_CLASSES = (
     "airplane", "automobile", "bird", "cat", "deer", "dog", "frog", "horse", "ship", "truck",
 )  # fmt: skip
-SPLITS = ("train", "test")
 TREE_DIRS = ("cifar10", "cifar-10", "cifar10-jpeg", ".")
 SIZE = 32
 # Your own images of another size: the largest centred square, resized to 32x32.
 FIT = v2.Compose([v2.PILToTensor(), v2.Resize(SIZE), v2.CenterCrop(SIZE)])
 
 
-@dataclass(frozen=True)
-class Source:
+class Source(NamedTuple):
     """Where one split was found: ``kind`` is official, tree or packed."""
 
     kind: str
@@ -89,7 +76,6 @@ def _missing_message(directory: Path, split: str) -> str:
 
 
 def _read_official(directory: Path, split: str, download: bool) -> tuple[np.ndarray, np.ndarray]:
-    """torchvision's CIFAR10 -> images (N, 3, 32, 32) uint8, labels (N,) int64."""
     try:
         dataset = datasets.CIFAR10(str(directory), train=split == "train", download=download)
     except RuntimeError as err:  # torchvision's words for a wrong MD5 or a missing batch file
@@ -110,11 +96,8 @@ def _download(directory: Path, split: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _read_tree(split_dir: Path) -> tuple[np.ndarray, np.ndarray]:
-    """``<split>/<class>/*`` -> images (N, 3, 32, 32) uint8, labels (N,) int64.
-
-    ImageFolder lists classes and files in sorted order, so the order never
-    depends on the file system; CIFAR-10's class names sort into its own order.
-    """
+    """``<split>/<class>/*`` -> images (N, 3, 32, 32) uint8, labels (N,) int64, in sorted
+    order (CIFAR-10's class names sort into its own order)."""
     try:
         folder = datasets.ImageFolder(str(split_dir), transform=FIT, allow_empty=True)
     except OSError as err:
@@ -134,8 +117,8 @@ def _read_tree(split_dir: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _unpack(path: Path) -> Path:
-    """Extract ``path`` once into the cache: into a private temp folder, renamed when complete
-    (several processes of one torchrun may race here; the first rename wins)."""
+    """Extract ``path`` once into the cache, via a temp folder renamed when complete (processes
+    of one torchrun may race here; the first rename wins)."""
     target = cache_dir() / f"{path.name.split('.')[0]}-{source_key(path)}"
     if target.is_dir():
         return target
@@ -170,7 +153,6 @@ def _load(source: Source, split: str) -> tuple[np.ndarray, np.ndarray]:
     """The arrays of a source; decoded image folders come from (and go to) the cache."""
     if source.kind == "official":
         return _read_official(source.path, split, download=False)
-    # A folder's modification time changes when a file inside it is added or removed.
     folders = [source.path / c for c in CIFAR10_CLASSES if (source.path / c).is_dir()]
     keyed = [source.path, *folders] if source.kind == "tree" else [source.path]
     name = f"cifar10-{split}-{source.kind}-{source_key(*keyed)}"
@@ -184,13 +166,12 @@ def _load(source: Source, split: str) -> tuple[np.ndarray, np.ndarray]:
 def load_cifar10(
     split: str = "train", root: str | os.PathLike | None = None, download: bool = True
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Load one CIFAR-10 split: images (N, 3, 32, 32) uint8 and labels (N,) int64.
+    """One CIFAR-10 split: images (N, 3, 32, 32) uint8, labels (N,) int64; N = 50,000 or 10,000.
 
-    ``root`` overrides the data directory; ``download=False`` raises
-    DataNotFoundError instead of fetching the official archive. N is 50,000
-    for ``"train"`` and 10,000 for ``"test"``.
+    ``root`` overrides the data directory; ``download=False`` raises DataNotFoundError
+    instead of fetching the official archive.
     """
-    check_split(split, SPLITS)
+    check_split(split)
     directory = data_dir(root)
     source = find_cifar10(directory, split)
     if source is None and not download:

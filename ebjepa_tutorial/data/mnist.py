@@ -1,15 +1,8 @@
-"""MNIST digits as uint8 tensors, read through ``torchvision.datasets``.
+"""MNIST digits (LeCun et al., 1998) as uint8 tensors, read through ``torchvision.datasets``.
 
-MNIST (LeCun et al., 1998): 28x28 grey handwritten digits, 60,000 for training
-and 10,000 for testing, distributed as four IDX files (gzip-compressed).
-
-:func:`load_mnist` looks for the two files of a split, ``.gz`` or uncompressed,
-in ``<data>/MNIST/raw/`` (torchvision's layout), ``<data>/mnist/``, then
-``<data>/`` itself, and reads them with torchvision's IDX reader. Only when
-none is there does it download with ``datasets.MNIST(download=True)``, which
-fetches all four official files into ``<data>/MNIST/raw/`` and checks their
-MD5. (``datasets.MNIST`` itself wants all four files, so a folder that holds
-one split, like the course's offline copy, is read file by file.)
+:func:`load_mnist` reads a split's two IDX files (``.gz`` or not) from ``<data>/MNIST/raw/``,
+``<data>/mnist/`` or ``<data>/``, file by file (``datasets.MNIST`` wants all four files, and
+the course's offline copy has one split), and downloads them only when none is there.
 """
 
 from __future__ import annotations
@@ -26,7 +19,6 @@ from torchvision.datasets.mnist import read_image_file, read_label_file
 
 from .paths import CorruptDataError, DataNotFoundError, check_split, data_dir
 
-SPLITS = ("train", "test")
 MNIST_FILES = {  # split -> (images, labels), without the .gz
     "train": ("train-images-idx3-ubyte", "train-labels-idx1-ubyte"),
     "test": ("t10k-images-idx3-ubyte", "t10k-labels-idx1-ubyte"),
@@ -40,8 +32,7 @@ def _folders(directory: Path) -> list[Path]:
 def find_mnist(directory: Path, split: str) -> tuple[Path, Path] | None:
     """Paths of the (images, labels) IDX files of ``split`` under ``directory``, or None.
 
-    Both files come from the same folder (Fashion-MNIST uses the same names, so
-    mixing folders could mix datasets); ``.gz`` comes before uncompressed.
+    Both from one folder (Fashion-MNIST has the same names); ``.gz`` first.
     """
     for folder in _folders(directory):
         pair = [next((p for p in (folder / f"{stem}.gz", folder / stem) if p.is_file()), None)
@@ -104,13 +95,12 @@ def _download(directory: Path, split: str) -> tuple[torch.Tensor, torch.Tensor]:
 def load_mnist(
     split: str = "train", root: str | os.PathLike | None = None, download: bool = True
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Load one MNIST split: images (N, 1, 28, 28) uint8 and labels (N,) int64 in 0..9.
+    """One MNIST split: images (N, 1, 28, 28) uint8, labels (N,) int64; N = 60,000 or 10,000.
 
-    N is 60,000 for ``"train"`` and 10,000 for ``"test"``. ``root`` overrides
-    the data directory; ``download=False`` raises DataNotFoundError instead of
-    fetching the files.
+    ``root`` overrides the data directory; ``download=False`` raises DataNotFoundError
+    instead of fetching the files.
     """
-    check_split(split, SPLITS)
+    check_split(split)
     directory = data_dir(root)
     files = find_mnist(directory, split)
     if files is None and not download:

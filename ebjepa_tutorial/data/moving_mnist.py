@@ -1,30 +1,9 @@
-"""Moving MNIST, generated in code: digits bouncing in a 64x64 frame.
+"""Moving MNIST (Srivastava et al., 2015), generated in code: digits bouncing in a 64x64 frame.
 
-Srivastava et al. (2015) made videos of two MNIST digits moving in straight
-lines and bouncing off the edges of a 64x64 frame. We build the same videos
-from any stack of digits, in a few tensor operations (no Python loop over
-clips), and keep what a detection probe needs: where every digit is in every
-frame, exactly.
-
-How a clip is made:
-
-- each digit gets a start position (top-left corner of its 28x28 patch, drawn
-  uniformly in ``[0, 64 - 28] = [0, 36]``) and a velocity of fixed ``speed``
-  (default 3.6 px/frame, a tenth of the free range, as in the usual script)
-  in a uniformly random direction;
-- positions are floats; when a digit would leave the frame its position is
-  reflected at the edge and that velocity component changes sign, so the
-  28x28 patch never leaves the frame;
-- the patch is pasted at the rounded position; overlapping digits are
-  combined by a pixel-wise maximum.
-
-What comes back, per digit and frame (``MovingMNISTBatch``): the integer
-top-left of the pasted patch (``offsets``); the *ink* bounding box, the tight
-box around the digit's non-zero pixels as pasted (``boxes``, ``(x0, y0, x1,
-y1)`` with exclusive ends, so ``x1 - x0`` is the width); and ``centres``, the
-centre of that ink box in pixel units (pixel ``i`` covers ``[i, i + 1)``).
-The ink box is used rather than the 28x28 patch because MNIST digits are
-not centred in their patch, and a probe should find the digit, not its margin.
+Each digit's 28x28 patch starts at a top-left corner uniform in ``[0, 36]^2`` and moves at a
+fixed ``speed`` (3.6 px/frame, a tenth of the free range) in a uniform direction, reflected at
+the frame's edges; it is pasted at the rounded position, overlaps combined by maximum. All
+clips are made at once in tensor operations, and every digit's position is known exactly.
 """
 
 from __future__ import annotations
@@ -49,8 +28,10 @@ class MovingMNISTBatch:
     ``N`` clips, ``T`` frames, ``K`` digits per clip, frames ``S x S``:
 
     - ``clips``: uint8 ``(N, T, 1, S, S)``
-    - ``centres``: float32 ``(N, T, K, 2)``, ``(x, y)`` centre of the ink box
-    - ``boxes``: int64 ``(N, T, K, 4)``, ink box ``(x0, y0, x1, y1)``, ends exclusive
+    - ``centres``: float32 ``(N, T, K, 2)``, ``(x, y)`` centre of the ink box, in pixel units
+      (pixel ``i`` covers ``[i, i + 1)``)
+    - ``boxes``: int64 ``(N, T, K, 4)``, ink box ``(x0, y0, x1, y1)``, ends exclusive: the tight
+      box around the digit's non-zero pixels (MNIST digits are not centred in their patch)
     - ``offsets``: int64 ``(N, T, K, 2)``, ``(x, y)`` top-left of the pasted patch
     - ``velocities``: float32 ``(N, T, K, 2)``, velocity from frame ``t`` to ``t + 1``
     - ``digit_ids``: int64 ``(N, K)``, which row of ``digits`` each digit is
@@ -68,31 +49,23 @@ class MovingMNISTBatch:
 
 
 def check_digits(digits) -> torch.Tensor:
-    """Return uint8 ``digits`` ``(N, 1, H, W)`` (our image layout) or ``(N, H, W)`` as
-    ``(N, H, W)``, or raise a clear error."""
-    if not isinstance(digits, torch.Tensor):
-        raise TypeError(f"digits must be a tensor, got {type(digits).__name__}")
+    """uint8 ``digits`` ``(N, 1, H, W)`` or ``(N, H, W)`` as ``(N, H, W)``, or a clear error."""
     if digits.ndim == 4 and digits.shape[1] == 1:
         digits = digits[:, 0]
     if digits.ndim != 3 or digits.shape[0] == 0:
-        raise ValueError(
-            f"digits must be (N, 1, H, W) or (N, H, W) with N >= 1, got {tuple(digits.shape)}; "
-            "pass the images returned by load_mnist"
-        )
+        raise ValueError(f"digits must be (N, 1, H, W) or (N, H, W) with N >= 1, got "
+                         f"{tuple(digits.shape)}; pass the images returned by load_mnist")
     if digits.dtype != torch.uint8:
-        raise TypeError(
-            f"digits must be uint8 in 0..255, got {digits.dtype}; convert floats in [0, 1] "
-            "with (x * 255).round().to(torch.uint8)"
-        )
+        raise TypeError(f"digits must be uint8 in 0..255, got {digits.dtype}; convert floats "
+                        "in [0, 1] with (x * 255).round().to(torch.uint8)")
     return digits
 
 
 def split_digits(digits, n_train: int = 8000) -> tuple[torch.Tensor, torch.Tensor]:
     """Split digits ``(N, ...)`` into ``n_train`` training and ``N - n_train`` held-out digits.
 
-    The split is a permutation seeded with 0 (the official MNIST test file is not in
-    random order: its two halves come from different writers), so evaluation
-    clips can be built only from digits the model never saw, the same every time.
+    A permutation seeded with 0 (the MNIST test file's halves come from different
+    writers), so evaluation clips can use only digits the model never saw.
     """
     n = len(digits)
     if not 0 < n_train < n:
@@ -102,11 +75,8 @@ def split_digits(digits, n_train: int = 8000) -> tuple[torch.Tensor, torch.Tenso
 
 
 def ink_boxes(digits: torch.Tensor) -> torch.Tensor:
-    """Tight box around the non-zero pixels of each digit: ``(N, H, W)`` -> int64 ``(N, 4)``.
-
-    ``(x0, y0, x1, y1)`` in the digit's own patch, ends exclusive. A blank
-    digit (no ink) gets the whole patch ``(0, 0, W, H)``.
-    """
+    """Tight box ``(x0, y0, x1, y1)`` around each digit's ink, in its own patch, ends exclusive:
+    ``(N, H, W)`` -> int64 ``(N, 4)``. A blank digit gets the whole patch ``(0, 0, W, H)``."""
     ink = digits > 0
     n, h, w = ink.shape
     boxes = []
@@ -124,15 +94,10 @@ def bounce_trajectories(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Move points in straight lines inside ``[0, limit]``, reflecting at the edges.
 
-    ``start``, ``velocity``: ``(..., 2)``. Returns ``positions`` and
-    ``velocities``, each ``(n_frames, ..., 2)``: ``positions[t + 1]`` is
-    ``positions[t] + velocities[t]``, reflected at 0 or ``limit`` if it
-    crossed one, and ``velocities[t + 1]`` is ``velocities[t]`` with the sign
-    of each reflected component flipped. Needs ``|velocity| <= limit`` so a
-    step crosses at most one edge per axis. The loop runs over frames only.
+    ``start``, ``velocity``: ``(..., 2)`` -> ``positions``, ``velocities``, each
+    ``(n_frames, ..., 2)``; a reflected component's velocity changes sign. Needs
+    ``|velocity| <= limit``, so that a step crosses at most one edge per axis.
     """
-    if velocity.abs().max() > limit:
-        raise ValueError(f"speed per axis must be at most the free range {limit}")
     position, velocity = start.clone(), velocity.clone()
     positions, velocities = [], []
     for _ in range(n_frames):
@@ -149,11 +114,9 @@ def bounce_trajectories(
 def paste_digits(frames: torch.Tensor, patches: torch.Tensor, offsets: torch.Tensor) -> None:
     """Paste patches into ``frames`` in place, combining overlaps by maximum.
 
-    ``frames``: uint8 ``(M, S, S)``, contiguous (usually zeros);
-    ``patches``: uint8 ``(M, K, h, w)``; ``offsets``: int64 ``(M, K, 2)``,
-    ``(x, y)`` top-left of each patch, inside the frame. One ``scatter_reduce``
-    with ``amax`` writes every pixel of every patch at its flat index
-    ``(y + i) * S + (x + j)``: no Python loop over frames or digits.
+    ``frames``: uint8 ``(M, S, S)``, contiguous; ``patches``: uint8 ``(M, K, h, w)``;
+    ``offsets``: int64 ``(M, K, 2)``, ``(x, y)`` top-left of each patch, inside the frame.
+    One ``scatter_reduce`` writes every pixel at its flat index ``(y + i) * S + (x + j)``.
     """
     m, k, h, w = patches.shape
     size = frames.shape[-1]
@@ -166,8 +129,7 @@ def paste_digits(frames: torch.Tensor, patches: torch.Tensor, offsets: torch.Ten
 
 
 def _check_sizes(digits: torch.Tensor, speed: float, **counts) -> float:
-    """Raise a clear error for a count < 1, a digit that does not fit, or too high a speed;
-    return the free range ``64 - h`` a digit's top-left corner moves in."""
+    """Raise a clear error for a bad count, digit size or speed; return the free range 64 - h."""
     for name, value in counts.items():
         if not isinstance(value, int) or value < 1:
             raise ValueError(f"{name} must be a positive int, got {value!r}")
@@ -178,15 +140,6 @@ def _check_sizes(digits: torch.Tensor, speed: float, **counts) -> float:
     if not 0 <= speed <= limit:
         raise ValueError(f"speed must be in [0, {limit}] px/frame (the free range), got {speed}")
     return limit
-
-
-def random_motion(n_clips: int, n_digits: int, speed: float, limit: float,
-                  generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """Start corners uniform in ``[0, limit]^2`` and velocities of length ``speed`` in a
-    uniform direction: each ``(n_clips, n_digits, 2)``, as ``(x, y)``."""
-    start = torch.rand(n_clips, n_digits, 2, generator=generator) * limit
-    angle = torch.rand(n_clips, n_digits, generator=generator) * (2 * math.pi)
-    return start, speed * torch.stack([angle.cos(), angle.sin()], dim=-1)
 
 
 def paste_clips(digits: torch.Tensor, digit_ids: torch.Tensor,
@@ -216,17 +169,16 @@ def generate_moving_mnist(
 ) -> MovingMNISTBatch:
     """Make ``n_clips`` Moving MNIST clips of ``n_frames`` frames from ``digits``.
 
-    ``digits``: uint8 ``(D, 1, h, w)`` or ``(D, h, w)`` (for held-out
-    evaluation, pass the second half of :func:`split_digits`). Each clip shows
-    ``n_digits`` digits drawn with replacement. ``seed`` is an int or a
-    ``torch.Generator``; the same seed gives identical clips. The module docstring
-    says what each field of the returned :class:`MovingMNISTBatch` means.
+    ``digits``: uint8 ``(D, 1, h, w)`` or ``(D, h, w)``; each clip shows ``n_digits`` of
+    them, drawn with replacement. ``seed``: an int or a ``torch.Generator``.
     """
     digits = check_digits(digits)
     limit = _check_sizes(digits, speed, n_clips=n_clips, n_frames=n_frames, n_digits=n_digits)
     generator = as_generator(seed)
     digit_ids = torch.randint(len(digits), (n_clips, n_digits), generator=generator)
-    start, velocity = random_motion(n_clips, n_digits, speed, limit, generator)
+    start = torch.rand(n_clips, n_digits, 2, generator=generator) * limit  # top-left corners
+    angle = torch.rand(n_clips, n_digits, generator=generator) * (2 * math.pi)
+    velocity = speed * torch.stack([angle.cos(), angle.sin()], dim=-1)
     positions, velocities = bounce_trajectories(start, velocity, n_frames, limit)
     offsets = positions.round().long().transpose(0, 1).contiguous()  # (N, T, K, 2)
     clips = paste_clips(digits, digit_ids, offsets)
@@ -241,9 +193,8 @@ def generate_moving_mnist(
 def centres_to_grid(centres: torch.Tensor) -> torch.Tensor:
     """Detection targets: which cells of a ``GRID x GRID`` (8 x 8) tiling hold a digit centre.
 
-    ``centres``: ``(..., K, 2)`` as ``(x, y)`` pixels in a 64 x 64 frame.
-    Returns float32 ``(..., GRID, GRID)`` of 0/1, indexed ``[row, col]``
-    = ``[y cell, x cell]``; a cell with two centres is still 1.
+    ``centres``: ``(..., K, 2)`` as ``(x, y)`` pixels in a 64 x 64 frame -> float32
+    ``(..., GRID, GRID)`` of 0/1, indexed ``[y cell, x cell]``.
     """
     cell = torch.div(centres, FRAME_SIZE / GRID, rounding_mode="floor").long().clamp(0, GRID - 1)
     flat = cell[..., 1] * GRID + cell[..., 0]  # (..., K)

@@ -1,18 +1,8 @@
 """Where data lives, the cache of decoded arrays, and files written atomically.
 
-Two places matter:
-
-- the data directory (:func:`data_dir`): an explicit ``root``, else the
-  ``EBJEPA_DATA`` environment variable, else the project's ``data/`` folder;
-- the cache directory (:func:`cache_dir`): ``EBJEPA_CACHE``, else
-  ``<project>/data/cache`` (git-ignored). It never lives under ``EBJEPA_DATA``,
-  which may be a read-only shared folder.
-
-Downloads are torchvision's (MD5-checked). Cache files, checkpoints and results
-are written through :func:`atomic_file`: a temporary file in the same folder, renamed into place
-only once complete, so an interrupted run never leaves a half-written file that
-a later run would trust. Temporaries left by a killed run are removed by a later
-one (:func:`remove_stale_temporaries`).
+The data directory is an explicit ``root``, else ``$EBJEPA_DATA``, else ``<project>/data``.
+The cache is ``$EBJEPA_CACHE``, else ``<project>/data/cache`` (git-ignored), never under
+``EBJEPA_DATA``, which may be a read-only shared folder.
 """
 
 from __future__ import annotations
@@ -31,6 +21,8 @@ from typing import BinaryIO
 
 import numpy as np
 
+SPLITS = ("train", "test")
+
 
 class DataNotFoundError(FileNotFoundError):
     """The data is not on disk and could not be downloaded; the message says where to put it."""
@@ -40,47 +32,39 @@ class CorruptDataError(RuntimeError):
     """A data file is damaged: truncated archive, wrong checksum, or a format we cannot read."""
 
 
-def project_root() -> Path | None:
-    """The repository root when the package runs from a checkout (editable install), else None."""
+def project_root() -> Path:
+    """The repository root when the package runs from a checkout, else the working directory."""
     root = Path(__file__).resolve().parents[2]
-    return root if (root / "pyproject.toml").is_file() else None
+    return root if (root / "pyproject.toml").is_file() else Path.cwd()
 
 
 def data_dir(root: str | os.PathLike | None = None) -> Path:
-    """The data directory: ``root`` if given, else ``$EBJEPA_DATA``, else ``<project>/data``.
-
-    Outside a checkout (a non-editable install) the last fallback is ``./data``.
-    """
+    """The data directory: ``root`` if given, else ``$EBJEPA_DATA``, else ``<project>/data``."""
     if root is not None:
         return Path(root).expanduser()
     if os.environ.get("EBJEPA_DATA"):
         return Path(os.environ["EBJEPA_DATA"]).expanduser()
-    return (project_root() or Path.cwd()) / "data"
+    return project_root() / "data"
 
 
 def cache_dir() -> Path:
     """Where decoded arrays are cached: ``$EBJEPA_CACHE``, else ``<project>/data/cache``."""
     if os.environ.get("EBJEPA_CACHE"):
         return Path(os.environ["EBJEPA_CACHE"]).expanduser()
-    return (project_root() or Path.cwd()) / "data" / "cache"
+    return project_root() / "data" / "cache"
 
 
-def check_split(split: str, choices: Sequence[str]) -> None:
-    """Raise ValueError naming the choices when ``split`` is not one of them."""
-    if split not in choices:
-        raise ValueError(f"split must be one of {', '.join(map(repr, choices))}; got {split!r}")
+def check_split(split: str) -> None:
+    """Raise ValueError naming the choices when ``split`` is not ``"train"`` or ``"test"``."""
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {', '.join(map(repr, SPLITS))}; got {split!r}")
 
 
 def remove_stale_temporaries(
     folder: Path, patterns: Sequence[str], older_than_s: float = 3600.0
 ) -> list[Path]:
-    """Delete the files in ``folder`` that match a glob of ``patterns`` and are old; return them.
-
-    Meant for the temp files of atomic writes cut short by a kill. Only files
-    unmodified for ``older_than_s`` seconds go, so a temp file that another
-    process is still writing is spared. Never raises: a folder that cannot be
-    read, or a file that cannot be removed, is skipped.
-    """
+    """Delete the regular files in ``folder`` matching ``patterns`` and unmodified for
+    ``older_than_s`` (temporaries of writes cut short by a kill); return them. Never raises."""
     cutoff, removed = time.time() - older_than_s, []
     for pattern in patterns:
         try:
@@ -107,9 +91,8 @@ def temporaries_of(path: Path) -> str:
 def atomic_file(path: Path) -> Iterator[BinaryIO]:
     """A binary file that appears at ``path`` whole, or not at all.
 
-    The block writes a hidden temp file beside ``path`` (:func:`temporaries_of`);
-    on leaving it the file is synced to disk, made readable by all and renamed
-    over ``path``. An exception in the block deletes it and leaves ``path`` as it was.
+    The block writes a hidden temp file beside ``path``, synced and renamed over ``path``
+    on leaving; an exception in the block deletes it and leaves ``path`` as it was.
     """
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
@@ -125,20 +108,13 @@ def atomic_file(path: Path) -> Iterator[BinaryIO]:
 
 
 def source_key(*paths: Path) -> str:
-    """A short hash naming these source files or folders (path, size, modification time).
-
-    Used in cache file names, so replacing or editing a source invalidates its
-    cache. Folders are keyed by their own modification time, which changes when
-    a file is added, removed or renamed inside them.
-    """
+    """A short hash of these files or folders (path, size, modification time), for cache names:
+    editing a source, or adding or removing a file in a folder, invalidates its cache."""
     digest = hashlib.sha1()
     for path in paths:
-        stat = path.stat()
-        digest.update(f"{path.resolve()}|{stat.st_size}|{stat.st_mtime_ns};".encode())
+        info = path.stat()
+        digest.update(f"{path.resolve()}|{info.st_size}|{info.st_mtime_ns};".encode())
     return digest.hexdigest()[:12]
-
-
-CACHE_TEMPORARIES = (".*.npy.*.part",)  # what atomic_file leaves when killed
 
 
 def _cache_paths(name: str) -> tuple[Path, Path]:
@@ -147,13 +123,9 @@ def _cache_paths(name: str) -> tuple[Path, Path]:
 
 
 def read_cache(name: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """The ``(images, labels)`` arrays cached under ``name``; None if absent or unreadable.
-
-    A damaged cache file reads as absent: the data is decoded again and the
-    file rewritten. Stale temporaries of killed cache writes are removed here.
-    """
+    """The ``(images, labels)`` arrays cached under ``name``; None if absent or damaged."""
     images_path, labels_path = _cache_paths(name)
-    remove_stale_temporaries(images_path.parent, CACHE_TEMPORARIES)
+    remove_stale_temporaries(images_path.parent, [".*.npy.*.part"])
     if not (images_path.is_file() and labels_path.is_file()):
         return None
     try:
@@ -164,10 +136,7 @@ def read_cache(name: str) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def write_cache(name: str, images: np.ndarray, labels: np.ndarray) -> None:
-    """Save ``images`` and ``labels`` under ``name`` in :func:`cache_dir`, each file atomically.
-
-    A cache that cannot be written only warns: the arrays are still returned.
-    """
+    """Save ``images`` and ``labels`` under ``name``, each file atomically; only warn on failure."""
     images_path, labels_path = _cache_paths(name)
     try:
         for path, array in ((images_path, images), (labels_path, labels)):

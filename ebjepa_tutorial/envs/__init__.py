@@ -1,8 +1,4 @@
-"""Environments: the Two Rooms world, its offline data, its evaluation episodes.
-
-The same code runs rooms in a row: a layout (B, 2W) holds W walls; W=2 is
-Three Rooms (``random_layouts(n, g, walls=2)``, ``make_episodes(n, seed, walls=2)``,
-``generate_trajectories(n, walls=2)``).
+"""Environments: the Two Rooms world (``walls=2``: Three Rooms), its offline data, its episodes.
 
 - ``two_rooms``: geometry, :func:`transition` (the one rule of motion), rendering
 - ``trajectories``: the paper's random-walk data policy, generated in batches

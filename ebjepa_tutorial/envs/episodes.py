@@ -1,30 +1,11 @@
 """Evaluation episodes in Two Rooms, and the batched environment a planner acts in.
 
-An episode: a fresh layout, a start in one room and a goal in the other, the
-goal shown as an image (the rendered goal state). It succeeds when the dot
-ends within ``SUCCESS_RADIUS`` = 4.5 px of the goal within ``EPISODE_STEPS`` =
-200 steps. Every episode batch comes from a seed; use many seeds (not the
-reference code's single seed 0) and report a confidence interval.
-
-Three Rooms (``walls=2``): start and goal in the two outer rooms, so every
-path crosses the middle room and both doors; same success radius, a budget of
-``THREE_ROOMS_EPISODE_STEPS`` = 120 steps. A good path runs in straight
-segments from the start to the first door's mouth, through the doorway along
-its centre row, on to the next door, and to the goal (every segment stays
-inside one convex room or doorway, so :func:`transition` lets it pass); its
-steps are its length / ``MAX_STEP``.
-
-- Two Rooms: a good path takes 30.1 steps at the median of 200,000 tasks
-  (99th percentile 53.9), 69.9 steps (125.9 px) at worst; 200 is 2.86x the worst.
-- Three Rooms: 42.4 steps at the median (99th percentile 70.2), 94.8 steps
-  (170.7 px) at worst; 120 is 1.27x the worst.
-
-The worst cases are exact: start and goal in the arena's far corners, doors at
-opposite ends of their range, every wall position tried. Three Rooms' budget is
-tighter because chapter 07 asks there which planner finds the way: every task's
-good path fits with 25 steps to spare, while a planner that slides along the
-walls until it stumbles on a door runs out of time (with 300 steps it arrived
-anyway, after twice a good path's steps on average).
+An episode: a fresh layout, a start in one outer room and a goal in the other, shown as an
+image. It succeeds when the dot ends within ``SUCCESS_RADIUS`` = 4.5 px of the goal within
+the step budget: 200 steps in Two Rooms, where a good path (straight segments through the
+doors' centres) takes 30.1 steps at the median and 69.9 at worst; 120 in Three Rooms (42.4
+at the median, 94.8 at worst), tight enough that a planner sliding along the walls until it
+stumbles on a door runs out of time.
 """
 
 from __future__ import annotations
@@ -48,7 +29,7 @@ from .two_rooms import (
 
 SUCCESS_RADIUS = 4.5
 EPISODE_STEPS = 200
-THREE_ROOMS_EPISODE_STEPS = 120  # the worst good path's 95 steps and 25 to spare; module docstring
+THREE_ROOMS_EPISODE_STEPS = 120  # the worst good path's 95 steps and 25 to spare
 
 
 @dataclass
@@ -81,16 +62,9 @@ class Episodes:
 
 
 def make_episodes(n: int, seed=0, walls: int = 1) -> Episodes:
-    """``n`` tasks with start and goal in the two outer rooms, uniform over each room's floor.
-
-    ``walls``: 1 for Two Rooms (the rooms are opposite), 2 for Three Rooms (the
-    path crosses the middle room and both doors). Which outer room holds the
-    start is drawn per task. ``seed``: an int or a ``torch.Generator``; the same
-    seed gives the same tasks.
-    """
+    """``n`` tasks, start and goal uniform over the floors of the two outer rooms (which holds
+    the start is drawn per task). ``walls``: 1 or 2; ``seed``: an int or a ``torch.Generator``."""
     generator = as_generator(seed)
-    if not isinstance(n, int) or n < 1:
-        raise ValueError(f"n must be a positive int (number of episodes), got {n!r}")
     layouts = random_layouts(n, generator, walls)
     start_rooms = torch.randint(0, 2, (n,), generator=generator) * walls  # 0 or the last room
     starts = sample_positions(layouts, generator, start_rooms)
@@ -100,10 +74,7 @@ def make_episodes(n: int, seed=0, walls: int = 1) -> Episodes:
 
 def step_budget(layouts: torch.Tensor) -> int:
     """The steps an episode of these layouts (B, 2W) may take: 200 with one wall, 120 with two."""
-    budgets, walls = {1: EPISODE_STEPS, 2: THREE_ROOMS_EPISODE_STEPS}, wall_count(layouts)
-    if walls not in budgets:
-        raise ValueError(f"no step budget is set for {walls} walls, only for 1 and 2")
-    return budgets[walls]
+    return {1: EPISODE_STEPS, 2: THREE_ROOMS_EPISODE_STEPS}[wall_count(layouts)]
 
 
 class TwoRoomsEnv:
@@ -115,11 +86,8 @@ class TwoRoomsEnv:
     >>> obs = env.step(torch.zeros(100, 2))      # actions (B, 2), clipped to MAX_STEP
     >>> env.success()                           # (100,) bool
 
-    State: ``positions`` (B, 2), ``goals`` (B, 2), ``layouts`` (B, 2W),
-    ``steps_taken`` (int); the episode so far: ``path`` (the positions (B, 2), start
-    first) and ``actions`` (each step's (B, 2)). Steps use :func:`transition`, the same function
-    that made the training data. ``reset(episodes=make_episodes(n, seed, walls=2))`` runs
-    Three Rooms; ``step_budget`` is the steps its episodes allow (the caller stops there).
+    State: ``positions``, ``goals`` (B, 2), ``layouts`` (B, 2W), ``steps_taken``; ``path``
+    (each step's positions, start first) and ``actions``. Steps use :func:`transition`.
     """
 
     def __init__(self, device: str | torch.device = "cpu"):
@@ -129,10 +97,7 @@ class TwoRoomsEnv:
         self.steps_taken, self.path, self.actions = 0, [], []
 
     def reset(self, n: int = 1, seed=0, episodes: Episodes | None = None) -> torch.Tensor:
-        """Start ``n`` new Two Rooms episodes from ``seed`` (or the given ones).
-
-        Returns the observations (B, 2, 65, 65).
-        """
+        """Start ``n`` new Two Rooms episodes from ``seed`` (or the given ones); observe them."""
         episodes = make_episodes(n, seed) if episodes is None else episodes
         check_layouts(episodes.layouts)
         check_positions(episodes.starts, episodes.layouts)

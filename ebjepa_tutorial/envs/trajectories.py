@@ -1,29 +1,15 @@
 """Offline Two Rooms trajectories from the paper's data policy, generated in batches.
 
-The policy is a persistent random walk: the heading turns each step by a von
-Mises increment (concentration ``kappa`` = 5, so consecutive headings agree
-with mean cosine I1(5)/I0(5) = 0.893), and the step length is a normal (mean 1,
-std 0.4) truncated to [0.2, 1.8]. The action is the intended displacement
-``length * (cos heading, sin heading)``; the dot moves by
-:func:`~ebjepa_tutorial.envs.two_rooms.transition`, the same function the
-evaluation environment uses, so a wall may stop part of the move.
+A persistent random walk: the heading turns each step by a von Mises increment (``kappa`` =
+5: consecutive headings agree with mean cosine I1(5)/I0(5) = 0.893); the step length is a
+normal (mean 1, std 0.4) truncated to [0.2, 1.8]. The action is the intended displacement;
+the dot moves by :func:`~ebjepa_tutorial.envs.two_rooms.transition`, as in the environment.
 
-Starts. A fraction ``door_fraction`` (35%) of trajectories is built to go
-through the door: the dot starts on a random side, 0.5 to 4 px in front of
-the wall's face (where the slab its centre may not enter begins), within 2 px
-of the door's centre row, with its first heading aimed at the door's centre.
-With kappa 5, most of these cross at least once and end in the other room
-(the rest drift into the door's side or turn back). The other trajectories
-start uniformly on the free floor with a uniform heading and rarely change
-rooms, so the data holds crossings without being made of them (notebook 04
-counts them). Each trajectory gets a fresh layout.
-
-Rooms in a row (``walls=2``, Three Rooms): the same policy and starts, a door
-or wall start picking one of the walls at random per trajectory. With
-``walls=1`` no such pick is drawn, so Two Rooms data stay bit for bit as they were.
-
-Trajectories are stored compactly (positions, actions, layouts); render the
-frames on demand, in batches, with :meth:`Trajectories.frames`.
+Starts: ``door_fraction`` (35%) start 0.5 to 4 px in front of a door (on a random side,
+within 2 px of its centre row, aimed at it), so most of them change rooms; optionally
+``wall_fraction`` start in front of a wall, heading into it; the rest start uniformly on the
+floor with a uniform heading. Each trajectory gets a fresh layout. With ``walls=2`` a door or
+wall start faces one of the walls, picked at random (with one wall no pick is drawn).
 """
 
 from __future__ import annotations
@@ -55,9 +41,8 @@ STEP_STD, STEP_RANGE = 0.4, (0.2, 1.8)  # the step length's normal: std and trun
 def sample_von_mises(kappa: float, shape, generator: torch.Generator) -> torch.Tensor:
     """Angles from a von Mises with mean 0 and concentration ``kappa`` > 0: float32 ``shape``.
 
-    Best and Fisher's (1979) rejection sampler, vectorised: draw candidates in
-    bulk, keep the accepted ones, repeat until enough (about 1.1 rounds at
-    kappa 5). Deterministic given the generator.
+    Best and Fisher's (1979) rejection sampler, vectorised: candidates in bulk, repeated
+    until enough are accepted (about 1.1 rounds at kappa 5).
     """
     if kappa <= 0:
         raise ValueError(f"kappa must be positive, got {kappa}")
@@ -89,55 +74,34 @@ def sample_truncated_normal(mean, std, low, high, shape, generator) -> torch.Ten
     return (mean + std * torch.special.ndtri(u)).clamp(low, high).float()
 
 
-def in_front_of_the_wall(wall_x: torch.Tensor, generator: torch.Generator):
-    """Columns 0.5 to 4 px in front of the middle wall's face, on a random side.
+def in_front_of_a_wall(layouts: torch.Tensor, generator: torch.Generator):
+    """A column 0.5 to 4 px in front of one wall (of the W, at random), on a random side.
 
-    wall_x (B,) float -> x (B,), side (B,): -1 left of the wall, +1 right.
+    layouts (B, 2W) -> wall_x, door_y, x, side (-1 left of the wall, +1 right), each (B,).
     """
-    n = len(wall_x)
+    n, walls = len(layouts), wall_count(layouts)
+    if walls > 1:  # with one wall nothing is drawn: Two Rooms data keep their random stream
+        pick = torch.randint(0, walls, (n,), generator=generator)
+        layouts = walls_of(layouts)[torch.arange(n), pick]
+    wall_x, door_y = layouts.float().unbind(-1)
     side = torch.randint(0, 2, (n,), generator=generator).float() * 2 - 1
     gap = 0.5 + 3.5 * torch.rand(n, generator=generator)  # px from the wall's face
-    return wall_x + side * (WALL_WIDTH / 2 + DOT_MARGIN + gap), side
-
-
-def one_wall_each(layouts: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-    """One wall per row, uniform over its W walls: layouts (B, 2W) -> (B, 2) (wall_x, door_y).
-
-    With one wall, the layouts themselves and nothing drawn, so that Two Rooms
-    data keep their random stream.
-    """
-    walls = wall_count(layouts)
-    if walls == 1:
-        return layouts
-    pick = torch.randint(0, walls, (len(layouts),), generator=generator)
-    rows = torch.arange(len(layouts))
-    return walls_of(layouts)[rows, pick]
+    return wall_x, door_y, wall_x + side * (WALL_WIDTH / 2 + DOT_MARGIN + gap), side
 
 
 def door_starts(layouts: torch.Tensor, generator: torch.Generator):
-    """Starts in front of a door (one of the walls' at random), aimed at it.
-
-    layouts (B, 2W) -> positions (B, 2), headings (B,) in radians.
-    """
-    n = len(layouts)
-    wall_x, door_y = one_wall_each(layouts, generator).float().unbind(-1)
-    x, _ = in_front_of_the_wall(wall_x, generator)
-    y = door_y + 4 * torch.rand(n, generator=generator) - 2
+    """Starts in front of a door, aimed at it: layouts (B, 2W) -> positions (B, 2), heading (B,)."""
+    wall_x, door_y, x, _ = in_front_of_a_wall(layouts, generator)
+    y = door_y + 4 * torch.rand(len(layouts), generator=generator) - 2
     heading = torch.atan2(door_y - y, wall_x - x)
     return torch.stack([x, y], dim=-1), heading
 
 
 def wall_starts(layouts: torch.Tensor, generator: torch.Generator):
-    """Starts in front of a wall (one at random), away from its door, heading into it.
-
-    layouts (B, 2W) -> positions (B, 2), headings (B,) in radians. The dot starts
-    0.5 to 4 px from the wall's face on a random side, on a row at least 6 px
-    from the door's edge, and heads at the wall within 60 degrees of straight on,
-    so most of these trajectories are stopped by the wall in their first steps.
-    """
+    """Starts in front of a wall, on a row at least 6 px from its door, heading at it within 60
+    degrees of straight on: layouts (B, 2W) -> positions (B, 2), headings (B,)."""
     n = len(layouts)
-    wall_x, door_y = one_wall_each(layouts, generator).float().unbind(-1)
-    x, side = in_front_of_the_wall(wall_x, generator)
+    wall_x, door_y, x, side = in_front_of_a_wall(layouts, generator)
     # rows beyond the door's edge (door_y +- 4.5) by 6 px, up to the arena's edge
     above, below = (door_y - 10.5 - LOW).clamp_min(0), (HIGH - door_y - 10.5).clamp_min(0)
     u = torch.rand(n, generator=generator) * (above + below)
@@ -149,12 +113,8 @@ def wall_starts(layouts: torch.Tensor, generator: torch.Generator):
 
 @dataclass
 class Trajectories:
-    """N trajectories of T+1 frames.
-
-    positions (N, T+1, 2) float32, actions (N, T, 2) float32 (action t moves
-    frame t to frame t+1), layouts (N, 2W) long (W walls), door (N,) bool: built
-    to go through a door.
-    """
+    """N trajectories of T+1 frames: positions (N, T+1, 2) float32, actions (N, T, 2) float32
+    (action t moves frame t to t+1), layouts (N, 2W) long, door (N,) bool (a door start)."""
 
     positions: torch.Tensor
     actions: torch.Tensor
@@ -165,10 +125,7 @@ class Trajectories:
         return len(self.positions)
 
     def frames(self, index=slice(None), out: torch.Tensor | None = None) -> torch.Tensor:
-        """Render the selected trajectories: (n, T+1, 2, 65, 65) float32 in [0, 1].
-
-        ``out``: an optional buffer of that shape to reuse from batch to batch.
-        """
+        """Render the selected trajectories: (n, T+1, 2, 65, 65) float32; ``out``: a buffer."""
         return render(self.positions[index], self.layouts[index], out=out)
 
     def changes_room(self) -> torch.Tensor:
@@ -177,9 +134,8 @@ class Trajectories:
         return rooms[:, 0] != rooms[:, 1]
 
     def __getitem__(self, index) -> Trajectories:
-        return Trajectories(
-            self.positions[index], self.actions[index], self.layouts[index], self.door[index]
-        )
+        return Trajectories(self.positions[index], self.actions[index], self.layouts[index],
+                            self.door[index])
 
 
 def generate_trajectories(
@@ -195,17 +151,11 @@ def generate_trajectories(
 ) -> Trajectories:
     """``n`` random-walk trajectories of ``steps`` actions (``steps + 1`` frames).
 
-    ``seed``: an int or a torch.Generator. Exactly ``round(door_fraction * n)``
-    trajectories start at the door (chosen at random), and ``round(wall_fraction * n)``
-    of the others in front of the middle wall, heading into it (:func:`wall_starts`).
-    ``walls``: 1 for Two Rooms, 2 for Three Rooms (a door or wall start then
-    faces one of the two walls, picked at random per trajectory). ``layouts``: one
-    layout per trajectory ``(n, 2W)`` instead of fresh random ones (then ``walls`` is theirs).
-    The draws come in a fixed order (layouts, starts, turns, step lengths): the
-    shipped models were trained on these exact trajectories.
+    ``seed``: an int or a torch.Generator. Exactly ``round(door_fraction * n)`` start at a
+    door, ``round(wall_fraction * n)`` of the others at a wall. ``walls``: 1 for Two Rooms,
+    2 for Three Rooms; ``layouts``: one per trajectory ``(n, 2W)`` instead of fresh ones.
+    The draws' order (layouts, starts, turns, step lengths) made the shipped models' data.
     """
-    if not isinstance(n, int) or n < 1 or not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"n and steps must be positive ints, got n={n!r}, steps={steps!r}")
     if not (0 <= door_fraction and 0 <= wall_fraction and door_fraction + wall_fraction <= 1):
         raise ValueError("door_fraction and wall_fraction must be >= 0 with a sum <= 1, got "
                          f"{door_fraction} and {wall_fraction}")
@@ -224,12 +174,7 @@ def generate_trajectories(
 
 def random_starts(layouts: torch.Tensor, door_fraction: float, wall_fraction: float,
                   generator: torch.Generator):
-    """Start positions (n, 2), first headings (n,) and which start at a door (n,) bool.
-
-    Uniform on the floor with a uniform heading, except ``round(door_fraction * n)``
-    door starts (:func:`door_starts`) and ``round(wall_fraction * n)`` of the others
-    wall starts (:func:`wall_starts`).
-    """
+    """Start positions (n, 2), first headings (n,) and which start at a door (n,) bool."""
     n = len(layouts)
     door = torch.zeros(n, dtype=torch.bool)
     door[torch.randperm(n, generator=generator)[: round(door_fraction * n)]] = True
@@ -257,8 +202,7 @@ def random_walk(heading: torch.Tensor, steps: int, kappa: float, step_mean: floa
 
 
 def roll_out(start: torch.Tensor, actions: torch.Tensor, layouts: torch.Tensor) -> torch.Tensor:
-    """Positions (n, T+1, 2) from ``start`` (n, 2) under ``actions`` (n, T, 2), by
-    :func:`transition`, the one rule of motion the environment uses too."""
+    """Positions (n, T+1, 2) from ``start`` (n, 2) under ``actions`` (n, T, 2)."""
     positions = torch.empty(len(start), actions.shape[1] + 1, 2)
     positions[:, 0] = start
     for t in range(actions.shape[1]):

@@ -1,35 +1,22 @@
-"""The Two Rooms world: geometry, the one transition function, rendering.
+"""The Two Rooms world (after PLDM, Sobal et al., 2025): geometry, the one transition, rendering.
 
-A batch of B worlds, each a 65x65 arena cut in two by a vertical wall with a
-door, after the Two Rooms environment of PLDM (Sobal et al., 2025) that the
-EB-JEPA paper plans in. W walls in a row, each with its own door, make W+1
-rooms (W=2: Three Rooms, chapter 07's harder world).
+A batch of B worlds, each a 65x65 arena cut by W vertical walls in a row, each with a door
+(W=1: Two Rooms; W=2: Three Rooms, chapter 07's harder world).
 
-Coordinates. A position is ``(x, y)`` in pixels, float32: ``x`` is the column
-and ``y`` the row of the image (``y`` grows downwards). Pixel ``(row i, column
-j)`` has its centre at ``(x=j, y=i)`` and covers ``[j-0.5, j+0.5] x [i-0.5, i+0.5]``.
+Coordinates: a position is ``(x, y)`` in pixels, float32, ``x`` the column and ``y`` the row
+(growing downwards); pixel ``(row i, column j)`` has its centre at ``(x=j, y=i)``.
 
-Walls (image channel 1, value 1 on a wall pixel): the border, rows and columns
-0 and 64; a wall, columns ``wall_x-1 .. wall_x+1`` (3 px), ``wall_x`` in 20..44;
-its door, rows ``door_y-4 .. door_y+4`` (9 px) left open, ``door_y`` in 10..54.
-A layout is ``(wall_x, door_y)``, a batch of them a long tensor ``(B, 2)``; with
-W walls, ``(B, 2W)`` = ``(wall_x_0, door_y_0, wall_x_1, door_y_1, ...)``, sorted
-left to right. The agent (channel 0) is a Gaussian dot of std 1.3 px, peak 1.
+Walls (image channel 1): the border (rows and columns 0 and 64); each wall, columns
+``wall_x-1 .. wall_x+1``, with its door, rows ``door_y-4 .. door_y+4``, left open. A layout
+is ``(B, 2W)`` = ``(wall_x_0, door_y_0, wall_x_1, ...)``, walls left to right. Two Rooms
+draws ``wall_x`` in 20..44; Three Rooms in 14..25 and 39..50 (at least ``MIN_WALL_GAP`` =
+14 px apart, so a step of at most 1.8 px meets at most one wall); doors in 10..54. The agent
+(channel 0) is a Gaussian dot of std 1.3 px, peak 1.
 
-Where the dot centre may be: at least ``DOT_MARGIN`` = 1 px from every wall
-pixel's edge, so in the arena ``1.5 <= x, y <= 62.5`` and outside each wall's
-slab ``wall_x-2.5 < x < wall_x+2.5``, except in its doorway,
-``door_y-3.5 <= y <= door_y+3.5`` (the 9 px door less the margin).
-
-Three Rooms draws ``wall_x_0`` in 14..25 and ``wall_x_1`` in 39..50 (mirror
-images about the centre column 32), doors in 10..54 independently: the walls
-stand at least ``MIN_WALL_GAP`` = 14 px apart, so the middle room's floor (the
-span of x its dot centre may take, ``gap - 5`` px) is 9..31 px wide: the dot
-fits with room to turn, and a step of at most 1.8 px meets at most one wall.
-The outer rooms' floors are 10..21 px wide (Two Rooms: 16..40).
-
-:func:`transition` (the action bound, then :func:`wall_collision`) is the ONE
-transition function of both the offline data and the evaluation environment.
+The dot centre keeps ``DOT_MARGIN`` = 1 px from every wall pixel's edge: ``1.5 <= x, y <=
+62.5``, and outside each wall's slab ``wall_x-2.5 < x < wall_x+2.5`` except in its doorway,
+``door_y-3.5 <= y <= door_y+3.5``. :func:`transition` (the action bound, then
+:func:`wall_collision`) is the ONE transition of both the offline data and the environment.
 """
 
 from __future__ import annotations
@@ -47,10 +34,8 @@ DOT_MARGIN = 1.0  # gap kept between the dot centre and any wall pixel, px
 MAX_STEP = 1.8  # action bound: the longest step of the data policy, px
 LOW = BORDER - 0.5 + DOT_MARGIN  # 1.5, smallest x or y of the dot centre
 HIGH = IMAGE_SIZE - BORDER - 0.5 - DOT_MARGIN  # 62.5, largest
-MIN_FLOOR = 9  # narrowest floor between two walls, px of dot-centre x
-MIN_WALL_GAP = WALL_WIDTH + 2 * int(DOT_MARGIN) + MIN_FLOOR  # 14 px between wall centres
-THREE_ROOMS_WALL_X_RANGES = ((14, 25), (39, 50))  # inclusive, wall 0 and wall 1
-WALL_X_RANGES = {1: (WALL_X_RANGE,), 2: THREE_ROOMS_WALL_X_RANGES}  # by number of walls
+MIN_WALL_GAP = WALL_WIDTH + 2 * int(DOT_MARGIN) + 9  # 14 px: a floor >= 9 px between walls
+WALL_X_RANGES = {1: (WALL_X_RANGE,), 2: ((14, 25), (39, 50))}  # by number of walls, inclusive
 WALLS_X_LIMITS = (14, 50)  # any wall, W >= 2: the outer rooms keep >= 10 px of floor
 
 
@@ -74,11 +59,9 @@ def _all_wall_bounds(layouts: torch.Tensor, dtype=torch.float32):
 
 
 def wall_bounds(layouts: torch.Tensor, dtype=torch.float32):
-    """Where the dot centre is blocked by one wall. layouts (B, 2) -> four (B,) tensors.
+    """Where one wall blocks the dot centre: layouts (B, 2) -> ``x_lo, x_hi, y_lo, y_hi`` (B,).
 
-    ``x_lo < x < x_hi`` is the wall's slab; inside it the centre must keep
-    ``y_lo <= y <= y_hi`` (the doorway). One wall: Two Rooms' layouts, or one wall's
-    columns ``layouts[:, 2k:2k + 2]`` of several. For all walls at once use :func:`in_wall`.
+    ``x_lo < x < x_hi`` is the wall's slab; inside it the centre keeps ``y_lo <= y <= y_hi``.
     """
     walls = wall_count(layouts)
     if walls != 1:
@@ -88,10 +71,7 @@ def wall_bounds(layouts: torch.Tensor, dtype=torch.float32):
 
 
 def in_wall(positions: torch.Tensor, layouts: torch.Tensor) -> torch.Tensor:
-    """Whether each dot centre is inside any wall (its slab, outside the doorway).
-
-    positions (B, 2), layouts (B, 2W) -> (B,) bool; the border is not tested.
-    """
+    """Whether each dot centre is inside any wall (not the border): (B, 2), (B, 2W) -> (B,) bool."""
     x, y = positions[:, None, 0], positions[:, None, 1]
     x_lo, x_hi, y_lo, y_hi = _all_wall_bounds(layouts.to(positions.device), positions.dtype)
     return ((x > x_lo) & (x < x_hi) & ((y < y_lo) | (y > y_hi))).any(-1)
@@ -100,15 +80,10 @@ def in_wall(positions: torch.Tensor, layouts: torch.Tensor) -> torch.Tensor:
 def wall_collision(positions: torch.Tensor, moves: torch.Tensor, layouts: torch.Tensor):
     """Move each dot by its displacement, stopping at walls.
 
-    positions (B, 2) allowed dot centres, moves (B, 2), layouts (B, 2W) -> (B, 2).
-    1. The border: ``positions + moves`` is clamped to the arena (the dot slides).
-    2. Each wall in the order the move meets them: :func:`stop_at_wall` cuts the
-       segment from the start to the target, giving the next wall's target.
-    The blocked coordinate is clamped, the other moves freely: a move never gets
-    longer, and one that touches no wall is unchanged. Exact for every move whose
-    x-extent is at most the floor between two walls (>= 9 px), so for every step
-    of :func:`transition`; a longer move that meets two walls is approximated,
-    but never ends inside a wall or outside the arena.
+    positions (B, 2) allowed dot centres, moves (B, 2), layouts (B, 2W) -> (B, 2). The target
+    is clamped to the arena, then cut by each wall in the order the move meets them
+    (:func:`stop_at_wall`). Exact for moves of x-extent up to 9 px, so for every step of
+    :func:`transition`; a longer move is approximated, but never ends in a wall.
     """
     target = (positions + moves).clamp(LOW, HIGH)
     walls = walls_of(layouts)  # (B, W, 2)
@@ -121,13 +96,10 @@ def wall_collision(positions: torch.Tensor, moves: torch.Tensor, layouts: torch.
 
 
 def stop_at_wall(positions: torch.Tensor, target: torch.Tensor, wall: torch.Tensor):
-    """The one-wall rule: the segment start -> target, cut by one wall.
+    """The segment start -> target (B, 2), cut by one wall ``(wall_x, door_y)`` (B, 2).
 
-    positions (B, 2) allowed dot centres, target (B, 2) in the arena, wall (B, 2)
-    ``(wall_x, door_y)`` -> (B, 2). If the segment enters the slab outside the
-    doorway, x stops at the wall's face and y still moves. If it is in the
-    doorway and would leave the door's span inside the slab (hit the door's
-    side), y stops at the span's edge and x still moves.
+    Entering the slab outside the doorway, x stops at the wall's face and y still moves;
+    leaving the door's span inside the slab, y stops at its edge and x still moves.
     """
     x0, y0 = positions.unbind(-1)
     x1, y1 = target.unbind(-1)
@@ -152,45 +124,28 @@ def stop_at_wall(positions: torch.Tensor, target: torch.Tensor, wall: torch.Tens
 
 
 def clip_actions(actions: torch.Tensor, bound: float = MAX_STEP) -> torch.Tensor:
-    """Shrink every action longer than ``bound`` to length ``bound``, same direction.
-
-    actions (..., 2) -> (..., 2). Clipping is on the Euclidean norm (a disc),
-    because the data policy's steps fill exactly that disc. A finite action whose
-    length overflows the dtype still becomes a step of length ``bound``.
-    """
+    """Shrink every action (..., 2) longer than ``bound`` to length ``bound``, same direction
+    (the data policy's steps fill that disc), even one whose length overflows the dtype."""
     norm = actions.norm(dim=-1, keepdim=True)
     scale = (bound / norm.clamp_min(1e-12)).clamp(max=1.0)
-    return torch.where(norm.isinf(), _step_of_length(actions, bound), actions * scale)
-
-
-def _step_of_length(actions: torch.Tensor, length: float) -> torch.Tensor:
-    """Each action (..., 2) rescaled to ``length``: divided first by its largest component,
-    its norm is in [1, sqrt(2)] and cannot overflow; the clamps keep 0 / 0 away."""
-    largest = actions.abs().amax(dim=-1, keepdim=True)
+    largest = actions.abs().amax(dim=-1, keepdim=True)  # an overflowing norm: divide by it first
     unit = actions / largest.clamp_min(torch.finfo(actions.dtype).tiny)
-    return unit * (length / unit.norm(dim=-1, keepdim=True).clamp_min(1e-12))
+    overflowed = unit * (bound / unit.norm(dim=-1, keepdim=True).clamp_min(1e-12))
+    return torch.where(norm.isinf(), overflowed, actions * scale)
 
 
 def transition(positions: torch.Tensor, actions: torch.Tensor, layouts: torch.Tensor):
-    """THE transition of Two Rooms: clip the action to ``MAX_STEP``, then move.
-
-    positions (B, 2), actions (B, 2), layouts (B, 2W) -> next positions (B, 2).
-    No input checks (the data generator calls it in a loop); ``TwoRoomsEnv.step`` checks.
-    """
+    """THE transition: clip the action to ``MAX_STEP``, then move. positions (B, 2), actions
+    (B, 2), layouts (B, 2W) -> (B, 2). No input checks: ``TwoRoomsEnv.step`` checks."""
     return wall_collision(positions, clip_actions(actions), layouts)
 
 
 def shortest_path_length(starts: torch.Tensor, goals: torch.Tensor,
                          layouts: torch.Tensor) -> torch.Tensor:
-    """Length in px of the shortest way of the dot centre from ``starts`` to ``goals``.
+    """Length in px of the dot centre's shortest way: starts, goals (B, 2), layouts (B, 2W) -> (B,).
 
-    starts, goals (B, 2), layouts (B, 2W) -> (B,). Each wall's slab is a gate at
-    each of its two faces, ``x_lo`` and ``x_hi``, open on the doorway's rows; the
-    rooms and the doorways are convex, so the shortest way is straight between
-    gate points. Gates are crossed in order; each is tried at 29 evenly
-    spaced rows (0.25 px apart for the 7 px doorway), and a minimum over them is
-    taken one gate at a time (dynamic programming). Gates the way does not cross
-    collapse onto its start or goal.
+    Rooms and doorways are convex, so the way is straight between gates, one at each face of
+    each slab, tried at 29 rows of the doorway (dynamic programming, gate by gate).
     """
     flip = goals[:, 0] < starts[:, 0]  # mirror x so that every way runs left to right
     sign = torch.where(flip, -1.0, 1.0)[:, None]
@@ -216,10 +171,9 @@ def shortest_path_length(starts: torch.Tensor, goals: torch.Tensor,
 
 
 def room_of(positions: torch.Tensor, layouts: torch.Tensor) -> torch.Tensor:
-    """Which room each dot is in: how many walls lie left of it, 0..W (0 is the leftmost room).
+    """Which room each dot is in, 0 (leftmost) .. W: the walls with ``wall_x < x``.
 
-    positions (B, 2) or (B, T, 2), layouts (B, 2W) -> long (B,) or (B, T). A dot
-    in a doorway counts by x > wall_x.
+    positions (B, 2) or (B, T, 2), layouts (B, 2W) -> long (B,) or (B, T).
     """
     wall_x = walls_of(layouts)[..., 0].to(positions.dtype)  # (B, W)
     wall_x = wall_x.reshape(len(layouts), *([1] * (positions.dim() - 2)), -1)
@@ -242,11 +196,9 @@ def wall_images(layouts: torch.Tensor) -> torch.Tensor:
 def render(positions: torch.Tensor, layouts: torch.Tensor, out: torch.Tensor | None = None):
     """Images of dots and walls, float32 in [0, 1].
 
-    positions (B, 2) -> (B, 2, 65, 65), or (B, T, 2) -> (B, T, 2, 65, 65);
-    layouts (B, 2W). Channel 0: the dot, ``exp(-d^2 / (2 * 1.3^2))`` with ``d``
-    the distance from pixel centre to dot centre. Channel 1: the walls.
-    ``out``: an optional float32 tensor of the result's shape to write into;
-    reusing one buffer per batch is about 3x faster than fresh memory.
+    positions (B, 2) -> (B, 2, 65, 65), or (B, T, 2) -> (B, T, 2, 65, 65); layouts (B, 2W).
+    Channel 0: the dot, ``exp(-d^2 / (2 * 1.3^2))``, ``d`` the distance from the pixel's
+    centre. Channel 1: the walls. ``out``: a float32 buffer of that shape to reuse (faster).
     """
     single = positions.dim() == 2
     pos = positions[:, None] if single else positions
@@ -267,12 +219,8 @@ def render(positions: torch.Tensor, layouts: torch.Tensor, out: torch.Tensor | N
 
 
 def random_layouts(n: int, generator: torch.Generator, walls: int = 1) -> torch.Tensor:
-    """``n`` fresh layouts of ``walls`` walls: (n, 2 * walls) long.
-
-    Each wall's column is uniform over its range (Two Rooms: 20..44; Three
-    Rooms: 14..25 and 39..50, see the module docstring), each door's row over
-    10..54, all independent; drawn wall by wall, column then door.
-    """
+    """``n`` fresh layouts of ``walls`` walls: (n, 2 * walls) long, each column and door row
+    uniform over its range, drawn wall by wall."""
     if walls not in WALL_X_RANGES:
         raise ValueError(f"walls must be one of {sorted(WALL_X_RANGES)} (Two or Three Rooms), "
                          f"got {walls!r}")
@@ -292,10 +240,9 @@ def room_floors(layouts: torch.Tensor):
 
 
 def sample_positions(layouts: torch.Tensor, generator: torch.Generator, rooms=None):
-    """Dot centres uniform over the free floor: layouts (B, 2W) -> (B, 2) float32.
+    """Dot centres uniform over the free floor, never in a doorway: layouts (B, 2W) -> (B, 2).
 
-    ``rooms`` (B,) of 0..W (0 the leftmost room) picks the room; None draws
-    uniformly over all rooms (by area). Never in a doorway.
+    ``rooms`` (B,) of 0..W picks each room; None draws over all rooms, by area.
     """
     left, width = room_floors(layouts.cpu())
     u = torch.rand(len(layouts), generator=generator)
@@ -317,18 +264,12 @@ def sample_positions(layouts: torch.Tensor, generator: torch.Generator, rooms=No
 
 
 def _pick(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """values (B, K), index (B,) -> values[b, index[b]]: (B,)."""
+    """values (B, K), index (B,) -> (B,)."""
     return values.gather(1, index[:, None]).squeeze(1)
 
 
 def check_layouts(layouts) -> None:
-    """Raise a clear error unless ``layouts`` is a (B, 2W) tensor of allowed walls and doors.
-
-    Two Rooms (W=1): wall_x in 20..44. W >= 2: every wall_x in 14..50, walls
-    sorted left to right and at least ``MIN_WALL_GAP`` = 14 px apart. Doors: 10..54.
-    """
-    if not isinstance(layouts, torch.Tensor):
-        raise TypeError(f"layouts must be a torch tensor (B, 2W), got {type(layouts).__name__}")
+    """Raise a clear error unless ``layouts`` is a (B, 2W) tensor of allowed walls and doors."""
     if layouts.dim() != 2 or layouts.shape[1] == 0 or layouts.shape[1] % 2:
         raise ValueError("layouts must have shape (B, 2W) = (wall_x, door_y) for each of W "
                          "walls, e.g. (B, 2) for Two Rooms, (B, 4) for Three Rooms; got "
@@ -361,9 +302,9 @@ def _first(mask: torch.Tensor) -> int | None:
 
 def check_positions(positions, layouts: torch.Tensor) -> None:
     """Raise a clear error unless ``positions`` (B, 2) are allowed dot centres for ``layouts``."""
-    if not isinstance(positions, torch.Tensor) or positions.shape != (len(layouts), 2):
-        shape = tuple(positions.shape) if isinstance(positions, torch.Tensor) else type(positions)
-        raise ValueError(f"positions must be a tensor of shape ({len(layouts)}, 2), got {shape}")
+    if positions.shape != (len(layouts), 2):
+        raise ValueError(f"positions must be a tensor of shape ({len(layouts)}, 2), got "
+                         f"{tuple(positions.shape)}")
     x, y = positions.unbind(-1)
     outside = ~torch.isfinite(positions).all(-1) | (x < LOW) | (x > HIGH) | (y < LOW) | (y > HIGH)
     for mask, where in ((outside, f"outside the arena [{LOW}, {HIGH}]"),
@@ -373,12 +314,10 @@ def check_positions(positions, layouts: torch.Tensor) -> None:
 
 
 def check_actions(actions, batch: int, dtype: torch.dtype) -> None:
-    """Raise a clear error unless ``actions`` is a finite (batch, 2) tensor, also once cast to
-    ``dtype``, the positions' (a finite float64 action may overflow to infinity in float32)."""
-    if not isinstance(actions, torch.Tensor) or actions.shape != (batch, 2):
-        got = tuple(actions.shape) if isinstance(actions, torch.Tensor) else type(actions).__name__
+    """Raise a clear error unless ``actions`` is a finite (batch, 2) tensor, also in ``dtype``."""
+    if actions.shape != (batch, 2):
         raise ValueError(f"actions must be a tensor of shape ({batch}, 2), one (dx, dy) per "
-                         f"world; got {got}")
+                         f"world; got {tuple(actions.shape)}")
     if not torch.isfinite(actions).all():
         raise ValueError("actions contain NaN or infinite values; check the planner's output")
     if (i := _first(~torch.isfinite(actions.to(dtype)).all(-1))) is not None:
