@@ -1,8 +1,8 @@
-"""Checkers for the notebooks' exercises, one module per chapter, each exercise's hints beside
-its checker. ``check_xxx(fn)`` returns the function the notebook goes on with (the course's
-while ``fn`` is the student stub) or raises :class:`ExerciseError`, naming the mistake in
-words and offering the next hint; ``hint("name")`` asks for one; ``whose(fn)`` says whose
-function a notebook runs. What the checkers share is in :mod:`.common`.
+"""Checkers for the notebooks' exercises, one module per chapter; the hints and the words for
+each exercise's typical mistakes are in hints.yaml. ``check_xxx(fn)`` returns the function the
+notebook goes on with (the course's while ``fn`` is the student stub) or raises
+:class:`ExerciseError`, naming the mistake and offering the next hint; ``hint("name")`` asks for
+one; ``whose(fn)`` says whose function a notebook runs.
 """
 
 from .beyond import check_spread_loss, check_step_violation

@@ -1,9 +1,6 @@
-"""What every checker shares: :class:`ExerciseError`, the test inputs (:class:`Case`), the graded
-hints (:func:`hint`), :class:`Comparison` of a learner's function with the course's, which names
-a wrong answer in words, and :func:`exercise`, which lets a notebook run on past an exercise not
-yet done. What a learner reads about each exercise, its hints and the words for its typical
-mistakes (:func:`slips`), is in ``hints.yaml`` beside this file.
-"""
+"""What every checker shares: the graded hints (:func:`hint`), :class:`Comparison` of a
+learner's function with the course's, which names a wrong answer in words, and :func:`exercise`,
+which lets a notebook run on past an exercise not yet done."""
 
 from __future__ import annotations
 
@@ -72,8 +69,7 @@ def _hint_text(name: str, level: int) -> str:
 
 
 def _offer(name: str) -> str:
-    """What a failed check adds: the next hint while it holds no code, then how to ask for the
-    outline."""
+    """What a failed check adds: the next hint without code, then how to ask for the outline."""
     level = _shown.get(name, 0) + 1
     if level < len(LEVELS):
         _shown[name] = level

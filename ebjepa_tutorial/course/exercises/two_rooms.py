@@ -10,26 +10,9 @@ from __future__ import annotations
 
 import torch
 
-from ...envs.two_rooms import (
-    HIGH,
-    LOW,
-    random_layouts,
-    sample_positions,
-    stop_at_wall,
-    wall_bounds,
-    wall_collision,
-)
-from .common import (
-    Case,
-    ExerciseError,
-    _describe,
-    _run,
-    _transposed,
-    _type_problem,
-    diagnose,
-    exercise,
-    slips,
-)
+from ...envs import two_rooms as rooms
+from ...envs.two_rooms import HIGH, LOW, stop_at_wall, wall_bounds, wall_collision
+from .common import Case, ExerciseError, _run, _transposed, _type_problem, diagnose, exercise, slips
 
 
 def _crossing_slip(order=True, clamp=True, still=True, strict=True):
@@ -98,7 +81,7 @@ def _wall_cases(n: int = 512) -> list[Case]:
     def rand(*shape):
         return torch.rand(*shape, generator=g)
 
-    layouts = random_layouts(n, g)
+    layouts = rooms.random_layouts(n, g)
     x_lo, x_hi, y_lo, y_hi = wall_bounds(layouts)
     wall_x, door_y = layouts.float().unbind(-1)
     side = torch.randint(0, 2, (n,), generator=g).float() * 2 - 1  # -1 left, +1 right
@@ -108,7 +91,7 @@ def _wall_cases(n: int = 512) -> list[Case]:
     toward = -side[:, None] * torch.stack([1.2 + rand(n), torch.zeros(n)], -1)
     free = torch.stack([LOW + 2 + (x_lo - LOW - 4) * rand(n), LOW + 2 + 50 * rand(n)], -1)
     corridor = torch.stack([wall_x + 4.8 * rand(n) - 2.4, in_door], -1)
-    random_pos = sample_positions(layouts, g)
+    random_pos = rooms.sample_positions(layouts, g)
     random_pos[: n // 4] = corridor[: n // 4]
     cases = [
         ("a move far from every wall (it should not change)", free, 2 * rand(n, 2) - 1),
@@ -239,8 +222,8 @@ def _check_wall_collision(fn) -> None:
                 "per world. Look at the axis along which you stack x and y: the last one.")
         if got.shape != expected.shape:
             raise ExerciseError(
-                f"{name} returned {_describe(got)} on {desc}; it should return new positions "
-                f"of shape {tuple(expected.shape)}, one (x, y) per world.")
+                f"{name} returned a tensor of shape {tuple(got.shape)} on {desc}; it should "
+                f"return new positions of shape {tuple(expected.shape)}, one (x, y) per world.")
         got = got.detach().float()
         why = diagnose(got, _WALL_SLIPS, case, atol=1e-3)
         if (problem := _first_problem(name, case, got, expected, bool(why))):
