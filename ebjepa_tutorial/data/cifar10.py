@@ -163,9 +163,8 @@ def _load(source: Source, split: str) -> tuple[np.ndarray, np.ndarray]:
     return read
 
 
-def load_cifar10(
-    split: str = "train", root: str | os.PathLike | None = None, download: bool = True
-) -> tuple[torch.Tensor, torch.Tensor]:
+def load_cifar10(split: str = "train", root: str | os.PathLike | None = None,
+                 download: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """One CIFAR-10 split: images (N, 3, 32, 32) uint8, labels (N,) int64; N = 50,000 or 10,000.
 
     ``root`` overrides the data directory; ``download=False`` raises DataNotFoundError

@@ -92,9 +92,8 @@ def _download(directory: Path, split: str) -> tuple[torch.Tensor, torch.Tensor]:
     return dataset.data, dataset.targets
 
 
-def load_mnist(
-    split: str = "train", root: str | os.PathLike | None = None, download: bool = True
-) -> tuple[torch.Tensor, torch.Tensor]:
+def load_mnist(split: str = "train", root: str | os.PathLike | None = None,
+               download: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """One MNIST split: images (N, 1, 28, 28) uint8, labels (N,) int64; N = 60,000 or 10,000.
 
     ``root`` overrides the data directory; ``download=False`` raises DataNotFoundError

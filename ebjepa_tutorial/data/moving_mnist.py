@@ -48,19 +48,6 @@ class MovingMNISTBatch:
         return self.clips.shape[0]
 
 
-def check_digits(digits) -> torch.Tensor:
-    """uint8 ``digits`` ``(N, 1, H, W)`` or ``(N, H, W)`` as ``(N, H, W)``, or a clear error."""
-    if digits.ndim == 4 and digits.shape[1] == 1:
-        digits = digits[:, 0]
-    if digits.ndim != 3 or digits.shape[0] == 0:
-        raise ValueError(f"digits must be (N, 1, H, W) or (N, H, W) with N >= 1, got "
-                         f"{tuple(digits.shape)}; pass the images returned by load_mnist")
-    if digits.dtype != torch.uint8:
-        raise TypeError(f"digits must be uint8 in 0..255, got {digits.dtype}; convert floats "
-                        "in [0, 1] with (x * 255).round().to(torch.uint8)")
-    return digits
-
-
 def split_digits(digits, n_train: int = 8000) -> tuple[torch.Tensor, torch.Tensor]:
     """Split digits ``(N, ...)`` into ``n_train`` training and ``N - n_train`` held-out digits.
 
@@ -89,9 +76,8 @@ def ink_boxes(digits: torch.Tensor) -> torch.Tensor:
     return torch.stack([x0, y0, x1, y1], dim=1).long()
 
 
-def bounce_trajectories(
-    start: torch.Tensor, velocity: torch.Tensor, n_frames: int, limit: float
-) -> tuple[torch.Tensor, torch.Tensor]:
+def bounce_trajectories(start: torch.Tensor, velocity: torch.Tensor, n_frames: int,
+                        limit: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Move points in straight lines inside ``[0, limit]``, reflecting at the edges.
 
     ``start``, ``velocity``: ``(..., 2)`` -> ``positions``, ``velocities``, each
@@ -128,8 +114,17 @@ def paste_digits(frames: torch.Tensor, patches: torch.Tensor, offsets: torch.Ten
     flat.scatter_reduce_(1, index, patches.reshape(m, k * h * w), reduce="amax")
 
 
-def _check_sizes(digits: torch.Tensor, speed: float, **counts) -> float:
-    """Raise a clear error for a bad count, digit size or speed; return the free range 64 - h."""
+def _check(digits, speed: float, **counts) -> tuple[torch.Tensor, float]:
+    """uint8 ``digits`` ``(N, 1, h, h)`` or ``(N, h, h)`` as ``(N, h, h)`` and the free range
+    ``64 - h``; or a clear error for them, a count that is not a positive int, or the speed."""
+    if digits.ndim == 4 and digits.shape[1] == 1:
+        digits = digits[:, 0]
+    if digits.ndim != 3 or digits.shape[0] == 0:
+        raise ValueError(f"digits must be (N, 1, H, W) or (N, H, W) with N >= 1, got "
+                         f"{tuple(digits.shape)}; pass the images returned by load_mnist")
+    if digits.dtype != torch.uint8:
+        raise TypeError(f"digits must be uint8 in 0..255, got {digits.dtype}; convert floats "
+                        "in [0, 1] with (x * 255).round().to(torch.uint8)")
     for name, value in counts.items():
         if not isinstance(value, int) or value < 1:
             raise ValueError(f"{name} must be a positive int, got {value!r}")
@@ -139,7 +134,7 @@ def _check_sizes(digits: torch.Tensor, speed: float, **counts) -> float:
     limit = float(FRAME_SIZE - h)
     if not 0 <= speed <= limit:
         raise ValueError(f"speed must be in [0, {limit}] px/frame (the free range), got {speed}")
-    return limit
+    return digits, limit
 
 
 def paste_clips(digits: torch.Tensor, digit_ids: torch.Tensor,
@@ -159,21 +154,15 @@ def paste_clips(digits: torch.Tensor, digit_ids: torch.Tensor,
     return clips
 
 
-def generate_moving_mnist(
-    digits,
-    n_clips: int,
-    n_frames: int = 10,
-    n_digits: int = 2,
-    speed: float = DEFAULT_SPEED,
-    seed: int | torch.Generator = 0,
-) -> MovingMNISTBatch:
+def generate_moving_mnist(digits, n_clips: int, n_frames: int = 10, n_digits: int = 2,
+                          speed: float = DEFAULT_SPEED,
+                          seed: int | torch.Generator = 0) -> MovingMNISTBatch:
     """Make ``n_clips`` Moving MNIST clips of ``n_frames`` frames from ``digits``.
 
     ``digits``: uint8 ``(D, 1, h, w)`` or ``(D, h, w)``; each clip shows ``n_digits`` of
     them, drawn with replacement. ``seed``: an int or a ``torch.Generator``.
     """
-    digits = check_digits(digits)
-    limit = _check_sizes(digits, speed, n_clips=n_clips, n_frames=n_frames, n_digits=n_digits)
+    digits, limit = _check(digits, speed, n_clips=n_clips, n_frames=n_frames, n_digits=n_digits)
     generator = as_generator(seed)
     digit_ids = torch.randint(len(digits), (n_clips, n_digits), generator=generator)
     start = torch.rand(n_clips, n_digits, 2, generator=generator) * limit  # top-left corners

@@ -60,9 +60,8 @@ def check_split(split: str) -> None:
         raise ValueError(f"split must be one of {', '.join(map(repr, SPLITS))}; got {split!r}")
 
 
-def remove_stale_temporaries(
-    folder: Path, patterns: Sequence[str], older_than_s: float = 3600.0
-) -> list[Path]:
+def remove_stale_temporaries(folder: Path, patterns: Sequence[str],
+                             older_than_s: float = 3600.0) -> list[Path]:
     """Delete the regular files in ``folder`` matching ``patterns`` and unmodified for
     ``older_than_s`` (temporaries of writes cut short by a kill); return them. Never raises."""
     cutoff, removed = time.time() - older_than_s, []

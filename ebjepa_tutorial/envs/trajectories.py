@@ -138,17 +138,9 @@ class Trajectories:
                             self.door[index])
 
 
-def generate_trajectories(
-    n: int,
-    steps: int = 16,
-    seed=0,
-    door_fraction: float = 0.35,
-    wall_fraction: float = 0.0,
-    kappa: float = 5.0,
-    step_mean: float = 1.0,
-    walls: int = 1,
-    layouts: torch.Tensor | None = None,
-) -> Trajectories:
+def generate_trajectories(n: int, steps: int = 16, seed=0, door_fraction: float = 0.35,
+                          wall_fraction: float = 0.0, kappa: float = 5.0, step_mean: float = 1.0,
+                          walls: int = 1, layouts: torch.Tensor | None = None) -> Trajectories:
     """``n`` random-walk trajectories of ``steps`` actions (``steps + 1`` frames).
 
     ``seed``: an int or a torch.Generator. Exactly ``round(door_fraction * n)`` start at a
