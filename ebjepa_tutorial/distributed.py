@@ -1,31 +1,20 @@
 """Several processes, one model: what data-parallel training needs beyond averaging gradients.
 
-``torchrun --nproc_per_node=W`` starts W processes (the *ranks*) and tells each who it is
-through environment variables (``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``, ``MASTER_ADDR``,
-``MASTER_PORT``). Each rank holds a copy of the model and an equal share of every batch; the
-gradients are averaged over the ranks after ``backward``, by DDP (chapters 01-02) or by the
-training step itself (:func:`average_gradients`, chapters 03 and 05), so the copies stay equal.
+``torchrun --nproc_per_node=W`` starts W processes (the *ranks*); each holds a copy of the model
+and an equal share of every batch, and the gradients are averaged over the ranks after
+``backward`` (by DDP, or :func:`average_gradients`). The losses in :mod:`ebjepa_tutorial.losses`
+see one batch in one process. Averaging is right for a mean of per-sample terms, but VICReg's
+variance and covariance and SIGReg are statistics of the whole batch, so the training code wraps
+the losses with :func:`gather_rows` (every rank's rows, ``(b, ...) -> (W b, ...)``),
+:func:`variance_and_covariance` (from per-rank sums, for too many rows to gather) and
+:func:`rand_rows` (a random draw for the global batch, cut to this rank's rows).
 
-The losses in :mod:`ebjepa_tutorial.losses` see one batch in one process. Averaging gradients
-is right for a mean of per-sample terms (an invariance), but VICReg's variance and covariance
-and SIGReg's characteristic function are statistics of the whole batch: on one rank's share
-they would be other, noisier quantities. So the training code wraps the losses with this
-module instead of changing them:
+Training minimises ``J = (1/W) sum_r L_r``. Through a collective every ``L_r`` depends on rank
+s's tensor ``x_s``, so ``dJ/dx_s = (1/W) sum_r dL_r/dx_s``: the backward sums the incoming
+gradients over the ranks, and the average over ranks supplies the 1/W (keeping only the local
+gradient makes every batch statistic's gradient W times too small).
 
-- :func:`gather_rows`: every rank's embeddings, ``(b, D) -> (W b, D)``, before the loss
-  (or every rank's trajectories, ``(b, T, D) -> (W b, T, D)``);
-- :func:`variance_and_covariance`: VICReg's two terms from per-rank sums, for batches of
-  millions of rows (chapter 03) that would be too many to gather;
-- :func:`rand_rows`: a random draw for the global batch, cut to this rank's rows.
-
-Why the collectives' backward sums over ranks: training minimises the mean of the ranks' losses,
-``J = (1/W) sum_r L_r``, by averaging each rank's own gradient. Through a collective, every
-rank's loss depends on rank s's tensor ``x_s``, so ``dJ/dx_s = (1/W) sum_r dL_r/dx_s``: the
-backward all-reduces (sums) the incoming gradients before rank s keeps its part, and the
-average over ranks (DDP's or :func:`average_gradients`) supplies the 1/W. Keeping only the
-local gradient, a common mistake, makes the gradient of every batch statistic W times too small.
-
-Everything here is a no-op in a single process (no process group, or a world of one).
+Everything here is a no-op in a single process.
 """
 
 from __future__ import annotations
@@ -60,9 +49,6 @@ def is_main() -> bool:
     return rank() == 0
 
 
-# --- sharing a batch -------------------------------------------------------------------------
-
-
 def per_rank_batch(global_batch: int, world: int | None = None) -> int:
     """The rule: global batch = per-rank batch x world size. Raises ValueError if W does not
     divide the global batch, or if a rank would get fewer than 2 samples."""
@@ -86,9 +72,8 @@ def local_rows(x: torch.Tensor) -> torch.Tensor:
 
 
 def rand_rows(rows: int, *size: int, generator: torch.Generator | None = None) -> torch.Tensor:
-    """``torch.rand(rows, *size)`` of this rank's rows of a global batch: the draw of
-    ``(W rows, *size)``, cut to our rows, so every rank consumes ``generator`` (seeded alike
-    on every rank) as one process would and its rows get the numbers they would get there."""
+    """``torch.rand(rows, *size)`` for this rank's rows: the draw of ``(W rows, *size)`` (the
+    generator seeded alike on every rank), cut to our rows, as one process would draw them."""
     return local_rows(torch.rand(rows * world_size(), *size, generator=generator))
 
 
@@ -124,17 +109,13 @@ def mean_of_floats(values: list[float]) -> list[float]:
 
 
 def average_gradients(parameters) -> None:
-    """Average each parameter's ``.grad`` over the ranks, in place (what DDP does in
-    backward), for updates made outside DDP's wrapper."""
+    """Average each parameter's ``.grad`` over the ranks, in place (what DDP does in backward)."""
     if world_size() == 1:
         return
     for p in parameters:
         if p.grad is not None:
             dist.all_reduce(p.grad)
             p.grad /= world_size()
-
-
-# --- the collectives that autograd differentiates --------------------------------------------
 
 
 class _GatherRows(torch.autograd.Function):
@@ -148,8 +129,7 @@ class _GatherRows(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
-        # grad (W b, ...) is dL_r/d(all rows) on rank r; our rows feed every rank's loss, so sum
-        # over ranks (see the module docstring), then keep our rows: (b, ...)
+        # our rows feed every rank's loss: sum the (W b, ...) gradients over ranks, keep ours
         total = grad.clone(memory_format=torch.contiguous_format)
         dist.all_reduce(total)
         share = total.shape[0] // world_size()
@@ -171,38 +151,28 @@ class _MeanAcrossRanks(torch.autograd.Function):
 
 
 def gather_rows(x: torch.Tensor) -> torch.Tensor:
-    """Every rank's rows of ``x`` ``(b, ...)``, in rank order: ``(W b, ...)``; ``x`` itself in
-    one process. Gradients flow back to each rank's own rows; every rank holds the same ``b``."""
+    """Every rank's rows of ``x`` ``(b, ...)`` in rank order, ``(W b, ...)``, each rank holding
+    the same ``b``; gradients flow back to each rank's own rows. ``x`` itself in one process."""
     return x if world_size() == 1 else _GatherRows.apply(x)
 
 
-def mean_across_ranks(x: torch.Tensor) -> torch.Tensor:
-    """The mean over ranks of ``x`` (same shape on every rank), differentiably: the global
-    mean when ``x`` is a per-rank mean and every rank holds as many samples."""
-    return x if world_size() == 1 else _MeanAcrossRanks.apply(x)
-
-
 def variance_and_covariance(z: torch.Tensor, gamma: float = 1.0, eps: float = 1e-4):
-    """:func:`ebjepa_tutorial.losses.variance_and_covariance` of the global batch, every rank
-    holding ``b`` rows ``(b, D)`` of ``(W b, D)``, from per-rank sums: two all-reduces of
-    ``D`` and ``D x D`` numbers, however many rows. Returns two 0-d tensors."""
+    """:func:`ebjepa_tutorial.losses.variance_and_covariance` of the global batch ``(W b, D)``,
+    each rank holding ``b`` rows ``(b, D)``, from per-rank sums (two all-reduces of ``D`` and
+    ``D x D`` numbers, however many rows). Returns two 0-d tensors."""
     if world_size() == 1:
         return vicreg.variance_and_covariance(z, gamma, eps)
-    mean = mean_across_ranks(z.mean(dim=0))  # (D,): the global mean
+    mean = _MeanAcrossRanks.apply(z.mean(dim=0))  # (D,): the global mean
     centred = z - mean
-    scatter = mean_across_ranks(centred.T @ centred)  # (D, D): 1/W of the global sum
+    scatter = _MeanAcrossRanks.apply(centred.T @ centred)  # (D, D): 1/W of the global sum
     cov = scatter * (world_size() / (world_size() * z.shape[0] - 1))  # sample covariance
     variance = torch.relu(gamma - torch.sqrt(torch.diagonal(cov) + eps)).mean()
     return variance, vicreg.off_diagonal_term(cov)
 
 
 def with_sync_batchnorm(module: nn.Module, device: torch.device | str) -> nn.Module:
-    """``module`` with its batch norms turned into SyncBatchNorm, which normalise over the
-    global batch, not each rank's share. Needs a process group and a CUDA ``device`` (torch
-    syncs CUDA inputs only). No DDP wrapper is needed: in training mode SyncBatchNorm gathers
-    its statistics whenever a process group is running. The parameters are kept, so an
-    optimiser built before or after holds the same tensors; state dict keys do not change.
-    """
+    """``module`` with its batch norms turned into SyncBatchNorm (normalising over the global
+    batch; parameters and state dict keys kept). Needs a process group and a CUDA device."""
     if not running():
         raise ValueError("sync_batchnorm needs a process group (start with torchrun)")
     if torch.device(device).type != "cuda":
@@ -213,9 +183,8 @@ def with_sync_batchnorm(module: nn.Module, device: torch.device | str) -> nn.Mod
 
 def data_parallel(module: nn.Module, device: torch.device | str,
                   sync_batchnorm: bool = False) -> nn.Module:
-    """``module`` wrapped in DDP inside a process group; ``module`` itself outside one.
-    ``sync_batchnorm``: its batch norms first become SyncBatchNorm (:func:`with_sync_batchnorm`).
-    """
+    """``module`` wrapped in DDP inside a process group, ``module`` itself outside one; with
+    ``sync_batchnorm``, its batch norms first become SyncBatchNorm."""
     device = torch.device(device)
     if sync_batchnorm:
         module = with_sync_batchnorm(module, device)

@@ -1,7 +1,7 @@
 """What the training commands share to run under torchrun: the ``--ddp`` and ``--sync-bn``
-flags, and joining the process group, where a bad set-up is a usage error on every rank
-(not a hang): no torchrun environment, a world size that does not divide the global batch,
-or ranks started with different arguments.
+flags, and joining the process group, where a bad set-up (no torchrun environment, a world size
+that does not divide the global batch, ranks started with different arguments) is a usage error
+on every rank, not a hang.
 """
 
 from __future__ import annotations
@@ -23,19 +23,16 @@ from ebjepa_tutorial.utils import get_device
 TORCHRUN_ENV = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")
 
 
-def launched_by_torchrun(environ: Mapping[str, str] | None = None) -> bool:
+def launched_by_torchrun() -> bool:
     """Whether torchrun (or another launcher of its kind) started this process."""
-    environ = os.environ if environ is None else environ
-    return "RANK" in environ or "WORLD_SIZE" in environ
+    return "RANK" in os.environ or "WORLD_SIZE" in os.environ
 
 
 def init_from_env(environ: Mapping[str, str] | None = None,
                   command: str = "research.train_image") -> torch.device:
-    """Join the process group that torchrun described in the environment; return our device.
-
-    ``nccl`` with one GPU per process (``cuda:LOCAL_RANK``) when CUDA is available, else
-    ``gloo`` on the CPU. Raises RuntimeError, naming what is missing and how to start
-    ``command`` (a module) under torchrun, rather than waiting for peers that never come.
+    """Join the process group torchrun described in the environment; return our device:
+    ``nccl`` on ``cuda:LOCAL_RANK`` when CUDA is available, else ``gloo`` on the CPU. Raises
+    RuntimeError naming what is missing and how to start ``command`` (a module) under torchrun.
     """
     environ = os.environ if environ is None else environ
     missing = [name for name in TORCHRUN_ENV if not environ.get(name)]
@@ -94,12 +91,9 @@ def add_flags(parser: argparse.ArgumentParser, sync_bn: bool = True) -> None:
 
 def join(parser: argparse.ArgumentParser, args: argparse.Namespace, batch_size: int,
          run: Any, command: str) -> torch.device:
-    """Join torchrun's process group and check the set-up; return this process's device.
-
-    Without torchrun (and without ``--ddp``), the best device of this machine. Under it,
-    checks that the world size divides ``batch_size`` (the global batch) and that every rank
-    holds the same ``args`` and ``run`` (plain data: the runs' identities); ``command`` (a
-    module) is named in the error when torchrun's environment is missing.
+    """This process's device: without torchrun (and ``--ddp``) the best one of this machine;
+    under it, after joining the group and checking that the world size divides ``batch_size``
+    (the global batch) and that every rank holds the same ``args`` and ``run`` (plain data).
     """
     if not (args.ddp or launched_by_torchrun()):
         if getattr(args, "sync_bn", False):

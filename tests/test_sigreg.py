@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from ebjepa_tutorial.losses.sigreg import (
-    empirical_cf,
+    EmpiricalCF,
     epps_pulley,
     random_directions,
     sigreg,
@@ -60,7 +60,7 @@ def test_angle_addition_keeps_the_ecf_exact_over_many_knots():
     # cos and sin at each knot are built from the previous knot's: check they do not drift
     x = 3 * torch.randn(64, 4, generator=make_generator(1))  # float32, arguments up to ~100 rad
     knots, t_max = 201, 12.0
-    real, imag = empirical_cf(x, t_max / (knots - 1), knots)  # (4, 201) each
+    real, imag = EmpiricalCF.apply(x, t_max / (knots - 1), knots)  # (4, 201) each
     t = torch.linspace(0.0, t_max, knots, dtype=torch.float64)
     angles = x.double()[..., None] * t  # (64, 4, 201)
     assert torch.allclose(real.double(), angles.cos().mean(0), atol=2e-5)

@@ -1,12 +1,6 @@
-"""Energies and losses, one module per family.
-
-- ``vicreg``: the invariance, variance and covariance terms (chapters 00-01),
-  re-exported here, so ``losses.variance_term`` is the VICReg term
-- ``sigreg``: SIGReg, the Epps-Pulley test on random 1-D projections (chapter 02)
-- ``rollout``: the video JEPA's K-step rollout loss (chapter 03)
-- ``world``: the world model's prediction, similarity and inverse-dynamics terms (chapter 05);
-  ``training.world.world_model_step`` weighs them with the variance and covariance
-"""
+"""Energies and losses, one module per family: ``vicreg`` (chapters 00-01; its terms are
+re-exported here), ``sigreg`` (chapter 02), ``rollout`` (the video JEPA's K-step loss, chapter
+03) and ``world`` (the world model's terms, chapter 05)."""
 
 from . import rollout, sigreg, vicreg, world
 from .vicreg import (
@@ -18,15 +12,5 @@ from .vicreg import (
     vicreg_loss,
 )
 
-__all__ = [
-    "covariance_matrix",
-    "covariance_term",
-    "invariance_term",
-    "rollout",
-    "sigreg",
-    "variance_and_covariance",
-    "variance_term",
-    "vicreg",
-    "vicreg_loss",
-    "world",
-]
+__all__ = ["covariance_matrix", "covariance_term", "invariance_term", "rollout", "sigreg",
+           "variance_and_covariance", "variance_term", "vicreg", "vicreg_loss", "world"]

@@ -1,24 +1,17 @@
 """The K-step loss of the video JEPA (notebook 03; the paper's multistep loss).
 
-Each frame is encoded to a spatial latent ``z_t`` ``(C, S, S)``; the predictor
-sees the last ``context`` latents and guesses the next one. Training unrolls
-it on its own guesses for ``K`` steps and compares the guess of order ``k``
-with the true encoding.
+Each frame is encoded to a spatial latent ``z_t`` ``(C, S, S)``; the predictor sees the last
+``context`` latents and guesses the next one. Training unrolls it on its own guesses for ``K``
+steps and compares each guess with the true encoding, in one of two ways (the reference code's
+``unroll_mode``; the same loss at K = 1):
 
-Two ways to unroll, both the reference code's (its ``unroll_mode``):
+- ``"parallel"`` (:func:`parallel_rollout_loss`, the paper's): each step predicts every frame of
+  the clip at once from the previous step's sequence;
+- ``"autoregressive"`` (:func:`rollout_loss`): one true context rolled forward, as a planner
+  uses the predictor.
 
-- ``"parallel"`` (:func:`parallel_rollout_loss`, the paper's training and
-  evaluation, and notebook 03's exercise): each step predicts every frame of the
-  clip at once from the previous step's sequence, so from order 2 on both context
-  latents of a window are predictions, each made from another true window.
-- ``"autoregressive"`` (:func:`rollout_loss`): one true context rolled
-  forward, the prediction of order k made from orders k-1 and k-2 of the
-  same rollout, exactly as a planner uses the predictor.
-
-At K = 1 the two are the same loss. Where we differ from the reference: its
-parallel loss also averages the (zero) error of the true context frames, and
-is taken after the projector; ours averages predicted frames only, on the
-latents themselves.
+Unlike the reference, we average over predicted frames only, on the latents themselves (not
+after the projector).
 """
 
 from __future__ import annotations
@@ -36,24 +29,17 @@ def check_rollout_args(z: torch.Tensor, context: int, steps: int):
     if not isinstance(z, torch.Tensor) or z.ndim != 5:
         got = tuple(z.shape) if isinstance(z, torch.Tensor) else type(z).__name__
         raise ValueError(f"latents must be (batch, time, channels, height, width), got {got}")
-    if not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"steps (K) must be an int >= 1, got {steps!r}")
-    if not isinstance(context, int) or context < 1:
-        raise ValueError(f"context must be an int >= 1, got {context!r}")
+    if not isinstance(steps, int) or steps < 1 or not isinstance(context, int) or context < 1:
+        raise ValueError(f"steps (K) and context must be ints >= 1, got {steps!r}, {context!r}")
     if z.shape[1] < context + steps:
-        raise ValueError(
-            f"a clip of {z.shape[1]} frames is too short for {context} context frames and "
-            f"{steps} prediction steps: use clips of at least {context + steps} frames, or "
-            "fewer steps"
-        )
+        raise ValueError(f"a clip of {z.shape[1]} frames is too short for {context} context "
+                         f"frames and {steps} prediction steps: use clips of at least "
+                         f"{context + steps} frames, or fewer steps")
 
 
 def rollout(predictor: Predictor, window: torch.Tensor, steps: int):
-    """Unroll the predictor on its own outputs: ``(N, context, C, H, W) -> (N, steps, C, H, W)``.
-
-    Each step predicts the next latent from the current window, then slides the
-    window: the oldest latent drops out, the prediction comes in.
-    """
+    """Unroll the predictor on its own outputs: ``(N, context, C, H, W) -> (N, steps, C, H, W)``;
+    each step slides the window (the oldest latent out, the prediction in)."""
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise ValueError(f"steps must be an int >= 1 (predictions to unroll), got {steps!r}")
     predictions = []
@@ -68,16 +54,11 @@ def rollout_loss(predictor: Predictor, z: torch.Tensor, context: int = 2, steps:
                  detach_later: bool = False) -> torch.Tensor:
     """The autoregressive K-step loss over latents ``z`` ``(B, T, C, H, W)``: a 0-d tensor.
 
-    From every start frame ``s`` (``0 <= s <= T - context - K``) the predictor
-    gets the true window ``z_s .. z_{s+context-1}`` and is unrolled on its own
-    predictions for ``K = steps`` steps; prediction ``k`` is compared with the
-    true ``z_{s+context-1+k}``. The loss is the mean squared error over all
-    starts, orders ``k``, and elements (the orders weigh equally). The gradient of
-    order ``k`` flows back through all ``k - 1`` earlier predictions.
-
-    ``detach_later``: orders 2..K unroll from, and aim at, detached latents, so they
-    train the predictor alone and the encoder learns from one-step errors only (the same
-    value; the first step is computed twice).
+    From every start ``s`` (``0 <= s <= T - context - K``) the predictor gets the true window
+    ``z_s .. z_{s+context-1}`` and runs ``K = steps`` steps on its own predictions; prediction
+    ``k`` is compared with ``z_{s+context-1+k}``. The mean squared error over starts, orders and
+    elements. ``detach_later``: orders 2..K unroll from, and aim at, detached latents, so the
+    encoder learns from one-step errors only (the same value).
     """
     check_rollout_args(z, context, steps)
     if detach_later and steps > 1:
@@ -99,14 +80,11 @@ def _rollouts(predictor: Predictor, z: torch.Tensor, context: int,
 
 def parallel_unroll(predictor: Predictor, z: torch.Tensor, context: int = 2,
                     steps: int = 4) -> list[torch.Tensor]:
-    """The paper's parallel unroll of latents ``z`` ``(B, T, C, H, W)``: a list of ``steps``
-    tensors ``(B, T - context, C, H, W)``, step k's predictions of frames ``context .. T-1``.
+    """The paper's parallel unroll of latents ``z`` ``(B, T, C, H, W)``: ``steps`` tensors
+    ``(B, T - context, C, H, W)``, step k's predictions of frames ``context .. T-1``.
 
-    Step k feeds the predictor, for every frame t, the window of frames ``t - context ..
-    t - 1`` of the sequence step k-1 made (the true latents at step 1), then puts the true
-    ``z_0 .. z_{context-1}`` back in front. After step k, frame t is predicted k steps ahead
-    of its most recent true input when ``t >= context - 1 + k`` (earlier frames repeat
-    lower orders).
+    Step k predicts every frame t from frames ``t - context .. t - 1`` of step k-1's sequence
+    (the true latents at step 1), then puts the true ``z_0 .. z_{context-1}`` back in front.
     """
     check_rollout_args(z, context, steps)
     sequence, out = z, []
@@ -121,16 +99,13 @@ def parallel_unroll(predictor: Predictor, z: torch.Tensor, context: int = 2,
 
 def parallel_rollout_loss(predictor: Predictor, z: torch.Tensor, context: int = 2,
                           steps: int = 4, detach_later: bool = False) -> torch.Tensor:
-    """The paper's K-step loss (its Eqs. 8 to 10): the mean over steps k of the squared error
-    of step k's predictions (:func:`parallel_unroll`) against the true ``z_context .. z_{T-1}``.
+    """The paper's K-step loss (its Eqs. 8 to 10) over latents ``z`` ``(B, T, C, H, W)``:
 
         L_pred = (1/K) sum_k mean_{b, t >= context} ||z~^(k)_{b,t} - z_{b,t}||^2   (a 0-d tensor)
 
-    ``z``: latents ``(B, T, C, H, W)``. Targets keep their gradient (the paper's choice; the
-    variance and covariance terms keep that from collapsing). ``detach_later``: steps 2..K
-    unroll from, and aim at, ``z.detach()``, so they train the predictor alone and the
-    encoder learns from the step-1 error only (the course's class runs; the paper: False).
-    At ``steps=1`` this is :func:`rollout_loss` with one step.
+    with ``z~^(k)`` step k of :func:`parallel_unroll`. Targets keep their gradient (the paper's
+    choice). ``detach_later``: steps 2..K unroll from, and aim at, ``z.detach()``, so the encoder
+    learns from the step-1 error only (the course's class runs; the paper: False).
     """
     errors = []
     if detach_later and steps > 1:  # step 1 on the latents, steps 2..K on detached ones

@@ -1,36 +1,20 @@
-"""SIGReg: push embeddings towards an isotropic Gaussian with 1-D Gaussianity tests.
+"""SIGReg (LeJEPA, Balestriero & LeCun, 2025): push embeddings towards N(0, I) with 1-D tests.
 
-LeJEPA (Balestriero & LeCun, 2025) regularises a joint-embedding model by
-asking its embeddings ``z`` of shape ``(B, D)`` to look like samples of
-N(0, I). Testing that in D dimensions is hard; testing it along one direction
-is easy. So each step draws ``num_slices`` random unit directions ``a``,
-projects ``x = z @ a`` (B numbers per direction), and scores each projection
-with the Epps-Pulley statistic, which compares characteristic functions:
+Testing Gaussianity in D dimensions is hard, along one direction it is easy. So each step
+draws ``num_slices`` random unit directions ``a``, projects the embeddings ``z`` ``(B, D)`` to
+``x = z @ a`` (B numbers per direction), and scores each projection with the Epps-Pulley
+statistic, which compares characteristic functions:
 
     phi_N(t) = (1/N) sum_n exp(i t x_n)        empirical characteristic function
     phi(t)   = exp(-t^2 / 2)                   that of N(0, 1)
     EP       = N * integral_{-T}^{T} |phi_N(t) - phi(t)|^2 w(t) dt,
     w(t)     = exp(-t^2 / (2 sigma^2))         Gaussian weight
 
-By the Cramer-Wold theorem, a distribution whose every 1-D projection is
-N(0, 1) is N(0, I). Unlike VICReg's variance and covariance terms, this also
-constrains higher moments. The projections are NOT standardised first: the
-statistic must see the mean and the scale, or it could not prevent collapse.
-
-Scaling convention (read this before choosing ``lam``): LeJEPA multiplies the
-integral by the sample size N (``scale_by_n=True``, our default), which makes
-the statistic O(1) for Gaussian samples whatever the batch size (about 1.05
-with the default knots), while a collapsed batch scores about 0.4 N. An
-earlier release of the EB-JEPA reference code omits the factor N, so its
-statistic is N times smaller and its coefficient must be N times larger (its
-default lambda is 10; at batch 256 that is about 0.04 in our convention);
-later releases multiply by N and use lambda 0.1 on CIFAR-10. Switching
-``scale_by_n`` off divides the effective lambda by N (the batch size): keep
-``lam * N`` fixed when you switch. With the factor N, a lambda carries over
-from one batch size to another; without it, lambda must grow with the batch.
-
-Under ``torchrun`` the training code gathers every rank's embeddings first
-(:mod:`ebjepa_tutorial.distributed`), so the statistic is that of the global batch.
+By the Cramer-Wold theorem, a distribution whose every 1-D projection is N(0, 1) is N(0, I).
+The projections are not standardised: the statistic must see the mean and the scale, or it
+could not prevent collapse. The factor N (``scale_by_n=True``, LeJEPA's) makes EP about 1.05
+for Gaussian samples at any batch size and about 0.4 N for a collapsed batch; without it the
+statistic is N times smaller, and so must its coefficient ``lam`` be N times larger.
 """
 
 from __future__ import annotations
@@ -41,33 +25,24 @@ from ..utils import at_least_float32
 from .vicreg import _check_embeddings, invariance_term
 
 
-def epps_pulley(
-    x: torch.Tensor,
-    knots: int = 17,
-    t_max: float = 3.0,
-    sigma: float = 1.0,
-    scale_by_n: bool = True,
-) -> torch.Tensor:
+def epps_pulley(x: torch.Tensor, knots: int = 17, t_max: float = 3.0, sigma: float = 1.0,
+                scale_by_n: bool = True) -> torch.Tensor:
     """Epps-Pulley statistic of 1-D samples against N(0, 1): ``(N,) -> ()`` or ``(N, M) -> (M,)``.
 
-    ``x``: N samples of one projection, or of M projections (one per column).
-    The integrand is even in t (cos is even, sin is odd and squared), so we
-    integrate over [0, t_max] with ``knots`` trapezoid knots and double it.
-    ``sigma`` is the width of the Gaussian weight w(t); ``scale_by_n``
-    multiplies by N (see the module docstring). Zero iff the empirical
-    characteristic function matches exp(-t^2/2) at every knot.
+    ``x``: N samples of one projection, or of M projections (one per column). The integrand is
+    even in t, so we integrate over [0, t_max] with ``knots`` trapezoid knots and double it.
+    Zero iff the empirical characteristic function matches exp(-t^2/2) at every knot.
     """
     if x.ndim not in (1, 2) or x.shape[0] < 2:
         raise ValueError(
             f"epps_pulley needs at least 2 samples along dimension 0 of a (N,) or (N, M) "
             f"tensor, got shape {tuple(x.shape)}; a characteristic function of one sample "
-            "says nothing about its distribution"
-        )
+            "says nothing about its distribution")
     if knots < 2:
         raise ValueError(f"the trapezoid rule needs at least 2 knots, got {knots}")
     x = at_least_float32(x)  # cos(t x) of large arguments loses every digit in half precision
     t = torch.linspace(0.0, t_max, knots, device=x.device, dtype=x.dtype)  # (K,)
-    ecf_real, ecf_imag = empirical_cf(x, t_max / (knots - 1), knots)  # (K,) or (M, K)
+    ecf_real, ecf_imag = EmpiricalCF.apply(x, t_max / (knots - 1), knots)  # (K,) or (M, K)
     gaussian_cf = torch.exp(-(t**2) / 2)  # phi(t) of N(0, 1): real
     weight = torch.exp(-(t**2) / (2 * sigma**2))  # w(t)
 
@@ -98,11 +73,12 @@ def _cos_sin_at_knots(x: torch.Tensor, dt: float, knots: int):
         yield cos_k, sin_k
 
 
-class _EmpiricalCF(torch.autograd.Function):
-    """Re and Im of phi_N(t_k) = (1/N) sum_n exp(i t_k x_n) at t_k = k dt: ``(N, ...) -> (..., K)``.
+class EmpiricalCF(torch.autograd.Function):
+    """Re and Im of phi_N(t_k) = (1/N) sum_n exp(i t_k x_n) at t_k = k dt, k < knots:
+    ``apply(x (N, ...), dt, knots) -> two (..., knots)``.
 
-    Autograd would store cos and sin of every knot for the backward pass (2 K copies of x);
-    the gradient has a closed form instead,
+    Autograd would store cos and sin of every knot (2 K copies of x); the gradient has a
+    closed form instead,
         d Re phi_N(t_k) / d x_n = -t_k sin(t_k x_n) / N,
         d Im phi_N(t_k) / d x_n =  t_k cos(t_k x_n) / N,
     so the backward pass rebuilds the cosines and sines, knot by knot, from x alone.
@@ -125,25 +101,10 @@ class _EmpiricalCF(torch.autograd.Function):
         return grad_x, None, None
 
 
-def empirical_cf(x: torch.Tensor, dt: float, knots: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Re and Im of the ECF of ``x`` ``(N,)`` or ``(N, M)`` at t = 0, dt, .., (knots - 1) dt.
-
-    Returns two ``(knots,)`` or ``(M, knots)`` tensors: (1/N) sum_n cos(t x_n) and sin(t x_n).
-    """
-    return _EmpiricalCF.apply(x, dt, knots)
-
-
-def random_directions(
-    dim: int,
-    num_slices: int,
-    generator: torch.Generator | None = None,
-    device: torch.device | str | None = None,
-) -> torch.Tensor:
-    """``num_slices`` random unit vectors in R^dim: the columns of a ``(dim, num_slices)`` matrix.
-
-    Drawn on the generator's device (CPU by default) and moved to ``device``,
-    so one CPU generator gives the same directions on every machine.
-    """
+def random_directions(dim: int, num_slices: int, generator: torch.Generator | None = None,
+                      device: torch.device | str | None = None) -> torch.Tensor:
+    """``num_slices`` random unit vectors in R^dim, the columns of a ``(dim, num_slices)``
+    matrix, drawn on the generator's device (CPU by default: the same on every machine)."""
     if isinstance(num_slices, bool) or not isinstance(num_slices, int) or num_slices < 1:
         raise ValueError(f"num_slices must be an int >= 1 (random directions), got {num_slices!r}")
     gen_device = generator.device if generator is not None else "cpu"
@@ -152,52 +113,32 @@ def random_directions(
     return directions.to(device) if device is not None else directions
 
 
-def sigreg(
-    z: torch.Tensor,
-    num_slices: int = 256,
-    generator: torch.Generator | None = None,
-    directions: torch.Tensor | None = None,
-    knots: int = 17,
-    t_max: float = 3.0,
-    sigma: float = 1.0,
-    scale_by_n: bool = True,
-) -> torch.Tensor:
+def sigreg(z: torch.Tensor, num_slices: int = 256, generator: torch.Generator | None = None,
+           directions: torch.Tensor | None = None, scale_by_n: bool = True) -> torch.Tensor:
     """Sliced Epps-Pulley statistic of embeddings ``z`` ``(B, D)``, averaged over slices: ``()``.
 
-    Fresh directions are drawn from ``generator`` on every call (so a training
-    loop tests new directions each step), unless ``directions`` ``(D, M)`` are
-    given. ``knots``, ``t_max``, ``sigma`` and ``scale_by_n`` go to
-    :func:`epps_pulley`.
-    The cost is O(B * num_slices * knots); the reference uses 1024 slices, and so
-    does chapter 02's class run: 256 cost it 2 points of probe (RESULTS.md, 01-02).
+    Fresh directions are drawn from ``generator`` on every call (a training loop tests new
+    ones each step), unless ``directions`` ``(D, M)`` are given. Cost: O(B num_slices knots).
     """
     _check_embeddings(z, "z", min_batch=2)
     if directions is None:
         directions = random_directions(z.shape[1], num_slices, generator, z.device)
     if directions.ndim != 2 or directions.shape[0] != z.shape[1]:
         raise ValueError(
-            f"directions must be (D, M) with D = {z.shape[1]}, got {tuple(directions.shape)}"
-        )
+            f"directions must be (D, M) with D = {z.shape[1]}, got {tuple(directions.shape)}")
     z = at_least_float32(z)
     projected = z @ directions.to(z.device, z.dtype)  # (B, M)
-    return epps_pulley(projected, knots, t_max, sigma, scale_by_n).mean()
+    return epps_pulley(projected, scale_by_n=scale_by_n).mean()
 
 
-def sigreg_loss(
-    z_a: torch.Tensor,
-    z_b: torch.Tensor,
-    lam: float = 0.1,
-    num_slices: int = 256,
-    generator: torch.Generator | None = None,
-    scale_by_n: bool = True,
-) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+def sigreg_loss(z_a: torch.Tensor, z_b: torch.Tensor, lam: float = 0.1, num_slices: int = 256,
+                generator: torch.Generator | None = None,
+                scale_by_n: bool = True) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Invariance + ``lam`` * SIGReg on two views ``(B, D)``: returns ``(total, terms)``.
 
-    Invariance is the mean squared distance between the views
-    (:func:`ebjepa_tutorial.losses.invariance_term`, as in VICReg); SIGReg is
-    applied to each view with the same random directions and averaged.
-    ``terms`` holds the unweighted terms as detached 0-d tensors, like ``losses.vicreg_loss``.
-    The default ``lam = 0.1`` is the EB-JEPA CIFAR-10 setting for ``scale_by_n=True``.
+    SIGReg is applied to each view with the same random directions and averaged; ``terms``
+    holds the unweighted terms, detached 0-d tensors. ``lam = 0.1`` is the EB-JEPA CIFAR-10
+    setting for ``scale_by_n=True``.
     """
     inv = invariance_term(z_a, z_b)
     _check_embeddings(z_a, "z_a", min_batch=2)

@@ -1,10 +1,6 @@
-"""Loss terms of energy-based JEPAs, one function per term of the paper.
+"""VICReg's loss terms, one function per term of the paper (notebooks 00, 01, 03 and 05).
 
-All functions take embeddings ``z`` of shape ``(B, D)`` (batch, dimensions)
-and return a 0-d tensor. Introduced in notebook 00 (variance, covariance) and
-used again in notebooks 01, 03 and 05. They see one batch in one process; under
-``torchrun`` the training code hands them the global batch
-(:mod:`ebjepa_tutorial.distributed`).
+Each takes embeddings ``z`` of shape ``(B, D)`` (batch, dimensions) and returns a 0-d tensor.
 """
 
 from __future__ import annotations
@@ -14,24 +10,21 @@ from collections.abc import Callable
 import torch
 import torch.nn.functional as F
 
+Term = Callable[[torch.Tensor], torch.Tensor]  # embeddings (B, D) -> 0-d tensor
+
 
 def _check_embeddings(z: torch.Tensor, name: str = "z", min_batch: int = 1) -> None:
     if not isinstance(z, torch.Tensor) or z.ndim != 2:
         shape = tuple(z.shape) if isinstance(z, torch.Tensor) else type(z).__name__
         raise ValueError(f"{name} must be a (batch, dim) tensor, got {shape}")
     if z.shape[0] < min_batch:
-        raise ValueError(
-            f"{name} has a batch of {z.shape[0]}; this term needs at least {min_batch} "
-            "samples (a standard deviation over one sample is undefined)"
-        )
+        raise ValueError(f"{name} has a batch of {z.shape[0]}; this term needs at least "
+                         f"{min_batch} samples (a standard deviation over one is undefined)")
 
 
 def invariance_term(z_a: torch.Tensor, z_b: torch.Tensor) -> torch.Tensor:
-    """Mean squared distance between two views: ``mean_{b,d} (z_a - z_b)^2``.
-
-    ``z_a``, ``z_b``: ``(B, D)``. This is the energy ``E(x, y)`` of a
-    joint-embedding architecture with an identity predictor, averaged over pairs.
-    """
+    """Mean squared distance between two views ``(B, D)``: ``mean_{b,d} (z_a - z_b)^2``, the
+    energy ``E(x, y)`` of a joint-embedding architecture, averaged over pairs."""
     _check_embeddings(z_a, "z_a")
     _check_embeddings(z_b, "z_b")
     if z_a.shape != z_b.shape:
@@ -40,10 +33,9 @@ def invariance_term(z_a: torch.Tensor, z_b: torch.Tensor) -> torch.Tensor:
 
 
 def variance_term(z: torch.Tensor, gamma: float = 1.0, eps: float = 1e-4) -> torch.Tensor:
-    """Hinge on the standard deviation of each dimension over the batch.
+    """Hinge on each dimension's standard deviation over the batch ``(B, D)``, ``B >= 2``:
 
-    ``v(Z) = (1/D) sum_d max(0, gamma - sqrt(Var(z_d) + eps))``, with ``z``
-    of shape ``(B, D)`` and ``B >= 2``. Zero once every dimension has std >= gamma.
+        v(Z) = (1/D) sum_d max(0, gamma - sqrt(Var(z_d) + eps))
     """
     _check_embeddings(z, min_batch=2)
     std = torch.sqrt(z.var(dim=0) + eps)
@@ -58,11 +50,12 @@ def covariance_matrix(z: torch.Tensor) -> torch.Tensor:
 
 
 def covariance_term(z: torch.Tensor) -> torch.Tensor:
-    """Mean squared off-diagonal covariance: ``c(Z) = sum_{i != j} C_ij^2 / (D (D - 1))``.
+    """Mean squared off-diagonal covariance of ``(B, D)``, ``D >= 2``:
 
-    ``z``: ``(B, D)`` with ``D >= 2``. The VICReg paper divides the same sum by
-    ``D`` instead; the EB-JEPA paper's ``D (D - 1)`` makes the term an average,
-    so its coefficient does not have to grow with the embedding size.
+        c(Z) = sum_{i != j} C_ij^2 / (D (D - 1))
+
+    (the VICReg paper divides by ``D``; the EB-JEPA paper's average keeps the coefficient
+    independent of the embedding size).
     """
     return off_diagonal_term(covariance_matrix(z))
 
@@ -76,42 +69,14 @@ def off_diagonal_term(cov: torch.Tensor) -> torch.Tensor:
     return off_diagonal.pow(2).sum() / (dim * (dim - 1))
 
 
-def variance_and_covariance(
-    z: torch.Tensor, gamma: float = 1.0, eps: float = 1e-4
-) -> tuple[torch.Tensor, torch.Tensor]:
+def variance_and_covariance(z: torch.Tensor, gamma: float = 1.0,
+                            eps: float = 1e-4) -> tuple[torch.Tensor, torch.Tensor]:
     """``(variance_term(z, gamma, eps), covariance_term(z))`` of embeddings ``(B, D)``."""
     return variance_term(z, gamma, eps), covariance_term(z)
 
 
-def vicreg_loss(
-    z_a: torch.Tensor,
-    z_b: torch.Tensor,
-    inv_coeff: float = 1.0,
-    std_coeff: float = 1.0,
-    cov_coeff: float = 1.0,
-    variance: Callable[[torch.Tensor], torch.Tensor] = variance_term,
-    covariance: Callable[[torch.Tensor], torch.Tensor] = covariance_term,
-) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """VICReg on two views ``(B, D)``: weighted invariance + variance + covariance.
-
-    The variance and covariance terms are applied to each view and averaged. Returns the
-    total and a dict of the unweighted terms, detached 0-d tensors for logging
-    (``float()`` reads one; reading waits for the GPU, so training loops read them only
-    when they log). ``variance`` and ``covariance``: the two regularisers, ``(B, D) -> 0-d``
-    (notebook 00 trains with the learner's own once they pass their checks).
-    """
-    inv, var, cov = vicreg_terms(z_a, z_b, variance, covariance).values()
-    total = inv_coeff * inv + std_coeff * var + cov_coeff * cov
-    return total, {"invariance": inv.detach(), "variance": var.detach(),
-                   "covariance": cov.detach()}
-
-
-def vicreg_terms(
-    z_a: torch.Tensor,
-    z_b: torch.Tensor,
-    variance: Callable[[torch.Tensor], torch.Tensor] = variance_term,
-    covariance: Callable[[torch.Tensor], torch.Tensor] = covariance_term,
-) -> dict[str, torch.Tensor]:
+def vicreg_terms(z_a: torch.Tensor, z_b: torch.Tensor, variance: Term = variance_term,
+                 covariance: Term = covariance_term) -> dict[str, torch.Tensor]:
     """VICReg's three terms of two views ``(B, D)``, unweighted: ``{"invariance", "variance",
     "covariance"}``, 0-d each; the last two computed on each view and averaged."""
     return {"invariance": invariance_term(z_a, z_b),
@@ -119,9 +84,20 @@ def vicreg_terms(
             "covariance": (covariance(z_a) + covariance(z_b)) / 2}
 
 
+def vicreg_loss(z_a: torch.Tensor, z_b: torch.Tensor, inv_coeff: float = 1.0,
+                std_coeff: float = 1.0, cov_coeff: float = 1.0, variance: Term = variance_term,
+                covariance: Term = covariance_term) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """VICReg on two views ``(B, D)``: the weighted sum of :func:`vicreg_terms` and the terms,
+    detached 0-d tensors for logging. ``variance`` and ``covariance``: the regularisers
+    (notebook 00 trains with the learner's own)."""
+    inv, var, cov = vicreg_terms(z_a, z_b, variance, covariance).values()
+    total = inv_coeff * inv + std_coeff * var + cov_coeff * cov
+    return total, {"invariance": inv.detach(), "variance": var.detach(),
+                   "covariance": cov.detach()}
+
+
 def vicreg(z_a: torch.Tensor, z_b: torch.Tensor, inv_coeff: float = 1.0, std_coeff: float = 1.0,
            cov_coeff: float = 1.0) -> torch.Tensor:
-    """VICReg's weighted sum of two views ``(B, D)``, a 0-d tensor: the total of
-    :func:`vicreg_loss`, and what notebook 01's exercise 1 writes (its training step calls the
-    learner's once it passes). Not re-exported by ``losses``, whose ``vicreg`` is this module."""
+    """The total of :func:`vicreg_loss`, a 0-d tensor: what notebook 01's exercise 1 writes.
+    (``losses.vicreg`` is this module; this function is ``losses.vicreg.vicreg``.)"""
     return vicreg_loss(z_a, z_b, inv_coeff, std_coeff, cov_coeff)[0]

@@ -1,28 +1,17 @@
 """The loss of the action-conditioned world model (notebook 05), one function per term.
 
-For latents ``z`` of a batch of trajectories ``(B, T, D)`` and the actions
-between their frames ``(B, T-1, A)``, the paper trains the encoder,
-predictor and inverse-dynamics head together on
+For latents ``z`` of a batch of trajectories ``(B, T, D)`` and the actions between their
+frames ``(B, T-1, A)``, the paper trains the encoder, predictor and inverse-dynamics head on
 
     L = L_pred + alpha v(Z) + beta c(Z) + delta L_sim + omega L_idm
 
-with alpha 16 (variance), beta 8 (covariance), delta 12 (temporal
-similarity), omega 1 (inverse dynamics), K 8 prediction steps. SIGReg
-(:mod:`ebjepa_tutorial.losses.sigreg`, chapter 02) can replace or join the
-variance and covariance terms as the anti-collapse term: weight ``sigreg``, off
-by default. The variance
-and covariance terms (:mod:`ebjepa_tutorial.losses`) keep the latent from
-collapsing; temporal similarity makes it change slowly along a trajectory
-(so that a straight path in latent space is a short path in the world); the
-inverse-dynamics head forces the latent to keep what the action changed
-(the dot), which the static walls cannot explain. Every term averages over
-its elements, so each coefficient does not depend on ``B``, ``T`` or ``D``.
-
-The weighted total is assembled, and back-propagated, in one place:
-:func:`ebjepa_tutorial.training.world.world_model_step`, the step notebook 05
-shows. Under ``torchrun`` it hands the variance, covariance and SIGReg every
-rank's latents (``distributed.gather_rows``) and draws the still steps with
-``distributed.rand_rows``, so that they are those of the global batch.
+with alpha 16 (variance), beta 8 (covariance), delta 12 (temporal similarity), omega 1
+(inverse dynamics) and K = 8 prediction steps. The variance and covariance terms keep the
+latent from collapsing (SIGReg, chapter 02, can join them: weight ``sigreg``, off by default);
+temporal similarity makes it change slowly along a trajectory; inverse dynamics forces it to
+keep what the action changed (the dot). Every term averages over its elements, so no
+coefficient depends on ``B``, ``T`` or ``D``. The weighted total is assembled in
+:func:`ebjepa_tutorial.training.world.world_model_step`.
 """
 
 from __future__ import annotations
@@ -56,14 +45,11 @@ def _check_sequence(z: torch.Tensor, actions: torch.Tensor | None = None) -> Non
     if actions is None:
         return
     b, t = z.shape[:2]
-    if not isinstance(actions, torch.Tensor) or actions.ndim != 3 or actions.shape[:2] != (
-        b, t - 1
-    ):
+    if not isinstance(actions, torch.Tensor) or actions.ndim != 3 or (
+            actions.shape[:2] != (b, t - 1)):
         got = tuple(actions.shape) if isinstance(actions, torch.Tensor) else type(actions).__name__
-        raise ValueError(
-            f"actions must be (batch, time - 1, action_dim) = ({b}, {t - 1}, A): one action "
-            f"between each pair of consecutive frames; got {got}"
-        )
+        raise ValueError(f"actions must be (batch, time - 1, action_dim) = ({b}, {t - 1}, A): "
+                         f"one action between each pair of consecutive frames; got {got}")
     if not torch.isfinite(actions).all():
         raise ValueError("actions contain NaN or infinite values")
 
@@ -72,24 +58,15 @@ def with_still_steps(z: torch.Tensor, actions: torch.Tensor, stay: torch.Tensor)
     """Rollout windows with "still" steps spliced in: ``z (N, K+1, D)``, ``actions (N, K, A)``,
     ``stay (N, K)`` bool -> the same shapes.
 
-    Where ``stay[n, k]``, step ``k`` takes a zero action and its target repeats the
-    previous frame; elsewhere the window's next action and frame follow, so a window
-    with ``s`` stays ends ``s`` frames early. The data policy never stands still,
-    but a planner at its goal must: these steps teach the predictor what "no
-    action" does.
+    Where ``stay[n, k]``, step ``k`` takes a zero action and its target repeats the previous
+    frame; elsewhere the window's next action and frame follow (a window with ``s`` stays ends
+    ``s`` frames early). The data never stands still, but a planner at its goal must.
     """
     moves = (~stay).long()
     frame = moves.cumsum(1)  # (N, K): the window's frame reached after each step
     rows = torch.arange(len(z), device=z.device)[:, None]
     taken = actions[rows, (frame - 1).clamp_min(0)] * moves[..., None]
     return torch.cat([z[:, :1], z[rows, frame]], dim=1), taken
-
-
-def draw_still_steps(windows: int, steps: int, probability: float,
-                     generator: torch.Generator | None, rand: Callable = torch.rand):
-    """Which steps are still: ``(windows, steps)`` bool, each True with ``probability``,
-    drawn with ``rand`` (``torch.rand``'s signature)."""
-    return rand(windows, steps, generator=generator) < probability
 
 
 def windows(x: torch.Tensor, length: int, every: int) -> torch.Tensor:
@@ -101,46 +78,31 @@ def windows(x: torch.Tensor, length: int, every: int) -> torch.Tensor:
 
 
 def multistep_prediction_loss(
-    predict: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
-    z: torch.Tensor,
-    actions: torch.Tensor,
-    steps: int = 8,
-    detach_targets: bool = False,
-    stay_probability: float = 0.0,
-    generator: torch.Generator | None = None,
+    predict: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], z: torch.Tensor,
+    actions: torch.Tensor, steps: int = 8, detach_targets: bool = False,
+    stay_probability: float = 0.0, generator: torch.Generator | None = None,
     rand: Callable = torch.rand,
 ) -> torch.Tensor:
-    """Mean squared error of ``steps``-step autoregressive rollouts under the true actions.
+    """Mean squared error of ``steps``-step rollouts from the first frame under the true actions.
 
-    From the first frame: ``zhat_0 = z_0``, ``zhat_k = P(zhat_{k-1}, a_{k-1})``, and
-    ``L = (1/K) sum_{k=1..K} (1/(B D)) sum_b ||zhat_k - z_k||^2``: the predictor runs on its
-    own predictions, as a planner will use it. The paper's Eq. 8 also sums over later start
-    frames; its reference code, and the course, roll out from the first frame only.
-    With ``stay_probability > 0`` each step is, with that probability, a still step
-    (:func:`with_still_steps`), drawn from ``generator`` by ``rand``.
+    ``zhat_0 = z_0``, ``zhat_k = P(zhat_{k-1}, a_{k-1})`` and
 
-    ``predict(z (B, D), a (B, A)) -> (B, D)``; ``z``: ``(B, T, D)`` encoded
-    frames; ``actions``: ``(B, T-1, A)``; ``1 <= steps <= T-1``.
+        L_pred = (1/K) sum_{k=1..K} (1/(B D)) sum_b ||zhat_k - z_k||^2
 
-    Targets are NOT detached by default, as in the paper's reference code: the
-    gradient reaches the encoder through both ``zhat_k`` and ``z_k``, and the
-    variance and covariance terms keep that from collapsing the latent.
-    ``detach_targets=True`` stops the gradient at ``z_k`` (a common variant).
+    (the paper's Eq. 8 also sums over later start frames; its code, and the course, do not).
+    ``predict(z (B, D), a (B, A)) -> (B, D)``; ``z``: ``(B, T, D)``; ``actions``: ``(B, T-1, A)``;
+    ``1 <= steps <= T-1``. With ``stay_probability > 0`` each step is, with that probability, a
+    still step (:func:`with_still_steps`), drawn by ``rand`` (``torch.rand``'s signature) from
+    ``generator``. Targets keep their gradient, as in the paper's code, unless ``detach_targets``.
     """
     _check_sequence(z, actions)
     if not 1 <= steps <= z.shape[1] - 1:
         raise ValueError(f"steps must be in 1..{z.shape[1] - 1} (T - 1), got {steps}")
     if stay_probability:
         z, actions = z[:, : steps + 1], actions[:, :steps]
-        stay = draw_still_steps(len(z), steps, stay_probability, generator, rand)
+        stay = rand(len(z), steps, generator=generator) < stay_probability
         z, actions = with_still_steps(z, actions, stay.to(z.device))
-    return rollout_error(predict, z, z.detach() if detach_targets else z, actions, steps)
-
-
-def rollout_error(predict, z: torch.Tensor, targets: torch.Tensor, actions: torch.Tensor,
-                  steps: int) -> torch.Tensor:
-    """The rollout from ``z[:, 0]`` under ``actions (B, >= K, A)``, scored against
-    ``targets[:, 1..K]`` ``(B, >= K+1, D)``: the mean over ``k`` of each step's MSE, 0-d."""
+    targets = z.detach() if detach_targets else z
     zhat, total = z[:, 0], z.new_zeros(())
     for k in range(1, steps + 1):
         zhat = predict(zhat, actions[:, k - 1])
@@ -149,40 +111,31 @@ def rollout_error(predict, z: torch.Tensor, targets: torch.Tensor, actions: torc
 
 
 def variance_covariance_loss(z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Variance hinge ``v`` and covariance ``c`` over every frame: ``(B, T, D)`` -> two 0-d tensors.
-
-    The latents are flattened to ``(B*T, D)``, so the statistics are taken over
-    all frames of all trajectories together (the paper's setting): a dimension
-    that varies only along time, like the dot's position, counts as varied.
-    ``v(Z) = (1/D) sum_d max(0, 1 - sqrt(Var(z_d) + eps))``,
-    ``c(Z) = sum_{i != j} C_ij^2 / (D (D - 1))``.
-    """
+    """``v(Z)`` and ``c(Z)`` (:mod:`~ebjepa_tutorial.losses.vicreg`) over every frame of
+    ``(B, T, D)``, flattened to ``(B*T, D)``: a dimension that varies only along time, like the
+    dot's position, counts as varied. Two 0-d tensors."""
     _check_sequence(z)
     flat = z.reshape(-1, z.shape[-1])
     return variance_term(flat), covariance_term(flat)
 
 
 def temporal_similarity_loss(z: torch.Tensor) -> torch.Tensor:
-    """Mean squared change between consecutive latents: ``(B, T, D)`` -> 0-d tensor.
+    """Mean squared change between consecutive latents ``(B, T, D)``, a 0-d tensor:
 
-    ``L_sim = (1/(B (T-1) D)) sum_{b,t} ||z_{t+1} - z_t||^2``: averaged over
-    dimensions too (as the reference code does), so it is the per-dimension
-    mean of ``||z_{t+1} - z_t||^2`` and the coefficient 12 does not scale with D.
+        L_sim = (1/(B (T-1) D)) sum_{b,t} ||z_{t+1} - z_t||^2
     """
     _check_sequence(z)
     return (z[:, 1:] - z[:, :-1]).pow(2).mean()
 
 
-def inverse_dynamics_loss(
-    predict_actions: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
-    z: torch.Tensor,
-    actions: torch.Tensor,
-) -> torch.Tensor:
-    """MSE between the actions predicted from consecutive latents and the true ones.
+def inverse_dynamics_loss(predict_actions: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+                          z: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+    """MSE between the actions predicted from consecutive latents and the true ones:
 
-    ``L_idm = (1/(B (T-1) A)) sum_{b,t} ||g(z_t, z_{t+1}) - a_t||^2``.
-    ``predict_actions(z_t (..., D), z_next (..., D)) -> (..., A)``; ``z``:
-    ``(B, T, D)``; ``actions``: ``(B, T-1, A)``.
+        L_idm = (1/(B (T-1) A)) sum_{b,t} ||g(z_t, z_{t+1}) - a_t||^2
+
+    ``predict_actions(z_t (..., D), z_next (..., D)) -> (..., A)``; ``z``: ``(B, T, D)``;
+    ``actions``: ``(B, T-1, A)``.
     """
     _check_sequence(z, actions)
     return F.mse_loss(predict_actions(z[:, :-1], z[:, 1:]), actions)
@@ -195,8 +148,7 @@ def encode_for_loss(model, frames: torch.Tensor) -> torch.Tensor:
         raise RuntimeError(
             "the model's input statistics are not set: call model.fit_input_stats(frames) "
             "on a few hundred training trajectories first (without it the faint dot channel "
-            "is drowned by the walls and the latent tends to ignore the agent)"
-        )
+            "is drowned by the walls and the latent tends to ignore the agent)")
     if not isinstance(frames, torch.Tensor) or frames.ndim != 5:
         got = tuple(frames.shape) if isinstance(frames, torch.Tensor) else type(frames).__name__
         raise ValueError(f"frames must be (batch, time, 2, 65, 65) trajectories, got {got}")

@@ -2,31 +2,19 @@
 
 Shapes (``S`` = latent side, ``C`` = latent channels):
 
-- ``encode``: frames uint8 or float ``(B, T, 1, 64, 64)`` -> latents ``(B, T, C, S, S)``.
-  Each frame is encoded on its own; the latent keeps a spatial map, so where a
-  digit is stays where it is.
-- ``predictor``: a window of the last ``context`` latents ``(N, context, C, S, S)``
-  -> the next latent ``(N, C, S, S)``. The window is stacked along channels and
-  goes through a small UNet (residual blocks down, transposed convs up, skips).
-- ``project``: latents ``(..., C, S, S)`` -> one projected vector per location
-  ``(M, D)``, ``M`` = all locations of all frames; the variance and covariance
-  terms are taken over those vectors (each location is a sample).
-- heads for evaluation only, trained on frozen latents: :class:`DetectionHead`
-  (which cells of an 8x8 grid hold a digit centre) and :class:`FrameDecoder`
-  (latents back to pictures).
+- ``encode``: frames uint8 or float ``(B, T, 1, 64, 64)`` -> latents ``(B, T, C, S, S)``, each
+  frame on its own; the latent keeps a spatial map, so where a digit is stays where it is.
+- ``predictor``: the last ``context`` latents ``(N, context, C, S, S)`` -> the next latent
+  ``(N, C, S, S)``, through a small UNet over the window stacked along channels.
+- ``project``: latents ``(..., C, S, S)`` -> one projected vector per location ``(M, D)``; the
+  variance and covariance terms treat each location of each frame as a sample.
+- for evaluation only, on frozen latents: :class:`DetectionHead` (which cells of an 8x8 grid
+  hold a digit centre) and :class:`FrameDecoder` (latents back to pictures).
 
-``full`` keeps the paper's sizes: a ResNet-5 at full resolution (S = 64,
-encoder width 32, 16 latent channels), a ResUNet of width 32 over a context
-of 2 frames, a 16-64-64 projector. ``class`` halves the frame in the stem
-and strides the blocks down to an 8x8 latent of 32 channels, one latent cell
-per cell of the detection grid (64 times fewer locations than the paper's),
-with a ResUNet of width 32 over two levels, so a class trains it on a CPU.
-
-One departure at ``ci`` and ``class``: the predictor is residual, ``zhat =
-z_last + UNet(window)`` with the UNet's last layer zero at initialisation, so
-an untrained predictor says "nothing moves" and training only has to learn the
-motion, which short runs learn much sooner (the results page compares the
-two). ``full`` keeps the paper's plain output (``residual=False``).
+``full`` keeps the paper's sizes (S = 64, C = 16). ``ci`` and ``class`` stride down to a small
+latent and make the predictor residual, ``zhat = z_last + UNet(window)`` with the last layer
+zero at initialisation: an untrained predictor says "nothing moves", and short runs only have
+to learn the motion.
 """
 
 from __future__ import annotations
@@ -38,6 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .encoders import ResidualBlock, conv_bn_relu
 from .heads import build_projector
 
 FRAME_SIZE = 64
@@ -67,10 +56,7 @@ class VideoModelConfig:
             raise ValueError(
                 f"the latent side 64 / (stem_stride * prod(strides)) = {FRAME_SIZE / down:g} "
                 f"must be a whole number that 2**predictor_levels = {2**self.predictor_levels} "
-                "divides; change the strides or predictor_levels"
-            )
-        if self.context < 1 or self.latent_channels < 2:
-            raise ValueError("context must be >= 1 and latent_channels >= 2")
+                "divides; change the strides or predictor_levels")
 
     @property
     def latent_side(self) -> int:
@@ -87,39 +73,13 @@ VIDEO_MODEL_CONFIGS = {
 }
 
 
-class ResidualBlock(nn.Module):
-    """conv3x3-BN-ReLU-conv3x3-BN plus a shortcut: ``(N, c_in, s, s) -> (N, c_out, s/stride, ...)``.
-
-    ``relu_out=False`` leaves the sum un-rectified: the encoder's last block does
-    so, so the latent can be negative and is not half zeros.
-    """
-
-    def __init__(self, c_in: int, c_out: int, stride: int = 1, relu_out: bool = True):
-        super().__init__()
-        self.conv1 = nn.Conv2d(c_in, c_out, 3, stride, padding=1, bias=False)
-        self.bn1 = nn.BatchNorm2d(c_out)
-        self.conv2 = nn.Conv2d(c_out, c_out, 3, padding=1, bias=False)
-        self.bn2 = nn.BatchNorm2d(c_out)
-        self.shortcut = nn.Identity()
-        if stride != 1 or c_in != c_out:  # match the shape of the residual branch
-            self.shortcut = nn.Sequential(nn.Conv2d(c_in, c_out, 1, stride, bias=False),
-                                          nn.BatchNorm2d(c_out))
-        self.relu_out = relu_out
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        out = self.bn2(self.conv2(F.relu(self.bn1(self.conv1(x)))))
-        out = out + self.shortcut(x)
-        return F.relu(out) if self.relu_out else out
-
-
 class FrameEncoder(nn.Module):
     """ResNet-5-style: stem conv, blocks of widths h, 2h, C: ``(N, 1, 64, 64) -> (N, C, S, S)``."""
 
     def __init__(self, config: VideoModelConfig):
         super().__init__()
         h, (s1, s2, s3) = config.encoder_width, config.strides
-        self.stem = nn.Sequential(nn.Conv2d(1, h, 3, config.stem_stride, padding=1, bias=False),
-                                  nn.BatchNorm2d(h), nn.ReLU(inplace=True))
+        self.stem = conv_bn_relu(1, h, config.stem_stride)
         self.blocks = nn.Sequential(
             ResidualBlock(h, h, s1),
             ResidualBlock(h, 2 * h, s2),
@@ -133,9 +93,8 @@ class FrameEncoder(nn.Module):
 class ResUNetPredictor(nn.Module):
     """Next latent from a window: ``(N, context, C, S, S) -> (N, C, S, S)``.
 
-    The window is stacked along channels, then a UNet: residual blocks at
-    widths h, 2h, 4h, ... each halving the map, transposed convs back up, and at
-    each level the skip from the way down concatenated before a residual block.
+    The window is stacked along channels, then a UNet: residual blocks at widths h, 2h, 4h, ...
+    each halving the map, transposed convs back up, each level fusing the skip from the way down.
     """
 
     def __init__(self, config: VideoModelConfig):
@@ -143,8 +102,7 @@ class ResUNetPredictor(nn.Module):
         h, c, levels = config.predictor_width, config.latent_channels, config.predictor_levels
         widths = [h * 2**i for i in range(levels + 1)]  # h, 2h, 4h, ... down to the bottleneck
         self.context = config.context
-        self.stem = nn.Sequential(nn.Conv2d(config.context * c, h, 3, padding=1, bias=False),
-                                  nn.BatchNorm2d(h), nn.ReLU(inplace=True))
+        self.stem = conv_bn_relu(config.context * c, h)
         self.down = nn.ModuleList([ResidualBlock(h, h)] + [
             ResidualBlock(widths[i - 1], widths[i], stride=2) for i in range(1, levels + 1)])
         self.up = nn.ModuleList([nn.ConvTranspose2d(widths[i], widths[i - 1], 2, stride=2)
@@ -192,21 +150,18 @@ class VideoJEPA(nn.Module):
             raise ValueError(f"float frames must be in 0..1, got values up to "
                              f"{frames.detach().amax().item():g}: pass uint8 clips as "
                              "generated, or divide by 255")
-        z = self.encoder(x.flatten(0, 1))  # every frame on its own
-        return z.unflatten(0, frames.shape[:2])
+        return self.encoder(x.flatten(0, 1)).unflatten(0, frames.shape[:2])
 
     def project(self, z: torch.Tensor) -> torch.Tensor:
         """Latents ``(..., C, S, S)`` -> projections ``(M, D)``, one row per location."""
-        per_location = z.movedim(-3, -1).reshape(-1, z.shape[-3])  # (M, C)
-        return self.projector(per_location)
+        return self.projector(z.movedim(-3, -1).reshape(-1, z.shape[-3]))  # rows (M, C)
 
 
 class DetectionHead(nn.Module):
     """Digit-centre logits on a ``grid x grid`` map: ``(N, C, S, S) -> (N, grid, grid)``.
 
-    Average-pools the latent to the grid (a no-op when it is already there),
-    then conv3x3-ReLU-conv3x3: each cell looks at its 3x3 neighbourhood of
-    cells (32 hidden channels). Trained with a sigmoid / binary cross-entropy on frozen latents.
+    Average-pools the latent to the grid, then conv3x3-ReLU-conv3x3 (each cell sees its 3x3
+    neighbourhood); trained with binary cross-entropy on frozen latents.
     """
 
     def __init__(self, channels: int, grid: int = 8):
@@ -222,22 +177,16 @@ class DetectionHead(nn.Module):
 class FrameDecoder(nn.Module):
     """Pictures from latents, for looking only: ``(N, C, S, S) -> logits (N, 1, 64, 64)``.
 
-    A conv, then one transposed conv per doubling from ``S`` to 64 (16 channels), then a
-    conv to one channel; ``torch.sigmoid`` of the output is an image in [0, 1].
+    A conv, one transposed conv per doubling from ``S`` to 64 (16 channels), a conv to one
+    channel; ``torch.sigmoid`` of the output is an image in [0, 1].
     """
 
     def __init__(self, channels: int, latent_side: int):
         super().__init__()
-        width = 16
-        doublings = int(math.log2(FRAME_SIZE // latent_side))
-        if latent_side * 2**doublings != FRAME_SIZE:
-            raise ValueError(f"latent side {latent_side} must be 64 / 2**n")
-        layers = [nn.Conv2d(channels, width, 3, padding=1), nn.ReLU(inplace=True)]
-        for _ in range(doublings):
-            layers += [nn.ConvTranspose2d(width, width, 4, stride=2, padding=1),
-                       nn.ReLU(inplace=True)]
-        layers.append(nn.Conv2d(width, 1, 3, padding=1))
-        self.net = nn.Sequential(*layers)
+        layers = [nn.Conv2d(channels, 16, 3, padding=1), nn.ReLU(inplace=True)]
+        for _ in range(int(math.log2(FRAME_SIZE // latent_side))):
+            layers += [nn.ConvTranspose2d(16, 16, 4, stride=2, padding=1), nn.ReLU(inplace=True)]
+        self.net = nn.Sequential(*layers, nn.Conv2d(16, 1, 3, padding=1))
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         return self.net(z)
