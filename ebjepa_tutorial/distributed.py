@@ -1,13 +1,11 @@
 """Several processes, one model: what data-parallel training needs beyond averaging gradients.
 
-``torchrun --nproc_per_node=W`` starts W processes (the *ranks*); each holds a copy of the model
-and an equal share of every batch, and the gradients are averaged over the ranks after
-``backward`` (by DDP, or :func:`average_gradients`). The losses in :mod:`ebjepa_tutorial.losses`
-see one batch in one process. Averaging is right for a mean of per-sample terms, but VICReg's
-variance and covariance and SIGReg are statistics of the whole batch, so the training code wraps
-the losses with :func:`gather_rows` (every rank's rows, ``(b, ...) -> (W b, ...)``),
-:func:`variance_and_covariance` (from per-rank sums, for too many rows to gather) and
-:func:`rand_rows` (a random draw for the global batch, cut to this rank's rows).
+``torchrun --nproc_per_node=W`` starts W processes (the *ranks*), each with a copy of the model
+and an equal share of every batch; the gradients are averaged over the ranks (DDP, or
+:func:`average_gradients`). The losses see one batch in one process: right for a mean of
+per-sample terms, but VICReg's variance and covariance and SIGReg are statistics of the whole
+batch, so the training code wraps the losses with :func:`gather_rows`,
+:func:`variance_and_covariance` and :func:`rand_rows`.
 
 Training minimises ``J = (1/W) sum_r L_r``. Through a collective every ``L_r`` depends on rank
 s's tensor ``x_s``, so ``dJ/dx_s = (1/W) sum_r dL_r/dx_s``: the backward sums the incoming
@@ -49,10 +47,10 @@ def is_main() -> bool:
     return rank() == 0
 
 
-def per_rank_batch(global_batch: int, world: int | None = None) -> int:
+def per_rank_batch(global_batch: int) -> int:
     """The rule: global batch = per-rank batch x world size. Raises ValueError if W does not
     divide the global batch, or if a rank would get fewer than 2 samples."""
-    world = world_size() if world is None else world
+    world = world_size()
     if global_batch % world:
         raise ValueError(
             f"the global batch of {global_batch} cannot be split evenly over {world} "

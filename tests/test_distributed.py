@@ -225,12 +225,13 @@ def test_helpers_are_no_ops_in_one_process():
                                progress=False, sync_batchnorm=True)
 
 
-def test_the_global_batch_must_split_evenly():
-    assert distributed.per_rank_batch(256, world=4) == 64
+def test_the_global_batch_must_split_evenly(monkeypatch):
+    monkeypatch.setattr(distributed, "world_size", lambda: 4)
+    assert distributed.per_rank_batch(256) == 64
     with pytest.raises(ValueError, match="30 cannot be split evenly over 4 processes"):
-        distributed.per_rank_batch(30, world=4)
+        distributed.per_rank_batch(30)
     with pytest.raises(ValueError, match="fewer than 2 samples"):
-        distributed.per_rank_batch(4, world=4)
+        distributed.per_rank_batch(4)
 
 
 def test_init_names_the_missing_torchrun_variables():

@@ -1,17 +1,11 @@
 """The K-step loss of the video JEPA (notebook 03; the paper's multistep loss).
 
-Each frame is encoded to a spatial latent ``z_t`` ``(C, S, S)``; the predictor sees the last
-``context`` latents and guesses the next one. Training unrolls it on its own guesses for ``K``
-steps and compares each guess with the true encoding, in one of two ways (the reference code's
-``unroll_mode``; the same loss at K = 1):
-
-- ``"parallel"`` (:func:`parallel_rollout_loss`, the paper's): each step predicts every frame of
-  the clip at once from the previous step's sequence;
-- ``"autoregressive"`` (:func:`rollout_loss`): one true context rolled forward, as a planner
-  uses the predictor.
-
-Unlike the reference, we average over predicted frames only, on the latents themselves (not
-after the projector).
+The predictor sees the last ``context`` spatial latents ``(C, S, S)`` and guesses the next;
+training unrolls it on its own guesses for ``K`` steps, in one of two ways (the same at K = 1):
+``"parallel"`` (:func:`parallel_rollout_loss`, the paper's) predicts every frame of the clip at
+once from the previous step's sequence; ``"autoregressive"`` (:func:`rollout_loss`) rolls one
+true context forward, as a planner does. Unlike the paper's code, we average over predicted
+frames only, on the latents themselves (not after the projector).
 """
 
 from __future__ import annotations

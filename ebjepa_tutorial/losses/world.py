@@ -6,12 +6,8 @@ frames ``(B, T-1, A)``, the paper trains the encoder, predictor and inverse-dyna
     L = L_pred + alpha v(Z) + beta c(Z) + delta L_sim + omega L_idm
 
 with alpha 16 (variance), beta 8 (covariance), delta 12 (temporal similarity), omega 1
-(inverse dynamics) and K = 8 prediction steps. The variance and covariance terms keep the
-latent from collapsing (SIGReg, chapter 02, can join them: weight ``sigreg``, off by default);
-temporal similarity makes it change slowly along a trajectory; inverse dynamics forces it to
-keep what the action changed (the dot). Every term averages over its elements, so no
-coefficient depends on ``B``, ``T`` or ``D``. The weighted total is assembled in
-:func:`ebjepa_tutorial.training.world.world_model_step`.
+(inverse dynamics) and K = 8 prediction steps; SIGReg (chapter 02) can join them. Every term
+averages over its elements, so no coefficient depends on ``B``, ``T`` or ``D``.
 """
 
 from __future__ import annotations
@@ -149,9 +145,6 @@ def encode_for_loss(model, frames: torch.Tensor) -> torch.Tensor:
             "the model's input statistics are not set: call model.fit_input_stats(frames) "
             "on a few hundred training trajectories first (without it the faint dot channel "
             "is drowned by the walls and the latent tends to ignore the agent)")
-    if not isinstance(frames, torch.Tensor) or frames.ndim != 5:
-        got = tuple(frames.shape) if isinstance(frames, torch.Tensor) else type(frames).__name__
-        raise ValueError(f"frames must be (batch, time, 2, 65, 65) trajectories, got {got}")
     with mixed_precision(frames.device):
         z = model.encode(frames)
     return at_least_float32(z)

@@ -42,7 +42,7 @@ class WorldConfig:
     latent_dim: int = 64  # D
     action_dim: int = 2
     action_embed_dim: int = 32  # width of the action MLP's output
-    predictor: str = "gru"  # "gru" (GRUPredictor) or "mlp" (MLPPredictor)
+    predictor: str = "gru"  # "gru" or "mlp" (see Predictor)
     predictor_hidden: int = 128  # width of the MLP predictor's two hidden layers
     idm_hidden: int = 128  # hidden width of the inverse-dynamics MLP
 
@@ -98,33 +98,27 @@ class ImpalaEncoder(nn.Module):
         return self.norm(self.linear(F.relu(self.stacks(x)).flatten(1)))
 
 
-class GRUPredictor(nn.Module):
-    """One step ``z' = z + W GRUCell(e, z)``: latents ``(N, D)``, action embeddings ``(N, E)``."""
+class Predictor(nn.Module):
+    """One step ``z' = z + W GRUCell(e, z)`` (``"gru"``) or ``z' = z + W MLP([z, e])`` (``"mlp"``,
+    two GELU layers of ``predictor_hidden``): latents ``(N, D)``, action embeddings ``(N, E)``
+    -> ``(N, D)``. ``W`` starts at zero, so an untrained step is the identity."""
 
-    def __init__(self, latent_dim: int, action_embed_dim: int):
+    def __init__(self, config: WorldConfig):
         super().__init__()
-        self.cell = nn.GRUCell(action_embed_dim, latent_dim)
-        self.out = nn.Linear(latent_dim, latent_dim)
-        nn.init.zeros_(self.out.weight)  # start as the identity map
-        nn.init.zeros_(self.out.bias)
-
-    def forward(self, z: torch.Tensor, action_embedding: torch.Tensor) -> torch.Tensor:
-        return z + self.out(self.cell(action_embedding, z))
-
-
-class MLPPredictor(nn.Module):
-    """One step ``z' = z + W MLP([z, e])``, two GELU layers of ``hidden``: ``(N, D), (N, E) ->
-    (N, D)``. ``W`` starts at zero, so an untrained step is the identity."""
-
-    def __init__(self, latent_dim: int, action_embed_dim: int, hidden: int):
-        super().__init__()
-        self.body = nn.Sequential(nn.Linear(latent_dim + action_embed_dim, hidden), nn.GELU(),
-                                  nn.Linear(hidden, hidden), nn.GELU())
-        self.out = nn.Linear(hidden, latent_dim)
+        d, e, hidden = config.latent_dim, config.action_embed_dim, config.predictor_hidden
+        self.gru = config.predictor == "gru"
+        if self.gru:
+            self.cell = nn.GRUCell(e, d)
+        else:
+            self.body = nn.Sequential(nn.Linear(d + e, hidden), nn.GELU(),
+                                      nn.Linear(hidden, hidden), nn.GELU())
+        self.out = nn.Linear(d if self.gru else hidden, d)
         nn.init.zeros_(self.out.weight)
         nn.init.zeros_(self.out.bias)
 
     def forward(self, z: torch.Tensor, action_embedding: torch.Tensor) -> torch.Tensor:
+        if self.gru:
+            return z + self.out(self.cell(action_embedding, z))
         return z + self.out(self.body(torch.cat([z, action_embedding], dim=-1)))
 
 
@@ -144,10 +138,7 @@ class WorldModel(nn.Module):
         self.register_buffer("input_stats_fitted", torch.tensor(False))
         self.encoder = ImpalaEncoder(c)
         self.action_encoder = mlp(c.action_dim, c.action_embed_dim, c.action_embed_dim)
-        if c.predictor == "mlp":
-            self.predictor = MLPPredictor(c.latent_dim, c.action_embed_dim, c.predictor_hidden)
-        else:
-            self.predictor = GRUPredictor(c.latent_dim, c.action_embed_dim)
+        self.predictor = Predictor(c)
         self.inverse_dynamics = mlp(2 * c.latent_dim, c.idm_hidden, c.action_dim)
 
     @property
