@@ -178,8 +178,8 @@ def test_wall_steps_of_three_rooms_are_binned_by_the_door_of_the_wall_that_stopp
 
 def test_the_wall_test_on_three_room_trajectories():
     trajectories = generate_trajectories(300, seed=3, wall_fraction=0.3, walls=2)
-    walled = middle_wall_test(WallsReader(), trajectories, max_steps=None)
-    blind = middle_wall_test(WallsReader(reach=65), trajectories, max_steps=None)
+    walled = middle_wall_test(WallsReader(), trajectories)
+    blind = middle_wall_test(WallsReader(reach=65), trajectories)
     assert walled["n_stopped"] >= 100 and (walled["stopped"], walled["moved"]) == (1.0, 1.0)
     assert (blind["stopped"], blind["moved"]) == (0.0, 1.0)
     edges = (0, 8, 12, 16, 65)

@@ -225,7 +225,7 @@ def test_detection_probe_on_separable_latents():
     targets = centres_to_grid(centres)  # (64, 8, 8)
     noise = torch.randn(64, 1, 8, 8, generator=g)
     features = torch.cat([targets[:, None] * 3, noise], dim=1)  # channel 0 marks the centres
-    probe = fit_detection_probe(features, targets, steps=50, batch_size=64, lr=2e-2)
+    probe = fit_detection_probe(features, targets, steps=100)
     with torch.no_grad():
         assert average_precision(probe(features), targets) > 0.99
 
@@ -316,37 +316,39 @@ def test_a_run_hands_its_one_step_half_to_the_same_run_with_another_k(digits, tm
     clips = generate_moving_mnist(digits, 8, 10, seed=1).clips
     one = replace(CI, steps=6, batch_size=2, rollout_steps=1)  # the first half at K = 1
     three = replace(one, rollout_steps=3)
-    assert one.switch_step == 3 and one.shares_start_with(three)
-    assert not one.shares_start_with(replace(three, seed=1))
+    assert one.switch_step == 3 and train_video.shares_start_with(one, three)
+    assert not train_video.shares_start_with(one, replace(three, seed=1))
     no_curriculum = replace(CI.recipe, one_step_fraction=0.0)
-    assert not replace(one, recipe=no_curriculum).shares_start_with(
-        replace(three, recipe=no_curriculum))  # the paper's runs differ from the first step
+    assert not train_video.shares_start_with(replace(one, recipe=no_curriculum),
+                                             replace(three, recipe=no_curriculum))
     scratch, scratch_history = train_video_jepa(three, clips, progress=False)
     handed = tmp_path / "three.partial"
-    train_video_jepa(one, clips, progress=False, handover=[(three, handed)])
+    train_video_jepa(one, clips, progress=False,
+                     after=train_video.handover(one, [(three, handed)]))
     assert load_checkpoint(handed)["step"] == 3
     resumed, history = train_video_jepa(three, clips, checkpoint=handed, progress=False)
     assert history == scratch_history
     for a, b in zip(scratch.state_dict().values(), resumed.state_dict().values()):
         assert torch.equal(a, b)
     with pytest.raises(ValueError, match="only to the same run with another K"):
-        train_video_jepa(one, clips, handover=[(replace(three, seed=1), handed)])
+        train_video.handover(one, [(replace(three, seed=1), handed)])
 
 
-def test_after_step_sees_the_training_model_after_every_step(digits, tmp_path):
+def test_after_sees_the_training_model_after_every_step(digits):
     clips = generate_moving_mnist(digits, 8, 10, seed=1).clips
     config = replace(CI, steps=3, batch_size=2)
-    calls = []  # (step, a copy of one weight, train mode) at each call
+    calls = []  # (steps done, a copy of one weight, train mode, rows logged) at each call
 
-    def hook(model, step):
-        calls.append((step, next(model.parameters()).detach().clone(), model.training))
+    def hook(done, parts, history):
+        model = parts[0]
+        calls.append((done, next(model.parameters()).detach().clone(), model.training,
+                      len(history["step"])))
 
-    model, _ = train_video_jepa(config, clips, progress=False, after_step=hook)
-    assert [step for step, _, _ in calls] == [0, 1, 2] and all(mode for _, _, mode in calls)
+    model, _ = train_video_jepa(config, clips, progress=False, after=hook)
+    assert [done for done, *_ in calls] == [1, 2, 3] and all(c[2] for c in calls)
+    assert [c[3] for c in calls] == [1, 1, 2]  # steps 0 and 2 (the last) are logged
     assert not torch.equal(calls[0][1], calls[1][1])  # each call sees the step just taken
     assert torch.equal(calls[-1][1], next(model.parameters()))  # the model returned
-    with pytest.raises(ValueError, match="after_step is not saved in a checkpoint"):
-        train_video_jepa(config, clips, checkpoint=tmp_path / "v.pt", after_step=hook)
 
 
 def test_train_or_load_trains_once_then_loads(digits, tmp_path, monkeypatch, capsys):

@@ -19,6 +19,7 @@ from ebjepa_tutorial.evaluation.position import (
 from ebjepa_tutorial.losses import world as wl
 from ebjepa_tutorial.models.world import WORLD_CONFIGS, WorldConfig, WorldModel, encode_trajectories
 from ebjepa_tutorial.training import world
+from ebjepa_tutorial.training.checkpoints import CheckpointError
 
 TINY = WorldConfig(widths=(4, 8), blocks=1, input_size=17, latent_dim=8,
                    action_embed_dim=8, idm_hidden=16)
@@ -363,20 +364,18 @@ def test_a_replay_run_trains(small_replay):
                                     batch_size=4, steps=2, recipe=recipe)
     _, history = world.train_world_model(config, progress=False, device="cpu")
     assert len(history["loss"]) == 2 and all(math.isfinite(v) for v in history["loss"])
-    with pytest.raises(ValueError, match="the replay buffer holds 8 windows"):
-        world.WorldTrainConfig(batch_size=64, recipe=world.Recipe(replay_steps=1))
     with pytest.raises(ValueError, match="replay_steps"):
         world.Recipe(replay_steps=-1)
 
 
 # -- the probe ---------------------------------------------------------------------------
-def test_probe_on_an_invertible_map_of_positions_is_exact():
+def test_probe_on_an_invertible_map_of_positions_is_nearly_exact():
     g = torch.Generator().manual_seed(0)
     positions = 1.5 + 61 * torch.rand(600, 2, generator=g)
     mixing = torch.randn(2, 6, generator=g)
     latents = positions @ mixing + 3.0
-    probe = fit_position_probe(latents[:400], positions[:400], ridge=1e-9)
-    assert probe_error_px(probe, latents[400:], positions[400:]) < 1e-2
+    probe = fit_position_probe(latents[:400], positions[:400])
+    assert probe_error_px(probe, latents[400:], positions[400:]) < 2e-2  # the ridge's shrinkage
 
 
 def test_probe_on_random_latents_is_no_better_than_the_mean():
@@ -384,10 +383,9 @@ def test_probe_on_random_latents_is_no_better_than_the_mean():
     positions = 1.5 + 61 * torch.rand(1000, 2, generator=g)
     latents = torch.randn(1000, 16, generator=g)
     baseline = mean_baseline_px(positions[:800], positions[800:])
-    for hidden in (0, 16):
-        probe = fit_position_probe(latents[:800], positions[:800], hidden=hidden, steps=100)
-        error = probe_error_px(probe, latents[800:], positions[800:])
-        assert 0.9 * baseline < error < 1.3 * baseline
+    probe = fit_position_probe(latents[:800], positions[:800])
+    error = probe_error_px(probe, latents[800:], positions[800:])
+    assert 0.9 * baseline < error < 1.3 * baseline
 
 
 def test_encode_trajectories_pairs_latents_with_positions(data):
@@ -439,7 +437,6 @@ def test_middle_wall_test_tells_walled_wall_blind_and_frozen_predictors_apart():
     assert (walled["stopped"], walled["moved"]) == (1.0, 1.0)
     assert (blind["stopped"], blind["moved"]) == (0.0, 1.0)
     assert (frozen["stopped"], frozen["moved"]) == (1.0, 0.0)  # why "moved" is there
-    assert middle_wall_test(StateReader(True), trajectories, max_steps=5)["n_moved"] == 5
 
 
 class BlindNearTheDoor(StateReader):
@@ -460,8 +457,8 @@ def test_wall_test_by_door_distance_finds_where_along_the_wall_the_predictor_is_
     bins = wall_test_by_door_distance(BlindNearTheDoor(reach=12), trajectories, edges)
     assert [(b["lo"], b["hi"]) for b in bins] == list(zip(edges[:-1], edges[1:]))
     assert all(b["n"] >= 10 for b in bins)
-    assert sum(b["n"] for b in bins) == middle_wall_test(StateReader(True), trajectories,
-                                                         max_steps=None)["n_stopped"]
+    assert sum(b["n"] for b in bins) == middle_wall_test(StateReader(True),
+                                                         trajectories)["n_stopped"]
     assert [b["stopped"] for b in bins] == [0.0, 0.0, 1.0, 1.0]
     walled = wall_test_by_door_distance(StateReader(True), trajectories, edges)
     assert [b["stopped"] for b in walled] == [1.0] * 4
@@ -509,7 +506,8 @@ def test_bad_inputs_give_clear_errors(data):
 
 
 def test_coeff_flag_sets_loss_weights_and_rejects_typos():
-    from ebjepa_tutorial.training.world import WorldTrainConfig, ablation_config, with_coeffs
+    from ebjepa_tutorial.training.world import WorldTrainConfig, ablation_config
+    from research.train_world import with_coeffs
 
     config = with_coeffs(WorldTrainConfig(), ["covariance=1", "temporal=0.5"])
     assert (config.coeffs.covariance, config.coeffs.temporal) == (1.0, 0.5)
@@ -549,21 +547,21 @@ def test_command_line_sets_steps_data_size_and_decay(tmp_path, monkeypatch, caps
     assert "probe error 1.50 px" in capsys.readouterr().out
 
 
-def test_learning_rate_decays_linearly_over_the_last_steps():
-    from ebjepa_tutorial.training.world import WorldTrainConfig, learning_rate_decay
+def test_learning_rate_decays_linearly_over_the_last_steps(monkeypatch):
+    from ebjepa_tutorial.training.world import WorldTrainConfig
 
-    config = WorldTrainConfig(steps=6, recipe=world.Recipe(decay_steps=4), lr=0.5)
-    optimizer = torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], lr=config.lr)
-    scheduler = learning_rate_decay(optimizer, config)
+    config = WorldTrainConfig(model=TINY, n_trajectories=8, batch_size=4, steps=6,
+                              recipe=world.Recipe(decay_steps=4), lr=0.5)
     rates = []
-    for _ in range(config.steps):
+
+    def record(model, optimizer, *args):
         rates.append(optimizer.param_groups[0]["lr"])
-        optimizer.step()
-        scheduler.step()
+        optimizer.step()  # no gradients: nothing moves
+        return torch.zeros(()), {}
+
+    world.train_world_model(config, progress=False, device="cpu", step=record)
     assert rates == pytest.approx([0.5, 0.5, 0.5, 0.375, 0.25, 0.125])  # (6 - s) / 4, capped
-    assert learning_rate_decay(optimizer, WorldTrainConfig()) is None  # the class run: constant
-    with pytest.raises(ValueError, match="decay_steps must be in 0..steps=6"):
-        WorldTrainConfig(steps=6, recipe=world.Recipe(decay_steps=7))
+    assert world.decay_factor(WorldTrainConfig(), 999) == 1  # the class run: constant
     with pytest.raises(ValueError, match="decay_steps must be an int >= 0"):
         world.Recipe(decay_steps=-1)
 
@@ -627,7 +625,7 @@ def test_checkpoints_that_name_the_frame_size_and_channels_still_load(data):
 
 
 def test_windows_with_stays_splice_still_steps_by_hand():
-    from ebjepa_tutorial.training.world import windows_with_stays
+    from research.refit import windows_with_stays
 
     latents = torch.arange(2 * 6, dtype=torch.float32).view(2, 6, 1)  # frame t of n: 6n + t
     actions = torch.arange(2 * 5, dtype=torch.float32).view(2, 5, 1).repeat(1, 1, 2) + 100
@@ -643,7 +641,7 @@ def test_windows_with_stays_splice_still_steps_by_hand():
 
 def test_refit_predictor_keeps_the_encoder_and_fits_a_new_step():
     from ebjepa_tutorial.models.world import WORLD_CONFIGS
-    from ebjepa_tutorial.training.world import RefitConfig, refit_predictor
+    from research.refit import RefitConfig, refit_predictor
 
     torch.manual_seed(0)
     old = WorldModel(WORLD_CONFIGS["ci"]).fit_input_stats(
@@ -671,7 +669,7 @@ def test_refit_predictor_keeps_the_encoder_and_fits_a_new_step():
 def test_refit_command_saves_the_base_config_and_refuses_training_options(tmp_path, capsys):
     from ebjepa_tutorial.models.world import WORLD_CONFIGS
     from ebjepa_tutorial.training.checkpoints import save_checkpoint
-    from research import train_world
+    from research import refit, train_world
 
     torch.manual_seed(0)
     old = WorldModel(WORLD_CONFIGS["ci"]).fit_input_stats(
@@ -680,10 +678,10 @@ def test_refit_command_saves_the_base_config_and_refuses_training_options(tmp_pa
     base = world.identity(world.WorldTrainConfig(steps=7))
     save_checkpoint(trained, model=old.state_dict(), config=base, probe_px=3.0)
     train_world.main(["--refit", str(trained), "--out", str(out), "--steps", "2",
-                      "--trajectories", "16", "--seed", "5"])
+                      "--trajectories", "16", "--seed", "5", "--stay-probability", "0"])
     state = torch.load(out, weights_only=False)
-    assert state["config"] == world.refit_identity(
-        world.RefitConfig(steps=2, n_trajectories=16, seed=5), base)
+    assert state["config"] == refit.refit_identity(
+        refit.RefitConfig(steps=2, n_trajectories=16, seed=5, stay_probability=0.0), base)
     assert state["probe_px"] == 3.0
     assert world.load_world_model(out).config.predictor == "mlp"
     assert "the wall test stops" in capsys.readouterr().out
@@ -750,12 +748,8 @@ def test_command_line_trains_the_run_of_a_scale(tmp_path, monkeypatch):
 
 def test_an_identity_holds_the_fields_that_define_the_run():
     from ebjepa_tutorial.training.checkpoints import same_run
-    from ebjepa_tutorial.training.world import (
-        RefitConfig,
-        WorldTrainConfig,
-        identity,
-        refit_identity,
-    )
+    from ebjepa_tutorial.training.world import WorldTrainConfig, identity
+    from research.refit import RefitConfig, refit_identity
 
     default = identity(WorldTrainConfig())
     # the fields named always, and nothing left at its default
@@ -841,21 +835,36 @@ def test_train_or_load_returns_the_model_on_the_device_asked_for(tmp_path, monke
 
 
 @pytest.mark.filterwarnings("ignore:for .*copying from a non-meta parameter")  # a no-op copy
-def test_the_refit_works_on_the_device_asked_for_and_leaves_the_model_where_it_is(
-        tmp_path, monkeypatch):
-    monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
+def test_the_refit_works_on_the_device_asked_for_and_leaves_the_model_where_it_is(monkeypatch):
+    from research import refit
+
     torch.manual_seed(0)
     old = WorldModel(WORLD_CONFIGS["ci"]).fit_input_stats(generate_trajectories(8, seed=1).frames())
-    config = world.RefitConfig(hidden=8, n_trajectories=8, steps=2, batch_size=4)
-    new, _ = world.refit_predictor(old, config, progress=False, device="cpu")
+    config = refit.RefitConfig(hidden=8, n_trajectories=8, steps=2, batch_size=4)
+    new, _ = refit.refit_predictor(old, config, progress=False, device="cpu")
     assert devices_of(new) == {"cpu"}
     seen = []
-    monkeypatch.setattr(world, "fit", fit_that_records(seen))
-    new, _ = world.refit_predictor(old, config, progress=False, device="meta")
+    monkeypatch.setattr(refit, "fit", fit_that_records(seen))
+    new, _ = refit.refit_predictor(old, config, progress=False, device="meta")
     assert seen == [{"meta"}] and devices_of(new) == {"meta"}  # the new model and its windows
-    refitted = world.refit_or_load(old, WORLD_RUN, config, "refit", device="meta")
-    assert seen[1:] == [{"meta"}] and devices_of(refitted) == {"meta"}
     assert devices_of(old) == {"cpu"}  # it encoded where it was
+
+
+def test_loading_a_world_model_names_what_is_wrong_and_the_command_that_makes_it(tmp_path):
+    from ebjepa_tutorial.training.checkpoints import save_checkpoint
+
+    path = save_checkpoint(tmp_path / "ci.pt", model=WorldModel(WORLD_CONFIGS["ci"]).state_dict())
+    assert world.load_world_model(path).config == WORLD_CONFIGS["ci"]
+    loaded = world.load_world_model(path, device="meta")  # on the device asked for
+    assert devices_of(loaded) == {"meta"}
+    other = save_checkpoint(tmp_path / "other.pt", model={"weight": torch.zeros(2)})
+    with pytest.raises(ValueError, match="holds no world model"):
+        world.load_world_model(other)
+    with pytest.raises(FileNotFoundError, match="no checkpoint at .*\n.*made by: python -m x"):
+        world.load_world_model(tmp_path / "missing.pt", made_by="python -m x")
+    (tmp_path / "damaged.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="damaged.pt is damaged(.|\n)*made by: python -m x"):
+        world.load_world_model(tmp_path / "damaged.pt", made_by="python -m x")
 
 
 class MetaWorldModel(torch.nn.Module):
@@ -883,8 +892,6 @@ def test_probes_and_wall_tests_hand_the_model_its_inputs_on_its_device():
     assert len(wall_test_by_door_distance(model, trajectories)) == 5
     on_meta = fit_position_probe(latents.to("meta"), positions)  # a fit where the latents are
     assert devices_of(on_meta) == {"meta"}
-    assert devices_of(fit_position_probe(latents.to("meta"), positions, hidden=4, steps=2)) == {
-        "meta"}
 
 
 def test_a_clipped_step_moves_the_weights_by_at_most_the_clip(data):

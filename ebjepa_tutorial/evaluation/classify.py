@@ -1,16 +1,10 @@
 """How good is a frozen representation? Linear probe and k-nearest-neighbour accuracy.
 
-The standard offline protocol: run the encoder once, in eval mode, over the
-un-augmented train and test images (:func:`embed`), then fit a classifier on
-the frozen train features and report its accuracy on the test features:
-
-- :func:`linear_probe`: a linear layer on standardised features, trained with
-  mini-batch Adam and a cosine learning rate (seconds on a CPU for CIFAR-10).
-- :func:`knn_accuracy`: cosine similarity to every train feature, the 20 nearest
-  vote for their label with weights ``exp(similarity / 0.07)`` (the weighted kNN of
-  Wu et al. 2018, InstDisc, also used by DINO).
-
-Features ``(N, D)``, labels ``(N,)`` int64.
+The encoder runs once, in eval mode, over the un-augmented train and test images
+(:func:`embed`); a classifier fitted on the frozen train features ``(N, D)`` and labels
+``(N,)`` is scored on the test features: :func:`linear_probe`, or :func:`knn_predict`
+(the 20 nearest train features by cosine similarity vote with weights
+``exp(similarity / 0.07)``, the weighted kNN of Wu et al. 2018, also used by DINO).
 """
 
 from __future__ import annotations
@@ -94,12 +88,8 @@ def linear_probe(train_features: torch.Tensor, train_labels: torch.Tensor,
 @torch.no_grad()
 def knn_predict(train_features: torch.Tensor, train_labels: torch.Tensor,
                 query_features: torch.Tensor) -> torch.Tensor:
-    """Labels ``(Q,)`` predicted for queries ``(Q, D)`` by their ``KNN_K`` nearest train rows.
-
-    Similarity is cosine. Each neighbour votes for its label with weight
-    ``exp(similarity / KNN_TEMPERATURE)``. Queries are processed in chunks of 512
-    to bound memory (512 x N similarities at a time).
-    """
+    """Labels ``(Q,)`` predicted for queries ``(Q, D)`` by their ``KNN_K`` nearest train rows
+    (cosine similarity), each voting with weight ``exp(similarity / KNN_TEMPERATURE)``."""
     _check_pair(train_features, train_labels, "train")
     k = min(KNN_K, len(train_features))
     num_classes = int(train_labels.max()) + 1
@@ -114,29 +104,14 @@ def knn_predict(train_features: torch.Tensor, train_labels: torch.Tensor,
     return torch.cat(predictions)
 
 
-def knn_accuracy(train_features: torch.Tensor, train_labels: torch.Tensor,
-                 test_features: torch.Tensor, test_labels: torch.Tensor) -> float:
-    """Test accuracy (a fraction) of :func:`knn_predict`.
-
-    No training, no hyper-parameters beyond ``KNN_K`` and ``KNN_TEMPERATURE``, which
-    makes it a quick check during training; it usually lands a few points
-    below the linear probe.
-    """
-    _check_pair(test_features, test_labels, "test")
-    predicted = knn_predict(train_features, train_labels, test_features)
-    return (predicted == test_labels).float().mean().item()
-
-
 @torch.no_grad()
 def embed(encoder: nn.Module, images: torch.Tensor, size: int):
     """Frozen features of un-augmented uint8 images ``(N, 3, 32, 32)`` at ``size``: ``(N, D)``
     float32 on the CPU.
 
-    The images are normalised with the CIFAR-10 statistics (as the training views were) and
-    resized to ``size`` px (32: no resizing); the protocol's size is
-    ``config.eval_image_size``. The encoder runs in eval mode (batch norm uses its running
-    statistics); its mode is restored afterwards. (Batches of 256 ran about twice as fast as
-    batches of 1,000 at 32 px on a CPU: they stay in the cache.)
+    The images are normalised with the CIFAR-10 statistics and resized to ``size`` px (32:
+    no resizing). The encoder runs in eval mode (batch norm uses its running statistics);
+    its mode is restored afterwards.
     """
     if images.dtype != torch.uint8:
         raise TypeError(f"embed expects the stored uint8 images, got {images.dtype}")
@@ -152,12 +127,11 @@ def embed(encoder: nn.Module, images: torch.Tensor, size: int):
 
 
 def probe_encoder(encoder, config: ImageJEPAConfig, train, test, cache: bool = False) -> dict:
-    """Probe and kNN test accuracy of frozen features; ``train``, ``test``: (images, labels).
+    """Probe and kNN test accuracy of frozen features at ``config.eval_image_size`` px;
+    ``train``, ``test``: (images, labels).
 
-    Both see the images at ``config.eval_image_size`` px, not at the training size.
-    With ``cache``, the scores are kept in ``data/cache/probes/``, named by a digest of
-    the encoder's weights, the protocol and the data, and read back when all three
-    match, so re-running a notebook skips the minute each probe takes at class scale.
+    With ``cache``, the scores are kept in ``data/cache/probes/`` under a digest of the
+    encoder's weights, the protocol and the data, and read back when all three match.
     (Delete that folder after editing this module: the digest cannot see code.)
     """
     path = _scores_path(encoder, config, train, test) if cache else None
@@ -166,8 +140,8 @@ def probe_encoder(encoder, config: ImageJEPAConfig, train, test, cache: bool = F
     train_features = embed(encoder, train[0], config.eval_image_size)
     test_features = embed(encoder, test[0], config.eval_image_size)
     probe = linear_probe(train_features, train[1], test_features, test[1])
-    knn = knn_accuracy(train_features, train[1], test_features, test[1])
-    scores = {"probe_acc": probe.test_accuracy, "knn_acc": knn}
+    knn = knn_predict(train_features, train[1], test_features) == test[1]
+    scores = {"probe_acc": probe.test_accuracy, "knn_acc": knn.float().mean().item()}
     if path is not None:
         with atomic_file(path) as f:  # a killed write leaves no half file under the real name
             f.write(json.dumps(scores).encode())

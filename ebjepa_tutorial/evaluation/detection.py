@@ -1,14 +1,10 @@
 """Notebook 03's evaluation: a detection probe on frozen video latents, AP per horizon.
 
-On clips made from held-out digits, a small head trained on frozen latents
-marks which cells of an 8x8 grid hold a digit centre; it is scored on latents
-predicted ``k = 1..7`` steps ahead, and the average precision (AP) is computed
-over the whole evaluation set per horizon (not averaged per batch), with
-their mean (mAP). Boxes come exactly from the generator.
-
-Two protocols, one per way to unroll (:mod:`ebjepa_tutorial.losses.rollout`): the
-paper's parallel unroll scores, at horizon k, every frame it predicts k steps past
-its most recent true latent; the autoregressive one rolls each clip's first
+A small head trained on frozen latents marks which cells of an 8x8 grid hold a digit
+centre; on clips of held-out digits it is scored on latents predicted ``k = 1..7`` steps
+ahead, with the average precision (AP) over the whole evaluation set per horizon and their
+mean (mAP). The paper's parallel unroll scores, at horizon k, every frame it predicts k
+steps past its most recent true latent; the autoregressive one rolls each clip's first
 frames forward and scores one frame per clip and horizon, as a planner would use it.
 """
 
@@ -69,22 +65,19 @@ def grid_features(model: VideoJEPA, clips: torch.Tensor, horizons: int = 7,
     return torch.cat(encoded), [torch.cat(k_steps) for k_steps in zip(*predicted)]
 
 
-def fit_detection_probe(features: torch.Tensor, targets: torch.Tensor, steps: int = 400,
-                        batch_size: int = 512, lr: float = 3e-3) -> DetectionHead:
-    """Train a :class:`DetectionHead` on frozen latents (seeded); sigmoid / binary cross-entropy.
-
-    ``features``: ``(M, C, g, g)`` (pooled, from :func:`grid_features`, one row
-    per frame); ``targets``: 0/1 ``(M, g, g)`` from ``centres_to_grid``.
-    """
+def fit_detection_probe(features: torch.Tensor, targets: torch.Tensor,
+                        steps: int = 400) -> DetectionHead:
+    """Train a :class:`DetectionHead` (seeded; binary cross-entropy, Adam at 3e-3, batches
+    of 512) on frozen pooled latents ``(M, C, g, g)`` for 0/1 ``targets`` ``(M, g, g)``."""
     if features.shape[0] != targets.shape[0] or features.shape[-2:] != targets.shape[-2:]:
         raise ValueError(f"features {tuple(features.shape)} and targets "
                          f"{tuple(targets.shape)} must be (M, C, g, g) and (M, g, g)")
     generator = torch.Generator().manual_seed(0)
     torch.manual_seed(0)
     probe = DetectionHead(features.shape[1], grid=targets.shape[-1])
-    optimizer = torch.optim.Adam(probe.parameters(), lr=lr)
+    optimizer = torch.optim.Adam(probe.parameters(), lr=3e-3)
     for _ in range(steps):
-        index = torch.randint(0, len(features), (batch_size,), generator=generator)
+        index = torch.randint(0, len(features), (512,), generator=generator)
         loss = F.binary_cross_entropy_with_logits(probe(features[index]), targets[index])
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -97,15 +90,12 @@ def detection_report(model: VideoJEPA, probe_data, eval_data, horizons: int = 7,
                      probe_steps: int = 400, unroll: str = "parallel") -> dict:
     """Fit the probe on ``probe_data``'s encoded frames; AP per horizon on ``eval_data``.
 
-    Both are :class:`~ebjepa_tutorial.data.moving_mnist.MovingMNISTBatch`
-    (make ``eval_data`` from held-out digits). ``unroll``: how predictions k steps
-    ahead are made and which frames they score (:func:`scored_frames`): ``"parallel"``,
-    the paper's protocol, or ``"autoregressive"``, one rollout per clip. Returns
-    float64 ``(horizons,)`` tensors ``ap`` (probe on predicted latents), ``ap_encoded``
-    (on the true encodings of the same frames: what a perfect predictor would reach)
-    and ``ap_copy`` (on the most recent true latent each prediction starts from: a
-    predictor that never moves), their means ``map``, ``map_encoded``, ``map_copy``,
-    and the ``probe``.
+    Both are ``MovingMNISTBatch`` (``eval_data`` of held-out digits); ``unroll``:
+    ``"parallel"`` or ``"autoregressive"`` (:func:`scored_frames`). Returns float64
+    ``(horizons,)`` tensors ``ap`` (probe on predicted latents), ``ap_encoded`` (on the true
+    encodings of the same frames: a perfect predictor) and ``ap_copy`` (on the most recent
+    true latent: a predictor that never moves), their means ``map``, ``map_encoded``,
+    ``map_copy``, and the ``probe``.
     """
     context = model.config.context
     fit_features, _ = grid_features(model, probe_data.clips, horizons=1)  # encodings only
@@ -137,10 +127,7 @@ def detection_report(model: VideoJEPA, probe_data, eval_data, horizons: int = 7,
 
 def evaluation_clips(train_digits: torch.Tensor, held_out: torch.Tensor, n_probe: int,
                      n_eval: int, n_frames: int = 10):
-    """The protocol's two sets of clips, the same for every model compared.
-
-    Probe clips (fresh clips of the training digits) fit the detection probe;
-    evaluation clips, made only of ``held_out`` digits, are where AP is measured.
-    """
+    """The protocol's two sets of clips: fresh clips of the training digits fit the probe,
+    clips of ``held_out`` digits alone are where AP is measured."""
     return (generate_moving_mnist(train_digits, n_probe, n_frames, seed=PROBE_SEED),
             generate_moving_mnist(held_out, n_eval, n_frames, seed=EVAL_SEED))

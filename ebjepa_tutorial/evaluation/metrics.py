@@ -1,22 +1,14 @@
-"""Detection average precision (AP) for the Moving MNIST probe, without sklearn.
+"""Detection average precision (AP) for the Moving MNIST probe, and a success rate's interval.
 
-The probe scores every cell of an 8x8 grid in every frame; a cell is a
-positive if it holds a digit centre. We rank *all* cells of *all* clips of the
-evaluation set together, for one prediction horizon at a time, and summarise
-the ranking by its average precision:
+All cells of all clips of the evaluation set are ranked together (not per batch, as the
+reference code does: a batch's AP depends on what else is in it), and the ranking is
+summarised by
 
     AP = sum_k (R_k - R_{k-1}) P_k
 
-where ``k`` runs over the distinct score thresholds from highest to lowest,
-``P_k`` and ``R_k`` are the precision and recall of "score >= threshold k",
-and ``R_0 = 0``. This is the step-wise area under the precision-recall curve
-(no interpolation), the definition of sklearn's ``average_precision_score``.
-Tied scores form one threshold: they enter the ranking together, so the
-order of tied cells cannot change the AP.
-
-The reference code averages AP over batches; an AP of a batch depends on
-what else happens to be in it, so we compute it over the whole set instead.
-:func:`wilson_interval` gives the confidence interval of a success rate.
+where ``k`` runs over the distinct score thresholds from highest to lowest, ``P_k`` and
+``R_k`` are the precision and recall of "score >= threshold k", and ``R_0 = 0``: sklearn's
+``average_precision_score``. Tied scores form one threshold, so their order cannot matter.
 """
 
 from __future__ import annotations
@@ -24,31 +16,17 @@ from __future__ import annotations
 import torch
 
 
-def _check_scores_targets(scores: torch.Tensor, targets: torch.Tensor) -> None:
-    if not isinstance(scores, torch.Tensor) or not isinstance(targets, torch.Tensor):
-        raise TypeError("scores and targets must be tensors")
+def average_precision(scores: torch.Tensor, targets: torch.Tensor) -> float:
+    """``AP = sum_k (R_k - R_{k-1}) P_k`` over all cells of ``scores`` / ``targets`` (any equal
+    shapes): 1 for a perfect ranking, about the fraction of positives for a random one."""
     if scores.shape != targets.shape:
-        raise ValueError(
-            f"scores {tuple(scores.shape)} and targets {tuple(targets.shape)} differ in shape"
-        )
-    if scores.numel() == 0:
-        raise ValueError("scores is empty: AP needs at least one scored cell")
+        raise ValueError(f"scores {tuple(scores.shape)} and targets {tuple(targets.shape)} "
+                         "differ in shape")
     if not torch.isfinite(scores).all():
         raise ValueError("scores contain NaN or infinity; check the model's outputs")
-    if not ((targets == 0) | (targets == 1)).all():
-        raise ValueError("targets must be binary (0/1 or bool), e.g. from centres_to_grid")
     if not targets.any():
         raise ValueError("targets hold no positive cell, so recall and AP are undefined; "
                          "evaluate on clips that contain digits")
-
-
-def average_precision(scores: torch.Tensor, targets: torch.Tensor) -> float:
-    """``AP = sum_k (R_k - R_{k-1}) P_k`` over all cells of ``scores`` / ``targets``.
-
-    Shapes are any, equal; everything is ranked together. Perfect ranking
-    gives 1; a random ranking gives about the fraction of positive cells.
-    """
-    _check_scores_targets(scores, targets)
     scores, order = torch.sort(scores.detach().flatten().cpu(), descending=True, stable=True)
     targets = targets.detach().flatten().double().cpu()[order]
     true_pos = targets.cumsum(0)
@@ -65,9 +43,8 @@ def average_precision(scores: torch.Tensor, targets: torch.Tensor) -> float:
 def wilson_interval(successes: int, n: int) -> tuple[float, float]:
     """The 95% Wilson score interval of a success rate ``successes / n``.
 
-    ``(p + z^2/2n +- z sqrt(p(1-p)/n + z^2/4n^2)) / (1 + z^2/n)`` with ``z = 1.96``:
-    unlike the textbook ``p +- z sqrt(p(1-p)/n)`` it stays inside [0, 1] and does not
-    shrink to a point at 0% or 100%.
+    ``(p + z^2/2n +- z sqrt(p(1-p)/n + z^2/4n^2)) / (1 + z^2/n)`` with ``z = 1.96``: unlike
+    ``p +- z sqrt(p(1-p)/n)`` it stays inside [0, 1] and does not shrink to a point at 0 or 1.
     """
     if not 0 <= successes <= n or n < 1:
         raise ValueError(f"need 0 <= successes <= n and n >= 1, got {successes} of {n}")

@@ -1,13 +1,9 @@
 """Does the latent know where the agent is? A position probe on frozen world-model latents.
 
-Fit a map from latents ``(N, D)`` to the dot's position ``(N, 2)`` on some
-frames, measure its mean Euclidean error in pixels on others. Always report
-it next to :func:`mean_baseline_px`, the error of predicting the mean
-position (about 20 px in Two Rooms): a latent that ignores the dot (for
-example one that only encodes the walls) lands there.
-
-:func:`middle_wall_test` asks whether the *predictor* knows the walls, one
-step at a time, on the steps of real trajectories that a wall stopped.
+A linear map from latents ``(N, D)`` to the dot's position ``(N, 2)``, fitted on some
+frames and scored in pixels on others, always next to :func:`mean_baseline_px`, where a
+latent that ignores the dot lands. :func:`middle_wall_test` asks whether the *predictor*
+knows the walls, on the steps of real trajectories that a wall stopped.
 """
 
 from __future__ import annotations
@@ -20,6 +16,7 @@ from ..envs.two_rooms import HIGH, LOW, render, walls_of
 from ..models.world import WorldModel, encode_trajectories
 
 MIN_STOP = 0.8  # px: the wall test's steps, cut short by a wall or free, are at least this long
+RIDGE = 1e-3  # the position probe's L2 penalty per sample
 
 
 class PositionProbe(nn.Module):
@@ -46,59 +43,22 @@ def _check_pair(latents, positions) -> None:
         )
 
 
-def fit_position_probe(
-    latents: torch.Tensor,
-    positions: torch.Tensor,
-    hidden: int = 0,
-    ridge: float = 1e-3,
-    steps: int = 2000,
-) -> PositionProbe:
-    """Fit latents ``(N, D)`` -> positions ``(N, 2)``; return the probe (latents are detached).
-
-    ``hidden=0``: linear least squares with an L2 penalty ``ridge`` (per
-    sample) on the standardised latents, solved exactly. ``hidden > 0``: an MLP
-    ``D -> hidden -> 2`` trained full-batch with Adam (rate 3e-3) for ``steps`` steps, seeded.
-    The fit and the probe are on the latents' device.
-    """
+@torch.no_grad()
+def fit_position_probe(latents: torch.Tensor, positions: torch.Tensor) -> PositionProbe:
+    """Fit latents ``(N, D)`` -> positions ``(N, 2)`` by least squares with an L2 penalty of
+    ``RIDGE`` per sample on the standardised latents, solved exactly on their device."""
     _check_pair(latents, positions)
     x = latents.detach().float()
     y = positions.detach().float().to(x.device)
     mean, std = x.mean(dim=0), x.std(dim=0).clamp_min(1e-6)
     x = (x - mean) / std
-    head = _ridge_head(x, y, ridge) if hidden == 0 else _mlp_head(x, y, hidden, steps)
-    return PositionProbe(mean, std, head)
-
-
-@torch.no_grad()
-def _ridge_head(x: torch.Tensor, y: torch.Tensor, ridge: float) -> nn.Linear:
-    """The linear head of centred ``x`` (N, D) -> ``y`` (N, 2), solved in closed form."""
     head = nn.Linear(x.shape[1], y.shape[1]).to(x.device)
     y_mean = y.mean(dim=0)
     # Normal equations on centred data: (X^T X + N ridge I) W = X^T (Y - mean Y).
-    gram = x.T @ x + len(x) * ridge * torch.eye(x.shape[1], device=x.device)
+    gram = x.T @ x + len(x) * RIDGE * torch.eye(x.shape[1], device=x.device)
     head.weight.copy_(torch.linalg.solve(gram, x.T @ (y - y_mean)).T)  # (2, D)
     head.bias.copy_(y_mean)  # x is centred, so the bias is the mean position
-    return head
-
-
-def _mlp_head(x: torch.Tensor, y: torch.Tensor, hidden: int, steps: int) -> nn.Sequential:
-    """An MLP ``D -> hidden -> 2`` fitted to ``x`` (N, D) -> ``y`` (N, 2) by full-batch Adam."""
-    generator = torch.Generator().manual_seed(0)
-    head = nn.Sequential(nn.Linear(x.shape[1], hidden), nn.ReLU(), nn.Linear(hidden, y.shape[1]))
-    with torch.no_grad():
-        for layer in (head[0], head[2]):
-            bound = layer.in_features ** -0.5
-            layer.weight.uniform_(-bound, bound, generator=generator)
-            layer.bias.zero_()
-        head = head.to(x.device)  # initialised on the CPU: the same start on every device
-        head[2].bias.copy_(y.mean(dim=0))
-    optimizer = torch.optim.Adam(head.parameters(), lr=3e-3)
-    for _ in range(steps):
-        loss = (head(x) - y).pow(2).mean()
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-    return head
+    return PositionProbe(mean, std, head)
 
 
 @torch.no_grad()
@@ -147,22 +107,20 @@ def _nearer(model, trajectories, steps, max_steps: int | None, through_wall: boo
 
 
 @torch.no_grad()
-def middle_wall_test(model, trajectories, max_steps: int = 1000) -> dict:
+def middle_wall_test(model, trajectories) -> dict:
     """Does the predictor stop the dot at a wall, and move it elsewhere? Step by step.
 
-    ``stopped``: on the steps a wall (any wall of the layouts) cut short by more
-    than ``MIN_STOP`` = 0.8 px, the fraction of one-step predictions ``Pred(Enc(o_t), a_t)``
-    nearer the real ``Enc(o_{t+1})`` than ``Enc`` of the dot moved by the action
-    alone, into the wall: 1 for a predictor that knows the wall, about 0 for one
-    that ignores it. A predictor that never moves anything also scores 1, so the
-    control is ``moved``: on free steps of at least ``MIN_STOP`` px, the fraction
-    of predictions nearer the real next latent than the current one. Each is over
-    the first ``max_steps`` steps of its kind (``n_stopped``, ``n_moved``).
-    ``model``: encode ``(B, 2, 65, 65) -> (B, D)``, predict ``(B, D), (B, 2) -> (B, D)``.
+    ``stopped``: on the steps a wall cut short by more than ``MIN_STOP`` px, the fraction of
+    one-step predictions ``Pred(Enc(o_t), a_t)`` nearer the real ``Enc(o_{t+1})`` than
+    ``Enc`` of the dot moved by the action alone, into the wall (1: the predictor knows the
+    wall). A predictor that never moves anything also scores 1, so the control is ``moved``:
+    on free steps of at least ``MIN_STOP`` px, the fraction of predictions nearer the real
+    next latent than the current one. Each over the first 1000 steps of its kind
+    (``n_stopped``, ``n_moved``).
     """
     stopped_steps, moved_steps = _wall_steps(trajectories)
-    stopped = _nearer(model, trajectories, stopped_steps, max_steps, through_wall=True)[0]
-    moved = _nearer(model, trajectories, moved_steps, max_steps, through_wall=False)[0]
+    stopped = _nearer(model, trajectories, stopped_steps, 1000, through_wall=True)[0]
+    moved = _nearer(model, trajectories, moved_steps, 1000, through_wall=False)[0]
     return {"stopped": stopped.float().mean().item(), "moved": moved.float().mean().item(),
             "n_stopped": len(stopped), "n_moved": len(moved)}
 
@@ -171,11 +129,9 @@ def middle_wall_test(model, trajectories, max_steps: int = 1000) -> dict:
 def wall_test_by_door_distance(model, trajectories, edges=(0, 8, 12, 16, 24, 65)) -> list[dict]:
     """:func:`middle_wall_test`'s ``stopped``, split by where along the wall the dot was.
 
-    Every wall-stopped step goes in a bin by ``|y_t - door_y|``, its distance
-    along the wall from the door's centre of the wall that stopped it
-    (:func:`stopping_doors`; the dot passes within 3.5 px of it, nearer than
-    that the door's sides stop it). One dict per bin ``[lo, hi)`` of ``edges``:
-    ``lo``, ``hi``, ``stopped`` (NaN for an empty bin) and ``n``.
+    Every wall-stopped step goes in a bin by ``|y_t - door_y|``, its distance along the wall
+    from the door's centre of the wall that stopped it. One dict per bin ``[lo, hi)`` of
+    ``edges``: ``lo``, ``hi``, ``stopped`` (NaN for an empty bin) and ``n``.
     """
     flags, b, t = _nearer(model, trajectories, _wall_steps(trajectories)[0], None,
                           through_wall=True)
@@ -192,9 +148,8 @@ def wall_test_by_door_distance(model, trajectories, edges=(0, 8, 12, 16, 24, 65)
 def stopping_doors(positions: torch.Tensor, layouts: torch.Tensor) -> torch.Tensor:
     """The door row of the wall nearest in x to each dot: positions (n, 2), layouts (n, 2W) -> (n,).
 
-    For the start of a wall-stopped step this is the wall that stopped it: a
-    step (at most 1.8 px) that meets a wall starts within 4.3 px of its centre
-    column, and walls stand at least 14 px apart.
+    For the start of a wall-stopped step, the wall that stopped it (a step that meets a wall
+    starts within 4.3 px of its centre column; walls stand at least 14 px apart).
     """
     walls = walls_of(layouts).to(positions.dtype)  # (n, W, 2)
     nearest = (walls[..., 0] - positions[:, None, 0]).abs().argmin(dim=1)  # (n,)
@@ -205,10 +160,9 @@ def probe_report(model: WorldModel, n_fit: int = 1000, n_test: int = 300, seed: 
                  test_steps: int = 16, walls: int = 1):
     """Position-probe error (px) of frozen latents on held-out trajectories, and the baseline.
 
-    A linear probe is fitted on every frame of ``n_fit`` fresh 17-frame
-    trajectories (seed ``seed``) and scored on every frame of ``n_test`` others
-    of ``test_steps`` actions (seed ``seed + 1``), no seed the training used;
-    ``walls``: 1 for Two Rooms, 2 for Three Rooms. The probe is on the CPU.
+    The probe is fitted on every frame of ``n_fit`` fresh 17-frame trajectories (seed
+    ``seed``) and scored on every frame of ``n_test`` others of ``test_steps`` actions (seed
+    ``seed + 1``); ``walls``: 1 for Two Rooms, 2 for Three Rooms.
     """
     fit_trajectories = generate_trajectories(n_fit, seed=seed, walls=walls)
     test_trajectories = generate_trajectories(n_test, steps=test_steps, seed=seed + 1,

@@ -1,14 +1,9 @@
 """The agent: model-predictive control in Two Rooms, and the batched episode runner (notebook 06).
 
-:func:`mpc_loop` encodes the observation and the goal, plans ``H`` actions, executes the
-first ``m``, observes and re-plans from the rest of the plan (warm start);
-:func:`run_episodes` plays one episode per seed with it, in batches.
-
-Each episode's seed fixes its task and its planner's noise, and nothing couples the
-episodes of a batch but floating-point rounding: a network's batched kernels may sum in an
-order that depends on the batch size (and thread count), which after a few re-plans can
-change the elites. So an episode reproduces exactly with its whole batch and the same
-threads; alone it agrees up to that rounding (exactly with ``world="true_xy"``).
+Each episode's seed fixes its task and its planner's noise; nothing couples the episodes
+of a batch but floating-point rounding (a network's batched kernels may sum in an order
+that depends on the batch size and thread count, which after a few re-plans can change the
+elites). So an episode reproduces exactly with its whole batch and the same threads.
 """
 
 from __future__ import annotations
@@ -41,16 +36,6 @@ class EpisodeResults:
     first_arrival: torch.Tensor  # (B,) long: first step within the radius, -1 if never
     cpu_seconds: float  # process CPU time of the whole batch
     wall_seconds: float
-
-    @classmethod
-    def of(cls, seeds: list[int], episodes: Episodes, env: TwoRoomsEnv, cpu: float,
-           wall: float) -> EpisodeResults:
-        """The ``episodes`` that ``env`` has played, timed from ``cpu`` and ``wall``."""
-        paths, actions = torch.stack(env.path, dim=1).cpu(), torch.stack(env.actions, dim=1).cpu()
-        within = (paths[:, 1:] - episodes.goals[:, None]).norm(dim=-1) <= SUCCESS_RADIUS  # (B, T)
-        first = torch.where(within.any(dim=1), within.long().argmax(dim=1) + 1, -1)
-        return cls(seeds, episodes, paths, actions, within[:, -1], first,
-                   time.process_time() - cpu, time.perf_counter() - wall)
 
     @classmethod
     def concat(cls, parts: Sequence[EpisodeResults]) -> EpisodeResults:
@@ -203,4 +188,8 @@ def _run_batch(model, seeds: list[int], config: PlannerConfig, steps: int | None
     aim = None if two_level is None else two_level.aim(generators)
     loop(model, env, config, generators, env.step_budget if steps is None else steps,
          arrived, aim)
-    return EpisodeResults.of(seeds, episodes, env, cpu, wall)
+    paths, actions = torch.stack(env.path, dim=1).cpu(), torch.stack(env.actions, dim=1).cpu()
+    within = (paths[:, 1:] - episodes.goals[:, None]).norm(dim=-1) <= SUCCESS_RADIUS  # (B, T)
+    first = torch.where(within.any(dim=1), within.long().argmax(dim=1) + 1, -1)
+    return EpisodeResults(seeds, episodes, paths, actions, within[:, -1], first,
+                          time.process_time() - cpu, time.perf_counter() - wall)

@@ -11,9 +11,8 @@ From the start latent ``z0 = Enc(o_t)`` the planner imagines ``N`` action sequen
 MPPI (the paper's Algorithm 1) keeps the ``Q`` cheapest sequences (the elites), weights
 them by ``exp(-(S_i - S_min) / tau)`` and moves the mean plan and its spread to their
 weighted average; :func:`plan` repeats that ``J`` times. CEM weights the elites equally.
-Unlike the paper's code (:class:`Noise`), the noise is drawn every ``period`` steps and
-joined by straight lines, and each sampled step is clipped on its length. Each episode of a
-batch draws its noise from its own generator; nothing else couples them.
+Unlike the paper's code, the noise is smooth (:class:`Noise`), and each episode of a batch
+draws it from its own generator.
 """
 
 from __future__ import annotations
