@@ -31,7 +31,7 @@ from ebjepa_tutorial.training.checkpoints import (
     save_checkpoint,
 )
 
-from . import fit_beyond
+from . import fit_beyond, refit
 
 
 def shipped_runs() -> dict[str, dict]:
@@ -42,22 +42,22 @@ def shipped_runs() -> dict[str, dict]:
     runs.update(_world_runs())
     runs.update(_video_runs())
     for world_name in sorted(fit_beyond.WORLDS):
-        _, config, name = fit_beyond.world_run(world_name, "class")
+        _, config, name = fit_beyond.world_run(world_name)
         runs[name] = world.identity(config)
-        for kind, fit in zip(("cost_head", "coarse"), fit_beyond.fit_configs(world_name, "class")):
+        for kind, fit in zip(("cost_head", "coarse"), fit_beyond.fit_configs(world_name)):
             runs[f"{kind}_{world_name}_class"] = run_identity(fit, base=world.identity(config))
     return runs
 
 
 def _world_runs() -> dict[str, dict]:
     cfg = preset("06", "class")
-    longer = cfg.longer
+    longer, (refit_base, refit_config) = cfg.longer, refit.shipped_pair()
     runs = {"world_model_class": world.identity(cfg.world),
             "world_model_class_long": world.identity(longer.paper),
             "world_model_class_course_long": world.identity(longer.course),
-            "world_model_class_long20k": world.identity(longer.refit_base),
-            "world_model_class_long20k_mlp": world.refit_identity(
-                longer.refit, world.identity(longer.refit_base))}
+            "world_model_class_long20k": world.identity(refit_base),
+            "world_model_class_long20k_mlp": refit.refit_identity(
+                refit_config, world.identity(refit_base))}
     for term, suffix in world.ABLATION_SUFFIXES.items():
         runs[f"world_model_class_{suffix}"] = world.identity(world.ablation_config(cfg.world, term))
         if term in longer.ablations:

@@ -17,7 +17,8 @@ any N. The refit runs in one process.
 from __future__ import annotations
 
 import argparse
-from dataclasses import replace
+import math
+from dataclasses import fields, replace
 from pathlib import Path
 
 import torch
@@ -27,32 +28,30 @@ from ebjepa_tutorial.course.presets import SCALES, preset
 from ebjepa_tutorial.envs import generate_trajectories
 from ebjepa_tutorial.envs.two_rooms import WALL_X_RANGES
 from ebjepa_tutorial.evaluation.position import middle_wall_test, probe_report
+from ebjepa_tutorial.losses.world import WorldLossCoeffs
 from ebjepa_tutorial.models.world import PREDICTORS, WorldConfig
 from ebjepa_tutorial.training.checkpoints import load_checkpoint, save_checkpoint
 from ebjepa_tutorial.training.world import (
     ABLATABLE_TERMS,
-    RefitConfig,
     WorldTrainConfig,
     ablation_config,
     identity,
     load_world_model,
     paper_recipe,
-    refit_identity,
-    refit_predictor,
     train_world_model,
-    with_coeffs,
 )
 from ebjepa_tutorial.utils import get_device
 
 from . import launch
+from .refit import RefitConfig, refit_identity, refit_predictor
 
 
 def main(argv: list[str] | None = None) -> None:
     """Train a world model at a scale and save it: the documented command for the checkpoint.
 
     ``--refit TRAINED.pt`` instead refits that model's predictor
-    (:func:`refit_predictor`); ``--steps``, ``--trajectories`` and ``--seed`` then
-    set the refit's, and the training-only options are refused.
+    (:func:`~research.refit.refit_predictor`); ``--steps``, ``--trajectories``, ``--seed``
+    and ``--stay-probability`` then set the refit's, and the training-only options are refused.
     """
     parser = argparse.ArgumentParser(description="Train the Two Rooms world model.")
     parser.add_argument("--out", required=True, help="where to write the trained model")
@@ -95,7 +94,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="width of the MLP predictor's two hidden layers (default "
                              f"{WorldConfig.predictor_hidden})")
     parser.add_argument("--stay-probability", type=float,
-                        help="the share of imagined steps that are still (zero action)")
+                        help="the share of imagined steps that are still (zero action); "
+                             f"with --refit, the refit's (default {RefitConfig.stay_probability})")
     parser.add_argument("--replay-steps", type=int,
                         help="predictor-only updates on replayed latents after each step "
                              "(0: none)")
@@ -120,6 +120,8 @@ def main(argv: list[str] | None = None) -> None:
                                                ("grad_clip", args.grad_clip))
               if value is not None}
     if args.refit:
+        if "stay_probability" in recipe:  # the refit's still steps
+            given["stay_probability"] = recipe.pop("stay_probability")
         training_only = {"--scale": args.scale, "--paper-recipe": args.paper_recipe,
                          "--without": args.without,
                          "--no-inverse-dynamics": args.no_inverse_dynamics,
@@ -134,7 +136,7 @@ def main(argv: list[str] | None = None) -> None:
         if args.ddp or launch.launched_by_torchrun():
             parser.error("--refit runs in one process (a small MLP on precomputed latents): "
                          "start it with python -m, without torchrun or --ddp")
-        return refit_main(args.refit, args.out, RefitConfig(**given))  # steps, seed, trajectories
+        return refit_main(args.refit, args.out, RefitConfig(**given))
     without = args.without + (["inverse_dynamics"] if args.no_inverse_dynamics else [])
     try:
         base = preset("05", args.scale or "class").train
@@ -156,6 +158,23 @@ def main(argv: list[str] | None = None) -> None:
         _train_and_save(args.out, config, device)
     finally:
         launch.shutdown()
+
+
+def with_coeffs(config: WorldTrainConfig, pairs: list[str]) -> WorldTrainConfig:
+    """``config`` with loss weights set from ``"name=value"`` strings, e.g. ``["covariance=1"]``."""
+    names = [f.name for f in fields(WorldLossCoeffs)]
+    values = {}
+    for pair in pairs:
+        name, sep, value = pair.partition("=")
+        if not sep or name not in names:
+            raise ValueError(f"--coeff wants name=value with a name from {names}, got {pair!r}")
+        try:
+            values[name] = float(value)
+        except ValueError:
+            raise ValueError(f"--coeff {pair!r}: {value!r} is not a number") from None
+        if not math.isfinite(values[name]) or values[name] < 0:
+            raise ValueError(f"--coeff {pair!r}: a loss weight must be finite and >= 0")
+    return replace(config, coeffs=replace(config.coeffs, **values))
 
 
 def _train_and_save(out: str, config: WorldTrainConfig, device) -> None:

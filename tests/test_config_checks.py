@@ -12,7 +12,8 @@ from ebjepa_tutorial.models.video import VideoJEPA
 from ebjepa_tutorial.training.image import ImageJEPAConfig, SIGReg, VICReg
 from ebjepa_tutorial.training.video import VIDEO_CONFIGS, VideoJEPAConfig
 from ebjepa_tutorial.training.video import Recipe as VideoRecipe
-from ebjepa_tutorial.training.world import Recipe, RefitConfig, WorldTrainConfig
+from ebjepa_tutorial.training.world import Recipe, WorldTrainConfig
+from research.refit import RefitConfig
 
 
 @pytest.mark.parametrize("config, change, message", [

@@ -14,13 +14,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from ebjepa_tutorial.course import presets
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.data import DataNotFoundError, load_mnist
-from ebjepa_tutorial.evaluation import sweeps
-from ebjepa_tutorial.training import world
 from ebjepa_tutorial.training.checkpoints import load_checkpoint
-from research import resave_checkpoints
+from research import refit, resave_checkpoints, sweep
 
 SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints"
 
@@ -51,8 +48,9 @@ def test_shipped_video_weights_are_half_precision(runs):
 def test_the_refit_and_course_long_runs_are_what_their_names_say():
     cfg = preset("06", "class")
     longer = cfg.longer
-    assert longer.refit_base == replace(longer.paper, steps=2 * longer.paper.steps)
-    assert longer.refit == world.RefitConfig()  # the command's defaults
+    base, refit_config = refit.shipped_pair()
+    assert base == replace(longer.paper, steps=2 * longer.paper.steps)
+    assert refit_config == refit.RefitConfig()  # the command's defaults
     assert longer.course.model.predictor == cfg.world.model.predictor == "mlp"
     assert longer.course.steps > cfg.world.steps and longer.course.recipe.grad_clip > 0
     assert longer.paper.n_trajectories == 100_000 and longer.paper.steps > cfg.world.steps
@@ -68,9 +66,9 @@ def test_resave_refuses_to_relabel_another_run():
 
 def test_the_sweep_file_holds_every_run_of_notebook_02():
     cfg = preset("02", "class")
-    runs = [run for group in presets.sweep_plan("class").values() for run in group]
     path = SHIPPED / "sweeps_class.json"
     assert path.is_file(), f"{path} is documented in checkpoints/README.md but missing"
-    missing = sweeps.missing_runs(runs, cfg.train_images, cfg.test_images,
-                                  sweeps.stored_rows(path))
+    stored = sweep.stored_rows(path)
+    missing = [run for group in sweep.sweep_plan("class").values() for run in group
+               if sweep.key(run.config, cfg.train_images, cfg.test_images) not in stored]
     assert not missing, f"{len(missing)} runs would be retrained: {missing[:2]}"

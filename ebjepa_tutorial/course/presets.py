@@ -1,13 +1,7 @@
-"""The one switch that sizes every notebook: ``EBJEPA_SCALE``.
-
-- ``ci``: each notebook finishes in well under a minute on 2 CPU cores; it
-  checks that everything runs, not that it learns.
-- ``class`` (default): each notebook finishes in about 10 minutes or less on a
-  2-core laptop CPU and shows a real result.
-- ``full``: the paper's configuration, for a GPU.
-
-Each notebook asks for its own preset: ``cfg = preset("00")``.
-"""
+"""The one switch that sizes every notebook, ``EBJEPA_SCALE``: ``ci`` (well under a minute on 2
+CPU cores: it runs, it does not learn), ``class`` (default: about 10 minutes or less on a 2-core
+laptop, a real result) or ``full`` (the paper's configuration, for a GPU).
+Each notebook asks for its own preset: ``cfg = preset("00")``."""
 
 from __future__ import annotations
 
@@ -22,18 +16,15 @@ from ..training.video import VIDEO_CONFIGS, VideoJEPAConfig, ablation_configs
 from ..training.world import ABLATABLE_TERMS, WorldTrainConfig, course_recipe, paper_recipe
 
 SCALES = ("ci", "class", "full")
-DEFAULT_SCALE = "class"
 
 
 def current_scale(environ: dict[str, str] | None = None) -> str:
     """Return the scale named by ``EBJEPA_SCALE`` (``class`` when unset)."""
     environ = os.environ if environ is None else environ
-    scale = environ.get("EBJEPA_SCALE", DEFAULT_SCALE).strip().lower() or DEFAULT_SCALE
+    scale = environ.get("EBJEPA_SCALE", "").strip().lower() or "class"
     if scale not in SCALES:
-        raise ValueError(
-            f"EBJEPA_SCALE={scale!r} is not a scale; choose one of {', '.join(SCALES)} "
-            f"(for example `EBJEPA_SCALE=ci make lab`)."
-        )
+        raise ValueError(f"EBJEPA_SCALE={scale!r} is not a scale; choose one of "
+                         f"{', '.join(SCALES)} (for example `EBJEPA_SCALE=ci make lab`).")
     return scale
 
 
@@ -53,9 +44,7 @@ class VideoPreset:
     """Notebook 03: the video JEPA run on Moving MNIST, its K ablation, and the evaluation sizes."""
 
     train: VideoJEPAConfig  # the main run (K = 4, seed 0); the ablation changes K and the seed
-    # the main run trained longer on more clips, with K = 1 beside it (class: shipped, made by
-    # commands.train_video --long); None: the main run is already the long one (full scale)
-    long: VideoJEPAConfig | None = None
+    long: VideoJEPAConfig | None = None  # trained longer (shipped at class); None: `train`
     rollout_steps: tuple[int, ...] = (1, 2, 4, 8)  # the K of the ablation (the paper's Figure 4b)
     seeds: tuple[int, ...] = (0, 1, 2)  # training seeds per K: other clips, other initial weights
     n_train_digits: int = 8000  # of the 10,000 MNIST test digits; the other 2,000 are held out
@@ -71,8 +60,7 @@ class VideoPreset:
         return self.train if self.long is None else self.long
 
     def long_runs(self, rollout_steps=None, seeds=None) -> list[VideoJEPAConfig]:
-        """The long run with each K of ``rollout_steps`` and each seed of ``seeds``; by
-        default K = 1 and the main run's K, at the main run's seed."""
+        """The long run at each K and seed (default: K = 1 and the main run's, its seed)."""
         return ablation_configs(self.long_config, rollout_steps or (1, self.train.rollout_steps),
                                 seeds or (self.train.seed,))
 
@@ -95,9 +83,7 @@ class ImagePreset:
     train_images: int = 50_000  # CIFAR-10 train images used to train and to fit the probe
     test_images: int = 10_000  # CIFAR-10 test images the probe and kNN are scored on
     sweep_steps: int = 500  # steps per run of notebook 02's sweeps and ablations
-    # the longer run that notebooks 01 and 02 load (class: shipped, made by
-    # research.train_image); None: the main run is the long one (full scale)
-    long: ImageJEPAConfig | None = None
+    long: ImageJEPAConfig | None = None  # the longer run they load (shipped at class); None: config
 
     @property
     def long_config(self) -> ImageJEPAConfig:
@@ -108,24 +94,15 @@ class ImagePreset:
 # ci probes at 16 px: it only checks that the code runs, and 32-px probes slow its run
 _IMAGE_CI = ImageJEPAConfig(widths=(8, 8, 16, 16), blocks_per_stage=1, projector=(64, 64),
                             batch_size=32, steps=15, warmup_steps=3, eval_image_size=16)
-# ResNet-10 (one block per stage) at widths 32-256 trained on 16-px views, 1,600 AdamW
-# steps: about 10 minutes on 2 cores of a CPU with bf16 instructions (the networks run in
-# bf16 there), 13-17 without; probed at 32 px. Shallow and wide learns the most per
-# CPU-second of the networks we measured (RESULTS.md, 01-02)
+# ResNet-10 at widths 32-256 on 16-px views, 1,600 AdamW steps: about 10 minutes on 2 cores
+# with bf16 instructions, 13-17 without; probed at 32 px (RESULTS.md, 01-02)
 _IMAGE_CLASS = ImageJEPAConfig(widths=(32, 64, 128, 256), blocks_per_stage=1, steps=1600,
                                warmup_steps=160)
 _IMAGE_FULL = ImageJEPAConfig(  # the paper's network and 300 epochs of batch 256, all at 32 px
     widths=(64, 128, 256, 512), image_size=32, projector=(2048, 2048), batch_size=256,
     steps=300 * 195, warmup_steps=10 * 195)
-
-
-# class: the shipped longer runs (checkpoints/README.md): the class recipe for 12,000 steps
-# (about 60 epochs); SIGReg at the lambda its longer runs preferred (RESULTS.md, 02)
-_LONG_STEPS = 12_000
-_LONG_SIGREG_LAMBDA = 0.05
 _SIGREG = {  # chapter 02's changes to chapter 01's run
-    # narrower than VICReg's, as at class, so that code mixing up the two widths fails in CI
-    "ci": dict(loss=SIGReg(), projector=(64, 16)),
+    "ci": dict(loss=SIGReg(), projector=(64, 16)),  # narrower than VICReg's, as at class
     "class": dict(loss=SIGReg(slices=1024), projector=(1024, 256)),  # (RESULTS.md, 02)
     "full": dict(loss=SIGReg(10.0, scale_by_n=False), projector=(2048, 128)),  # the paper's
 }
@@ -139,9 +116,9 @@ def image_preset(scale: str, loss: str) -> ImagePreset:
     if scale == "ci":
         return ImagePreset(config, train_images=2000, test_images=1000, sweep_steps=5,
                            long=replace(config, steps=30))
-    if scale == "class":  # sweeps of 250 steps: about 2 minutes each on 2 cores
-        tuned = {"loss": SIGReg(_LONG_SIGREG_LAMBDA, 1024)} if loss == "sigreg" else {}
-        long = replace(config, steps=_LONG_STEPS, warmup_steps=_LONG_STEPS // 10, **tuned)
+    if scale == "class":  # the shipped long runs; SIGReg at its preferred lambda (RESULTS.md)
+        tuned = {"loss": SIGReg(0.05, 1024)} if loss == "sigreg" else {}
+        long = replace(config, steps=12_000, warmup_steps=1200, **tuned)
         return ImagePreset(config, sweep_steps=250, long=long)
     return ImagePreset(config)
 
@@ -158,31 +135,22 @@ class WorldModelPreset:
     n_positions: int = 32
 
 
-# ci runs every cell; notebook 06 trains eleven of these
 _WORLD_CI = course_recipe(WorldTrainConfig(model=WORLD_CONFIGS["ci"], n_trajectories=500,
                                            batch_size=16, steps=10))
 # the class run: the course's recipe, trained live in under 10 minutes on 2 cores (shipped)
 _WORLD_CLASS = course_recipe(WorldTrainConfig(steps=2800))
 _WORLD_FULL = WorldTrainConfig(  # the paper: batch 384, 12 epochs of 100,000 trajectories
-    model=WORLD_CONFIGS["full"], n_trajectories=100_000, batch_size=384,
-    steps=12 * 100_000 // 384,
-)
+    model=WORLD_CONFIGS["full"], n_trajectories=100_000, batch_size=384, steps=12 * 100_000 // 384)
 
 
 @dataclass(frozen=True)
 class LongerRuns:
-    """Notebook 06's optional section 9: world models trained longer (class: shipped, each past
-    the class budget)."""
+    """Notebook 06's section 9: longer runs (shipped at class; None: the preset's world)."""
 
-    # experiment 3: the paper's recipe trained longer on more data; None: the preset's world is
-    # already the paper's long run
-    paper: WorldTrainConfig | None = None
+    paper: WorldTrainConfig | None = None  # experiment 3: the paper's recipe, longer, more data
     ablations: tuple[str, ...] = ()  # loss terms whose ablation is also trained like `paper`
     n_ablation: int = 20  # episodes (the first seeds of the list) per long-trained ablation
-    # experiment 5: chapter 05's recipe trained longer in one stage with a wider predictor (the
-    # model research.benchmarks.planning plays by default); None: the preset's world is the
-    # long one
-    course: WorldTrainConfig | None = None
+    course: WorldTrainConfig | None = None  # experiment 5: chapter 05's recipe, longer, wider
 
 
 @dataclass(frozen=True)
@@ -193,24 +161,16 @@ class PlanningPreset:
     planner: PlannerConfig  # MPPI with the summed cost; CEM and "last" change one field
     n_episodes: int = 100  # seeds first_seed.. for the main success rate
     n_compare: int = 20  # episodes (the first seeds of the same list) per other planner / model
-    # episodes played at once by the main runs (the comparisons play theirs at once): on a
-    # CPU, small batches stay in the cache; a GPU is better used by large ones
-    episode_batch: int = 10
+    episode_batch: int = 10  # episodes the main runs play at once (a CPU's cache likes few)
     episode_steps: int = 200  # the paper's step budget
     first_seed: int = 10_000
     n_wall_test: int = 400  # fresh data-policy trajectories for the one-step wall test
     longer: LongerRuns = LongerRuns()  # the optional section 9's models
 
 
-# class: the paper's recipe for 10,000 steps on its 100,000 trajectories, constant rate
-# (checkpoints/README.md); a run of this length is past the class budget, so it is shipped
-_WORLD_CLASS_LONG = paper_recipe(replace(_WORLD_CLASS, n_trajectories=100_000, steps=10_000))
-
-
 def course_long(config: WorldTrainConfig, steps: int, n_trajectories: int) -> WorldTrainConfig:
-    """``config``'s recipe trained longer in one stage: a predictor of twice the width, ``steps``
-    steps on ``n_trajectories``, the rate falling to 0 over the last 40% and every update's
-    gradient clipped to norm 1 (an unclipped long run jumped out of its minimum, RESULTS.md)."""
+    """``config``'s recipe trained longer: a predictor twice as wide, the rate falling to 0 over
+    the last 40% and every update's gradient clipped to norm 1 (RESULTS.md)."""
     model = replace(config.model, predictor_hidden=2 * config.model.predictor_hidden)
     recipe = replace(config.recipe, decay_steps=steps * 2 // 5, grad_clip=1.0)
     return replace(config, model=model, recipe=recipe, steps=steps, n_trajectories=n_trajectories)
@@ -290,8 +250,6 @@ PRESETS: dict[str, dict[str, object]] = {
     "03": {
         "ci": VideoPreset(VIDEO_CONFIGS["ci"], long=replace(VIDEO_CONFIGS["ci"], steps=30),
                           seeds=(0,), n_probe=64, n_eval=64, probe_steps=60, decoder_steps=40),
-        # one run fits a class; the twelve ship, and so do the long runs (35-53 minutes a
-        # thread: 5 times the steps on 6 times the clips, each clip seen 8 times)
         "class": VideoPreset(VIDEO_CONFIGS["class"],
                              long=replace(VIDEO_CONFIGS["class"], n_clips=24_000, steps=12_000)),
         "full": VideoPreset(VIDEO_CONFIGS["full"], n_probe=2000, n_eval=2000, probe_steps=2000,
@@ -315,16 +273,17 @@ PRESETS: dict[str, dict[str, object]] = {
                                  ablations=ABLATABLE_TERMS, n_ablation=2,
                                  course=course_long(_WORLD_CI, 20, _WORLD_CI.n_trajectories))),
         # the shipped checkpoints, with episode counts sized to fit a class period
-        # (research.benchmarks.planning plays 100 per model for the results page)
         "class": PlanningPreset(_WORLD_CLASS, PlannerConfig(), n_episodes=40, n_compare=10,
                                 longer=LongerRuns(
-                                    paper=_WORLD_CLASS_LONG, ablations=ABLATABLE_TERMS,
+                                    paper=paper_recipe(replace(_WORLD_CLASS, steps=10_000,
+                                                               n_trajectories=100_000)),
+                                    ablations=ABLATABLE_TERMS,
                                     course=course_long(_WORLD_CLASS, 10_000, 100_000))),
         # the reference code's planner on 500 episodes: 100 for the headline rate, 50 in 8 rows
-        "full": PlanningPreset(_WORLD_FULL, PlannerConfig(horizon=90, iterations=20, execute=1,
-                                                             noise=Noise(period=1),
-                                                             habits=Habits(0, stop_px=0.0)),
-                               n_episodes=100, n_compare=50, episode_batch=100),
+        "full": PlanningPreset(
+            _WORLD_FULL, PlannerConfig(horizon=90, iterations=20, execute=1, noise=Noise(period=1),
+                                       habits=Habits(0, stop_px=0.0)),
+            n_episodes=100, n_compare=50, episode_batch=100),
     },
     "07": {
         "ci": _BEYOND_CI,
@@ -336,9 +295,6 @@ PRESETS: dict[str, dict[str, object]] = {
 
 def preset(notebook: str, scale: str | None = None):
     """Return the sizes for ``notebook`` (e.g. ``"00"``) at ``scale`` (default: current)."""
-    scale = current_scale() if scale is None else scale
-    if scale not in SCALES:
-        raise ValueError(f"unknown scale {scale!r}; choose one of {', '.join(SCALES)}")
     if notebook not in PRESETS:
         raise KeyError(f"no presets for notebook {notebook!r}; known: {', '.join(PRESETS)}")
-    return PRESETS[notebook][scale]
+    return PRESETS[notebook][current_scale(None if scale is None else {"EBJEPA_SCALE": scale})]
