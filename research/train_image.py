@@ -23,10 +23,11 @@ from ebjepa_tutorial import distributed
 from ebjepa_tutorial.course.presets import SCALES, preset
 from ebjepa_tutorial.data import load_cifar10, random_subset
 from ebjepa_tutorial.evaluation.classify import probe_encoder, protocol
-from ebjepa_tutorial.training.checkpoints import float16_state, save_checkpoint
+from ebjepa_tutorial.training.checkpoints import save_checkpoint
 from ebjepa_tutorial.training.image import identity, train_image_jepa
 
 from . import launch
+from .shipping import float16_state
 
 
 def _parser() -> argparse.ArgumentParser:

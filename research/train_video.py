@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import torch
 
@@ -31,10 +32,18 @@ from ebjepa_tutorial.data.moving_mnist import split_digits
 from ebjepa_tutorial.evaluation.detection import detection_report, evaluation_clips
 from ebjepa_tutorial.losses.rollout import UNROLLS
 from ebjepa_tutorial.models.video import VideoJEPA
-from ebjepa_tutorial.training.checkpoints import checkpoint_paths, float16_state, save_checkpoint
-from ebjepa_tutorial.training.video import ablation_configs, identity, run_name, train_or_load
+from ebjepa_tutorial.training.checkpoints import checkpoint_paths, save_checkpoint, save_or_warn
+from ebjepa_tutorial.training.loop import training_state
+from ebjepa_tutorial.training.video import (
+    VideoJEPAConfig,
+    ablation_configs,
+    identity,
+    run_name,
+    train_or_load,
+)
 
 from . import launch
+from .shipping import float16_state
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -87,6 +96,42 @@ def main(argv: list[str] | None = None) -> None:
         launch.shutdown()
 
 
+def shares_start_with(config: VideoJEPAConfig, other: VideoJEPAConfig) -> bool:
+    """Whether ``other`` is ``config`` with another K, hence the same run until the switch to K
+    steps (the curriculum trains K = 1 first)."""
+    return (other.rollout_steps != config.rollout_steps and config.switch_step > 0
+            and replace(other, rollout_steps=config.rollout_steps) == config)
+
+
+def not_started(siblings: list[tuple[VideoJEPAConfig, str]]) -> list[tuple[VideoJEPAConfig, Path]]:
+    """``(config, its .partial)`` of the runs ``(config, name)`` with no file yet, shipped or
+    cached."""
+    waiting = []
+    for config, name in siblings:
+        cache_path, shipped = checkpoint_paths(name)
+        partial = cache_path.with_suffix(".partial")
+        if not any(path.exists() for path in (cache_path, shipped, partial)):
+            waiting.append((config, partial))
+    return waiting
+
+
+def handover(config: VideoJEPAConfig, waiting: list[tuple[VideoJEPAConfig, Path]]):
+    """``after`` for ``train_video_jepa``: at the switch, the state of the run ``config`` saved as
+    that of each ``waiting`` run (``config`` with another K) to its path, so that those train
+    only their K-step half."""
+    for other, _ in waiting:
+        if not shares_start_with(config, other):
+            raise ValueError(f"a run can hand over its K = 1 half only to the same run with "
+                             f"another K; got {other} for {config}")
+
+    def after(done: int, parts, history) -> None:
+        if done == config.switch_step:
+            for other, path in waiting:
+                save_or_warn(Path(path), **training_state(done, identity(other), history, *parts))
+
+    return after
+
+
 def _say(text: str) -> None:
     if distributed.is_main():  # one process prints
         print(text)
@@ -107,9 +152,11 @@ def _train_and_report(args, cfg, configs, device) -> None:
     for config in configs:
         start, name = time.perf_counter(), run_name(scale, config)
         # runs of this seed with another K start as this one: they resume from its switch
-        siblings = [(c, run_name(scale, c)) for c in configs if config.shares_start_with(c)]
+        waiting = not_started([(c, run_name(scale, c)) for c in configs
+                               if shares_start_with(config, c)])
         model, history = train_or_load(config, name, train_digits, device=device,
-                                       sync_batchnorm=args.sync_bn, siblings=siblings)
+                                       sync_batchnorm=args.sync_bn,
+                                       after=handover(config, waiting))
         if args.ship and distributed.is_main():
             shipped = checkpoint_paths(name)[1]
             save_checkpoint(shipped, model=float16_state(model), history=dict(history),

@@ -2,7 +2,7 @@
 chapter 00 its variance and covariance terms, chapter 01 its VICReg loss."""
 
 import torch
-from test_one_source import notebook_function
+from test_one_source import chapter_00_loop, notebook_function
 
 from ebjepa_tutorial import losses
 from ebjepa_tutorial.course import exercises
@@ -24,9 +24,10 @@ def test_the_toy_run_trains_with_the_terms_it_is_given():
         cov = torch.cov(z.T)
         return (cov.pow(2).sum() - cov.diagonal().pow(2).sum()) / (z.shape[1] * (z.shape[1] - 1))
 
-    course, course_history = toy.train_toy(x, coeffs, steps=5, seed=0)
-    mine, history = toy.train_toy(x, coeffs, steps=5, seed=0, variance=variance_term,
-                                  covariance=covariance_term)
+    train_toy = chapter_00_loop()  # notebook 00's loop
+    course, course_history = train_toy(x, coeffs, steps=5, seed=0)
+    mine, history = train_toy(x, coeffs, steps=5, seed=0, variance=variance_term,
+                              covariance=covariance_term)
     assert calls == {"variance": 10, "covariance": 10}  # both views, every step
     assert torch.allclose(torch.tensor(history["loss"]), torch.tensor(course_history["loss"]),
                           atol=1e-5)
@@ -34,7 +35,7 @@ def test_the_toy_run_trains_with_the_terms_it_is_given():
     def no_spread(z):  # a term that never pushes: the run must differ
         return z.sum() * 0.0
 
-    _, other = toy.train_toy(x, coeffs, steps=5, seed=0, variance=no_spread, covariance=no_spread)
+    _, other = train_toy(x, coeffs, steps=5, seed=0, variance=no_spread, covariance=no_spread)
     assert other["variance"][-1] == 0.0 and course_history["variance"][-1] > 0.0
 
 

@@ -2,6 +2,7 @@
 
 import pytest
 import torch
+from test_one_source import chapter_00_loop
 
 from ebjepa_tutorial.training import toy
 
@@ -13,7 +14,7 @@ def data():
 
 def _train(data, **coeffs):
     x, _ = data
-    encoder, history = toy.train_toy(x, toy.Coefficients(**coeffs), steps=150, seed=0)
+    encoder, history = chapter_00_loop()(x, toy.Coefficients(**coeffs), steps=150, seed=0)
     with torch.no_grad():
         return encoder(x), history
 

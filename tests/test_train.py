@@ -28,15 +28,36 @@ def _problem(seed=0):
     return model, optimizer, loss_fn, batch
 
 
-def test_fit_logs_history_and_learns():
+def fit(model, optimizer, loss_fn, batch, steps, *, start_step=0, history=None, checkpoint=None,
+        checkpoint_every=100, config=None, log_every=1, progress=False):
+    """The package's loop (``loop.run_steps``) on ``loss_fn``, saving its ``loop.training_state``
+    (identity ``config``) to ``checkpoint`` every ``checkpoint_every`` steps and at the end."""
+    history = loop.History() if history is None else history
+
+    def update(xy, step):
+        loss, terms = loss_fn(xy)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        return loss, terms
+
+    def state(done):
+        return loop.training_state(done, config, history, model, optimizer)
+
+    return loop.run_steps(update, batch, steps, start_step=start_step, history=history,
+                          log_every=log_every, progress=progress,
+                          after=loop.saver(checkpoint, state, steps, checkpoint_every))
+
+
+def test_the_loop_logs_history_and_learns():
     model, optimizer, loss_fn, batch = _problem()
-    history = loop.fit(model, optimizer, loss_fn, batch, steps=60, progress=False)
+    history = fit(model, optimizer, loss_fn, batch, steps=60, progress=False)
     assert history["step"] == list(range(60))
     assert history["loss"] == history["mse"]
     assert history.last("loss") < 1e-3 < history["loss"][0]
 
 
-def test_fit_reads_the_loss_only_on_the_steps_it_logs():
+def test_the_loop_reads_the_loss_only_on_the_steps_it_logs():
     """Reading a number waits for a GPU to finish; between logged steps nothing is read."""
     model, optimizer, _, batch = _problem()
     reads = []
@@ -49,7 +70,7 @@ def test_fit_reads_the_loss_only_on_the_steps_it_logs():
     def loss_fn(xy):
         return torch.nn.functional.mse_loss(model(xy[0]), xy[1]), {"term": Counted(1.0)}
 
-    history = loop.fit(model, optimizer, loss_fn, batch, steps=25, log_every=10, progress=False)
+    history = fit(model, optimizer, loss_fn, batch, steps=25, log_every=10, progress=False)
     assert history["step"] == [0, 10, 20, 24] and len(reads) == 4
 
 
@@ -60,22 +81,22 @@ def test_nan_loss_stops_with_a_clear_error():
         return model(xy[0]).sum() * float("nan"), {"term": 1.0}
 
     with pytest.raises(FloatingPointError, match="step 0 .*term=1"):
-        loop.fit(model, optimizer, nan_loss, batch, steps=3, progress=False)
+        fit(model, optimizer, nan_loss, batch, steps=3, progress=False)
 
 
 def test_resumed_run_equals_uninterrupted_run(tmp_path):
     model, optimizer, loss_fn, batch = _problem()
-    straight = loop.fit(model, optimizer, loss_fn, batch, steps=10, progress=False)
+    straight = fit(model, optimizer, loss_fn, batch, steps=10, progress=False)
 
     ckpt = tmp_path / "run.pt"
     model2, optimizer2, loss_fn2, batch2 = _problem()
-    loop.fit(model2, optimizer2, loss_fn2, batch2, steps=5, checkpoint=ckpt, progress=False)
+    fit(model2, optimizer2, loss_fn2, batch2, steps=5, checkpoint=ckpt, progress=False)
     # A new kernel: fresh objects, state restored from the file.
     model3, optimizer3, loss_fn3, batch3 = _problem(seed=123)
     step, history = loop.resume(ckpt, model3, optimizer3)
     assert step == 5
-    history = loop.fit(model3, optimizer3, loss_fn3, batch3, steps=10, start_step=step,
-                        history=history, checkpoint=ckpt, progress=False)
+    history = fit(model3, optimizer3, loss_fn3, batch3, steps=10, start_step=step,
+                   history=history, checkpoint=ckpt, progress=False)
     assert history["loss"] == pytest.approx(straight["loss"], rel=1e-6)
     assert torch.allclose(model3.weight, model.weight)
 
@@ -83,8 +104,8 @@ def test_resumed_run_equals_uninterrupted_run(tmp_path):
 def test_resume_ignores_a_run_with_another_config(tmp_path, capsys):
     model, optimizer, loss_fn, batch = _problem()
     ckpt = tmp_path / "run.pt"
-    loop.fit(model, optimizer, loss_fn, batch, steps=3, checkpoint=ckpt, progress=False,
-              config={"lr": 0.1})
+    fit(model, optimizer, loss_fn, batch, steps=3, checkpoint=ckpt, progress=False,
+         config={"lr": 0.1})
     assert loop.resume(ckpt, model, optimizer, config={"lr": 0.1})[0] == 3
     assert loop.resume(ckpt, model, optimizer, config={"lr": 0.2}) == (0, {})
     assert "another configuration" in capsys.readouterr().out
@@ -121,7 +142,7 @@ def test_load_or_train_trains_once_then_loads(tmp_path, capsys):
 
     def run(model, optimizer, loss_fn, batch):
         calls.append(1)
-        return loop.fit(model, optimizer, loss_fn, batch, steps=20, progress=False)
+        return fit(model, optimizer, loss_fn, batch, steps=20, progress=False)
 
     model, optimizer, loss_fn, batch = _problem()
     config = {"steps": 20, "lr": 0.1}
@@ -143,7 +164,7 @@ def test_load_or_train_trains_once_then_loads(tmp_path, capsys):
 
 def test_load_or_train_prefers_a_matching_shipped_checkpoint(tmp_path, capsys):
     model, optimizer, loss_fn, batch = _problem()
-    history = loop.fit(model, optimizer, loss_fn, batch, steps=5, progress=False)
+    history = fit(model, optimizer, loss_fn, batch, steps=5, progress=False)
     shipped = checkpoints.save_checkpoint(tmp_path / "shipped.pt", model=model.state_dict(),
                                     history=dict(history), config={"steps": 5})
     fresh = _problem(seed=3)[0]
@@ -191,8 +212,8 @@ def test_a_failed_final_save_keeps_the_resumable_run(tmp_path, monkeypatch):
     model, optimizer, loss_fn, batch = _problem()
 
     def run():
-        history = loop.fit(model, optimizer, loss_fn, batch, steps=6, checkpoint=partial,
-                            checkpoint_every=3, progress=False)
+        history = fit(model, optimizer, loss_fn, batch, steps=6, checkpoint=partial,
+                       checkpoint_every=3, progress=False)
 
         def disk_full(*args, **kwargs):
             raise OSError(28, "No space left on device")
@@ -209,7 +230,7 @@ def test_a_failed_final_save_keeps_the_resumable_run(tmp_path, monkeypatch):
 def test_the_partial_file_goes_only_after_the_final_save(tmp_path):
     path, partial = tmp_path / "model.pt", tmp_path / "model.partial"
     model, optimizer, loss_fn, batch = _problem()
-    loop.load_or_train(path, model, lambda: loop.fit(
+    loop.load_or_train(path, model, lambda: fit(
         model, optimizer, loss_fn, batch, steps=4, checkpoint=partial, progress=False),
         {"steps": 4}, partial=partial)
     assert path.is_file() and not partial.exists()
@@ -222,8 +243,8 @@ def test_an_unwritable_checkpoint_folder_warns_once_and_training_goes_on(tmp_pat
     monkeypatch.setattr(tempfile, "mkstemp", read_only)
     model, optimizer, loss_fn, batch = _problem()
     with pytest.warns(UserWarning, match="Read-only") as warned:
-        history = loop.fit(model, optimizer, loss_fn, batch, steps=20, checkpoint=tmp_path /
-                            "run.pt", checkpoint_every=5, progress=False)
+        history = fit(model, optimizer, loss_fn, batch, steps=20, checkpoint=tmp_path /
+                       "run.pt", checkpoint_every=5, progress=False)
     assert len([w for w in warned if "could not save" in str(w.message)]) == 1
     assert len(history["loss"]) == 20 and history.last("loss") < 1e-3
 
@@ -238,7 +259,7 @@ def test_a_damaged_checkpoint_is_named_moved_aside_and_retrained(tmp_path, damag
                       "not a checkpoint": b"hello"}[damage])
     with pytest.raises(checkpoints.CheckpointError, match=f"{path} is damaged"):
         checkpoints.load_checkpoint(path)
-    run = lambda: loop.fit(model, optimizer, loss_fn, batch, steps=3, progress=False)  # noqa: E731
+    run = lambda: fit(model, optimizer, loss_fn, batch, steps=3, progress=False)  # noqa: E731
     loop.load_or_train(path, model, run, {"steps": 3})
     out = capsys.readouterr().out
     assert "is damaged; moved it to" in out and "Trained and saved" in out
@@ -250,7 +271,7 @@ def test_a_damaged_shipped_checkpoint_is_reported_and_left_in_place(tmp_path):
     shipped = tmp_path / "shipped.pt"
     shipped.write_bytes(b"version https://git-lfs.github.com/spec/v1\n")  # an LFS pointer
     model, optimizer, loss_fn, batch = _problem()
-    run = lambda: loop.fit(model, optimizer, loss_fn, batch, steps=3, progress=False)  # noqa: E731
+    run = lambda: fit(model, optimizer, loss_fn, batch, steps=3, progress=False)  # noqa: E731
     with pytest.warns(UserWarning, match="shipped.pt is damaged"):
         loop.load_or_train(tmp_path / "cache.pt", model, run, {"steps": 3}, shipped=shipped)
     assert shipped.is_file() and (tmp_path / "cache.pt").is_file()
@@ -263,7 +284,7 @@ def test_another_runs_checkpoint_is_kept_and_found_again(tmp_path, capsys):
     def run(steps):
         def train_it():
             calls.append(steps)
-            return loop.fit(model, optimizer, loss_fn, batch, steps=steps, progress=False)
+            return fit(model, optimizer, loss_fn, batch, steps=steps, progress=False)
 
         model, optimizer, loss_fn, batch = _problem()
         return train_it
@@ -298,11 +319,11 @@ def test_stale_temporaries_of_killed_writers_are_removed(tmp_path):
 def test_training_time_adds_up_over_resumed_parts(tmp_path):
     ckpt = tmp_path / "run.pt"
     model, optimizer, loss_fn, batch = _problem()
-    first = loop.fit(model, optimizer, loss_fn, batch, steps=5, checkpoint=ckpt, progress=False)
+    first = fit(model, optimizer, loss_fn, batch, steps=5, checkpoint=ckpt, progress=False)
     step, history = loop.resume(ckpt, model, optimizer)
     assert history.seconds == pytest.approx(first.seconds) and first.seconds > 0
-    history = loop.fit(model, optimizer, loss_fn, batch, steps=10, start_step=step,
-                        history=history, checkpoint=ckpt, progress=False)
+    history = fit(model, optimizer, loss_fn, batch, steps=10, start_step=step,
+                   history=history, checkpoint=ckpt, progress=False)
     assert history.seconds > first.seconds
     assert checkpoints.load_checkpoint(ckpt)["seconds"] == pytest.approx(history.seconds)
 

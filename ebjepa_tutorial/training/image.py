@@ -1,21 +1,11 @@
 """Image JEPA on CIFAR-10: the training recipe of notebooks 01 (VICReg) and 02 (SIGReg).
 
-Two augmented views of each image go through one encoder and a projector;
-the energy of a pair is the squared distance between the two embeddings
-(the predictor is the identity), and a regulariser keeps the embeddings from
-collapsing: VICReg's variance and covariance terms, or SIGReg.
+Two augmented views of each image go through one encoder and a projector, and a regulariser
+keeps the embeddings from collapsing. The encoder is what we keep (the projector only trains).
 
-The encoder is what we keep; the projector exists only for training. Quality
-is measured with a linear probe and a kNN classifier on frozen encoder
-features of un-augmented images (:mod:`ebjepa_tutorial.evaluation.classify`) at
-``eval_image_size``, whatever size the training views had: the ResNet ends in a
-global average pool, so one network takes images of any size.
-
-Several processes (``torchrun``, :mod:`ebjepa_tutorial.distributed`): ``batch_size`` is
-the global batch, and global batch = per-rank batch x world size. Every rank draws and
-augments the same global batch (seeded by the step) and keeps its own rows, then gathers
-every rank's embeddings before the loss, which thus sees the global batch as in one process.
-Batch norm normalises over each rank's rows, unless ``sync_batchnorm`` (GPUs only).
+Under ``torchrun``, ``batch_size`` is the global batch (per-rank batch x world size): every
+rank draws the same global batch, keeps its own rows, and gathers every rank's embeddings
+before the loss. Batch norm normalises over each rank's rows, unless ``sync_batchnorm``.
 """
 
 from __future__ import annotations
@@ -28,7 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .. import augment, distributed, losses
+from .. import augment, distributed
 from ..losses.sigreg import sigreg_loss
 from ..losses.vicreg import vicreg, vicreg_terms
 from ..models.encoders import ResNet18
@@ -42,18 +32,9 @@ from ..utils import (
     mixed_precision,
 )
 from .checkpoints import checkpoint_paths, run_identity, step_identity
-from .loop import (
-    History,
-    load_or_train,
-    resume,
-    run_steps,
-    saver,
-    step_generator,
-    training_state,
-)
+from .loop import History, load_or_train, resume, run_steps, saver, step_generator, training_state
 from .optim import split_decay_params, warmup_cosine_scheduler
 
-EVAL_FIELDS = ("eval_image_size",)  # how a run is scored, not how it is trained
 LOG_EVERY = 10  # steps between the history's rows: reading a value waits for the GPU
 WEIGHT_DECAY = 1e-4  # AdamW's, on weight matrices only (optim.split_decay_params)
 LR = 2e-3  # AdamW's peak rate (warm-up, then cosine to 0), the same at every scale
@@ -73,9 +54,6 @@ class VICReg:
         check_fields(self, {name: (is_non_negative, "a number >= 0")
                             for name in ("inv_coeff", "std_coeff", "cov_coeff")})
 
-    def __call__(self, z_a, z_b, generator=None):
-        return losses.vicreg_loss(z_a, z_b, self.inv_coeff, self.std_coeff, self.cov_coeff)
-
 
 @dataclass(frozen=True)
 class SIGReg:
@@ -89,9 +67,6 @@ class SIGReg:
     def __post_init__(self):
         check_fields(self, {"lam": (is_non_negative, "a number >= 0"),
                             "slices": (is_int_at_least(1), "an int >= 1 (random directions)")})
-
-    def __call__(self, z_a, z_b, generator=None):
-        return sigreg_loss(z_a, z_b, self.lam, self.slices, generator, self.scale_by_n)
 
 
 @dataclass(frozen=True)
@@ -149,12 +124,8 @@ class ImageJEPA(nn.Module):
 
 
 class AllViews(nn.Module):
-    """``model`` on every view in one call: ``(b, 3, S, S) x V -> (b, D) x V``.
-
-    DistributedDataParallel pairs each forward call with one backward, so the views must go
-    through a single call of the wrapped module. Each view is its own forward pass, so batch
-    norm normalises each view's batch, as with one view.
-    """
+    """``model`` on every view in one call (DDP pairs each forward call with one backward):
+    ``(b, 3, S, S) x V -> (b, D) x V``, each view its own pass, so batch norm sees its batch."""
 
     def __init__(self, model: nn.Module):
         super().__init__()
@@ -172,26 +143,14 @@ def resize(images: torch.Tensor, size: int) -> torch.Tensor:
     return F.interpolate(images, size=size, mode="bilinear", antialias=True, align_corners=False)
 
 
-def jepa_loss(config: ImageJEPAConfig, z_a, z_b, generator=None):
-    """The training loss of two embedded views ``(B, D)``: returns ``(loss, terms)``."""
-    if config.loss is not None:
-        return config.loss(z_a, z_b, generator)
-    invariance = losses.invariance_term(z_a, z_b)
-    return invariance, {"invariance": invariance.detach()}
-
-
 def make_optimizer(model: nn.Module, config: ImageJEPAConfig) -> torch.optim.AdamW:
     """AdamW at :data:`LR`, with biases and norm parameters excluded from weight decay."""
     return torch.optim.AdamW(split_decay_params(model, WEIGHT_DECAY), lr=LR)
 
 
 def embed(net: nn.Module, views) -> tuple[torch.Tensor, torch.Tensor]:
-    """Both views ``(b, 3, S, S)`` through ``net`` (encoder, then projector): ``(B, D)`` each.
-
-    The networks run in bf16 where that is fast (:func:`mixed_precision`), the loss gets
-    float32; under ``torchrun`` every rank's rows are gathered, so the loss sees the global
-    batch (gradients reach each rank's own rows).
-    """
+    """Both views ``(b, 3, S, S)`` through ``net`` (encoder, then projector): ``(B, D)`` each,
+    in float32 (the networks run in bf16 where fast); under ``torchrun``, every rank's rows."""
     with mixed_precision(views[0].device, cpu=True):
         embedded = net(*views)
     z_a, z_b = (distributed.gather_rows(at_least_float32(z)) for z in embedded)
@@ -199,9 +158,8 @@ def embed(net: nn.Module, views) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def vicreg_step(net, batch, optimizer, scheduler, weights):
-    """One VICReg training step (notebook 01 shows it; tests/test_one_source.py keeps the two
-    the same). ``batch``: the step's two views and generator; ``weights``: a :class:`VICReg`.
-    Returns the loss and, for the steps the loop logs, a function giving the unweighted terms.
+    """One VICReg training step, as notebook 01 shows it. ``batch``: the step's two views and
+    generator; ``weights``: a :class:`VICReg`. Returns the loss and a function giving the terms.
     """
     views, _ = batch  # two augmented views of the step's images: (b, 3, S, S) each
     z_a, z_b = embed(net, views)  # encoder, then projector: (B, D) each
@@ -214,8 +172,7 @@ def vicreg_step(net, batch, optimizer, scheduler, weights):
 
 
 def sigreg_step(net, batch, optimizer, scheduler, weights):
-    """One SIGReg training step (notebook 02 shows it): :func:`vicreg_step` with SIGReg's
-    loss. ``weights``: a :class:`SIGReg`; the directions are drawn from the step's generator."""
+    """:func:`vicreg_step` with SIGReg's loss (notebook 02); ``weights``: a :class:`SIGReg`."""
     views, generator = batch  # two augmented views: (b, 3, S, S) each; the step's generator
     z_a, z_b = embed(net, views)  # encoder, then projector: (B, D) each
     loss, terms = sigreg_loss(z_a, z_b, weights.lam, weights.slices, generator,
@@ -231,8 +188,8 @@ INVARIANCE_ONLY = VICReg(1.0, 0.0, 0.0)  # the step of ``loss=None``: no regular
 
 
 def package_step(config: ImageJEPAConfig):
-    """The step that trains ``config`` when none is passed: :func:`sigreg_step` for SIGReg,
-    else :func:`vicreg_step` (``loss=None``: with :data:`INVARIANCE_ONLY`'s weights)."""
+    """The step that trains ``config`` when none is passed (``loss=None``: :func:`vicreg_step`
+    with :data:`INVARIANCE_ONLY`)."""
     return sigreg_step if isinstance(config.loss, SIGReg) else vicreg_step
 
 
@@ -240,14 +197,9 @@ def train_image_jepa(config: ImageJEPAConfig, images: torch.Tensor,
                      checkpoint: str | Path | None = None, device: torch.device | str = "cpu",
                      progress: bool = True, checkpoint_every: int = 250,
                      sync_batchnorm: bool = False, step=None) -> tuple[ImageJEPA, History]:
-    """Train on uint8 ``images (N, 3, 32, 32)``, each update a ``step(net, batch, optimizer,
-    scheduler, weights)`` (default :func:`package_step`; notebooks 01 and 02 pass their
-    cell's); resume from ``checkpoint``. Batches come from generators seeded by ``(seed,
-    step)``, so a resumed run sees the same ones. Under ``torchrun`` it trains with DDP:
-    ``config.batch_size`` is the global batch (global batch = per-rank batch x world size),
-    rank 0 alone writes ``checkpoint``, and ``sync_batchnorm`` (GPUs only) normalises over the
-    global batch.
-    """
+    """Train on uint8 ``images (N, 3, 32, 32)``, resumable from ``checkpoint``, each update a
+    ``step(net, batch, optimizer, scheduler, weights)`` (default :func:`package_step`). Under
+    ``torchrun`` it trains with DDP; ``sync_batchnorm`` (GPUs): over the global batch."""
     distributed.per_rank_batch(config.batch_size)  # refuses an uneven split before any work
     torch.manual_seed(config.seed)
     # channels_last on a GPU; on the CPU it is faster but two identical runs then differ
@@ -291,12 +243,8 @@ def _batches(config: ImageJEPAConfig, images: torch.Tensor, layout):
 
 def seconds_per_step(config: ImageJEPAConfig, images: torch.Tensor, steps: int = 5,
                      device: torch.device | str = "cpu") -> float:
-    """Wall time of one training step of ``config`` on this machine, in seconds.
-
-    Times a run of ``1 + steps`` steps and one of 1 step and divides the difference by
-    ``steps``: building the model and the first (slower) step cancel out. A 1-step run
-    before both pays the process's one-time costs (without it, the first call reads low).
-    """
+    """Seconds per training step of ``config`` here: runs of ``1 + steps`` and 1 steps, their
+    difference over ``steps`` (after a 1-step run that pays the process's one-time costs)."""
     def run(n: int) -> float:
         start = time.perf_counter()
         train_image_jepa(replace(config, steps=n, warmup_steps=0), images, device=device,
@@ -310,52 +258,36 @@ def seconds_per_step(config: ImageJEPAConfig, images: torch.Tensor, steps: int =
 
 def identity(config: ImageJEPAConfig, encoder_only: bool = False, step=None) -> dict:
     """What a checkpoint stores to recognise its run (:func:`run_identity`), without
-    ``EVAL_FIELDS``: how a network will be probed does not change how it is trained. A file
-    of the encoder alone is marked, so it is never read as a whole model. A ``step`` whose
-    code differs from :func:`package_step`'s (an edited cell) is another run
-    (:func:`~.checkpoints.step_identity`).
+    ``eval_image_size`` (how a network is probed is not how it trains). A file of the encoder
+    alone is marked so; an edited ``step`` is another run (:func:`step_identity`).
     """
     always = ("loss", "steps", "batch_size", "seed")
     extra = {"weights": "encoder only"} if encoder_only else {}
-    # the rate stays recorded as when it was a field: the shipped files keep loading, and
-    # files of another LR would not
+    # the rate stays recorded as when it was a field: the shipped files keep loading
     stored = run_identity(config, always, lr=LR, **extra,
                           **step_identity(step, package_step(config)))
-    return {k: v for k, v in stored.items() if k not in EVAL_FIELDS}
-
-
-def _partial(name: str) -> Path:
-    """Where the run ``name`` saves its resumable state while it trains (in the cache)."""
-    return checkpoint_paths(name)[0].with_suffix(".partial")
-
-
-def _train_into(module: nn.Module, config, images, name: str, device, keep, step) -> History:
-    """Train ``config`` (resumable from ``<name>.partial``); copy ``keep(model)`` to ``module``."""
-    trained, history = train_image_jepa(config, images, checkpoint=_partial(name), device=device,
-                                        step=step)
-    module.load_state_dict(keep(trained).state_dict())
-    return history  # load_or_train deletes the partial file once the model is saved
+    return {k: v for k, v in stored.items() if k != "eval_image_size"}
 
 
 def train_or_load(config: ImageJEPAConfig, name: str, images: torch.Tensor, device="cpu",
                   encoder_only: bool = False, step=None):
-    """The model of ``config``: loaded if this run was saved, else trained on ``images``.
-
-    Looks for ``checkpoints/<name>.pt`` (shipped with the course), then
-    ``data/cache/checkpoints/<name>.pt``; otherwise trains on uint8 ``images``
-    ``(N, 3, 32, 32)`` (resumable from ``<name>.partial`` in the cache) and
-    saves. With ``encoder_only`` it keeps and stores the encoder alone, as the
-    longer shipped runs are (the projector is three quarters of the weights at
-    class scale, and only training needs it). ``step``: the training step
-    (:func:`train_image_jepa`); an edited one is its own run (:func:`identity`). Returns
-    ``(model or encoder in eval mode, history)``.
+    """``(model in eval mode, history)`` of ``config``: loaded from ``checkpoints/<name>.pt``
+    or the cache if this run was saved, else trained on uint8 ``images (N, 3, 32, 32)``
+    (resumable from ``<name>.partial``) and saved. ``encoder_only``: the encoder alone, as the
+    long shipped runs store it. ``step``: the training step (:func:`train_image_jepa`).
     """
     torch.manual_seed(config.seed)
     model = ImageJEPA(config)
     module = (model.encoder if encoder_only else model).to(device)
-    keep = (lambda m: m.encoder) if encoder_only else (lambda m: m)
     cache_path, shipped = checkpoint_paths(name)
-    history = load_or_train(cache_path, module, lambda: _train_into(
-        module, config, images, name, device, keep, step),
-        identity(config, encoder_only, step), shipped, partial=_partial(name))
+    partial = cache_path.with_suffix(".partial")
+
+    def train() -> History:
+        trained, history = train_image_jepa(config, images, checkpoint=partial, device=device,
+                                            step=step)
+        module.load_state_dict((trained.encoder if encoder_only else trained).state_dict())
+        return history
+
+    history = load_or_train(cache_path, module, train, identity(config, encoder_only, step),
+                            shipped, partial=partial)
     return module.eval(), history

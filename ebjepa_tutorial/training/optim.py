@@ -1,12 +1,5 @@
-"""The learning-rate schedule of self-supervised training, warm-up + cosine, and AdamW's
-parameter groups (as in the usual SSL implementations, biases and normalisation parameters,
-every 1-D parameter, get no weight decay).
-
-The schedule warms up linearly from the very first step: step 0 uses
-``base_lr / warmup_steps``, step ``warmup_steps - 1`` the full ``base_lr``,
-then a cosine decays to ``final_lr`` at the last step. (The paper's reference
-code is off by one and spends a first warm-up period at its start value.)
-"""
+"""The learning-rate schedule of self-supervised training, warm-up then cosine, and AdamW's
+parameter groups (no weight decay on biases and normalisation parameters, the 1-D ones)."""
 
 from __future__ import annotations
 
@@ -21,10 +14,10 @@ def warmup_cosine(
 ) -> float:
     """Learning rate of the update with index ``step`` (0-based) out of ``total_steps``.
 
-    Warm-up: ``base_lr * (step + 1) / warmup_steps`` for ``step < warmup_steps``
-    (never zero, and the full ``base_lr`` at the last warm-up step). Then a
-    half cosine from that peak down to ``final_lr``, reached at the last step
-    ``total_steps - 1``. ``warmup_steps = 0`` starts the cosine at step 0.
+    Warm-up: ``base_lr * (step + 1) / warmup_steps`` for ``step < warmup_steps`` (never zero,
+    and the full ``base_lr`` at the last warm-up step; the paper's code spends a first step at
+    its start value). Then a half cosine from that peak down to ``final_lr``, reached at the
+    last step ``total_steps - 1``. ``warmup_steps = 0`` starts the cosine at step 0.
     """
     if not 0 <= warmup_steps < total_steps:
         raise ValueError(f"need 0 <= warmup_steps < total_steps, got {warmup_steps}, {total_steps}")
@@ -39,21 +32,14 @@ def warmup_cosine(
     return final_lr + (base_lr - final_lr) * 0.5 * (1 + math.cos(math.pi * progress))
 
 
-def warmup_cosine_scheduler(
-    optimizer: torch.optim.Optimizer,
-    total_steps: int,
-    warmup_steps: int,
-    final_lr_ratio: float = 0.0,
-) -> LambdaLR:
-    """A torch scheduler that follows :func:`warmup_cosine`; call ``.step()`` after each update.
-
-    The optimiser's ``lr`` (per group) is the base learning rate; the final one
-    is ``final_lr_ratio * lr``. Creating the scheduler already sets the step-0 value.
-    """
+def warmup_cosine_scheduler(optimizer: torch.optim.Optimizer, total_steps: int,
+                            warmup_steps: int) -> LambdaLR:
+    """A scheduler following :func:`warmup_cosine` from each group's ``lr`` to 0; call
+    ``.step()`` after each update (creating it sets the step-0 rate)."""
 
     def factor(step: int) -> float:
         step = min(step, total_steps - 1)  # hold the final value if training runs over
-        return warmup_cosine(step, total_steps, warmup_steps, 1.0, final_lr_ratio)
+        return warmup_cosine(step, total_steps, warmup_steps, 1.0)
 
     return LambdaLR(optimizer, factor)
 

@@ -1,12 +1,5 @@
-"""A joint-embedding model small enough to watch: 2-D points, an MLP, full-batch training.
-
-Notebook 00 uses it to show the energy view of joint-embedding learning and
-the two kinds of collapse (complete and dimensional) in seconds on a CPU.
-
-Data: points ``(N, 2)`` drawn around ``k`` centres on a circle. A "view" of a
-point is the point plus Gaussian noise, the toy analogue of an image
-augmentation: two views of one point are a compatible pair ``(x, y)``.
-"""
+"""Notebook 00's joint embedding small enough to watch: 2-D points around ``k`` centres, their
+views (the point plus Gaussian noise: two views of a point are a compatible pair), an MLP."""
 
 from __future__ import annotations
 
@@ -16,13 +9,11 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from ..losses import covariance_matrix, covariance_term, variance_term, vicreg_loss
-from .loop import History
+from ..losses import covariance_matrix
 
 
-def make_blobs(
-    n: int, k: int = 6, radius: float = 2.0, spread: float = 0.3, seed: int = 0
-) -> tuple[torch.Tensor, torch.Tensor]:
+def make_blobs(n: int, k: int = 6, radius: float = 2.0, spread: float = 0.3,
+               seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """``n`` points around ``k`` centres on a circle: returns points ``(n, 2)``, labels ``(n,)``."""
     generator = torch.Generator().manual_seed(seed)
     labels = torch.randint(0, k, (n,), generator=generator)
@@ -31,9 +22,8 @@ def make_blobs(
     return centres + spread * torch.randn(n, 2, generator=generator), labels
 
 
-def two_views(
-    x: torch.Tensor, noise: float, generator: torch.Generator
-) -> tuple[torch.Tensor, torch.Tensor]:
+def two_views(x: torch.Tensor, noise: float,
+              generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """Two noisy copies of ``x`` ``(N, 2)``: the compatible pairs of the energy."""
     noise_a = torch.randn(x.shape, generator=generator)
     noise_b = torch.randn(x.shape, generator=generator)
@@ -58,33 +48,6 @@ class Coefficients:
     cov: float = 0.0  # covariance: decorrelate the dimensions
 
 
-def train_toy(x, coeffs, *, embed_dim=8, hidden=64, steps=600, lr=3e-3, noise=0.2, seed=0,
-              variance=variance_term, covariance=covariance_term):
-    """Train an :func:`mlp_encoder` on the points ``x (N, 2)`` with the VICReg ``coeffs``.
-
-    Full batch: every step sees all points, with fresh noise from a generator seeded by
-    ``(seed, step)``, so a run is exactly reproducible. ``variance``, ``covariance``: the two
-    regularisers ``(B, D) -> 0-d`` (notebook 00 passes the learner's own). Notebook 00
-    shows this loop as a cell; tests/test_one_source.py keeps the two the same.
-    Returns ``(encoder in eval mode, History)``.
-    """
-    torch.manual_seed(seed)  # the encoder's initial weights
-    encoder = mlp_encoder(embed_dim, hidden, x.shape[1])
-    optimizer = torch.optim.Adam(encoder.parameters(), lr=lr)
-    history = History()
-    for step in range(steps):
-        generator = torch.Generator().manual_seed(seed * 100_003 + step)
-        x_a, x_b = two_views(x, noise, generator)  # two views of every point: (N, 2) each
-        z_a, z_b = encoder(x_a), encoder(x_b)  # their embeddings: (N, D) each
-        loss, terms = vicreg_loss(z_a, z_b, coeffs.inv, coeffs.var, coeffs.cov,
-                                  variance=variance, covariance=covariance)
-        optimizer.zero_grad()
-        loss.backward()  # gradients of the weighted sum of the three terms
-        optimizer.step()
-        history.log(step, loss=loss.item(), **{name: v.item() for name, v in terms.items()})
-    return encoder.eval(), history
-
-
 @torch.no_grad()
 def spectrum(z: torch.Tensor) -> torch.Tensor:
     """Eigenvalues of the covariance of ``z`` ``(N, D)``, largest first: ``(D,)``."""
@@ -92,14 +55,10 @@ def spectrum(z: torch.Tensor) -> torch.Tensor:
 
 
 @torch.no_grad()
-def energy_map(
-    encoder: nn.Module, anchor: torch.Tensor, extent: float = 3.5, resolution: int = 80
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Energy ``E(anchor, y) = ||enc(anchor) - enc(y)||^2`` for ``y`` on a square grid.
-
-    ``anchor``: ``(2,)``. Returns the grid's coordinates ``(R,)`` and the
-    energies ``(R, R)`` (rows are y, columns x), ``R = resolution``.
-    """
+def energy_map(encoder: nn.Module, anchor: torch.Tensor, extent: float = 3.5,
+               resolution: int = 80) -> tuple[torch.Tensor, torch.Tensor]:
+    """Energy ``E(anchor, y) = ||enc(anchor) - enc(y)||^2`` for ``y`` on a square grid around
+    ``anchor (2,)``: the grid's coordinates ``(R,)`` and the energies ``(R, R)`` (rows: y)."""
     coords = torch.linspace(-extent, extent, resolution)
     grid_y, grid_x = torch.meshgrid(coords, coords, indexing="ij")
     points = torch.stack([grid_x.flatten(), grid_y.flatten()], dim=1)
@@ -109,9 +68,8 @@ def energy_map(
 
 
 @torch.no_grad()
-def pair_energies(
-    encoder: nn.Module, x: torch.Tensor, noise: float = 0.2, seed: int = 0
-) -> tuple[torch.Tensor, torch.Tensor]:
+def pair_energies(encoder: nn.Module, x: torch.Tensor, noise: float = 0.2,
+                  seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """Energies of compatible pairs (two views of one point) and of random pairs: ``(N,)`` each."""
     generator = torch.Generator().manual_seed(seed)
     x_a, x_b = two_views(x, noise, generator)
@@ -124,10 +82,7 @@ def pair_energies(
 
 @torch.no_grad()
 def centroid_energies(z: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
-    """Energy between cluster centres in embedding space: ``(N, D), (N,) -> (k, k)``.
-
-    Entry ``(i, j)`` is ``||mean(z | i) - mean(z | j)||^2``; a healthy embedding
-    keeps every pair of different clusters far apart, not only some of them.
-    """
+    """Energy between cluster centres in embedding space, ``||mean(z | i) - mean(z | j)||^2``:
+    ``(N, D), (N,) -> (k, k)``."""
     centres = torch.stack([z[labels == c].mean(dim=0) for c in labels.unique()])
     return torch.cdist(centres, centres).pow(2)

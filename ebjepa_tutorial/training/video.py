@@ -1,39 +1,22 @@
 """Video JEPA on Moving MNIST (notebook 03): the run's config, its clips, training, load-or-train.
 
-One training step, :func:`video_jepa_step` (notebook 03 shows the same code in a cell and
-can pass an edited copy as ``step``), takes the K-step loss
-(:mod:`ebjepa_tutorial.losses.rollout`, unrolled the paper's parallel way or
-autoregressively) plus the variance and covariance terms on projected latents (each
-location of each frame is one sample), so that the latent cannot collapse:
+One training step, :func:`video_jepa_step`, takes the K-step loss plus the variance and
+covariance of the projected latents (each location of each frame one sample):
 
     L = (1/K) sum_k mean ||zhat_k - z||^2 + std v(P(Z)) + cov c(P(Z))
 
-(std = :data:`STD_COEFF`, cov = :data:`COV_COEFF`: the paper's weights, in every run)
+The class run is a curriculum: its first half trains K = 1, its second half K steps with
+orders 2..K on detached latents; the paper trains K steps throughout.
 
-then its gradient, the optimiser's step and the scheduler's. The class run is a curriculum:
-its first half trains K = 1 (the encoder learns what to predict), its second half K steps
-with orders 2..K on detached latents (the predictor learns to build on its own guesses);
-the paper trains K steps throughout, every order reaching the encoder.
-
-Evaluation lives in :mod:`ebjepa_tutorial.evaluation.detection`; the command
-that trains notebook 03's runs ahead of a class is
-``python -m research.train_video --scale class``.
-
-Several processes (``torchrun``, see :mod:`ebjepa_tutorial.distributed`): the
-config's ``batch_size`` is the global batch (clips), and global batch = per-rank batch x
-world size. Every rank draws the same global batch (seeded by the step) and keeps its own
-clips; the rollout loss is a mean over them, while the variance and covariance are those of
-every location of every frame of the global batch, and the step averages the gradients over
-the ranks itself (as chapter 05's does; no DistributedDataParallel wrapper). Batch norm (in
-the encoder, the predictor and the projector) normalises over each rank's frames, unless
-``sync_batchnorm`` (GPUs only).
+Under ``torchrun``, ``batch_size`` is the global batch of clips (per-rank batch x world
+size); the variance and covariance are the global batch's and the step averages the
+gradients itself. Batch norm normalises over each rank's frames, unless ``sync_batchnorm``.
 """
 
 from __future__ import annotations
 
 import hashlib
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -53,16 +36,8 @@ from ..utils import (
     is_positive,
     mixed_precision,
 )
-from .checkpoints import checkpoint_paths, run_identity, save_or_warn, step_identity
-from .loop import (
-    History,
-    load_or_train,
-    resume,
-    run_steps,
-    saver,
-    step_generator,
-    training_state,
-)
+from .checkpoints import checkpoint_paths, run_identity, step_identity
+from .loop import History, load_or_train, resume, run_steps, saver, step_generator, training_state
 from .optim import warmup_cosine_scheduler
 
 LOG_EVERY = 10  # steps between the history's rows: reading a value waits for the GPU
@@ -74,20 +49,15 @@ COV_COEFF = 100.0  # cov, the covariance term's weight: likewise
 @dataclass(frozen=True)
 class Recipe:
     """Where the class run trains otherwise than the paper, to learn more per CPU-minute
-    (notebook 03, section 6 and the optional section's curriculum). The defaults are the
-    class run's; :data:`PAPER_RECIPE` is the paper's (the ``full`` preset)."""
+    (notebook 03). The defaults are the class run's; :data:`PAPER_RECIPE` is the paper's."""
 
     cosine: bool = True  # decay the rate to 0 by a half cosine (the paper: constant)
-    # convolutions in channels_last: faster on CPUs too. PyTorch's CPU backward in
-    # this layout crashes on some strided 1x1 convolutions at 64x64 (the ci encoder's);
-    # a test checks each class-encoder convolution against the default layout
+    # convolutions in channels_last: faster on CPUs too (PyTorch's CPU backward in this
+    # layout crashes on some strided 1x1 convolutions at 64x64, the ci encoder's)
     channels_last: bool = True
-    # a curriculum: this fraction of the steps trains one-step prediction (K = 1), the
-    # rest the K-step rollout (the paper: 0, K steps throughout). Runs of one seed that
-    # differ only in K are then the same run until the switch
+    # this fraction of the steps trains K = 1, the rest K steps (the paper: 0)
     one_step_fraction: float = 0.5
-    # orders 2..K unroll from detached latents: they train the predictor alone, and the
-    # encoder learns from one-step errors only (the paper: False)
+    # orders 2..K unroll from detached latents: the encoder learns from one-step errors only
     detach_later_orders: bool = True
 
     def __post_init__(self):
@@ -138,11 +108,6 @@ class VideoJEPAConfig:
         """The steps trained at K = 1 before the rollout begins (0 without a curriculum)."""
         return math.ceil(self.recipe.one_step_fraction * self.steps)
 
-    def shares_start_with(self, other: VideoJEPAConfig) -> bool:
-        """Whether ``other`` is this run with another K, hence the same run until the switch."""
-        return (other.rollout_steps != self.rollout_steps and self.switch_step > 0
-                and replace(other, rollout_steps=self.rollout_steps) == self)
-
 
 VIDEO_CONFIGS = {
     "ci": VideoJEPAConfig(model=VIDEO_MODEL_CONFIGS["ci"], n_clips=256, batch_size=8, steps=20,
@@ -155,10 +120,8 @@ VIDEO_CONFIGS = {
 
 
 def make_clips(config: VideoJEPAConfig, train_digits: torch.Tensor) -> torch.Tensor:
-    """The run's training clips: uint8 ``(n_clips, n_frames, 1, 64, 64)`` from ``train_digits``.
-
-    Pass the first half of ``split_digits``; evaluation clips come from the other half.
-    """
+    """The run's training clips: uint8 ``(n_clips, n_frames, 1, 64, 64)`` from ``train_digits``
+    (the first half of ``split_digits``; evaluation clips come from the other half)."""
     batch = generate_moving_mnist(train_digits, config.n_clips, config.n_frames, seed=config.seed)
     return batch.clips
 
@@ -176,16 +139,9 @@ def check_clips(clips: torch.Tensor, min_frames: int) -> None:
 
 
 def video_jepa_step(model, optimizer, scheduler, frames, k, config):
-    """One training step (notebook 03 shows it; tests/test_one_source_video.py keeps the two
-    the same): the loss of a batch of clips, its gradient, the update.
-
-    ``model``: a :class:`VideoJEPA` in train mode; ``frames``: this rank's clips, uint8
-    ``(b, T, 1, 64, 64)``; ``k``: K of this step (:meth:`VideoJEPAConfig.rollout_steps_at`:
-    1 in the curriculum's first half); ``config``: the :class:`VideoJEPAConfig` (no
-    annotations here: the notebook's copy reads as plain Python). Under ``torchrun`` the
-    variance and covariance are those of the global batch and the gradients are averaged over
-    the ranks, so every rank takes the update one process would take on the whole batch.
-    Returns ``(total, terms)``, detached: a 0-d tensor and the unweighted terms.
+    """One training step, as notebook 03 shows it: the loss of a batch of clips, its gradient,
+    the update. ``frames``: this rank's clips, uint8 ``(b, T, 1, 64, 64)``; ``k``: K of this
+    step (:meth:`VideoJEPAConfig.rollout_steps_at`). Returns the detached total and terms.
     """
     with mixed_precision(frames.device, cpu=True):  # bf16 networks where fast; statistics in fp32
         z = model.encode(frames)  # Z: (b, T, C, S, S), every frame on its own
@@ -205,29 +161,6 @@ def video_jepa_step(model, optimizer, scheduler, frames, k, config):
     return total.detach(), {name: value.detach() for name, value in terms.items()}
 
 
-def _check_run(config: VideoJEPAConfig, clips, handover, both: bool) -> None:
-    """Refuse a bad run before any work: a handover to another run, ``after_step`` and a
-    checkpoint together (``both``), an uneven split over ranks, clips too short."""
-    for other, _ in handover:
-        if not config.shares_start_with(other):
-            raise ValueError(f"a run can hand over its K = 1 half only to the same run with "
-                             f"another K; got {other} for {config}")
-    if both:
-        raise ValueError("after_step is not saved in a checkpoint: give one or the other")
-    if distributed.world_size() > 1:  # (one process may take one-clip batches)
-        distributed.per_rank_batch(config.batch_size)
-    check_clips(clips, config.model.context + config.rollout_steps)
-
-
-def new_model(config: VideoJEPAConfig, device, sync_batchnorm: bool = False) -> VideoJEPA:
-    """The run's initial model on ``device``, the same on every rank (seeded by the run);
-    ``sync_batchnorm``: its batch norms normalise over the global batch (GPUs, torchrun)."""
-    torch.manual_seed(config.seed)
-    layout = torch.channels_last if config.recipe.channels_last else torch.contiguous_format
-    model = VideoJEPA(config.model).to(device, memory_format=layout)
-    return distributed.with_sync_batchnorm(model, device) if sync_batchnorm else model
-
-
 def new_scheduler(optimizer: torch.optim.Optimizer, config: VideoJEPAConfig):
     """The rate over the run: a half cosine to 0 (``config.recipe.cosine``), else constant (the
     paper's); a scheduler either way, so that the step always calls ``scheduler.step()``."""
@@ -238,39 +171,39 @@ def new_scheduler(optimizer: torch.optim.Optimizer, config: VideoJEPAConfig):
 
 def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
                      checkpoint: str | Path | None = None, progress: bool = True,
-                     device: torch.device | str | None = None,
-                     sync_batchnorm: bool = False, after_step=None,
-                     handover: Sequence[tuple[VideoJEPAConfig, str | Path]] = (),
-                     step=None) -> tuple[VideoJEPA, History]:
-    """Train on uint8 ``clips`` ``(N, T, 1, 64, 64)``, each update a ``step`` (default
-    :func:`video_jepa_step`; notebook 03 passes its cell's); resume from ``checkpoint``.
-    Batches come from generators seeded by ``(seed, step)``, so a resumed run sees the same
-    ones. Under ``torchrun``, ``config.batch_size`` is the global batch (global batch =
-    per-rank batch x world size), rank 0 alone writes ``checkpoint`` (it resumes on any world
-    size), and ``sync_batchnorm`` (GPUs only) normalises over the global batch.
-    ``after_step(model, step)``, after each update, can score the model as it trains (it is
-    not saved: no ``checkpoint``). ``handover``: ``(config, path)`` of runs that are this one
-    with another K, saved to ``path`` at the switch. Returns the model (eval mode), history.
+                     device: torch.device | str | None = None, sync_batchnorm: bool = False,
+                     step=None, after=None) -> tuple[VideoJEPA, History]:
+    """Train on uint8 ``clips (N, T, 1, 64, 64)``, resumable from ``checkpoint``, each update a
+    ``step`` (default :func:`video_jepa_step`); ``sync_batchnorm`` (GPUs, ``torchrun``): over
+    the global batch. ``after(done, (model, optimizer, scheduler), history)``, on rank 0 after
+    each step's save, sees the run as it trains. Returns the model (eval mode), history.
     """
     step = step or video_jepa_step
-    _check_run(config, clips, handover, after_step is not None and checkpoint is not None)
+    if distributed.world_size() > 1:  # (one process may take one-clip batches)
+        distributed.per_rank_batch(config.batch_size)
+    check_clips(clips, config.model.context + config.rollout_steps)
     device = get_device(device)
-    model = new_model(config, device, sync_batchnorm)
+    torch.manual_seed(config.seed)  # the same initial model on every rank
+    layout = torch.channels_last if config.recipe.channels_last else torch.contiguous_format
+    model = VideoJEPA(config.model).to(device, memory_format=layout)
+    model = distributed.with_sync_batchnorm(model, device) if sync_batchnorm else model
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
-    scheduler = new_scheduler(optimizer, config)
-    parts = (model, optimizer, scheduler)
-    start, history = resume(checkpoint, *parts, identity(config, step=step))  # (0, empty): none
+    parts = (model, optimizer, new_scheduler(optimizer, config))
+    run = identity(config, step=step)
+    start, history = resume(checkpoint, *parts, run)  # (0, empty): none
+    save = saver(checkpoint, lambda done: training_state(done, run, history, *parts),
+                 config.steps, CHECKPOINT_EVERY)
 
-    def update(frames_and_k: tuple[torch.Tensor, int], n: int):
-        total, terms = step(*parts, *frames_and_k, config)
-        if after_step is not None:
-            after_step(model, n)
-        return total, terms
+    def saves(done: int) -> None:
+        save(done)
+        if after is not None:
+            after(done, parts, history)
 
     model.train()
-    run_steps(update, _batches(config, clips, device), config.steps, start_step=start,
+    run_steps(lambda frames_and_k, n: step(*parts, *frames_and_k, config),
+              _batches(config, clips, device), config.steps, start_step=start,
               history=history, log_every=LOG_EVERY, desc="video JEPA", progress=progress,
-              after=_saves(config, checkpoint, handover, step, parts, history))
+              after=saves)
     return model.eval(), history
 
 
@@ -287,46 +220,15 @@ def _batches(config: VideoJEPAConfig, clips: torch.Tensor, device):
     return batch
 
 
-def _saves(config: VideoJEPAConfig, checkpoint, handover, step, parts, history: History):
-    """``after(done)`` for :func:`run_steps`: the state of ``parts`` (model, optimiser,
-    scheduler) saved to ``checkpoint`` every :data:`CHECKPOINT_EVERY` steps and at the end, and
-    at the switch to each ``handover`` path as that run's (its identity), this one up to there.
-    """
-    model, optimizer, scheduler = parts
-
-    def state(done: int, run: dict) -> dict:  # what resume() reads back; rank 0 alone writes
-        return training_state(done, run, history, model, optimizer, scheduler)
-
-    own = identity(config, step=step)
-    save = saver(checkpoint, lambda done: state(done, own), config.steps, CHECKPOINT_EVERY)
-
-    def after(done: int) -> None:
-        save(done)
-        for other, path in handover:
-            if done == config.switch_step:
-                save_or_warn(Path(path), **state(done, identity(other, step=step)))
-
-    return after
-
-
 def identity(config: VideoJEPAConfig, train_digits: torch.Tensor | None = None,
              step=None) -> dict:
-    """What a checkpoint stores to recognise its run: ``config``, for a finished run the
-    digits its clips were made from (:func:`digits_fingerprint`), and an edited ``step``'s
-    code (:func:`~.checkpoints.step_identity`)."""
-    edited = step_identity(step, video_jepa_step)
-    if train_digits is None:  # a run in progress: its clips are fixed by the caller
-        return run_identity(config, VIDEO_ALWAYS, **edited)
-    return run_identity(config, VIDEO_ALWAYS, train_digits=digits_fingerprint(train_digits),
-                        **edited)
-
-
-VIDEO_ALWAYS = ("steps", "batch_size", "lr", "rollout_steps", "seed")
-
-
-def digits_fingerprint(digits: torch.Tensor) -> str:
-    """A short hash of the training digits: a saved run is reused only with the same digits."""
-    return hashlib.sha1(digits.contiguous().numpy().tobytes()).hexdigest()[:12]
+    """What a checkpoint stores to recognise its run: ``config``, for a finished run a hash of
+    the digits its clips were made from (a run in progress has its clips from the caller), and
+    an edited ``step``'s code (:func:`~.checkpoints.step_identity`)."""
+    digits = {} if train_digits is None else {"train_digits": hashlib.sha1(
+        train_digits.contiguous().numpy().tobytes()).hexdigest()[:12]}
+    return run_identity(config, ("steps", "batch_size", "lr", "rollout_steps", "seed"),
+                        **digits, **step_identity(step, video_jepa_step))
 
 
 def run_name(scale: str, config: VideoJEPAConfig) -> str:
@@ -335,24 +237,11 @@ def run_name(scale: str, config: VideoJEPAConfig) -> str:
 
 
 def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor,
-                  device: torch.device | str | None = None, progress: bool = True,
-                  sync_batchnorm: bool = False,
-                  siblings: Sequence[tuple[VideoJEPAConfig, str]] = (), step=None):
-    """The model of ``config``: loaded if a run with exactly this config was saved, else trained.
-
-    Looks for ``checkpoints/<name>.pt`` (shipped with the course), then
-    ``data/cache/checkpoints/<name>.pt``; a file counts only if it stores this
-    config and the same ``train_digits`` (uint8 ``(D, 1, 28, 28)``, compared by
-    :func:`digits_fingerprint`). Otherwise makes the run's clips, trains
-    (resumable from ``<name>.partial`` in the cache) and saves. Notebook 03.
-    Returns ``(model in eval mode, history)``. In a process group every rank trains
-    (:func:`train_video_jepa`, with ``sync_batchnorm``); rank 0 reads and writes the files.
-    ``siblings``: ``(config, name)`` of runs that are this one with another K; those not
-    saved or started yet get this run's state at the switch as their ``.partial``, so
-    they train only their rollout half.
-    ``step``: the training step (:func:`train_video_jepa`). A step whose code differs from
-    :func:`video_jepa_step` (a learner's edit) is a run of its own: its identity holds a hash
-    of its code, so it never loads, or replaces, the course's run.
+                  device: torch.device | str | None = None, step=None, **options):
+    """``(model in eval mode, history)`` of ``config``: loaded from ``checkpoints/<name>.pt`` or
+    the cache if this run (config, training digits ``(D, 1, 28, 28)`` and step) was saved, else
+    trained on clips of ``train_digits`` (resumable from ``<name>.partial``) and saved.
+    ``options``: of :func:`train_video_jepa` (``progress``, ``sync_batchnorm``, ``after``).
     """
     torch.manual_seed(config.seed)
     model = VideoJEPA(config.model).to(get_device(device))
@@ -360,10 +249,8 @@ def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor
     partial = cache_path.with_suffix(".partial")
 
     def train() -> History:
-        clips = make_clips(config, train_digits)
-        trained, history = train_video_jepa(config, clips, checkpoint=partial, progress=progress,
-                                            device=device, sync_batchnorm=sync_batchnorm,
-                                            handover=_not_started(siblings), step=step)
+        trained, history = train_video_jepa(config, make_clips(config, train_digits), partial,
+                                            device=device, step=step, **options)
         model.load_state_dict(trained.state_dict())
         return history
 
@@ -372,28 +259,11 @@ def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor
     return model.eval(), history
 
 
-def _not_started(siblings: Sequence[tuple[VideoJEPAConfig, str]]):
-    """``(config, its .partial)`` of the ``siblings`` with no file yet, shipped or cached."""
-    waiting = []
-    for config, name in siblings:
-        cache_path, shipped = checkpoint_paths(name)
-        partial = cache_path.with_suffix(".partial")
-        if not any(path.exists() for path in (cache_path, shipped, partial)):
-            waiting.append((config, partial))
-    return waiting
-
-
-# --- a decoder, to draw latents as pictures ---------------------------------------------------
-
-
 def fit_decoder(model: VideoJEPA, clips: torch.Tensor, steps: int = 200, batch_size: int = 32,
                 lr: float = 1e-3, seed: int = 0) -> FrameDecoder:
-    """Train a :class:`FrameDecoder` from frozen latents back to frames, for pictures only.
-
-    ``clips``: uint8 ``(N, T, 1, 64, 64)``; each step decodes ``batch_size``
-    random frames; the loss is a per-pixel binary cross-entropy. Decode with
-    ``torch.sigmoid(decoder(z))``, ``z`` ``(N, C, S, S)`` encoded or predicted.
-    """
+    """A :class:`FrameDecoder` from frozen latents back to frames of uint8 ``clips (N, T, 1, 64,
+    64)``, for pictures only (per-pixel cross-entropy). Decode ``z (N, C, S, S)`` with
+    ``torch.sigmoid(decoder(z))``."""
     check_clips(clips, 1)
     model.eval()
     device = next(model.parameters()).device
@@ -412,9 +282,6 @@ def fit_decoder(model: VideoJEPA, clips: torch.Tensor, steps: int = 200, batch_s
         loss.backward()
         optimizer.step()
     return decoder.eval()
-
-
-
 
 
 def ablation_configs(config: VideoJEPAConfig, rollout_steps=(1, 2, 4), seeds=(0, 1, 2)):

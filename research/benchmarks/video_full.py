@@ -31,7 +31,7 @@ class _OutOfTime(Exception):
 
 
 class EpochReport:
-    """Called after every optimiser step; at each epoch's end, times and scores the model."""
+    """``after`` for ``train_video_jepa``: at each epoch's end, times and scores the model."""
 
     def __init__(self, steps_per_epoch: int, cfg, probe_data, eval_data, budget: float):
         self.steps_per_epoch, self.cfg, self.budget = steps_per_epoch, cfg, budget
@@ -39,10 +39,10 @@ class EpochReport:
         self.started = self.epoch_started = time.perf_counter()
         self.last = None
 
-    def __call__(self, model, step: int) -> None:
-        if (step + 1) % self.steps_per_epoch:
+    def __call__(self, done: int, parts, history) -> None:
+        if done % self.steps_per_epoch:
             return
-        epoch, trained = (step + 1) // self.steps_per_epoch, time.perf_counter()
+        model, epoch, trained = parts[0], done // self.steps_per_epoch, time.perf_counter()
         clips_per_s = self.steps_per_epoch * self.cfg.train.batch_size / (
             trained - self.epoch_started)
         report = detection_report(model, self.probe_data, self.eval_data, self.cfg.horizons,
@@ -81,7 +81,7 @@ def main() -> None:
           f"{len(held_out)} held-out digits", flush=True)
     report = EpochReport(steps_per_epoch, cfg, probe_data, eval_data, args.budget)
     try:
-        train_video_jepa(config, clips, progress=False, device=device, after_step=report)
+        train_video_jepa(config, clips, progress=False, device=device, after=report)
     except _OutOfTime:
         pass
     epoch, clips_per_s, mean_ap, ap3 = report.last or (0, float("nan"), float("nan"),
