@@ -11,10 +11,8 @@ Shapes (``S`` = latent side, ``C`` = latent channels):
 - for evaluation only, on frozen latents: :class:`DetectionHead` (which cells of an 8x8 grid
   hold a digit centre) and :class:`FrameDecoder` (latents back to pictures).
 
-``full`` keeps the paper's sizes (S = 64, C = 16). ``ci`` and ``class`` stride down to a small
-latent and make the predictor residual, ``zhat = z_last + UNet(window)`` with the last layer
-zero at initialisation: an untrained predictor says "nothing moves", and short runs only have
-to learn the motion.
+``full`` keeps the paper's sizes (S = 64, C = 16); ``ci`` and ``class`` stride down to a small
+latent and predict a change, ``zhat = z_last + UNet(window)``, zero at initialisation.
 """
 
 from __future__ import annotations
