@@ -211,17 +211,14 @@ def train_image_jepa(config: ImageJEPAConfig, images: torch.Tensor,
     run = identity(config, step=step)
     start, history = resume(checkpoint, model, optimizer, scheduler, run)  # (0, empty): none
     batch = _batches(config, images.to(device), layout)  # CIFAR-10 stays on the GPU (150 MB)
-
-    def state(done: int) -> dict:  # what resume() reads back; rank 0 alone writes
-        return training_state(done, run, history, model, optimizer, scheduler)
-
+    save = saver(checkpoint, lambda done: training_state(
+        done, run, history, model, optimizer, scheduler), config.steps, checkpoint_every)
     model.train()
     step = package_step(config) if step is None else step
     weights = INVARIANCE_ONLY if config.loss is None else config.loss
     run_steps(lambda views, i: step(net, views, optimizer, scheduler, weights), batch,
               config.steps, start_step=start, history=history, log_every=LOG_EVERY,
-              desc=f"{config.method} training", progress=progress,
-              after=saver(checkpoint, state, config.steps, checkpoint_every))
+              desc=f"{config.method} training", progress=progress, after=save)
     return model, history
 
 

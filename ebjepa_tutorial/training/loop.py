@@ -59,18 +59,10 @@ def _logged(loss: torch.Tensor, terms: dict, step: int) -> tuple[float, dict[str
     return value, terms
 
 
-def run_steps(
-    update: Callable[[Any, int], tuple[torch.Tensor, Any]],
-    batch_fn: Callable[[int], Any],
-    steps: int,
-    *,
-    start_step: int = 0,
-    history: History | None = None,
-    log_every: int = 1,
-    desc: str = "training",
-    progress: bool = True,
-    after: Callable[[int], Any] | None = None,
-) -> History:
+def run_steps(update: Callable[[Any, int], tuple[torch.Tensor, Any]],
+              batch_fn: Callable[[int], Any], steps: int, *, start_step: int = 0,
+              history: History | None = None, log_every: int = 1, desc: str = "training",
+              progress: bool = True, after: Callable[[int], Any] | None = None) -> History:
     """Steps ``start_step .. steps - 1`` of ``update(batch_fn(step), step) -> (loss, terms)``.
 
     ``terms``: a dict of 0-d tensors or floats, or a function giving one, called only on the
@@ -123,14 +115,9 @@ def _device(model: torch.nn.Module):
     return "cpu" if distributed.world_size() > 1 else next(model.parameters()).device
 
 
-def resume(
-    path: str | Path | None,
-    model: torch.nn.Module,
-    optimizer: torch.optim.Optimizer,
-    scheduler: Any = None,
-    config: dict[str, Any] | None = None,
-    after_step: Any = None,
-) -> tuple[int, History]:
+def resume(path: str | Path | None, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
+           scheduler: Any = None, config: dict[str, Any] | None = None,
+           after_step: Any = None) -> tuple[int, History]:
     """Restore the :func:`training_state` of the run ``config`` (its identity) saved at ``path``;
     return ``(step, history)`` to continue from, ``(0, History())`` if there is none.
 
@@ -157,14 +144,9 @@ def _history(state: dict) -> History:
     return history
 
 
-def load_or_train(
-    path: str | Path,
-    model: torch.nn.Module,
-    train: Callable[[], History],
-    config: dict[str, Any],
-    shipped: str | Path | None = None,
-    partial: str | Path | None = None,
-) -> History:
+def load_or_train(path: str | Path, model: torch.nn.Module, train: Callable[[], History],
+                  config: dict[str, Any], shipped: str | Path | None = None,
+                  partial: str | Path | None = None) -> History:
     """Load ``model`` from a checkpoint of the run ``config`` (its identity), ``shipped`` first,
     then ``path``; else ``train()`` it in place and save it to ``path``. Returns the history.
 
