@@ -1,17 +1,25 @@
-"""The learned cost-to-go of notebook 07: its loss, its targets, its fit and its use in planning."""
+"""The learned cost-to-go of notebook 07: its loss, its targets, its fit (research.beyond_fits),
+its use in planning, and the loading of the shipped fits."""
 
 import math
-from dataclasses import replace
 from types import SimpleNamespace
 
 import pytest
 import torch
 from torch import nn
 
-from ebjepa_tutorial.losses.cost import imagination_gap, spread_loss, step_violation
+from ebjepa_tutorial.losses.cost import spread_loss, step_violation
 from ebjepa_tutorial.models.cost import COST_SCALE, CostToGo, WithLearnedCost
+from ebjepa_tutorial.models.hierarchy import CoarseModel
 from ebjepa_tutorial.planning import PlannerConfig, planning_cost
-from ebjepa_tutorial.training.cost import (
+from ebjepa_tutorial.training.checkpoints import (
+    CheckpointError,
+    UnsafeCheckpointError,
+    save_checkpoint,
+)
+from ebjepa_tutorial.training.fits import load_fit
+from ebjepa_tutorial.training.world import identity
+from research.beyond_fits import (
     CAP,
     TOLERANCE,
     CostConfig,
@@ -19,6 +27,7 @@ from ebjepa_tutorial.training.cost import (
     Multiplier,
     cost_objective,
     fit_cost_to_go,
+    imagination_gap,
     sample_batch,
 )
 
@@ -172,21 +181,41 @@ def test_cost_config_refuses_settings_that_cannot_fit(field, value):
         CostConfig(**{field: value})
 
 
-def test_a_fitted_head_is_saved_once_and_loaded_after(tmp_path, monkeypatch):
-    from ebjepa_tutorial.training import cost, loop
-    from ebjepa_tutorial.training.world import WorldTrainConfig, identity, make_data, new_model
+def test_the_shipped_fits_load_for_their_world_models():
+    from research import fit_beyond
+    from research.beyond_fits import CoarseConfig
 
-    monkeypatch.setattr(loop, "checkpoint_paths",
-                        lambda name: (tmp_path / f"{name}.pt", tmp_path / "none.pt"))
-    world = WorldTrainConfig(n_trajectories=8, steps=1)
-    model = new_model(world, make_data(world)).eval()
-    config = CostConfig(n_trajectories=4, trajectory_steps=16, layouts=2, steps=3,
-                        batch_size=16, hidden=8, dims=4)
-    first = cost.cost_head_or_load(model, identity(world), config, "head")
-    assert (tmp_path / "head.pt").exists()
-    again = cost.cost_head_or_load(model, identity(world), config, "head")
-    for a, b in zip(first.parameters(), again.parameters()):
-        assert torch.equal(a, b)
+    for world in fit_beyond.WORLDS:
+        _, config, _ = fit_beyond.world_run(world)
+        base, latent = identity(config), config.model.latent_dim
+        head = load_fit("cost_head", world, CostToGo(latent), base)
+        coarse = load_fit("coarse", world, CoarseModel(latent), base)
+        assert not head.training and not coarse.training
+        assert coarse.stride == CoarseConfig().stride  # the fit's stride is the model's default
+        assert [m.out_features for m in head.embed if isinstance(m, nn.Linear)] == [
+            CostConfig().hidden, CostConfig().hidden, CostConfig().dims]
+        with pytest.raises(CheckpointError, match="not fitted on the world model loaded here"):
+            load_fit("cost_head", world, CostToGo(latent), {**base, "seed": 1})
+
+
+def test_a_missing_damaged_or_foreign_fit_is_refused_naming_the_file_and_command(tmp_path):
+    command = "python -m research.fit_beyond --world two_rooms --fits cost_head"
+    path = tmp_path / "cost_head_two_rooms_class.pt"
+    with pytest.raises(FileNotFoundError, match=f"{path.name} is missing. Make it with `{command}"):
+        load_fit("cost_head", "two_rooms", CostToGo(2), {}, folder=tmp_path)
+    path.write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match=f"(?s){path.name} is damaged.*{command}"):
+        load_fit("cost_head", "two_rooms", CostToGo(2), {}, folder=tmp_path)
+    torch.save({"config": {"base": {}}, "model": nn.Linear(2, 2)}, path)  # a pickled module
+    with pytest.raises(UnsafeCheckpointError, match=f"(?s){path.name}.*{command}"):
+        load_fit("cost_head", "two_rooms", CostToGo(2), {}, folder=tmp_path)
+    save_checkpoint(path, model=CostToGo(3).state_dict(), config={"base": {"seed": 0}})
+    with pytest.raises(CheckpointError, match="not fitted on the world model"):
+        load_fit("cost_head", "two_rooms", CostToGo(3), {"seed": 1}, folder=tmp_path)
+    with pytest.raises(CheckpointError, match=f"holds no CostToGo of this shape.*{command}"):
+        load_fit("cost_head", "two_rooms", CostToGo(2), {"seed": 0}, folder=tmp_path)
+    loaded = load_fit("cost_head", "two_rooms", CostToGo(3), {"seed": 0}, folder=tmp_path)
+    assert torch.equal(loaded.embed[0].weight, torch.load(path)["model"]["embed.0.weight"])
 
 
 def test_calibration_sets_the_straight_distance_against_the_way_round_the_walls():
@@ -207,25 +236,23 @@ def test_calibration_sets_the_straight_distance_against_the_way_round_the_walls(
     assert correlation(torch.arange(5.0), -torch.arange(5.0)) == pytest.approx(-1.0)
 
 
-@pytest.mark.slow  # trains a ci world model, then fits both
-def test_the_fit_command_writes_files_that_the_notebook_then_loads(tmp_path, monkeypatch, capsys):
-    from ebjepa_tutorial.course.presets import preset
-    from ebjepa_tutorial.planning import two_level_episodes
-    from ebjepa_tutorial.training.cost import cost_head_or_load
-    from ebjepa_tutorial.training.hierarchy import coarse_or_load
+@pytest.mark.slow  # tiny fits on the shipped Three Rooms world model: seconds
+def test_the_fit_command_writes_files_that_the_notebook_then_loads(tmp_path, capsys):
     from ebjepa_tutorial.training.runs import train_or_load
-    from ebjepa_tutorial.training.world import identity
     from research import fit_beyond
 
-    monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))  # the world model trains here too
-    fit_beyond.main(["--world", "three_rooms", "--scale", "ci",
-                     "--out-dir", str(tmp_path / "checkpoints")])
-    cfg, (walls, config, name) = preset("07", "ci"), fit_beyond.world_run("three_rooms", "ci")
-    assert walls == 2 and config == cfg.three_rooms
+    out = tmp_path / "fits"
+    fit_beyond.main(["--world", "three_rooms", "--tiny", "--out-dir", str(out),
+                     "--set", "consistency=0", "seed=3"])
+    walls, config, name = fit_beyond.world_run("three_rooms")
+    assert walls == 2 and name == "world_model_three_rooms_class"
     model, _ = train_or_load(config, name, device="cpu")
-    capsys.readouterr()
-    cost_head_or_load(model, identity(config), replace(cfg.cost, walls=2),
-                      "cost_head_three_rooms_ci")
-    coarse_or_load(model, identity(config), cfg.coarse_fit(2), "coarse_three_rooms_ci",
-                   two_level_episodes)
-    assert capsys.readouterr().out.count("Loaded a trained model") == 2  # nothing refitted
+    assert "Loaded a trained model" in capsys.readouterr().out  # the shipped world model
+    head = load_fit("cost_head", "three_rooms", CostToGo(model.latent_dim, 32, 8),
+                    identity(config), folder=out)
+    load_fit("coarse", "three_rooms", CoarseModel(model.latent_dim, 4, 32), identity(config),
+             folder=out)
+    stored = torch.load(out / "cost_head_three_rooms_class.pt")["config"]
+    assert stored["consistency"] == 0.0 and stored["seed"] == 3 and stored["walls"] == 2
+    assert torch.load(out / "coarse_three_rooms_class.pt")["config"]["coarse"]["seed"] == 3
+    assert head(torch.zeros(1, model.latent_dim), torch.zeros(1, model.latent_dim)) == 0

@@ -1,4 +1,4 @@
-"""The coarse model and the two-level planner of notebook 07."""
+"""The coarse model, its fit (research.beyond_fits) and the two-level planner of notebook 07."""
 
 from dataclasses import replace
 from types import SimpleNamespace
@@ -9,7 +9,7 @@ from torch import nn
 
 from ebjepa_tutorial.envs import MAX_STEP, clip_actions
 from ebjepa_tutorial.losses.world import windows
-from ebjepa_tutorial.models.hierarchy import CoarseModel, macro_actions
+from ebjepa_tutorial.models.hierarchy import CoarseModel
 from ebjepa_tutorial.planning import (
     Habits,
     Noise,
@@ -19,12 +19,7 @@ from ebjepa_tutorial.planning import (
     run_episodes,
     shift_plan,
 )
-from ebjepa_tutorial.training.hierarchy import (
-    CoarseConfig,
-    CoarseFit,
-    coarse_or_load,
-    fit_coarse_on,
-)
+from research.beyond_fits import CoarseConfig, CoarseFit, fit_coarse_on, macro_actions
 
 
 class Drift(nn.Module):
@@ -125,5 +120,3 @@ def test_settings_a_two_level_planner_cannot_use_are_refused():
         TwoLevel(Drift(4), HIGH, reach_px=-1.0)
     with pytest.raises(ValueError, match="episodes"):
         CoarseFit(CoarseConfig(), LOW, HIGH, lookahead=2, reach_px=4.5, episodes=0)
-    with pytest.raises(TypeError, match="play=planning.two_level_episodes"):
-        coarse_or_load(Drift(), {}, CoarseFit(CoarseConfig(), LOW, HIGH, 2, 4.5), "unused")

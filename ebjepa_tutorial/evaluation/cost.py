@@ -1,11 +1,5 @@
-"""How well a distance between latents knows the way round the walls (notebook 07).
-
-A planner's cost should grow with the length of the shortest way from the
-dot to the goal, not with the straight line through a wall. Here both the
-latent distance of chapter 06 and a learned cost-to-go head are set against
-that length, which the world's geometry gives exactly
-(:func:`~ebjepa_tutorial.envs.two_rooms.shortest_path_length`).
-"""
+"""How well a distance between latents knows the way round the walls (notebook 07): the latent
+distance and a cost-to-go head set against the exact shortest way."""
 
 from __future__ import annotations
 

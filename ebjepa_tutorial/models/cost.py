@@ -1,20 +1,9 @@
 """A learned cost-to-go on a world model's latents (notebook 07).
 
-The planning energy of chapter 06 is the straight latent distance
-``||z - z_goal||``, which knows nothing of walls: across the middle wall it
-points at the wall, not at the door. A cost-to-go head ``d(z, g)`` is trained
-instead to estimate the length, in pixels of travel, of the shortest path from
-the state encoded by ``z`` to the one encoded by ``g`` (``training.cost``).
-Planned with it, the cost of a plan is what is left after it:
-
-    S(a_1..a_H) = d(zhat_H, z_goal)
-
-so a short horizon suffices: the head, not the imagined path, sees the door.
-
-The head is a distance between learned embeddings, ``d(z, g) = s ||f(z) - f(g)||``:
-it is 0 from a state to itself, symmetric (the world's moves are reversible) and
-obeys the triangle inequality by construction, so no single estimate can offer a
-shortcut that a chain of others rules out.
+``d(z, g) = s ||f(z) - f(g)||`` estimates the length, in px of travel, of the shortest way from
+the state encoded by ``z`` to the one encoded by ``g``; planned with it, a plan's cost is what is
+left after it, ``S(a_1..a_H) = d(zhat_H, z_goal)``. A distance between embeddings, it is 0 from a
+state to itself, symmetric and obeys the triangle inequality by construction.
 """
 
 from __future__ import annotations
@@ -35,7 +24,7 @@ class CostToGo(nn.Module):
 
     def __init__(self, latent_dim: int, hidden: int = 256, dims: int = 32):
         super().__init__()
-        self.latent_dim, self.hidden, self.dims = latent_dim, hidden, dims
+        self.latent_dim = latent_dim
         self.embed = nn.Sequential(nn.Linear(latent_dim, hidden), nn.GELU(),
                                    nn.Linear(hidden, hidden), nn.GELU(), nn.Linear(hidden, dims))
 

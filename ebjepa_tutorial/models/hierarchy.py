@@ -1,14 +1,9 @@
-"""A coarse world model for a two-level planner (notebook 07).
-
-The flat planner imagines every one of 64 steps to see round the wall. A
-coarse model steps ``stride`` environment steps at a time, so a plan of 16
-coarse steps covers the same 64 steps for a quarter of the predictor calls:
+"""A coarse world model for a two-level planner (notebook 07): ``stride`` steps at a time,
 
     z_{t+S} = z_t + W MLP([z_t, u_t / (S * MAX_STEP)])
 
-where the macro-action ``u_t`` (px, ``(2,)``) is the displacement the next ``S``
-actions ask for (their sum). It reads and writes the world model's latents, so
-its predictions are subgoals that the flat planner can aim at over a few steps.
+where the macro-action ``u_t`` (px, ``(2,)``) is the sum of the next ``S`` actions. It reads and
+writes the world model's latents, so its predictions are subgoals the flat planner can aim at.
 """
 
 from __future__ import annotations
@@ -24,8 +19,8 @@ from ..envs import MAX_STEP
 class CoarseModel(nn.Module):
     """Latents ``stride`` steps apart: ``rollout(z0 (R, D), macro (R, H, 2)) -> (R, H, D)``."""
 
-    def __init__(self, latent_dim: int, stride: int, hidden: int):
-        super().__init__()  # stride >= 1: CoarseConfig checks it
+    def __init__(self, latent_dim: int, stride: int = 4, hidden: int = 256):
+        super().__init__()
         self.latent_dim, self.stride = latent_dim, stride
         self.config = SimpleNamespace(action_dim=2)  # what the planner reads
         self.body = nn.Sequential(nn.Linear(latent_dim + 2, hidden), nn.GELU(),
@@ -45,9 +40,3 @@ class CoarseModel(nn.Module):
             z = self.predict(z, step)
             out.append(z)
         return torch.stack(out, dim=1)
-
-
-def macro_actions(actions: torch.Tensor, stride: int) -> torch.Tensor:
-    """Sum each ``stride`` consecutive actions: ``(N, T, 2) -> (N, T // stride, 2)``."""
-    n, t, a = actions.shape
-    return actions[:, : t - t % stride].reshape(n, t // stride, stride, a).sum(dim=2)

@@ -1,22 +1,19 @@
 """A two-level planner: a coarse model picks subgoals for the flat planner (notebook 07).
 
-At every re-plan the coarse level (MPPI over macro-actions of ``coarse.stride``
-steps, with ``models.hierarchy.CoarseModel``, warm-started like the flat plan)
-plans from the current latent to the goal; the latent it imagines
-``lookahead`` coarse steps ahead is the subgoal that the flat planner of
+At every re-plan the coarse level (MPPI over macro-actions of ``coarse.stride`` steps,
+warm-started like the flat plan) plans from the current latent to the goal; the latent it
+imagines ``lookahead`` coarse steps ahead is the subgoal that the flat planner of
 :func:`~ebjepa_tutorial.planning.mpc.mpc_loop` plans towards over its short horizon.
 """
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import torch
 
-from ..envs import Trajectories
-from .mpc import arrival_distance, run_episodes
+from .mpc import arrival_distance
 from .mppi import PlannerConfig, plan, shift_plan
 
 
@@ -90,17 +87,3 @@ class _Aim:
                 z[rows], z_goal[rows], self.config, mine, self.coarse[rows])
         self.config, self.coarse = self.config.warm(), shift_plan(self.coarse, 1)
         return target
-
-
-def two_level_episodes(model, coarse: torch.nn.Module, fit) -> Trajectories:
-    """The episodes of ``fit``'s two-level planner on ``coarse``, as offline data.
-
-    ``fit``: a :class:`~ebjepa_tutorial.training.hierarchy.CoarseFit` (its ``low`` and
-    ``high`` planners, ``lookahead`` and ``reach_px``; ``episodes`` episodes of ``steps``
-    steps from seed 40,000, 10 at a time, in ``fit.coarse.walls``' world).
-    """
-    seeds = range(40_000, 40_000 + fit.episodes)  # a range no evaluation uses
-    coarse = copy.deepcopy(coarse).to(next(model.parameters()).device)  # plans beside model
-    two_level = TwoLevel(coarse, fit.high, fit.lookahead, fit.reach_px)
-    return run_episodes(model, seeds, fit.low, fit.steps, batch=10,
-                        walls=fit.coarse.walls, two_level=two_level).as_trajectories()

@@ -9,10 +9,10 @@ one episode per seed from ``--first-seed`` (layout, start and goal in the outer
 rooms, and the planner's noise all come from the seed); success when the dot
 ends within 4.5 px of the goal at the end of the world's step budget (200 and
 120 steps). The planners are notebook 07's at class scale
-(``course.presets.preset("07", "class")``); the cost head and the coarse model
-are loaded from ``checkpoints/`` or the cache, or fitted on the world model's
-frozen latents (minutes). Each row: the success rate, its Wilson 95% interval
-and the process CPU seconds per episode (all threads counted). Last line, for
+(``course.presets.preset("07", "class")``); the cost heads and the coarse models
+are the shipped ones (``training.fits.load_fit``; ``research.fit_beyond`` makes
+them). Each row: the success rate, its Wilson 95% interval and the process CPU
+seconds per episode (all threads counted). Last line, for
 the last world played:
 ``world=... flat=... short=... learned_cost=... two_level=... s_per_episode=...``
 (s_per_episode: the best new planner's). ``--record`` stores every rate in
@@ -26,10 +26,10 @@ import argparse
 import torch
 
 from ebjepa_tutorial.course.presets import preset
-from ebjepa_tutorial.models.cost import WithLearnedCost
-from ebjepa_tutorial.planning import TwoLevel, run_episodes, two_level_episodes
-from ebjepa_tutorial.training.cost import cost_head_or_load
-from ebjepa_tutorial.training.hierarchy import coarse_or_load
+from ebjepa_tutorial.models.cost import CostToGo, WithLearnedCost
+from ebjepa_tutorial.models.hierarchy import CoarseModel
+from ebjepa_tutorial.planning import TwoLevel, run_episodes
+from ebjepa_tutorial.training.fits import load_fit
 from ebjepa_tutorial.training.runs import train_or_load
 from ebjepa_tutorial.training.world import identity
 from research import fit_beyond
@@ -43,12 +43,10 @@ PLANNERS = ["flat", "short", *NEW]
 def planners(walls: int) -> dict:
     """Each planner of the comparison: ``name: (model to plan with, PlannerConfig, two_level)``."""
     cfg, world = preset("07", "class"), WORLDS[walls]
-    _, config, name = fit_beyond.world_run(world, "class")
+    _, config, name = fit_beyond.world_run(world)
     model, _ = train_or_load(config, name, device="cpu")
-    cost, coarse = fit_beyond.fit_configs(world, "class")
-    head = cost_head_or_load(model, identity(config), cost, f"cost_head_{world}_class")
-    coarse = coarse_or_load(model, identity(config), coarse, f"coarse_{world}_class",
-                            two_level_episodes)
+    head = load_fit("cost_head", world, CostToGo(model.latent_dim), identity(config))
+    coarse = load_fit("coarse", world, CoarseModel(model.latent_dim), identity(config))
     two = cfg.two_level
     return {"flat": (model, cfg.flat, None), "short": (model, cfg.short, None),
             "learned_cost": (WithLearnedCost(model, head), cfg.learned, None),
