@@ -28,11 +28,11 @@ from torch import nn
 
 from ebjepa_tutorial.envs import Trajectories, generate_trajectories, random_layouts
 from ebjepa_tutorial.losses.cost import spread_loss, step_violation
-from ebjepa_tutorial.losses.world import multistep_prediction_loss, windows
+from ebjepa_tutorial.losses.world import multistep_prediction_loss
 from ebjepa_tutorial.models.cost import COST_SCALE, CostToGo
 from ebjepa_tutorial.models.hierarchy import CoarseModel
 from ebjepa_tutorial.models.world import WorldModel, trajectory_latents
-from ebjepa_tutorial.planning import PlannerConfig, TwoLevel, run_episodes
+from ebjepa_tutorial.planning import EpisodeResults, PlannerConfig, TwoLevel, run_episodes
 from ebjepa_tutorial.training.loop import History, step_generator
 from ebjepa_tutorial.utils import check_fields, is_int_at_least
 
@@ -289,8 +289,23 @@ def two_level_episodes(model: WorldModel, coarse: CoarseModel, fit: CoarseFit) -
     seeds = range(VISIT_SEED, VISIT_SEED + fit.episodes)
     coarse = copy.deepcopy(coarse).to(next(model.parameters()).device)  # plans beside model
     two_level = TwoLevel(coarse, fit.high, fit.lookahead, fit.reach_px)
-    return run_episodes(model, seeds, fit.low, fit.steps, batch=10,
-                        walls=fit.coarse.walls, two_level=two_level).as_trajectories()
+    return as_trajectories(run_episodes(model, seeds, fit.low, fit.steps, batch=10,
+                                        walls=fit.coarse.walls, two_level=two_level))
+
+
+def as_trajectories(played: EpisodeResults) -> Trajectories:
+    """Played episodes as offline data, as ``envs.generate_trajectories`` stores a random
+    walk: positions ``(N, T + 1, 2)``, actions ``(N, T, 2)``, no wall starts."""
+    return Trajectories(played.paths, played.actions, played.episodes.layouts,
+                        torch.zeros(len(played.seeds), dtype=torch.bool))
+
+
+def windows(x: torch.Tensor, length: int, every: int) -> torch.Tensor:
+    """Windows of ``length`` along the time axis, one starting every ``every`` steps:
+    ``(N, T, F) -> (N * W, length, F)`` with ``W = (T - length) // every + 1``."""
+    if x.shape[1] < length:
+        raise ValueError(f"sequences of {x.shape[1]} steps hold no window of {length}")
+    return x.unfold(1, length, every).transpose(-1, -2).flatten(0, 1)
 
 
 def fit_coarse_with_visits(model: WorldModel, config: CoarseFit) -> tuple[CoarseModel, History]:

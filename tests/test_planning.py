@@ -19,6 +19,7 @@ from ebjepa_tutorial.envs import SUCCESS_RADIUS, clip_actions, render
 from ebjepa_tutorial.envs.two_rooms import transition
 from ebjepa_tutorial.evaluation.metrics import wilson_interval
 from ebjepa_tutorial.planning import Habits, Noise, PlannerConfig
+from research.beyond_fits import as_trajectories
 
 
 class LinearLatentModel(nn.Module):
@@ -403,8 +404,8 @@ def test_episodes_keep_the_actions_that_replay_their_paths():
     included (the linear model plans straight through them): offline data, as
     ``generate_trajectories`` stores a random walk."""
     config = planning.PlannerConfig(horizon=8, samples=32, elites=4, iterations=2, execute=4)
-    played = planning.run_episodes(LinearLatentModel(), [10, 11], config, steps=40,
-                                   walls=2).as_trajectories()
+    played = as_trajectories(planning.run_episodes(LinearLatentModel(), [10, 11], config,
+                                                   steps=40, walls=2))
     assert played.actions.shape == (2, 40, 2) and played.positions.shape == (2, 41, 2)
     for t in range(40):
         moved = transition(played.positions[:, t], played.actions[:, t], played.layouts)

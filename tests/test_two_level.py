@@ -8,7 +8,6 @@ import torch
 from torch import nn
 
 from ebjepa_tutorial.envs import MAX_STEP, clip_actions
-from ebjepa_tutorial.losses.world import windows
 from ebjepa_tutorial.models.hierarchy import CoarseModel
 from ebjepa_tutorial.planning import (
     Habits,
@@ -19,7 +18,7 @@ from ebjepa_tutorial.planning import (
     run_episodes,
     shift_plan,
 )
-from research.beyond_fits import CoarseConfig, CoarseFit, fit_coarse_on, macro_actions
+from research.beyond_fits import CoarseConfig, CoarseFit, fit_coarse_on, macro_actions, windows
 
 
 class Drift(nn.Module):

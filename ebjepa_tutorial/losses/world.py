@@ -65,14 +65,6 @@ def with_still_steps(z: torch.Tensor, actions: torch.Tensor, stay: torch.Tensor)
     return torch.cat([z[:, :1], z[rows, frame]], dim=1), taken
 
 
-def windows(x: torch.Tensor, length: int, every: int) -> torch.Tensor:
-    """Windows of ``length`` along the time axis, one starting every ``every`` steps:
-    ``(N, T, F) -> (N * W, length, F)`` with ``W = (T - length) // every + 1``."""
-    if x.shape[1] < length:
-        raise ValueError(f"sequences of {x.shape[1]} steps hold no window of {length}")
-    return x.unfold(1, length, every).transpose(-1, -2).flatten(0, 1)
-
-
 def multistep_prediction_loss(
     predict: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], z: torch.Tensor,
     actions: torch.Tensor, steps: int = 8, detach_targets: bool = False,

@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from ..envs import SUCCESS_RADIUS, Episodes, Trajectories, TwoRoomsEnv, make_episodes
+from ..envs import SUCCESS_RADIUS, Episodes, TwoRoomsEnv, make_episodes
 from ..envs.two_rooms import random_layouts, render, sample_positions, wall_collision
 from ..evaluation.metrics import wilson_interval
 from .diagnosis import StateEnv, TrueDynamics
@@ -54,11 +54,6 @@ class EpisodeResults:
         return EpisodeResults(self.seeds[:n], self.episodes[:n], self.paths[:n],
                               self.actions[:n], self.success[:n], self.first_arrival[:n],
                               self.cpu_seconds * share, self.wall_seconds * share)
-
-    def as_trajectories(self) -> Trajectories:
-        """The episodes as offline data, as ``envs.generate_trajectories`` stores a random walk."""
-        return Trajectories(self.paths, self.actions, self.episodes.layouts,
-                            torch.zeros(len(self.seeds), dtype=torch.bool))
 
     @property
     def success_rate(self) -> float:
