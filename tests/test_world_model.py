@@ -792,7 +792,7 @@ def devices_of(model) -> set[str]:
 
 
 def fit_that_records(seen: list):
-    """A stand-in for ``training.loop.fit`` (a meta loss has no value to log): it notes the
+    """A stand-in for ``research.fitting.fit`` (a meta loss has no value to log): it notes the
     devices of the model and of batch 0, and trains nothing."""
     from ebjepa_tutorial.training.loop import History
 
