@@ -51,8 +51,10 @@ test: setup
 		tests notebooks $(NBVAL)
 
 # The fast unit tests (under 30 s on 2 idle cores), for quick edit-test loops; `slow` marks the rest.
+# Spread like `test` (--dist load: the fast tests are many and short, so per test, not per file).
 test-fast: setup
-	$(BIN)/python -m pytest tests -m "not slow and not browser"
+	MPLBACKEND=agg OMP_WAIT_POLICY=PASSIVE OMP_NUM_THREADS=1 $(BIN)/python -m pytest tests \
+		-q -n auto --maxprocesses 4 -m "not slow and not browser"
 
 book: setup
 	$(BIN)/python -m tools.book build
