@@ -52,12 +52,8 @@ class Habits:
     """Two habits of a sensible agent that cut an episode's cost several times (notebook 06,
     "Speed"). The paper's agent has neither: ``Habits(warm_iterations=0, stop_px=0)``."""
 
-    # refinements (at most J) of each re-plan after the first, which starts from the previous
-    # plan; 0: J, as the paper's agent
-    warm_iterations: int = 3
-    # within stop_px of the goal as the model sees it (mpc.arrival_distance), the agent stands
-    # still and plans nothing; 0: plan until the step budget ends, as the paper's agent
-    stop_px: float = 2.0
+    warm_iterations: int = 3  # refinements (at most J) of a re-plan from the previous plan; 0: J
+    stop_px: float = 2.0  # stand still within this of the goal (mpc.arrival_distance); 0: never
 
     def __post_init__(self):
         check_fields(self, {
@@ -204,8 +200,7 @@ def smooth_noise(samples: int, horizon: int, dims: int, period: int,
     """Standard normal noise ``(samples, horizon, dims)``, correlated over ``period`` steps.
 
     Independent draws at steps ``0, period, 2 period, ...`` joined by straight lines
-    (``period=1``: i.i.d.): they move a plan coherently, so they explore much farther than
-    white noise, whose displacement grows only as the square root of the horizon.
+    (``period=1``: i.i.d.) move a plan coherently: they explore farther than white noise.
     """
     knots = torch.randn(samples, dims, horizon // period + 2, generator=generator)
     if period == 1:

@@ -1,9 +1,7 @@
 """Training the Two Rooms world model (notebook 05; its checkpoint serves 06).
 
-Data: offline trajectories of the paper's data policy (positions and actions), rendered to
-frames batch by batch. Two recipes train the same loss: the paper's (:class:`Recipe`'s
-defaults, :func:`paper_recipe`) and the course's (:func:`course_recipe`), which learns more
-per CPU-minute. Each update is :func:`world_model_step`, the code notebook 05 shows.
+Data: offline trajectories of the paper's data policy, rendered to frames batch by batch.
+Each update is :func:`world_model_step`, the code notebook 05 shows.
 
 Under ``torchrun`` ``batch_size`` is the global batch: every rank draws the same global batch
 (seeded by the step), renders its own rows, and the step averages the gradients over ranks.
@@ -57,8 +55,7 @@ class Recipe:
     wall_fraction: float = 0.0  # share of trajectories that start heading into the middle wall
     stay_probability: float = 0.0  # share of imagined steps that are "still" (zero action)
     replay_steps: int = 0  # predictor-only updates on replayed latents per step (LatentReplay)
-    # convolutions in channels_last: faster on a CPU too, but another order of float sums
-    channels_last: bool = False
+    channels_last: bool = False  # faster convolutions, but another order of float sums
     decay_steps: int = 0  # the last decay_steps lower the rate linearly towards 0 (0: constant)
     grad_clip: float = 0.0  # every update's gradient scaled to at most this norm (0: none)
 
@@ -105,9 +102,8 @@ class WorldTrainConfig:
 
 
 def course_recipe(config: WorldTrainConfig) -> WorldTrainConfig:
-    """``config`` trained the course's way (the ``class`` and ``ci`` presets): half-length
-    windows, a quarter of the trajectories heading into the middle wall, 15% still steps,
-    3 replayed predictor updates per step, channels_last and an MLP predictor."""
+    """``config`` trained the course's way (the ``class`` and ``ci`` presets), which learns
+    more per CPU-minute than the paper's."""
     recipe = Recipe(window=9, wall_fraction=0.25, stay_probability=0.15, replay_steps=3,
                     channels_last=True)
     return replace(config, recipe=recipe, model=replace(config.model, predictor="mlp"))
@@ -139,13 +135,10 @@ def random_windows(data: Trajectories, index: torch.Tensor, window: int,
 
 
 class LatentReplay:
-    """Extra predictor updates on the detached latents of recent batches: a replay buffer.
+    """Cheap predictor-only updates on the detached latents of recent batches (a replay buffer).
 
-    A joint step costs mostly encoder time; predictor-only updates on stored latents are
-    cheap. After each joint step, ``recipe.replay_steps`` updates of the predictor and action
-    encoder (their own Adam), each on ``REPLAY_BATCH`` windows of the last ``REPLAY_CAPACITY``,
-    with the run's rollout loss and still steps. :meth:`add` stores latents ``(B, T, D)`` and
-    actions ``(B, T-1, A)`` (every rank's, under torchrun); calling it with ``step`` updates.
+    :meth:`add` stores latents ``(B, T, D)`` and actions ``(B, T-1, A)`` (every rank's, under
+    torchrun); calling it with ``step`` makes ``recipe.replay_steps`` updates.
     """
 
     STREAM = 2**40  # the replay's generators: seeded apart from the batches' (step_generator)
@@ -210,9 +203,8 @@ def new_optimizer(model: WorldModel, config: WorldTrainConfig) -> torch.optim.Ad
 
 
 def decay_factor(config: WorldTrainConfig, step: int) -> float:
-    """The share of the base rate that step ``step`` uses: 1, then a linear decay over the
-    last ``decay_steps`` steps (``config.recipe``), ``min(1, (steps - step) / decay_steps)``,
-    so the last step uses ``1 / decay_steps`` of it."""
+    """The share of the base rate that step ``step`` uses: 1, then linearly down to
+    ``1 / decay_steps`` over the last ``config.recipe.decay_steps`` steps."""
     decay = config.recipe.decay_steps
     return min(1.0, (config.steps - step) / decay) if decay else 1.0
 
@@ -373,7 +365,6 @@ def identity(config: WorldTrainConfig, step=None) -> dict:
     ranges they are drawn from too; with an edited ``step``, a hash of its code."""
     always = ("steps", "batch_size", "lr", "n_trajectories", "rollout_steps", "seed")
     edited = step_identity(step, world_model_step)
-    if config.walls == 1:
-        return run_identity(config, always, **edited)
-    return run_identity(config, always, **edited,
-                        wall_x_ranges=[list(r) for r in WALL_X_RANGES[config.walls]])
+    if config.walls > 1:
+        edited["wall_x_ranges"] = [list(r) for r in WALL_X_RANGES[config.walls]]
+    return run_identity(config, always, **edited)
