@@ -91,16 +91,16 @@ class ImagePreset:
         return self.config if self.long is None else self.long
 
 
-# ci probes at 16 px: it only checks that the code runs, and 32-px probes slow its run
-_IMAGE_CI = ImageJEPAConfig(widths=(8, 8, 16, 16), blocks_per_stage=1, projector=(64, 64),
-                            batch_size=32, steps=15, warmup_steps=3, eval_image_size=16)
-# ResNet-10 at widths 32-256 on 16-px views, 1,600 AdamW steps: about 10 minutes on 2 cores
-# with bf16 instructions, 13-17 without; probed at 32 px (RESULTS.md, 01-02)
-_IMAGE_CLASS = ImageJEPAConfig(widths=(32, 64, 128, 256), blocks_per_stage=1, steps=1600,
-                               warmup_steps=160)
-_IMAGE_FULL = ImageJEPAConfig(  # the paper's network and 300 epochs of batch 256, all at 32 px
-    widths=(64, 128, 256, 512), image_size=32, projector=(2048, 2048), batch_size=256,
-    steps=300 * 195, warmup_steps=10 * 195)
+_IMAGE = {  # chapter 01's run at each scale
+    "ci": ImageJEPAConfig(widths=(8, 8, 16, 16), blocks_per_stage=1, projector=(64, 64),
+                          batch_size=32, steps=15, warmup_steps=3, eval_image_size=16),
+    # about 10 minutes on 2 cores with bf16 instructions, 13-17 without (RESULTS.md, 01-02)
+    "class": ImageJEPAConfig(widths=(32, 64, 128, 256), blocks_per_stage=1, steps=1600,
+                             warmup_steps=160),
+    "full": ImageJEPAConfig(  # the paper's network and 300 epochs of batch 256, all at 32 px
+        widths=(64, 128, 256, 512), image_size=32, projector=(2048, 2048), batch_size=256,
+        steps=300 * 195, warmup_steps=10 * 195),
+}
 _SIGREG = {  # chapter 02's changes to chapter 01's run
     "ci": dict(loss=SIGReg(), projector=(64, 16)),  # narrower than VICReg's, as at class
     "class": dict(loss=SIGReg(slices=1024), projector=(1024, 256)),  # (RESULTS.md, 02)
@@ -110,7 +110,7 @@ _SIGREG = {  # chapter 02's changes to chapter 01's run
 
 def image_preset(scale: str, loss: str) -> ImagePreset:
     """The preset of notebook 01 (``loss="vicreg"``) or 02 (``"sigreg"``) at ``scale``."""
-    config = {"ci": _IMAGE_CI, "class": _IMAGE_CLASS, "full": _IMAGE_FULL}[scale]
+    config = _IMAGE[scale]
     if loss == "sigreg":
         config = replace(config, **_SIGREG[scale])
     if scale == "ci":
@@ -137,8 +137,7 @@ class WorldModelPreset:
 
 _WORLD_CI = course_recipe(WorldTrainConfig(model=WORLD_CONFIGS["ci"], n_trajectories=500,
                                            batch_size=16, steps=10))
-# the class run: the course's recipe, trained live in under 10 minutes on 2 cores (shipped)
-_WORLD_CLASS = course_recipe(WorldTrainConfig(steps=2800))
+_WORLD_CLASS = course_recipe(WorldTrainConfig(steps=2800))  # under 10 min on 2 cores; shipped
 _WORLD_FULL = WorldTrainConfig(  # the paper: batch 384, 12 epochs of 100,000 trajectories
     model=WORLD_CONFIGS["full"], n_trajectories=100_000, batch_size=384, steps=12 * 100_000 // 384)
 
@@ -214,11 +213,9 @@ class BeyondPreset:
         return replace(self.short, cost="learned", temperature=1.0)
 
 
-# Chosen on seeds 10,600-10,699 (RESULTS.md, "07 · Beyond the paper"); Three Rooms' 200 coarse
-# samples on 10,600-10,999 at 120 steps. The coarse level plans macro-actions of `stride` steps
-# (models.hierarchy.CoarseModel's): their bound and spread scale with the stride.
-# The fine planners keep the spread chapter 07's figures were measured with (1.5 px);
-# chapter 06's planner has since widened to 2.0, not yet measured here.
+# Chosen on seeds 10,600-10,699, Three Rooms' 200 coarse samples on 10,600-10,999 (RESULTS.md,
+# "07 · Beyond the paper"). The bound and spread of a macro-action scale with CoarseModel's
+# stride; the fine planners keep the spread chapter 07 was measured with (1.5 px).
 _STRIDE = 4
 _FLAT_07 = PlannerConfig(noise=Noise(std=1.5))
 _SHORT = replace(_FLAT_07, horizon=16, samples=100, elites=10)

@@ -8,15 +8,13 @@ Coordinates: a position is ``(x, y)`` in pixels, float32, ``x`` the column and `
 
 Walls (image channel 1): the border (rows and columns 0 and 64); each wall, columns
 ``wall_x-1 .. wall_x+1``, with its door, rows ``door_y-4 .. door_y+4``, left open. A layout
-is ``(B, 2W)`` = ``(wall_x_0, door_y_0, wall_x_1, ...)``, walls left to right. Two Rooms
-draws ``wall_x`` in 20..44; Three Rooms in 14..25 and 39..50 (at least ``MIN_WALL_GAP`` =
-14 px apart, so a step of at most 1.8 px meets at most one wall); doors in 10..54. The agent
-(channel 0) is a Gaussian dot of std 1.3 px, peak 1.
+is ``(B, 2W)`` = ``(wall_x_0, door_y_0, wall_x_1, ...)``, walls left to right, drawn from
+``WALL_X_RANGES`` and ``DOOR_Y_RANGE``. The agent (channel 0) is a Gaussian dot.
 
 The dot centre keeps ``DOT_MARGIN`` = 1 px from every wall pixel's edge: ``1.5 <= x, y <=
 62.5``, and outside each wall's slab ``wall_x-2.5 < x < wall_x+2.5`` except in its doorway,
-``door_y-3.5 <= y <= door_y+3.5``. :func:`transition` (the action bound, then
-:func:`wall_collision`) is the ONE transition of both the offline data and the environment.
+``door_y-3.5 <= y <= door_y+3.5``. :func:`transition` is the ONE transition of both the
+offline data and the environment.
 """
 
 from __future__ import annotations
@@ -34,7 +32,8 @@ DOT_MARGIN = 1.0  # gap kept between the dot centre and any wall pixel, px
 MAX_STEP = 1.8  # action bound: the longest step of the data policy, px
 LOW = BORDER - 0.5 + DOT_MARGIN  # 1.5, smallest x or y of the dot centre
 HIGH = IMAGE_SIZE - BORDER - 0.5 - DOT_MARGIN  # 62.5, largest
-MIN_WALL_GAP = WALL_WIDTH + 2 * int(DOT_MARGIN) + 9  # 14 px: a floor >= 9 px between walls
+# 14 px: a floor >= 9 px between walls, so a step of at most MAX_STEP meets at most one wall
+MIN_WALL_GAP = WALL_WIDTH + 2 * int(DOT_MARGIN) + 9
 WALL_X_RANGES = {1: (WALL_X_RANGE,), 2: ((14, 25), (39, 50))}  # by number of walls, inclusive
 WALLS_X_LIMITS = (14, 50)  # any wall, W >= 2: the outer rooms keep >= 10 px of floor
 
@@ -78,12 +77,9 @@ def in_wall(positions: torch.Tensor, layouts: torch.Tensor) -> torch.Tensor:
 
 
 def wall_collision(positions: torch.Tensor, moves: torch.Tensor, layouts: torch.Tensor):
-    """Move each dot by its displacement, stopping at walls.
-
-    positions (B, 2) allowed dot centres, moves (B, 2), layouts (B, 2W) -> (B, 2). The target
-    is clamped to the arena, then cut by each wall in the order the move meets them
-    (:func:`stop_at_wall`). Exact for moves of x-extent up to 9 px, so for every step of
-    :func:`transition`; a longer move is approximated, but never ends in a wall.
+    """Move each dot by its displacement, stopping at walls: positions (B, 2) allowed dot
+    centres, moves (B, 2), layouts (B, 2W) -> (B, 2). Exact for moves of x-extent up to 9 px,
+    so for every step of :func:`transition`; a longer one is approximated, never ends in a wall.
     """
     target = (positions + moves).clamp(LOW, HIGH)
     walls = walls_of(layouts)  # (B, W, 2)
@@ -154,8 +150,8 @@ def shortest_path_length(starts: torch.Tensor, goals: torch.Tensor,
     gate_lo, gate_hi = (y.repeat_interleave(2, dim=1) for y in (y_lo, y_hi))
     order = gate_x.argsort(dim=1)  # left to right after the mirror
     gate_x, gate_lo, gate_hi = (g.gather(1, order) for g in (gate_x, gate_lo, gate_hi))
-    start, goal = starts * torch.cat([sign, torch.ones_like(sign)], 1), goals.clone()
-    goal[:, 0] = goals[:, 0] * sign[:, 0]
+    mirror = torch.cat([sign, torch.ones_like(sign)], 1)
+    start, goal = starts * mirror, goals * mirror
     rows = gate_lo[..., None] + (gate_hi - gate_lo)[..., None] * torch.linspace(
         0, 1, 29, device=starts.device, dtype=starts.dtype)  # (B, 2W, P = 29)
     gate = torch.stack([gate_x[..., None].expand_as(rows), rows], dim=-1)  # (B, 2W, P, 2)
@@ -202,8 +198,7 @@ def render(positions: torch.Tensor, layouts: torch.Tensor, out: torch.Tensor | N
     """
     single = positions.dim() == 2
     pos = positions[:, None] if single else positions
-    shape = (*pos.shape[:2], 2, IMAGE_SIZE, IMAGE_SIZE)
-    wanted = shape[:1] + shape[2:] if single else shape
+    wanted = (*positions.shape[:-1], 2, IMAGE_SIZE, IMAGE_SIZE)
     if out is None:
         out = torch.empty(wanted, device=pos.device)
     elif tuple(out.shape) != wanted or out.dtype != torch.float32:
