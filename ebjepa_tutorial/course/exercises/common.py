@@ -17,9 +17,15 @@ import yaml
 
 Diagnosis = tuple[str, Callable]  # (the mistake in plain words, a function that makes it)
 TEXTS = yaml.safe_load(Path(__file__).with_name("hints.yaml").read_text(encoding="utf-8"))
+WORDS = yaml.safe_load(Path(__file__).with_name("general.yaml").read_text(encoding="utf-8"))
 HINTS = {name: tuple(texts["hints"]) for name, texts in TEXTS.items()}
 LEVELS = ("the idea", "the formula", "an outline of the code")
 _shown: dict[str, int] = {}  # exercise -> the highest hint level shown in this session
+
+
+def say(key: str, **fields) -> str:
+    """general.yaml's words for ``key``, filled in with ``fields``."""
+    return WORDS[key].format(**fields)
 
 
 class ExerciseError(AssertionError):
@@ -48,13 +54,10 @@ def hint(name, level: int | None = None) -> None:
     level not shown yet."""
     name = getattr(name, "__name__", name)
     if name not in HINTS:
-        print(f"There is no exercise called {name!r}; the exercises with hints are "
-              f"{', '.join(sorted(HINTS))}.")
-        return
+        return print(say("no_such_exercise", name=name, names=", ".join(sorted(HINTS))))
     level = min(_shown.get(name, 0) + 1, len(LEVELS)) if level is None else level
     if level not in range(1, len(LEVELS) + 1):
-        raise ValueError(f"level is 1 (the idea), 2 (the formula) or 3 (an outline of the "
-                         f"code), not {level!r}")
+        raise ValueError(say("bad_level", level=level))
     _shown[name] = max(_shown.get(name, 0), level)
     print(_hint_text(name, level))
 
@@ -74,7 +77,7 @@ def _offer(name: str) -> str:
     if level < len(LEVELS):
         _shown[name] = level
         return "\n\n" + _hint_text(name, level)
-    return f"\n\nStill stuck? exercises.hint({name!r}, level=3) shows an outline of the code."
+    return "\n\n" + say("still_stuck", name=name)
 
 
 # --------------------------------------------------------------- watching the learner's call
@@ -85,12 +88,9 @@ _CUTS = {"detach": ".detach()", "detach_": ".detach_()", "numpy": ".numpy()",  #
 _GRAD_OFF = {"no_grad.__enter__": "torch.no_grad()",  # Python functions, by qualified name
              "inference_mode.__enter__": "torch.inference_mode()",
              "set_grad_enabled.__init__": "torch.set_grad_enabled(False)"}
-_DETACHES = "detaches a tensor from the autograd graph"
-_NUMPY = "leaves torch for numpy, which has no gradients"
-_WHAT_CUTS = {".detach()": _DETACHES, ".detach_()": _DETACHES, ".numpy()": _NUMPY, "numpy": _NUMPY,
-              ".item()": "turns a tensor into a Python number",
-              ".tolist()": "turns a tensor into Python numbers",
-              **{word: "switches gradients off" for word in _GRAD_OFF.values()}}
+_WHAT_CUTS = {".detach()": "cut_detach", ".detach_()": "cut_detach", ".numpy()": "cut_numpy",
+              "numpy": "cut_numpy", ".item()": "cut_item", ".tolist()": "cut_tolist",
+              **{word: "cut_grad_off" for word in _GRAD_OFF.values()}}  # -> general.yaml
 
 
 def _learners(frame) -> bool:
@@ -155,24 +155,17 @@ def _run(fn: Callable, name: str, case: Case, labels: Sequence[str] = ()):
         except NotImplementedError:
             raise NotImplementedYet(f"{name} is not implemented yet") from None
         except Exception as err:
-            numpy = (" numpy cannot carry a gradient, so a loss computed through it cannot "
-                     "train anything: compute with torch operations on the tensors you are "
-                     "given.") if "numpy" in str(err) and "grad" in str(err) else ""
-            raise ExerciseError(f"{name} raised {type(err).__name__}: {err} on "
-                                f"{case.description}.{numpy}") from err
+            numpy = "numpy" in str(err) and "grad" in str(err)
+            raise ExerciseError(say("raised_numpy" if numpy else "raised", name=name,
+                                    case=case.description, error=f"{type(err).__name__}: {err}")
+                                ) from err
     for where, after in [*enumerate(args), *kwargs.items()]:
         before = case.kwargs[where] if isinstance(where, str) else case.args[where]
         if isinstance(before, torch.Tensor) and (after.shape != before.shape
                                                  or not torch.equal(after, before)):
             label = where if isinstance(where, str) else (
                 labels[where] if where < len(labels) else f"argument {where + 1}")
-            raise ExerciseError(
-                f"{name} changed its input {label} in place on {case.description}: after the "
-                f"call, {label} no longer holds what was passed in. Look for an operator such "
-                "as -=, += or *=, a method whose name ends in an underscore (sub_, clamp_, ...) "
-                f"or an assignment into part of {label}, and compute on a new tensor instead: "
-                "in training the same tensor is still needed by the rest of the loss and by "
-                "the backward pass.")
+            raise ExerciseError(say("in_place", name=name, label=label, case=case.description))
     return out, spy
 
 
@@ -190,23 +183,14 @@ def _type_problem(got, name: str, case: Case, label: str = "") -> str | None:
     """Words for a non-tensor ``got`` (a Python number, numpy, a tuple, None), else None."""
     if isinstance(got, torch.Tensor):
         return None
-    yours = f"{name} returned {label + ' as ' if label else ''}"
-    where = f"on {case.description}, where a torch tensor is expected"
-    if got is None:
-        return f"{yours}None {where}: did you forget the return statement?"
-    if type(got).__module__.split(".")[0] == "numpy":
-        return (f"{yours}a numpy {type(got).__name__} {where}. numpy carries no gradient, so "
-                "training could not use it: compute with torch operations on the tensors "
-                "you are given.")
-    if isinstance(got, (bool, int, float)):
-        return (f"{yours}a Python {type(got).__name__} ({got:.6g}) {where}. A Python number "
-                "carries no gradient, so training could not use it: look for .item(), "
-                "float() or the math module, and keep the result a tensor (a 0-d tensor for "
-                "a single number).")
-    if isinstance(got, (tuple, list)):
-        return (f"{yours}a {type(got).__name__} of {len(got)} {where}. Did you return "
-                "several things (say, a loss and its parts)? Return the one tensor asked for.")
-    return f"{yours}{_describe(got)} {where}."
+    key = ("returned_none" if got is None
+           else "returned_numpy" if type(got).__module__.split(".")[0] == "numpy"
+           else "returned_number" if isinstance(got, (bool, int, float))
+           else "returned_several" if isinstance(got, (tuple, list)) else "returned_other")
+    return say(key, yours=f"{name} returned {label + ' as ' if label else ''}", value=got,
+               where=f"on {case.description}, where a torch tensor is expected",
+               kind=_describe(got) if key == "returned_other" else type(got).__name__,
+               n=len(got) if isinstance(got, (tuple, list)) else 0)
 
 
 def _numbers(value) -> torch.Tensor | None:
@@ -244,17 +228,13 @@ def _factors(sizes: dict) -> list[tuple[str, float, str]]:
     out = []
     for k, n in sizes.items():
         if n >= 2:
-            out.append((k, n, f"a sum over {k} where a mean belongs (or a mean where a sum "
-                              "belongs), or a division by the wrong count"))
+            out.append((k, n, say("factor_n", k=k)))
         if n > 2:
-            ratio = (f"a division by {k} where {k} - 1 belongs (the unbiased estimate divides "
-                     f"by {k} - 1), or the reverse")
-            out += [(f"{k} - 1", n - 1, f"a division by {k} - 1 where {k} belongs or the "
-                                        "reverse, or a count that is off"),
+            ratio = say("factor_ratio", k=k)
+            out += [(f"{k} - 1", n - 1, say("factor_n_1", k=k)),
                     (f"{k}/({k} - 1)", n / (n - 1), ratio),
                     (f"({k}/({k} - 1))²", (n / (n - 1)) ** 2, ratio)]
-    return out + [("2", 2, "a sum of two things where their average belongs (or the reverse), "
-                           "or a factor 2 missing or repeated")]
+    return out + [("2", 2, say("factor_2"))]
 
 
 def _factor_off(got, expected, sizes: dict, advice: dict) -> tuple[str, str, str] | None:
@@ -271,9 +251,8 @@ def _factor_off(got, expected, sizes: dict, advice: dict) -> tuple[str, str, str
         for direction, target in (("too large", value), ("too small", 1 / value)):
             if abs(r - target) < 1e-4 * target:
                 shown = "" if words == "2" else f" = {value:.4g}"
-                return (f"is {direction} by a factor of {words}{shown}", "",
-                        "The formula is right up to a constant; look at what you divide by or "
-                        f"average over: {advice.get(words, look)}")
+                return (say("factor", direction=direction, words=words, shown=shown), "",
+                        say("factor_look", look=advice.get(words, look)))
     return None
 
 
@@ -288,16 +267,10 @@ def _transposed(got, expected, atol: float) -> bool:
 
 def _shape_problem(got, expected, name: str, case: Case, label: str, atol: float) -> str:
     yours = f"your {label}" if label else "your output"
-    if _transposed(got, expected, atol):
-        return (f"{name} put the right numbers in the wrong layout on {case.description}: "
-                f"{yours} has shape {tuple(got.shape)} where {tuple(expected.shape)} is "
-                "expected, and holds the answer with its axes in another order. Look at the "
-                "order of the axes where you build it: stacking along another dim, a transpose, "
-                "or indexing that moved an axis.")
-    single = " (a single number)" if expected.ndim == 0 else ""
-    return (f"{name} returned shape {tuple(got.shape)} on {case.description}"
-            f"{' for ' + yours if label else ''}; expected shape {tuple(expected.shape)}"
-            f"{single}.")
+    return say("transposed" if _transposed(got, expected, atol) else "wrong_shape", name=name,
+               case=case.description, yours=yours, got=tuple(got.shape),
+               expected=tuple(expected.shape), label=" for " + yours if label else "",
+               single=" (a single number)" if expected.ndim == 0 else "")
 
 
 def _disagreement(got, expected, atol: float) -> str:
@@ -335,19 +308,11 @@ def _and(words: Sequence[str]) -> str:
 def _no_flow(name: str, case: Case, label: str, cuts: Sequence[str], connected: bool,
              why: str = "") -> ExerciseError:
     """The error for a right value whose gradient does not reach ``label``: what cut it."""
-    if cuts:
-        look = (f"Found in your function: {_and([f'{c} ({_WHAT_CUTS[c]})' for c in cuts])}. "
-                "Keep every step from the inputs to the output in torch, with no .detach(), "
-                ".item(), numpy or torch.no_grad() on the way.")
-    elif not connected:
-        look = ("Its output is not connected to the inputs in autograd: look for .detach(), "
-                ".item(), a detour through numpy, or torch.no_grad().")
-    else:
-        look = (f"The output depends on the other inputs but not on {label}: look for a "
-                f".detach() on {label}, or on a part of it.")
-    return ExerciseError(
-        f"{name} has the right value on {case.description}, but the gradient does not flow to "
-        f"{label}, so training could not change it through this term. {look}{why}")
+    look = say("no_flow_cuts" if cuts else "no_flow_one" if connected else "no_flow_unconnected",
+               cuts=_and([f"{c} ({say(_WHAT_CUTS[c])})" for c in cuts]) if cuts else "",
+               label=label)
+    return ExerciseError(say("no_flow", name=name, case=case.description, label=label,
+                             look=look, why=why))
 
 
 # ---------------------------------------------------------------------- the comparison
@@ -386,7 +351,7 @@ class Comparison:
                 self._gradient(fn, name, case, index, label)
         labels = [label for _, label in self.grad]
         what = f" (values, and gradients with respect to {_and(labels)})" if labels else ""
-        print(f"Correct: {name} matches the reference on {len(cases)} test inputs{what}.")
+        print(say("correct", name=name, n=len(cases), what=what))
         for note in dict.fromkeys(n for n in notes if n):
             print(note)
 
@@ -397,9 +362,8 @@ class Comparison:
         got, _ = _run(fn, name, case, self.labels)
         atol, parts, note = self.atol if case.atol is None else case.atol, self.parts, ""
         if parts and (not isinstance(got, (tuple, list)) or len(got) != len(parts)):
-            raise ExerciseError(
-                f"{name} returned {_describe(got)} on {case.description}; it must return a pair "
-                f"({', '.join(parts)}), {len(parts)} tensors.")
+            raise ExerciseError(say("not_a_pair", name=name, kind=_describe(got), n=len(parts),
+                                    case=case.description, parts=", ".join(parts)))
         for label, g, e in zip(parts, got, expected) if parts else [("", got, expected)]:
             if (problem := _type_problem(g, name, case, label)):
                 raise ExerciseError(problem)
@@ -419,22 +383,18 @@ class Comparison:
         numbers = f"{'your ' + label + ' ' if label else ''}{_disagreement(g, e, atol)}"
         why = diagnose(got, self.diagnoses, case, atol)
         if why or not (general := self._general_cause(g, e, case)):
-            return f"{name} gave {numbers} on {case.description}.{why}"
-        found, meaning, look = general
-        where = f" (your {label})" if label else ""
-        return f"{name} {found} on {case.description}{where}{meaning}. {look}. Yours: {numbers}."
+            return say("wrong_value", name=name, numbers=numbers, case=case.description, why=why)
+        found, means, look = general
+        return say("general_cause", name=name, found=found, case=case.description, means=means,
+                   where=f" (your {label})" if label else "", look=look, numbers=numbers)
 
     def _general_cause(self, got, expected, case: Case) -> tuple[str, str, str] | None:
         """``(what was found, ': what it means' or '', what to look at)``, or None."""
         if torch.isfinite(expected).all() and not torch.isfinite(got).all():
-            return ("returned NaN or infinity", "",
-                    "Look for 0/0 (exponentials that underflowed to 0, then divided by their "
-                    "sum), a square root or a log of a negative number, or a division by zero")
+            return say("nan"), "", say("nan_look")
         scale = float(expected.abs().max()) if expected.numel() else 0.0
         if scale > 10 * self.atol and torch.allclose(got, -expected, atol=self.atol, rtol=1e-4):
-            return ("has the wrong sign", ": it is minus the answer",
-                    "A loss that training minimises must grow with what it penalises; look for "
-                    "a difference taken the wrong way round or a minus sign too many")
+            return say("sign"), say("sign_means"), say("sign_look")
         sizes = {k: n for i, axes in self.dims.items()
                  for k, n in zip(axes, case.args[i].shape) if k != "_"}
         return (_factor_off(got, expected, {**sizes, **case.sizes}, self.factors)
@@ -452,8 +412,7 @@ class Comparison:
             return None
         if wrong is not None and wrong.shape == got.shape and torch.allclose(
                 got, wrong, atol=self.atol / 10, rtol=1e-5):
-            return ("worked along the wrong axis",
-                    f": it gives what the answer would be with {means}", look)
+            return say("axis"), say("axis_means", means=means), look
         return None
 
     def _gradient(self, fn: Callable, name: str, case: Case, index: int, label: str) -> None:
@@ -473,9 +432,8 @@ class Comparison:
         if expected.abs().max() > 0 and not got.any():  # an own slip explains only a partial cut
             raise _no_flow(name, case, label, list(spy.cuts), probe.connected,
                            why if probe.connected else "")
-        raise ExerciseError(
-            f"{name} has the right value on {case.description}, but not the right gradient "
-            f"with respect to {label}: it gave {_disagreement(got, expected, atol)}.{why}")
+        raise ExerciseError(say("wrong_gradient", name=name, case=case.description, label=label,
+                                numbers=_disagreement(got, expected, atol), why=why))
 
 
 # -------------------------------------------------------------------------- the exercises
@@ -519,24 +477,19 @@ def _judge(check: Callable, fn: Callable, reference: Callable, name: str,
            codes: dict) -> Callable | ExerciseError:
     """Run ``check(fn)``: the function the notebook goes on with, or the error to raise."""
     if fn is reference:  # this cell ran again after handing the course's one over
-        print("This is still the course's implementation: run the cell with your "
-              "function first, then this check.")
+        print(say("still_the_course"))
         return reference
     _Spy.answers, _Spy.called = codes, {}
     try:
         check(fn)
     except NotImplementedYet:
-        print(f"{getattr(fn, '__name__', 'your function')} is not implemented yet: the "
-              "rest of this notebook uses the course's implementation. Write yours in "
-              f"the cell above, then run it and this check again (exercises.hint("
-              f"{name!r}) gives a hint).")
+        print(say("not_yet", name=getattr(fn, "__name__", "your function"), exercise=name))
         return reference
     except ExerciseError as error:
         return ExerciseError(str(error) + _offer(name))
     finally:
         _Spy.answers = {}
     if _Spy.called:
-        print(f"Note: your {getattr(fn, '__name__', 'function')} calls the course's "
-              f"own {_and(list(_Spy.called))}. The check passes, but it checked the course's "
-              "code, not yours: write it from the formula to get what the exercise teaches.")
+        print(say("calls_the_course", name=getattr(fn, "__name__", "function"),
+                  answers=_and(list(_Spy.called))))
     return fn
