@@ -12,6 +12,7 @@ from ebjepa_tutorial.course import reference
 from tools import figures as figs
 
 NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
+ROOT = NOTEBOOKS.parent
 USED = re.compile(r"reference\.(?:compare|show)\(\s*\"(\w+)\"")
 
 
@@ -174,3 +175,49 @@ def test_a_notebooks_text_types_no_figure_a_run_measures(path):
         "<!--fig:KEY-->...<!--/fig--> (checkpoints/reference.json) or print it from a cell; "
         "a constant of the method or a paper's figure goes into CONSTANTS with why")
     assert not allowed - typed, f"CONSTANTS lists {sorted(allowed - typed)}, no longer in the text"
+
+
+# What README, RESULTS, TEACHING and docs/ may type outside markers: no figure a run measures.
+_PAPER = {"0.607", "90.1%", "91.0%", "97%", "96%", "89%", "47%", "46%", "61%", "1%"}
+PAGE_CONSTANTS = {
+    "README.md": {"0.607", "90.1%", "91.0%", "97%",  # the paper
+                  "1 h",  # a study time (a plan, like the session plans)
+                  "21 px",  # the mean-position guess: a property of the world's data
+                  "4.5 px", "95%"},  # success radius, interval level
+    "RESULTS.md": _PAPER - {"89%"} | {
+        "0.383", "0.20",  # the paper's K = 1 mAP, and its lead read from its figure
+        "10 minutes", "60%", "70%",  # a class period, and the thresholds the runs pass
+        "0.05", "1.8 px", "2 px", "4.5 px", "21 px", "35%",  # the settings and the world
+        "95%"},
+    "TEACHING.md": _PAPER - {"46%", "47%", "61%"} | {
+        "5 min", "10 min", "15 min", "20 min", "25 min", "10 minutes", "45 minutes",
+        "90 minutes",  # the session plans
+        "4.5 px", "2 px", "0.05 px", "35%", "15%",  # success radius, spreads, data, recipe
+        "0.5 px", "3.6 px", "16 px", "32 px", "40 px", "1 px",  # exercises' settings, sizes
+        "0 px",  # the replay's gap: zero by construction
+        "0.001", "0.02",  # sweep points
+        "0.01", "80%", "90%",  # what to look for (criteria, not outcomes)
+        "0.45", "0.89", "0.97",  # the von Mises turns' mean cosines (exercise 3's maths)
+        "0.02%", "0%", "100%", "95%"},  # the trapezoid's error, the interval's level and ends
+    "docs/running.md": {"a minute", "10 minutes", "30 s"},  # the scales' and tests' budgets
+    # a dated case study: its history comes from research/notes/2026-12-05-planning-log.md
+    "docs/planning_appendix.md": {"35%", "90%", "53 minutes",
+                                  "3.5 px", "8 px", "4.5 px", "95%", "97%"},
+}
+
+
+@pytest.mark.parametrize("page", sorted(PAGE_CONSTANTS))
+def test_a_pages_text_types_no_figure_a_run_measures(page):
+    typed = set(figs.typed_figures((ROOT / page).read_text(encoding="utf-8")))
+    allowed = PAGE_CONSTANTS[page]
+    assert not typed - allowed, (
+        f"{page} types {sorted(typed - allowed)}: mark a measured figure "
+        "<!--fig:KEY-->...<!--/fig--> (checkpoints/reference.json) or say it without the "
+        "number; a constant of the method or a paper's figure goes into PAGE_CONSTANTS with why")
+    assert not allowed - typed, f"PAGE_CONSTANTS lists {sorted(allowed - typed)}, no longer there"
+
+
+def test_every_page_is_checked_for_typed_figures():
+    pages = {str(p.relative_to(ROOT)) for pattern in figs.PAGES if not pattern.endswith("ipynb")
+             for p in ROOT.glob(pattern)}
+    assert pages == set(PAGE_CONSTANTS)
