@@ -54,7 +54,8 @@ def hint(name, level: int | None = None) -> None:
     level not shown yet."""
     name = getattr(name, "__name__", name)
     if name not in HINTS:
-        return print(say("no_such_exercise", name=name, names=", ".join(sorted(HINTS))))
+        print(say("no_such_exercise", name=name, names=", ".join(sorted(HINTS))))
+        return
     level = min(_shown.get(name, 0) + 1, len(LEVELS)) if level is None else level
     if level not in range(1, len(LEVELS) + 1):
         raise ValueError(say("bad_level", level=level))
