@@ -50,12 +50,10 @@ def build_augmentation(config: AugmentConfig = AugmentConfig()) -> K.Augmentatio
 
 def to_float_images(images: torch.Tensor) -> torch.Tensor:
     """Check ``(B, 3, H, W)`` images (uint8, or float in ``[0, 1]``); return float32 in [0, 1]."""
-    if images.ndim != 4:
-        raise ValueError(f"images must be a (batch, 3, height, width) tensor, got "
-                         f"{tuple(images.shape)}; add a batch dimension with images.unsqueeze(0)")
-    if images.shape[1] != 3:
-        raise ValueError(f"images must have 3 colour channels in dimension 1, got shape "
-                         f"{tuple(images.shape)}; channels-last arrays need .permute(0, 3, 1, 2)")
+    if images.ndim != 4 or images.shape[1] != 3:
+        raise ValueError(f"images must be a (batch, 3 colour channels, height, width) tensor, got "
+                         f"{tuple(images.shape)}; add a batch dimension with images.unsqueeze(0), "
+                         "put channels first with .permute(0, 3, 1, 2)")
     if images.dtype == torch.uint8:
         return images.float().div_(255)
     if not images.is_floating_point():

@@ -1,17 +1,14 @@
 """Several processes, one model: what data-parallel training needs beyond averaging gradients.
 
 ``torchrun --nproc_per_node=W`` starts W processes (the *ranks*), each with a copy of the model
-and an equal share of every batch; the gradients are averaged over the ranks (DDP, or
-:func:`average_gradients`). The losses see one batch in one process: right for a mean of
-per-sample terms, but VICReg's variance and covariance and SIGReg are statistics of the whole
-batch, so the training code wraps the losses with :func:`gather_rows`,
-:func:`variance_and_covariance` and :func:`rand_rows`.
+and an equal share of every batch; the gradients are averaged over the ranks. A loss sees one
+process's rows: right for a mean of per-sample terms, but VICReg's variance and covariance and
+SIGReg are statistics of the whole batch, so the training steps wrap the losses with
+:func:`gather_rows`, :func:`variance_and_covariance` and :func:`rand_rows`.
 
 Training minimises ``J = (1/W) sum_r L_r``. Through a collective every ``L_r`` depends on rank
-s's tensor ``x_s``, so ``dJ/dx_s = (1/W) sum_r dL_r/dx_s``: the backward sums the incoming
-gradients over the ranks, and the average over ranks supplies the 1/W (keeping only the local
-gradient makes every batch statistic's gradient W times too small).
-
+s's rows ``x_s``, so ``dJ/dx_s = (1/W) sum_r dL_r/dx_s``: the collectives' backward sums the
+gradients over the ranks, and the average of the gradients over ranks supplies the 1/W.
 Everything here is a no-op in a single process.
 """
 
@@ -22,6 +19,7 @@ from typing import Any
 
 import torch
 import torch.distributed as dist
+import torch.distributed.nn.functional as collective  # collectives that autograd goes through
 from torch import nn
 
 from .losses import vicreg
@@ -48,16 +46,14 @@ def is_main() -> bool:
 
 
 def per_rank_batch(global_batch: int) -> int:
-    """The rule: global batch = per-rank batch x world size. Raises ValueError if W does not
-    divide the global batch, or if a rank would get fewer than 2 samples."""
+    """The rule: global batch = per-rank batch x world size. Raises ValueError unless the
+    world size divides the global batch and leaves each rank at least 2 samples."""
     world = world_size()
-    if global_batch % world:
+    if global_batch % world or global_batch // world < 2:
         raise ValueError(
-            f"the global batch of {global_batch} cannot be split evenly over {world} "
-            f"processes: choose a batch_size that is a multiple of the world size {world}")
-    if global_batch // world < 2:
-        raise ValueError(f"a global batch of {global_batch} over {world} processes leaves "
-                         f"each fewer than 2 samples (batch norm needs 2)")
+            f"the global batch of {global_batch} cannot be split evenly over {world} processes "
+            f"with at least 2 samples each (batch norm needs 2): choose a batch_size that is a "
+            f"multiple of the world size {world}")
     return global_batch // world
 
 
@@ -116,42 +112,10 @@ def average_gradients(parameters) -> None:
             p.grad /= world_size()
 
 
-class _GatherRows(torch.autograd.Function):
-    """All-gather along dim 0: ``(b, ...) -> (W b, ...)``, rank r's rows at ``r b .. (r+1) b``."""
-
-    @staticmethod
-    def forward(ctx, x: torch.Tensor) -> torch.Tensor:
-        parts = [torch.empty_like(x) for _ in range(world_size())]
-        dist.all_gather(parts, x.contiguous())
-        return torch.cat(parts)
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
-        # our rows feed every rank's loss: sum the (W b, ...) gradients over ranks, keep ours
-        total = grad.clone(memory_format=torch.contiguous_format)
-        dist.all_reduce(total)
-        share = total.shape[0] // world_size()
-        return total[rank() * share:(rank() + 1) * share]
-
-
-class _MeanAcrossRanks(torch.autograd.Function):
-    """``(1/W) sum_r x_r``, the same on every rank; backward: the mean of the incoming grads."""
-
-    @staticmethod
-    def forward(ctx, x: torch.Tensor) -> torch.Tensor:
-        total = x.clone(memory_format=torch.contiguous_format)
-        dist.all_reduce(total)
-        return total / world_size()
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
-        return _MeanAcrossRanks.forward(ctx, grad)  # sum_r grad_r / W; the average adds a 1/W
-
-
 def gather_rows(x: torch.Tensor) -> torch.Tensor:
     """Every rank's rows of ``x`` ``(b, ...)`` in rank order, ``(W b, ...)``, each rank holding
     the same ``b``; gradients flow back to each rank's own rows. ``x`` itself in one process."""
-    return x if world_size() == 1 else _GatherRows.apply(x)
+    return x if world_size() == 1 else torch.cat(collective.all_gather(x))
 
 
 def variance_and_covariance(z: torch.Tensor, gamma: float = 1.0, eps: float = 1e-4):
@@ -160,32 +124,18 @@ def variance_and_covariance(z: torch.Tensor, gamma: float = 1.0, eps: float = 1e
     ``D x D`` numbers, however many rows). Returns two 0-d tensors."""
     if world_size() == 1:
         return vicreg.variance_and_covariance(z, gamma, eps)
-    mean = _MeanAcrossRanks.apply(z.mean(dim=0))  # (D,): the global mean
+    world = world_size()
+    mean = collective.all_reduce(z.mean(dim=0)) / world  # (D,): the global mean
     centred = z - mean
-    scatter = _MeanAcrossRanks.apply(centred.T @ centred)  # (D, D): 1/W of the global sum
-    cov = scatter * (world_size() / (world_size() * z.shape[0] - 1))  # sample covariance
+    scatter = collective.all_reduce(centred.T @ centred) / world  # (D, D): 1/W of the sum
+    cov = scatter * (world / (world * z.shape[0] - 1))  # sample covariance
     variance = torch.relu(gamma - torch.sqrt(torch.diagonal(cov) + eps)).mean()
     return variance, vicreg.off_diagonal_term(cov)
 
 
-def with_sync_batchnorm(module: nn.Module, device: torch.device | str) -> nn.Module:
-    """``module`` with its batch norms turned into SyncBatchNorm (normalising over the global
-    batch; parameters and state dict keys kept). Needs a process group and a CUDA device."""
-    if not running():
-        raise ValueError("sync_batchnorm needs a process group (start with torchrun)")
-    if torch.device(device).type != "cuda":
-        raise ValueError("SyncBatchNorm runs on CUDA devices only in torch; on the CPU "
-                         "(gloo) each rank normalises over its own share of the batch")
-    return nn.SyncBatchNorm.convert_sync_batchnorm(module)
-
-
-def data_parallel(module: nn.Module, device: torch.device | str,
-                  sync_batchnorm: bool = False) -> nn.Module:
-    """``module`` wrapped in DDP inside a process group, ``module`` itself outside one; with
-    ``sync_batchnorm``, its batch norms first become SyncBatchNorm."""
+def data_parallel(module: nn.Module, device: torch.device | str) -> nn.Module:
+    """``module`` wrapped in DDP inside a process group, ``module`` itself outside one."""
     device = torch.device(device)
-    if sync_batchnorm:
-        module = with_sync_batchnorm(module, device)
     if not running():
         return module
     ids = [device.index] if device.type == "cuda" else None

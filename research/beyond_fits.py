@@ -31,12 +31,12 @@ from ebjepa_tutorial.losses.cost import spread_loss, step_violation
 from ebjepa_tutorial.losses.world import multistep_prediction_loss
 from ebjepa_tutorial.models.cost import COST_SCALE, CostToGo
 from ebjepa_tutorial.models.hierarchy import CoarseModel
-from ebjepa_tutorial.models.world import WorldModel, trajectory_latents
+from ebjepa_tutorial.models.world import WorldModel
 from ebjepa_tutorial.planning import EpisodeResults, PlannerConfig, TwoLevel, run_episodes
 from ebjepa_tutorial.training.loop import History, step_generator
 from ebjepa_tutorial.utils import check_fields, is_int_at_least
 
-from .fitting import fit
+from .fitting import fit, trajectory_latents
 
 # ---- the cost-to-go head ----------------------------------------------------------------------
 

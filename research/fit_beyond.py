@@ -20,8 +20,8 @@ from dataclasses import fields, replace
 from pathlib import Path
 
 from ebjepa_tutorial.course.presets import preset
+from ebjepa_tutorial.training import train_or_load
 from ebjepa_tutorial.training.checkpoints import run_identity, save_checkpoint
-from ebjepa_tutorial.training.runs import train_or_load
 from ebjepa_tutorial.training.world import identity
 
 from .beyond_fits import (

@@ -8,6 +8,7 @@ from typing import Any
 
 import torch
 
+from ebjepa_tutorial.models.world import encode_trajectories
 from ebjepa_tutorial.training.loop import History, run_steps
 
 
@@ -29,3 +30,9 @@ def fit(model: torch.nn.Module, optimizer: torch.optim.Optimizer,
         return loss, terms
 
     return run_steps(update, batch_fn, steps, log_every=log_every, desc=desc, progress=progress)
+
+
+def trajectory_latents(model, trajectories) -> torch.Tensor:
+    """Every frame's latent, trajectory by trajectory, without gradients: ``(N, T+1, D)``."""
+    latents = encode_trajectories(model, trajectories, 200)[0]
+    return latents.view(len(trajectories), -1, latents.shape[-1])

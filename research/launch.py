@@ -1,7 +1,7 @@
-"""What the training commands share to run under torchrun: the ``--ddp`` and ``--sync-bn``
-flags, and joining the process group, where a bad set-up (no torchrun environment, a world size
-that does not divide the global batch, ranks started with different arguments) is a usage error
-on every rank, not a hang.
+"""What the training commands share to run under torchrun: the ``--ddp`` flag, and joining the
+process group, where a bad set-up (no torchrun environment, a world size that does not divide
+the global batch, ranks started with different arguments) is a usage error on every rank, not
+a hang.
 """
 
 from __future__ import annotations
@@ -77,16 +77,12 @@ def check_same_on_all_ranks(value: Any, what: str = "config") -> None:
                            "start every rank with the same arguments")
 
 
-def add_flags(parser: argparse.ArgumentParser, sync_bn: bool = True) -> None:
-    """Add ``--ddp`` and, for models with batch norm, ``--sync-bn`` to ``parser``."""
+def add_flags(parser: argparse.ArgumentParser) -> None:
+    """Add ``--ddp`` to ``parser``."""
     parser.add_argument("--ddp", action="store_true",
                         help="train with DistributedDataParallel and fail if torchrun did not "
-                             "start this process (default: on whenever torchrun started it)")
-    if sync_bn:
-        parser.add_argument("--sync-bn", action="store_true",
-                            help="with several processes, batch norm over the global batch "
-                                 "(SyncBatchNorm, GPUs only); default off: each process "
-                                 "normalises over its own share of the batch")
+                             "start this process (default: on whenever torchrun started it); "
+                             "batch norm normalises over each process's share of the batch")
 
 
 def join(parser: argparse.ArgumentParser, args: argparse.Namespace, batch_size: int,
@@ -96,8 +92,6 @@ def join(parser: argparse.ArgumentParser, args: argparse.Namespace, batch_size: 
     (the global batch) and that every rank holds the same ``args`` and ``run`` (plain data).
     """
     if not (args.ddp or launched_by_torchrun()):
-        if getattr(args, "sync_bn", False):
-            parser.error("--sync-bn needs several processes: start with torchrun")
         return get_device()  # the best device there is: the full scale is sized for a GPU
     try:
         device = init_from_env(command=command)

@@ -15,13 +15,13 @@ import torch
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.envs import generate_trajectories
 from ebjepa_tutorial.losses.world import multistep_prediction_loss, with_still_steps
-from ebjepa_tutorial.models.world import WorldModel, trajectory_latents
+from ebjepa_tutorial.models.world import WorldModel
 from ebjepa_tutorial.training.checkpoints import run_identity
 from ebjepa_tutorial.training.loop import History, step_generator
 from ebjepa_tutorial.training.world import TRAJECTORY_ACTIONS, WorldTrainConfig
 from ebjepa_tutorial.utils import check_fields, get_device, is_int_at_least, is_positive
 
-from .fitting import fit
+from .fitting import fit, trajectory_latents
 
 
 @dataclass(frozen=True)

@@ -31,10 +31,12 @@ from ebjepa_tutorial.course.presets import SCALES, preset
 from ebjepa_tutorial.data import data_dir, load_cifar10, random_subset
 from ebjepa_tutorial.data.cifar10 import find_cifar10
 from ebjepa_tutorial.data.paths import atomic_file
-from ebjepa_tutorial.evaluation.classify import probe_encoder, protocol
+from ebjepa_tutorial.evaluation.classify import probe_encoder
 from ebjepa_tutorial.evaluation.sweeps import shorten
 from ebjepa_tutorial.training.image import ImageJEPAConfig, identity, train_image_jepa
 from ebjepa_tutorial.utils import get_device
+
+from .train_image import protocol
 
 FACTORS = {"ci": (0.1, 1.0, 10.0), "class": (0.01, 0.1, 1.0, 10.0, 100.0),
            "full": (0.01, 0.1, 1.0, 10.0, 100.0)}  # multiples of each default coefficient
@@ -165,7 +167,7 @@ def describe_data() -> str:
     source = find_cifar10(data_dir(), "train")
     if source is None:
         return "CIFAR-10 (not found)"
-    jpeg = source.kind in ("tree", "packed")
+    jpeg = source.kind == "packed"
     return f"CIFAR-10{' (JPEG copy)' if jpeg else ''}, read from {source.path}"
 
 

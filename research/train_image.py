@@ -22,12 +22,21 @@ import torch
 from ebjepa_tutorial import distributed
 from ebjepa_tutorial.course.presets import SCALES, preset
 from ebjepa_tutorial.data import load_cifar10, random_subset
-from ebjepa_tutorial.evaluation.classify import probe_encoder, protocol
+from ebjepa_tutorial.evaluation.classify import KNN_K, probe_encoder
 from ebjepa_tutorial.training.checkpoints import save_checkpoint
-from ebjepa_tutorial.training.image import identity, train_image_jepa
+from ebjepa_tutorial.training.image import ImageJEPAConfig, identity, train_image_jepa
 
 from . import launch
 from .shipping import float16_state
+
+
+def protocol(config: ImageJEPAConfig) -> str:
+    """The evaluation protocol of ``probe_encoder``, in words, to print beside its numbers."""
+    size = config.eval_image_size
+    native = "their native size, no resizing" if size == 32 else "resized from 32 px"
+    return (f"linear probe (fit on the train split, scored on the test split) and kNN "
+            f"(k = {KNN_K}) on frozen encoder features of un-augmented {size}-px images "
+            f"({native}); the encoder was trained on {config.image_size}-px views")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -72,8 +81,7 @@ def _train_and_save(args, sizes, config, device) -> None:
     train = random_subset(*load_cifar10("train"), sizes.train_images)  # as the notebooks do
     test = random_subset(*load_cifar10("test"), sizes.test_images)
     partial = Path(args.out).with_suffix(".partial")
-    model, history = train_image_jepa(config, train[0], checkpoint=partial, device=device,
-                                      sync_batchnorm=args.sync_bn)
+    model, history = train_image_jepa(config, train[0], checkpoint=partial, device=device)
     if not distributed.is_main():
         return
     minutes = history.seconds / 60

@@ -12,7 +12,7 @@ the gradients over the processes):
 
 The preset's batch size is the global batch: global batch = per-rank batch x N, so N must
 divide it. The variance and covariance are those of the global batch, as on one device; batch
-norm normalises over each process's clips unless --sync-bn (GPUs only). Rank 0 alone reads
+norm normalises over each process's clips. Rank 0 alone reads
 and writes the checkpoints and evaluates; a stopped run resumes on any N.
 """
 
@@ -155,7 +155,6 @@ def _train_and_report(args, cfg, configs, device) -> None:
         waiting = not_started([(c, run_name(scale, c)) for c in configs
                                if shares_start_with(config, c)])
         model, history = train_or_load(config, name, train_digits, device=device,
-                                       sync_batchnorm=args.sync_bn,
                                        after=handover(config, waiting))
         if args.ship and distributed.is_main():
             shipped = checkpoint_paths(name)[1]

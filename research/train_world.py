@@ -10,8 +10,8 @@ On several devices, one process each (DistributedDataParallel; nccl on GPUs, glo
 
 The preset's batch size is the global batch: global batch = per-rank batch x N, so N must
 divide it. Every loss term is that of the global batch, as on one device (the model has no
-batch norm, so there is no --sync-bn). Rank 0 alone writes the files; a stopped run resumes on
-any N. The refit runs in one process.
+batch norm). Rank 0 alone writes the files; a stopped run resumes on any N. The refit runs in
+one process.
 """
 
 from __future__ import annotations
@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> None:
                         help="1: Two Rooms (default); 2: Three Rooms in a row (chapter 07)")
     parser.add_argument("--seed", type=int,
                         help=f"default {WorldTrainConfig.seed} ({RefitConfig.seed} with --refit)")
-    launch.add_flags(parser, sync_bn=False)  # no batch norm in the world model
+    launch.add_flags(parser)
     args = parser.parse_args(argv)
     given = {name: value for name, value in (("steps", args.steps), ("seed", args.seed),
                                               ("n_trajectories", args.trajectories),
@@ -145,10 +145,14 @@ def main(argv: list[str] | None = None) -> None:
         if args.predictor:
             base = replace(base, model=replace(base.model, predictor=args.predictor))
         if args.predictor_hidden is not None:
+            if args.predictor_hidden < 1:
+                raise ValueError(f"--predictor-hidden must be >= 1, got {args.predictor_hidden}")
             base = replace(base, model=replace(base.model, predictor_hidden=args.predictor_hidden))
         # one replace: a decay longer than the scale's steps must meet the new step count
         config = with_coeffs(replace(base, recipe=replace(base.recipe, **recipe), **given),
                              args.coeff)
+        if config.steps < 1 or config.recipe.grad_clip < 0:
+            raise ValueError("--steps takes an int >= 1, --grad-clip a number >= 0")
     except ValueError as error:
         parser.error(str(error))  # a usage message, not a traceback
     config = ablation_config(config, *without)

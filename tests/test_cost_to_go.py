@@ -45,8 +45,6 @@ def test_step_violation_by_hand():
     # three steps; the second is stretched 2 units beyond its action, the others are within
     assert step_violation(torch.tensor([1.0, 3.0, 2.0]), torch.tensor([2.0, 1.0, 2.0])) == \
         pytest.approx(4 / 3)
-    with pytest.raises(ValueError, match="same shape"):
-        step_violation(torch.ones(3), torch.ones(2))
 
 
 def test_imagination_gap_by_hand():
@@ -201,7 +199,7 @@ def test_the_shipped_fits_load_for_their_world_models():
 def test_a_missing_damaged_or_foreign_fit_is_refused_naming_the_file_and_command(tmp_path):
     command = "python -m research.fit_beyond --world two_rooms --fits cost_head"
     path = tmp_path / "cost_head_two_rooms_class.pt"
-    with pytest.raises(FileNotFoundError, match=f"{path.name} is missing. Make it with `{command}"):
+    with pytest.raises(FileNotFoundError, match=f"(?s){path.name}.*made by: {command}"):
         load_fit("cost_head", "two_rooms", CostToGo(2), {}, folder=tmp_path)
     path.write_bytes(b"not a checkpoint")
     with pytest.raises(CheckpointError, match=f"(?s){path.name} is damaged.*{command}"):
@@ -238,7 +236,7 @@ def test_calibration_sets_the_straight_distance_against_the_way_round_the_walls(
 
 @pytest.mark.slow  # tiny fits on the shipped Three Rooms world model: seconds
 def test_the_fit_command_writes_files_that_the_notebook_then_loads(tmp_path, capsys):
-    from ebjepa_tutorial.training.runs import train_or_load
+    from ebjepa_tutorial.training import train_or_load
     from research import fit_beyond
 
     out = tmp_path / "fits"

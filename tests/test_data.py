@@ -211,7 +211,7 @@ def test_missing_data_without_network(tmp_path, served, monkeypatch):
         load_cifar10("test", root=data)
 
 
-# --- class folders: a tree, or a packed tree ------------------------------------------------
+# --- class folders, packed as cifar10*.tar.gz -------------------------------------------------
 
 
 def write_tree(root: Path, split: str = "test", per_class: int = 2) -> np.ndarray:
@@ -228,18 +228,33 @@ def write_tree(root: Path, split: str = "test", per_class: int = 2) -> np.ndarra
     return np.stack(expected)
 
 
-def test_class_folder_tree(tmp_path):
-    expected = write_tree(tmp_path / "data" / "cifar10")
+def pack(tree: Path, data: Path, top: str = "") -> Path:
+    """``tree``'s split folders packed as data/cifar10-mine.tar.gz, under ``top/`` if given."""
+    data.mkdir(parents=True, exist_ok=True)
+    with tarfile.open(data / "cifar10-mine.tar.gz", "w:gz") as archive:
+        for split in sorted(tree.iterdir()):
+            archive.add(split, arcname=f"{top}/{split.name}" if top else split.name)
+    return data / "cifar10-mine.tar.gz"
+
+
+def write_packed(data: Path, split: str = "test") -> np.ndarray:
+    """write_tree, packed into ``data``; returns the expected array."""
+    expected = write_tree(data.parent / "tree", split)
+    pack(data.parent / "tree", data)
+    return expected
+
+
+def test_packed_tree(tmp_path):
+    expected = write_packed(tmp_path / "data")
     images, labels = load_cifar10("test", root=tmp_path / "data", download=False)
     assert np.array_equal(images.numpy(), expected)
     assert labels.tolist() == [c for c in range(10) for _ in range(2)]
+    assert find_cifar10(tmp_path / "data", "test").kind == "packed"
 
 
 def test_packed_tree_with_top_folder(tmp_path):
-    expected = write_tree(tmp_path / "src" / "mine")
-    (tmp_path / "data").mkdir()
-    with tarfile.open(tmp_path / "data" / "cifar10-mine.tar.gz", "w:gz") as archive:
-        archive.add(tmp_path / "src" / "mine", arcname="mine")
+    expected = write_tree(tmp_path / "src")
+    pack(tmp_path / "src", tmp_path / "data", top="mine")
     images, labels = load_cifar10("test", root=tmp_path / "data", download=False)
     assert np.array_equal(images.numpy(), expected) and labels[-1] == 9
     with pytest.raises(DataNotFoundError, match="holds no train/<class>/ folders"):
@@ -257,18 +272,21 @@ def test_truncated_packed_tree_is_a_clear_error(tmp_path):
         load_cifar10("test", root=tmp_path / "data", download=False)
 
 
-def test_tree_other_sizes_missing_class_and_cache_invalidation(tmp_path):
-    root = tmp_path / "data" / "cifar10"
-    write_tree(root)
-    Image.new("L", (64, 48), 200).save(root / "test" / "cat" / "big.png")
-    images, labels = load_cifar10("test", root=tmp_path / "data")
+def test_other_sizes_missing_class_and_cache_invalidation(tmp_path):
+    tree, data = tmp_path / "src", tmp_path / "data"
+    write_tree(tree)
+    Image.new("L", (64, 48), 200).save(tree / "test" / "cat" / "big.png")
+    pack(tree, data)
+    images, labels = load_cifar10("test", root=data)
     assert images.shape == (21, 3, 32, 32) and (images[labels == 3][-1] == 200).all()
-    (root / "test" / "cat" / "big.png").unlink()  # an edited tree is not served from cache
-    assert len(load_cifar10("test", root=tmp_path / "data")[0]) == 20
-    for f in (root / "test" / "dog").iterdir():
+    (tree / "test" / "cat" / "big.png").unlink()  # a replaced archive is not served from cache
+    pack(tree, data)
+    assert len(load_cifar10("test", root=data)[0]) == 20
+    for f in (tree / "test" / "dog").iterdir():
         f.unlink()
+    pack(tree, data)
     with pytest.raises(DataNotFoundError, match="dog"):
-        load_cifar10("test", root=tmp_path / "data", download=False)
+        load_cifar10("test", root=data, download=False)
 
 
 # --- MNIST IDX files ------------------------------------------------------------------------
@@ -359,7 +377,7 @@ def test_data_and_cache_dir_resolution(tmp_path, monkeypatch, tmp_cache):
 
 
 def test_cache_is_reused_and_survives_a_damaged_file(tmp_path, tmp_cache):
-    write_tree(tmp_path / "data" / "cifar10")
+    write_packed(tmp_path / "data")
     first, _ = load_cifar10("test", root=tmp_path / "data")
     cached = sorted(tmp_cache.iterdir())
     assert [p.name.endswith(("-images.npy", "-labels.npy")) for p in cached] == [True, True]

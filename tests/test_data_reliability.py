@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from test_data import leftovers, write_tree
+from test_data import leftovers, write_packed
 
 from ebjepa_tutorial.data import load_cifar10, paths
 
@@ -48,7 +48,7 @@ def old_file(path: Path, seconds: float = 2 * HOUR) -> Path:
     ids=["zero-byte", "cut-header", "cut-data"],
 )
 def test_damaged_cache_file_is_decoded_again_and_rewritten(tmp_path, tmp_cache, which, damage):
-    write_tree(tmp_path / "data" / "cifar10")
+    write_packed(tmp_path / "data")
     first, first_labels = load_cifar10("test", root=tmp_path / "data", download=False)
     (cached,) = tmp_cache.glob(f"*-{which}.npy")
     cached.write_bytes(damage(cached.read_bytes()))
@@ -56,12 +56,6 @@ def test_damaged_cache_file_is_decoded_again_and_rewritten(tmp_path, tmp_cache, 
     assert torch.equal(first, again) and torch.equal(first_labels, again_labels)
     assert len(np.load(cached)) == len(first)  # rewritten whole
     assert leftovers(tmp_cache) == []
-
-
-def test_read_cache_of_zero_byte_file_is_none(tmp_cache):
-    paths.write_cache("x", np.zeros((2, 3), np.uint8), np.zeros(2, np.int64))
-    (tmp_cache / "x-labels.npy").write_bytes(b"")
-    assert paths.read_cache("x") is None
 
 
 # --- (b) atomic writes are flushed to disk before the rename --------------------------------
@@ -81,8 +75,11 @@ def test_atomic_writers_fsync_before_rename(tmp_path, monkeypatch):
 
     monkeypatch.setattr(paths.os, "fsync", fsync)
     monkeypatch.setattr(paths.os, "replace", replace)
-    paths.write_cache("x", np.zeros((2, 3), np.uint8), np.zeros(2, np.int64))
-    assert events == ["fsync", "replace x-images.npy", "fsync", "replace x-labels.npy"]
+    (tmp_path / "source").write_bytes(b"x")
+    paths.cached_arrays(tmp_path / "source", "x",
+                        lambda: (np.zeros((2, 3), np.uint8), np.zeros(2, np.int64)))
+    assert [e.split("-")[0] for e in events] == ["fsync", "replace x", "fsync", "replace x"]
+    assert events[1].endswith("-images.npy") and events[3].endswith("-labels.npy")
 
 
 # --- (c) temporaries left by a killed run -----------------------------------------------------
@@ -123,9 +120,9 @@ def test_remove_stale_temporaries_never_raises_on_an_unreadable_folder(tmp_path)
 
 
 def test_loads_clean_their_stale_temporaries(tmp_path, tmp_cache):
-    write_tree(tmp_path / "data" / "cifar10")
+    write_packed(tmp_path / "data")
     tmp_cache.mkdir()
-    stale = old_file(tmp_cache / ".cifar10-test-tree-0123-images.npy.k2j4.part")
-    fresh = old_file(tmp_cache / ".cifar10-test-tree-0123-labels.npy.m9x1.part", seconds=0)
+    stale = old_file(tmp_cache / ".cifar10-test-packed-0123-images.npy.k2j4.part")
+    fresh = old_file(tmp_cache / ".cifar10-test-packed-0123-labels.npy.m9x1.part", seconds=0)
     load_cifar10("test", root=tmp_path / "data", download=False)
     assert not stale.exists() and fresh.exists()

@@ -82,12 +82,3 @@ def test_embed_is_frozen_and_restores_the_mode():
     with pytest.raises(TypeError, match="uint8"):
         embed(encoder, images.float(), 32)
 
-
-def test_shape_errors_are_named():
-    with pytest.raises(ValueError, match="features"):
-        linear_probe(
-            torch.randn(5, 3),
-            torch.zeros(4, dtype=torch.long),
-            torch.randn(2, 3),
-            torch.zeros(2, dtype=torch.long),
-        )

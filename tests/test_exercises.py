@@ -273,7 +273,7 @@ def _slab_crossing_unordered(x0, x1, x_lo, x_hi):
     (exercises.check_vicreg_paper_to_ebjepa, lambda inv, std, cov, dim: (inv, std, cov * dim),
      "but the answer is"),
     (exercises.check_vicreg_paper_to_ebjepa, lambda inv, std, cov, dim: cov * dim,
-     "expected a tuple of three"),
+     "must return a tuple of 3"),
     (exercises.check_vicreg_paper_to_ebjepa, lambda inv, std, cov, dim: (1.0, std / inv, cov / inv),
      r"but the answer is .*forgot the factor \(D - 1\)"),
     (exercises.check_vicreg_paper_to_ebjepa, lambda inv, std, cov, dim: (inv, std, cov * (dim - 1)),
@@ -304,7 +304,7 @@ def _slab_crossing_unordered(x0, x1, x_lo, x_hi):
     (exercises.check_parallel_rollout_loss,
      lambda predictor, z, context=2, steps=4, detach_later=False: _parallel(
          predictor, z.detach(), context, steps, detach_later),
-     r"does not flow to the other latents z\[:, :-1\].*Found in your function: \.detach\(\)"),
+     r"does not flow to the other latents z\[:, :-1\].*look for a \.detach\(\)"),
     (exercises.check_slab_crossing, _slab_crossing_unordered,
      "your t_in .* but the answer is .*a move to the left reaches x_hi first"),
     (exercises.check_wall_collision, _wall_stay_put, "cancel the whole move"),
@@ -319,7 +319,7 @@ def _slab_crossing_unordered(x0, x1, x_lo, x_hi):
     (exercises.check_mppi_update, functools.partial(_mppi, scale="times"),
      "multiplied by the temperature"),
     (exercises.check_mppi_update, lambda actions, costs, elites, temperature: actions.mean(1),
-     r"must return a pair \(mean, std\)"),
+     r"must return a tuple of 2 \(mean, std\)"),
 ])
 def test_checker_rejects_wrong_answers(checker, wrong, message):
     with pytest.raises(exercises.ExerciseError, match=message):
@@ -379,17 +379,17 @@ LABELS = {  # how a message names the input that stops receiving a gradient
 
 
 @pytest.mark.parametrize("name", list(TRAINED))
-@pytest.mark.parametrize("cut, found", [
-    (lambda fn, index: _detached(fn, index), r"\.detach\(\) \(detaches a tensor"),
-    (lambda fn, index: _through_numpy(fn, index), r"\.numpy\(\) \(leaves torch for numpy"),
-    (lambda fn, index: _under_no_grad(fn), r"torch\.no_grad\(\) \(switches gradients off"),
+@pytest.mark.parametrize("cut", [
+    lambda fn, index: _detached(fn, index), lambda fn, index: _through_numpy(fn, index),
+    lambda fn, index: _under_no_grad(fn),
 ], ids=["detach", "numpy", "no_grad"])
-def test_an_answer_that_cuts_the_gradient_is_named(name, cut, found):
+def test_an_answer_that_cuts_the_gradient_is_named(name, cut):
     label = LABELS.get(name, "z")
     wrong = cut(SOLUTIONS[name], TRAINED[name])
     with pytest.raises(exercises.ExerciseError,
                        match=rf"right value on .*, but the gradient does not flow to {label}, so "
-                             rf"training could not change it .*Found in your function: .*{found}"):
+                             r"training could not change it .*\.detach\(\), \.item\(\), a "
+                             r"detour through numpy, or torch\.no_grad\(\)"):
         CHECKERS[name](wrong)
 
 
@@ -464,24 +464,17 @@ def _temporal_over_t(z):
     # the wrong axis
     (exercises.check_variance_term,
      lambda z, gamma=1.0, eps=1e-4: torch.relu(gamma - (z.var(1) + eps).sqrt()).mean(),
-     r"worked along the wrong axis on .*the batch and the dimension axes of z exchanged"),
+     r"worked along the wrong axis: .*the batch and the dimension axes of z exchanged"),
     (exercises.check_temporal_similarity, lambda z: (z[1:] - z[:-1]).pow(2).mean(),
-     r"worked along the wrong axis on .*the batch and the time axes.*neighbours along axis 1"),
+     r"worked along the wrong axis: .*the batch and the time axes.*neighbours along axis 1"),
     (exercises.check_covariance_term,
      lambda z: (torch.cov(z) - torch.diag(torch.cov(z).diagonal())).pow(2).sum()
      / (len(z) * (len(z) - 1)),
-     r"worked along the wrong axis on .*torch.cov, for one, treats each row as a variable"),
-    # a transposed result
-    (exercises.check_mppi_update,
-     lambda *args: tuple(t.transpose(1, 2) for t in _mppi(*args)),
-     r"right numbers in the wrong layout .*your mean has shape \(2, 2, 4\) where \(2, 4, 2\)"),
-    (exercises.check_wall_collision,
-     lambda pos, moves, layouts: SOLUTIONS["wall_collision"](pos, moves, layouts).T,
-     r"right positions in the wrong layout .*shape \(2, 512\)"),
+     r"worked along the wrong axis: .*torch.cov, for one, treats each row as a variable"),
     # a Python float, a numpy number or a tuple where a tensor belongs
     (exercises.check_variance_term,
      lambda z, gamma=1.0, eps=1e-4: losses.variance_term(z, gamma, eps).item(),
-     r"returned a Python float \([\d.]+\) on .*carries no gradient.*\.item\(\)"),
+     r"returned a Python float on .*carries no gradient.*\.item\(\)"),
     (exercises.check_temporal_similarity,
      lambda z: np.float64((z[:, 1:] - z[:, :-1]).pow(2).mean()),
      r"returned a numpy float64 on .*numpy carries no gradient"),
@@ -619,13 +612,12 @@ def test_chapter_07_checkers_accept_a_learner_s_own_right_answers(capsys):
     assert capsys.readouterr().out.count("Correct") == 2
 
 
-def test_calling_the_course_s_own_function_passes_with_a_note(capsys):
+def test_whose_tells_the_learner_s_function_from_the_course_s(capsys):
     def variance_term(z, gamma=1.0, eps=1e-4):
         return losses.variance_term(z, gamma, eps)
 
     assert exercises.check_variance_term(variance_term) is variance_term
-    out = capsys.readouterr().out
-    assert "Correct" in out and "calls the course's own losses.vicreg.variance_term" in out
+    assert "Correct" in capsys.readouterr().out
     assert exercises.whose(variance_term) == "your"
     assert exercises.whose(exercises.check_variance_term.reference) == "the course's"
 

@@ -43,17 +43,8 @@ class ShapeRecorder(nn.Module):
 def test_a_loss_that_is_not_vicreg_sigreg_or_none_is_rejected():
     with pytest.raises(ValueError, match="loss must be VICReg.*got 'simclr'"):
         ImageJEPAConfig(loss="simclr")
-    with pytest.raises(ValueError, match="SIGReg.slices must be an int >= 1"):
-        image.SIGReg(slices=0)
     assert [ImageJEPAConfig(loss=loss).method for loss in (image.VICReg(), image.SIGReg(), None)
             ] == ["vicreg", "sigreg", "invariance"]
-
-
-@pytest.mark.parametrize("field", ["image_size", "eval_image_size"])
-@pytest.mark.parametrize("value", [0, -16, 16.0, "32", True, None])
-def test_image_sizes_must_be_positive_ints(field, value):
-    with pytest.raises(ValueError, match=f"^ImageJEPAConfig.{field} must be a positive int"):
-        ImageJEPAConfig(**{field: value})
 
 
 def test_evaluation_is_at_the_native_32_px_whatever_the_training_size():
@@ -86,8 +77,6 @@ def test_one_block_per_stage_makes_a_resnet_10_and_resnet_18_runs_keep_their_ide
     assert image.identity(shallow)["blocks_per_stage"] == 1
     # files of ResNet-18 runs, saved before the block count existed, are still recognised
     assert "blocks_per_stage" not in image.identity(TINY)
-    with pytest.raises(ValueError, match="2: ResNet-18, 1: ResNet-10"):
-        ImageJEPAConfig(blocks_per_stage=0)
 
 
 def test_model_shapes_with_and_without_projector():
@@ -114,9 +103,9 @@ def test_training_is_reproducible_and_resumable(tmp_path, monkeypatch):
 
     ckpt = tmp_path / "run.pt"
     monkeypatch.setattr(image.augment, "two_views", dying_two_views)
+    monkeypatch.setattr(image, "CHECKPOINT_EVERY", 1)
     with pytest.raises(KeyboardInterrupt):
-        image.train_image_jepa(TINY, images, checkpoint=ckpt, checkpoint_every=1,
-                                    progress=False)
+        image.train_image_jepa(TINY, images, checkpoint=ckpt, progress=False)
     monkeypatch.undo()
     # ... then a new run picks up at step 2 and ends where the uninterrupted run ended.
     resumed, history2 = image.train_image_jepa(TINY, images, checkpoint=ckpt,
@@ -180,10 +169,12 @@ def test_a_resnet_takes_any_image_size():
 
 
 def test_protocol_names_both_sizes():
-    words = classify.protocol(TINY)
+    from research.train_image import protocol
+
+    words = protocol(TINY)
     assert "32-px images (their native size, no resizing)" in words
     assert "trained on 16-px views" in words
-    assert "resized from 32 px" in classify.protocol(
+    assert "resized from 32 px" in protocol(
         dataclasses.replace(TINY, eval_image_size=16))
 
 
@@ -231,7 +222,7 @@ def test_long_run_command_writes_a_float16_encoder(tmp_path, monkeypatch, capsys
     monkeypatch.setattr("research.train_image.load_cifar10", lambda split: train)
     monkeypatch.setattr(
         "research.train_image.preset", lambda notebook, scale: dataclasses.replace(
-        preset("01", "ci"), config=TINY, long=TINY, train_images=40, test_images=40))
+        preset("01", "ci"), config=TINY, long_config=TINY, train_images=40, test_images=40))
     # trains on the best device there is (a GPU: the full scale is the paper's run); the
     # stand-in "cpu:0" is a device of its own, the CPU by another name
     monkeypatch.setattr("research.launch.get_device", lambda: torch.device("cpu:0"))
@@ -259,14 +250,6 @@ def test_long_presets_train_longer_than_the_main_run():
         assert cfg.long_config.method == cfg.config.method  # SIGReg's lambda may differ
         full = preset(notebook, "full")
         assert full.long_config == full.config  # the paper's run is already the long one
-
-
-@pytest.mark.parametrize("field, value, message", [
-    ("steps", 0, "steps must be an int >= 1"), ("batch_size", 1, "a batch of one"),
-    ("batch_size", 2.5, "batch_size must be an int")])
-def test_run_lengths_and_batch_sizes_are_checked(field, value, message):
-    with pytest.raises(ValueError, match=message):
-        ImageJEPAConfig(**{field: value})
 
 
 def test_seconds_per_step_cancels_the_set_up_and_first_step(monkeypatch):

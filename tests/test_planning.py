@@ -243,9 +243,6 @@ def test_a_goal_image_of_the_wrong_shape_is_named():
         torch.tensor([[10.0, 10.0]]), torch.tensor([[30, 30]])))
     with pytest.raises(ValueError, match="each frame must be"):
         model.encode(torch.zeros(1, 3, 65, 65))
-    with pytest.raises(ValueError, match="mean plan"):
-        planning.plan(model, torch.zeros(2, 32), torch.zeros(2, 32), PlannerConfig(horizon=4),
-                      generators(2), mean=torch.zeros(2, 5, 2))
 
 
 def test_batches_run_one_after_the_other_give_the_same_episodes():

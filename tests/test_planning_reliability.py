@@ -44,10 +44,10 @@ def generators(seeds):
 
 # -- 6: the goal's shape is checked against the start's ------------------------------------
 @pytest.mark.parametrize("goal, words", [
-    (torch.zeros(1, 2), r"\(3, D\).*z0 \(3, 2\).*got \(1, 2\).*expand\(3, -1\)"),
-    (torch.zeros(3), r"got \(3,\).*z_goal\[None\]"),
-    (torch.zeros(3, 2, 65, 65), r"got \(3, 2, 65, 65\).*encode them first"),
-    (torch.zeros(2, 2), r"\(3, D\).*got \(2, 2\)"),
+    (torch.zeros(1, 2), r"z0 \(3, 2\), z_goal \(1, 2\).*expand\(3, -1\)"),
+    (torch.zeros(3), r"z_goal \(3,\).*z_goal\[None\]"),
+    (torch.zeros(3, 2, 65, 65), r"z_goal \(3, 2, 65, 65\).*encode them first"),
+    (torch.zeros(2, 2), r"one goal per start; got z0 \(3, 2\), z_goal \(2, 2\)$"),
 ])
 def test_a_goal_that_is_not_one_latent_per_start_is_refused(goal, words):
     config = dataclasses.replace(TINY, iterations=1)
@@ -57,14 +57,8 @@ def test_a_goal_that_is_not_one_latent_per_start_is_refused(goal, words):
         planning.planning_cost(ShiftModel(), torch.zeros(3, 2), goal, torch.zeros(3, 4, 5, 2))
 
 
-def test_a_goal_of_another_latent_size_names_both_sizes():
-    with pytest.raises(ValueError, match=r"size 5 but the model imagines latents of size 2"):
-        planning.plan(ShiftModel(), torch.zeros(3, 2), torch.zeros(3, 5), TINY,
-                      generators(SEEDS))
-
-
 def test_a_start_that_is_not_a_batch_of_latents_is_refused():
-    with pytest.raises(ValueError, match=r"z0 must be start latents of shape \(B, D\)"):
+    with pytest.raises(ValueError, match=r"must be latents \(B, D\).*got z0 \(2,\)"):
         planning.plan(ShiftModel(), torch.zeros(2), torch.zeros(2, 2), TINY, generators([1, 2]))
 
 
@@ -74,7 +68,7 @@ def test_a_start_that_is_not_a_batch_of_latents_is_refused():
     (dict(samples=True), "samples must be an int >= 1"),
     (dict(horizon=8.0), "horizon must be an int >= 1"),
     (dict(iterations=0), "iterations"),
-    (dict(elites=201), r"elites \(Q=201\) cannot exceed samples \(N=200\)"),
+    (dict(elites=201), r"elites <= samples.*elites \(Q=201\), samples \(N=200\)"),
 ])
 def test_planner_settings_that_cannot_work_name_the_field_and_range(kwargs, words):
     with pytest.raises(ValueError, match=words):

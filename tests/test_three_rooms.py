@@ -120,8 +120,6 @@ def test_sample_positions_in_each_room():
     share = torch.bincount(room_of(anywhere, layouts), minlength=3) / 3000
     _, width = room_floors(layouts)
     assert (share - width.sum(0) / width.sum()).abs().max() < 0.03  # uniform by area
-    with pytest.raises(ValueError, match=r"room numbers in 0\.\.2"):
-        sample_positions(layouts[:2], g, torch.tensor([0, 3]))
 
 
 # ----------------------------------------------------------------- collisions
@@ -218,12 +216,11 @@ def test_the_dot_crosses_each_door_and_not_the_walls():
 
 
 @pytest.mark.parametrize("layout, message", [
-    ([[20, 30, 26, 30]], "walls 0 and 1 are 6 px apart; a dot needs at least 14 px between them"),
-    ([[40, 30, 20, 30]], r"walls must be sorted left to right, but wall 1 \(wall_x=20\)"),
+    ([[20, 30, 26, 30]], "walls must go left to right, at least 14 px apart"),
+    ([[40, 30, 20, 30]], "walls must go left to right"),
     ([[10, 30, 40, 30]], r"wall 0: wall_x=10 is outside the allowed range 14\.\.50"),
     ([[20, 30, 40, 60]], r"wall 1: door_y=60 is outside the allowed range 10\.\.54"),
     ([[20, 30, 40]], r"shape \(B, 2W\)"),
-    ([[20.0, 30.0, 40.5, 30.0]], "whole pixel"),
 ])
 def test_bad_layouts_are_named(layout, message):
     with pytest.raises(ValueError, match=message):
@@ -232,10 +229,8 @@ def test_bad_layouts_are_named(layout, message):
 
 def test_good_layouts_and_other_errors():
     check_layouts(torch.tensor([[14, 10, 14 + MIN_WALL_GAP, 54], [25, 54, 50, 10]]))
-    with pytest.raises(ValueError, match="walls must be one of"):
+    with pytest.raises(ValueError, match="walls must be 1"):
         random_layouts(3, torch.Generator(), walls=3)
-    with pytest.raises(ValueError, match="pass one wall's columns"):
-        wall_bounds(LAYOUT)
     with pytest.raises(ValueError, match="inside the wall"):
         check_positions(torch.tensor([[44.0, 30.0]]), LAYOUT)
 

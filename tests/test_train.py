@@ -28,11 +28,10 @@ def _problem(seed=0):
     return model, optimizer, loss_fn, batch
 
 
-def fit(model, optimizer, loss_fn, batch, steps, *, start_step=0, history=None, checkpoint=None,
-        checkpoint_every=100, config=None, log_every=1, progress=False):
-    """The package's loop (``loop.run_steps``) on ``loss_fn``, saving its ``loop.training_state``
-    (identity ``config``) to ``checkpoint`` every ``checkpoint_every`` steps and at the end."""
-    history = loop.History() if history is None else history
+def fit(model, optimizer, loss_fn, batch, steps, *, checkpoint=None, checkpoint_every=100,
+        config=None, log_every=1, progress=False):
+    """The package's loop (``loop.run_steps``) on ``loss_fn``, resuming the run ``config`` from
+    ``checkpoint`` and saving it there every ``checkpoint_every`` steps and at the end."""
 
     def update(xy, step):
         loss, terms = loss_fn(xy)
@@ -41,12 +40,9 @@ def fit(model, optimizer, loss_fn, batch, steps, *, start_step=0, history=None, 
         optimizer.step()
         return loss, terms
 
-    def state(done):
-        return loop.training_state(done, config, history, model, optimizer)
-
-    return loop.run_steps(update, batch, steps, start_step=start_step, history=history,
-                          log_every=log_every, progress=progress,
-                          after=loop.saver(checkpoint, state, steps, checkpoint_every))
+    return loop.run_steps(update, batch, steps, log_every=log_every, progress=progress,
+                          checkpoint=checkpoint, parts=(model, optimizer), identity=config,
+                          every=checkpoint_every)
 
 
 def test_the_loop_logs_history_and_learns():
@@ -93,10 +89,9 @@ def test_resumed_run_equals_uninterrupted_run(tmp_path):
     fit(model2, optimizer2, loss_fn2, batch2, steps=5, checkpoint=ckpt, progress=False)
     # A new kernel: fresh objects, state restored from the file.
     model3, optimizer3, loss_fn3, batch3 = _problem(seed=123)
-    step, history = loop.resume(ckpt, model3, optimizer3)
-    assert step == 5
-    history = fit(model3, optimizer3, loss_fn3, batch3, steps=10, start_step=step,
-                   history=history, checkpoint=ckpt, progress=False)
+    assert loop.resume(ckpt, *_problem(seed=1)[:2])[0] == 5
+    history = fit(model3, optimizer3, loss_fn3, batch3, steps=10, checkpoint=ckpt,
+                  progress=False)
     assert history["loss"] == pytest.approx(straight["loss"], rel=1e-6)
     assert torch.allclose(model3.weight, model.weight)
 
@@ -222,7 +217,7 @@ def test_a_failed_final_save_keeps_the_resumable_run(tmp_path, monkeypatch):
         return history
 
     with pytest.warns(UserWarning, match="could not save a checkpoint to .*model.pt"):
-        loop.load_or_train(path, model, run, {"steps": 6}, partial=partial)
+        loop.load_or_train(path, model, run, {"steps": 6})
     assert not path.exists()
     assert checkpoints.load_checkpoint(partial)["step"] == 6  # the run is still there to resume
 
@@ -232,7 +227,7 @@ def test_the_partial_file_goes_only_after_the_final_save(tmp_path):
     model, optimizer, loss_fn, batch = _problem()
     loop.load_or_train(path, model, lambda: fit(
         model, optimizer, loss_fn, batch, steps=4, checkpoint=partial, progress=False),
-        {"steps": 4}, partial=partial)
+        {"steps": 4})
     assert path.is_file() and not partial.exists()
 
 
@@ -322,8 +317,7 @@ def test_training_time_adds_up_over_resumed_parts(tmp_path):
     first = fit(model, optimizer, loss_fn, batch, steps=5, checkpoint=ckpt, progress=False)
     step, history = loop.resume(ckpt, model, optimizer)
     assert history.seconds == pytest.approx(first.seconds) and first.seconds > 0
-    history = fit(model, optimizer, loss_fn, batch, steps=10, start_step=step,
-                   history=history, checkpoint=ckpt, progress=False)
+    history = fit(model, optimizer, loss_fn, batch, steps=10, checkpoint=ckpt, progress=False)
     assert history.seconds > first.seconds
     assert checkpoints.load_checkpoint(ckpt)["seconds"] == pytest.approx(history.seconds)
 

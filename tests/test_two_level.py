@@ -8,14 +8,12 @@ import torch
 from torch import nn
 
 from ebjepa_tutorial.envs import MAX_STEP, clip_actions
-from ebjepa_tutorial.models.hierarchy import CoarseModel
 from ebjepa_tutorial.planning import (
     Habits,
     Noise,
     PlannerConfig,
     TwoLevel,
     plan,
-    run_episodes,
     shift_plan,
 )
 from research.beyond_fits import CoarseConfig, CoarseFit, fit_coarse_on, macro_actions, windows
@@ -107,15 +105,8 @@ def test_a_coarse_model_learns_a_linear_world_from_trajectories():
     assert torch.allclose(step, torch.tensor([[0.4, -0.2]]), atol=0.1)
 
 
-def test_settings_a_two_level_planner_cannot_use_are_refused():
-    with pytest.raises(ValueError, match="lookahead"):
-        TwoLevel(Drift(4), HIGH, lookahead=9)
-    with pytest.raises(ValueError, match="execute equal to its stride"):
-        run_episodes(Drift(), [10600], PlannerConfig(execute=2), two_level=TwoLevel(
-            CoarseModel(2, stride=4, hidden=8), HIGH))
+def test_settings_a_coarse_fit_cannot_use_are_refused():
     with pytest.raises(ValueError, match="stride"):
         CoarseConfig(stride=0)
-    with pytest.raises(ValueError, match="reach_px"):
-        TwoLevel(Drift(4), HIGH, reach_px=-1.0)
     with pytest.raises(ValueError, match="episodes"):
         CoarseFit(CoarseConfig(), LOW, HIGH, lookahead=2, reach_px=4.5, episodes=0)

@@ -269,10 +269,6 @@ def test_a_windowed_channels_last_run_trains():
                                                            wall_fraction=0.25))
     _, history = train_world_model(config, progress=False, device="cpu")
     assert len(history["loss"]) == 2 and all(math.isfinite(v) for v in history["loss"])
-    with pytest.raises(ValueError, match="rollout_steps"):
-        WorldTrainConfig(recipe=world.Recipe(window=5))
-    with pytest.raises(ValueError, match="wall_fraction"):
-        world.Recipe(wall_fraction=0.9)
 
 
 def test_a_three_rooms_run_trains_on_three_rooms_data_and_is_another_run():
@@ -294,8 +290,6 @@ def test_a_three_rooms_run_trains_on_three_rooms_data_and_is_another_run():
     assert len(history["loss"]) == 2 and all(math.isfinite(v) for v in history["loss"])
     assert identity(WorldTrainConfig()) != identity(WorldTrainConfig(walls=2))
     assert identity(WorldTrainConfig(walls=2))["wall_x_ranges"]  # the geometry is recorded
-    with pytest.raises(ValueError, match="walls"):
-        WorldTrainConfig(walls=3)
 
 
 @pytest.fixture
@@ -364,8 +358,6 @@ def test_a_replay_run_trains(small_replay):
                                     batch_size=4, steps=2, recipe=recipe)
     _, history = world.train_world_model(config, progress=False, device="cpu")
     assert len(history["loss"]) == 2 and all(math.isfinite(v) for v in history["loss"])
-    with pytest.raises(ValueError, match="replay_steps"):
-        world.Recipe(replay_steps=-1)
 
 
 # -- the probe ---------------------------------------------------------------------------
@@ -562,8 +554,6 @@ def test_learning_rate_decays_linearly_over_the_last_steps(monkeypatch):
     world.train_world_model(config, progress=False, device="cpu", step=record)
     assert rates == pytest.approx([0.5, 0.5, 0.5, 0.375, 0.25, 0.125])  # (6 - s) / 4, capped
     assert world.decay_factor(WorldTrainConfig(), 999) == 1  # the class run: constant
-    with pytest.raises(ValueError, match="decay_steps must be an int >= 0"):
-        world.Recipe(decay_steps=-1)
 
 
 def test_the_replay_follows_the_joint_steps_schedule(small_replay, monkeypatch):
@@ -604,8 +594,6 @@ def test_mlp_predictor_starts_as_the_identity_and_travels_in_checkpoints(data):
     assert loaded.config.predictor == "mlp" and loaded.predictor.body[0].out_features == 12
     with pytest.raises(ValueError, match="predictor: the checkpoint has 'mlp', this model has"):
         tiny_model().load_state_dict(model.state_dict())
-    with pytest.raises(ValueError, match="predictor must be one of"):
-        WorldConfig(predictor="lstm")
 
 
 def test_checkpoints_from_before_the_predictor_field_load_as_grus(data):
@@ -747,7 +735,6 @@ def test_command_line_trains_the_run_of_a_scale(tmp_path, monkeypatch):
 
 
 def test_an_identity_holds_the_fields_that_define_the_run():
-    from ebjepa_tutorial.training.checkpoints import same_run
     from ebjepa_tutorial.training.world import WorldTrainConfig, identity
     from research.refit import RefitConfig, refit_identity
 
@@ -758,9 +745,9 @@ def test_an_identity_holds_the_fields_that_define_the_run():
     changed = identity(WorldTrainConfig(recipe=world.Recipe(decay_steps=4),
                                         coeffs=wl.WorldLossCoeffs(sigreg=0.05)))
     assert changed == {**default, "recipe": {"decay_steps": 4}, "coeffs": {"sigreg": 0.05}}
-    assert not same_run({"config": default}, changed)
+    assert default != changed
     refit = refit_identity(RefitConfig(), default)
-    assert refit["base"] == default and same_run({"config": refit}, refit)
+    assert refit["base"] == default
 
 
 def test_a_new_option_with_a_default_leaves_stored_identities_alone():
@@ -809,10 +796,9 @@ def steps_that_record(seen: list):
     """A stand-in for the loop the world model trains in (a meta loss has no value to log): it
     notes the devices of batch 0, and trains nothing (the model's are checked on its return)."""
 
-    def run_steps(update, batch_fn, steps, *, history, **options):
+    def run_steps(update, batch_fn, steps, **options):
         seen.append({t.device.type for t in batch_fn(0) if isinstance(t, torch.Tensor)})
-        history.log(0, loss=0.0)
-        return history
+        return world.History(loss=[0.0])
     return run_steps
 
 

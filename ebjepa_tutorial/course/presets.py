@@ -80,47 +80,39 @@ class ImagePreset:
     """Notebooks 01 and 02: the CIFAR-10 runs (the VICReg config; others derive from it)."""
 
     config: ImageJEPAConfig  # the VICReg run; SIGReg and ablations use dataclasses.replace
+    long_config: ImageJEPAConfig  # the longer run they load (shipped at class; full: config)
     train_images: int = 50_000  # CIFAR-10 train images used to train and to fit the probe
     test_images: int = 10_000  # CIFAR-10 test images the probe and kNN are scored on
     sweep_steps: int = 500  # steps per run of notebook 02's sweeps and ablations
-    long: ImageJEPAConfig | None = None  # the longer run they load (shipped at class); None: config
-
-    @property
-    def long_config(self) -> ImageJEPAConfig:
-        """The longer run: ``long``, or the main run where that is already the long one."""
-        return self.config if self.long is None else self.long
 
 
-_IMAGE = {  # chapter 01's run at each scale
-    "ci": ImageJEPAConfig(widths=(8, 8, 16, 16), blocks_per_stage=1, projector=(64, 64),
-                          batch_size=32, steps=15, warmup_steps=3, eval_image_size=16),
+_IMAGE = {  # chapter 01's run at each scale, and chapter 02's changes to it
+    "ci": (ImageJEPAConfig(widths=(8, 8, 16, 16), blocks_per_stage=1, projector=(64, 64),
+                           batch_size=32, steps=15, warmup_steps=3, eval_image_size=16),
+           dict(loss=SIGReg(), projector=(64, 16))),  # narrower than VICReg's, as at class
     # about 10 minutes on 2 cores with bf16 instructions, 13-17 without (RESULTS.md, 01-02)
-    "class": ImageJEPAConfig(widths=(32, 64, 128, 256), blocks_per_stage=1, steps=1600,
-                             warmup_steps=160),
-    "full": ImageJEPAConfig(  # the paper's network and 300 epochs of batch 256, all at 32 px
+    "class": (ImageJEPAConfig(widths=(32, 64, 128, 256), blocks_per_stage=1, steps=1600,
+                              warmup_steps=160),
+              dict(loss=SIGReg(slices=1024), projector=(1024, 256))),
+    "full": (ImageJEPAConfig(  # the paper's network and 300 epochs of batch 256, all at 32 px
         widths=(64, 128, 256, 512), image_size=32, projector=(2048, 2048), batch_size=256,
         steps=300 * 195, warmup_steps=10 * 195),
-}
-_SIGREG = {  # chapter 02's changes to chapter 01's run
-    "ci": dict(loss=SIGReg(), projector=(64, 16)),  # narrower than VICReg's, as at class
-    "class": dict(loss=SIGReg(slices=1024), projector=(1024, 256)),  # (RESULTS.md, 02)
-    "full": dict(loss=SIGReg(10.0, scale_by_n=False), projector=(2048, 128)),  # the paper's
+             dict(loss=SIGReg(10.0, scale_by_n=False), projector=(2048, 128))),  # the paper's
 }
 
 
 def image_preset(scale: str, loss: str) -> ImagePreset:
     """The preset of notebook 01 (``loss="vicreg"``) or 02 (``"sigreg"``) at ``scale``."""
-    config = _IMAGE[scale]
-    if loss == "sigreg":
-        config = replace(config, **_SIGREG[scale])
+    config, sigreg = _IMAGE[scale]
+    config = replace(config, **sigreg) if loss == "sigreg" else config
     if scale == "ci":
-        return ImagePreset(config, train_images=2000, test_images=1000, sweep_steps=5,
-                           long=replace(config, steps=30))
+        return ImagePreset(config, replace(config, steps=30), train_images=2000, test_images=1000,
+                           sweep_steps=5)
     if scale == "class":  # the shipped long runs; SIGReg at its preferred lambda (RESULTS.md)
         tuned = {"loss": SIGReg(0.05, 1024)} if loss == "sigreg" else {}
-        long = replace(config, steps=12_000, warmup_steps=1200, **tuned)
-        return ImagePreset(config, sweep_steps=250, long=long)
-    return ImagePreset(config)
+        return ImagePreset(config, replace(config, steps=12_000, warmup_steps=1200, **tuned),
+                           sweep_steps=250)
+    return ImagePreset(config, config)
 
 
 @dataclass(frozen=True)

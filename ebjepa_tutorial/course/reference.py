@@ -1,11 +1,6 @@
 """Reference figures a notebook prints beside the learner's result: the course's class run of
 the same recipe, recorded by a benchmark's ``--record`` in ``checkpoints/reference.json`` (with
-its command, threads and date; the pages' ``<!--fig:KEY-->`` markers read it too, through
-``python -m tools.figures``), and the paper's (EB-JEPA, Terver et al., 2026, arXiv 2602.03604).
-
-    print(reference.compare("vicreg_probe_acc", 0.551))
-    # linear probe accuracy: yours 55.1% | the course's class run 55.4% (2 CPU threads, ...)
-    #     | the paper 90.1% (ResNet-18, 300 epochs on a GPU)
+its command, threads and date), and the paper's (EB-JEPA, Terver et al., 2026, arXiv 2602.03604).
 """
 
 from __future__ import annotations
@@ -33,58 +28,29 @@ class Metric:
 
 
 _IMAGE = "python -m research.benchmarks.image_jepa"
-_VIDEO = "python -m research.benchmarks.video_jepa"
-_WORLD = "python -m research.benchmarks.two_rooms"
 _PLANNING = "python -m research.benchmarks.planning"
-_CIFAR = "ResNet-18, 300 epochs on a GPU"
-_MPPI = "MPPI, a model trained on a GPU"
-_SHIPPED = "the course's shipped model"
+_CIFAR, _MPPI = "ResNet-18, 300 epochs on a GPU", "MPPI, a model trained on a GPU"
 _PROBE, _SUCCESS = "linear probe accuracy", "planning success"
-METRICS = {
-    "video_map": Metric("detection mAP over horizons 1-7", "{:.3f}", 0.607,
-                        "K = 4, trained on a GPU", _VIDEO),
-    "video_ap3_lead": Metric("K = 4's lead over K = 1 in AP three steps ahead", "{:.2f}"),
-    "world_probe_px": Metric("position probe error", "{:.2f} px", benchmark=_WORLD),
-    "random_walk_success": Metric("random-walk success", "{:.1%}"),
+BEYOND_PLANNERS = ("flat", "short", "learned_cost", "two_level")  # notebook 07's comparison
+METRICS = {  # the figures the notebooks print (the pages' others: tools/figures.py)
+    "vicreg_probe_acc": Metric(_PROBE, "{:.1%}", 0.901, _CIFAR, _IMAGE),
+    "sigreg_probe_acc": Metric(_PROBE, "{:.1%}", 0.910, _CIFAR, _IMAGE),
+    "vicreg_random_init_probe_acc": Metric("random-init probe accuracy", "{:.1%}",
+                                           benchmark=_IMAGE),
+    "sigreg_random_init_probe_acc": Metric("random-init probe accuracy", "{:.1%}",
+                                           benchmark=_IMAGE),
+    "video_map_class_K4": Metric("detection mAP, K = 4", "{:.3f}", 0.607,
+                                 "K = 4, trained on a GPU"),
+    "world_probe_px": Metric("position probe error", "{:.2f} px",
+                             benchmark="python -m research.benchmarks.two_rooms"),
     "planning_success_class": Metric(_SUCCESS, "{:.0%}", 0.97, _MPPI, _PLANNING),
-    "planning_success_shipped": Metric(_SUCCESS, "{:.0%}", 0.97, _MPPI, _PLANNING, _SHIPPED),
+    "planning_success_shipped": Metric(_SUCCESS, "{:.0%}", 0.97, _MPPI, _PLANNING,
+                                       "the course's shipped model"),
     "planning_success_refit": Metric(_SUCCESS, "{:.0%}", 0.97, _MPPI, _PLANNING,
                                      "the course's refitted model"),
-    "planning_success_live": Metric(_SUCCESS, "{:.0%}", 0.97, _MPPI,
-                                    ours="chapter 05's class model"),
-    "planning_success_shipped_fresh": Metric(_SUCCESS, "{:.1%}", 0.97, _MPPI, ours=_SHIPPED),
-    "planning_cpu_s_shipped": Metric("CPU seconds per episode", "{:.1f} s", ours=_SHIPPED),
-    "video_train_min": Metric("video JEPA class run (K = 4)", "{:.1f} min", benchmark=_VIDEO),
-    "world_train_min": Metric("world model class run", "{:.1f} min", benchmark=_WORLD),
-}
-for loss, name, paper in (("vicreg", "VICReg", 0.901), ("sigreg", "SIGReg", 0.910)):
-    METRICS |= {
-        f"{loss}_probe_acc": Metric(_PROBE, "{:.1%}", paper, _CIFAR, _IMAGE),
-        f"{loss}_random_init_probe_acc": Metric("random-init probe accuracy", "{:.1%}",
-                                                benchmark=_IMAGE),
-        f"{loss}_shipped_probe_acc": Metric(_PROBE, "{:.1%}", paper, _CIFAR, ours=_SHIPPED),
-        f"{loss}_train_min": Metric(f"{name} class run", "{:.1f} min", benchmark=_IMAGE)}
-del loss, name, paper
-METRICS |= {  # the class runs pooled over seeds, and the longer shipped runs
-    f"video_map_{run}_K{k}": Metric(f"detection mAP, K = {k}", "{:.3f}", paper,
-                                    f"K = {k}, trained on a GPU", ours=ours)
-    for k, paper in ((4, 0.607), (1, 0.383))
-    for run, ours in (("class", "the course's class run"), ("long", _SHIPPED))}
-METRICS |= {  # compute times of a whole notebook
-    f"notebook_{nb:02d}_{scale}": Metric(f"notebook {nb:02d} at {scale}", "{:.0f} s",
-                                         benchmark="python -m research.benchmarks.notebooks")
-    for nb in range(8) for scale in ("ci", "class")}
-
-TABLE_4 = {"no_variance": 0.47, "no_covariance": 0.46, "no_temporal": 0.61, "no_idm": 0.01}
-METRICS |= {  # the paper's Table 4 at class length: chapter 05's class run without one term
-    f"planning_success_{suffix}": Metric(_SUCCESS, "{:.0%}", paper, "MPPI, the paper's Table 4",
-                                         _PLANNING)
-    for suffix, paper in TABLE_4.items()}
-
-BEYOND_PLANNERS = ("flat", "short", "learned_cost", "two_level")  # notebook 07's comparison
-METRICS |= {f"beyond_{world}_{planner}": Metric(_SUCCESS, "{:.1%}",
-                                                benchmark="python -m research.benchmarks.beyond")
-            for world in ("two_rooms", "three_rooms") for planner in BEYOND_PLANNERS}
+} | {f"beyond_{world}_{planner}": Metric(_SUCCESS, "{:.1%}",
+                                         benchmark="python -m research.benchmarks.beyond")
+     for world in ("two_rooms", "three_rooms") for planner in BEYOND_PLANNERS}
 
 
 def load(path: Path = REFERENCE_FILE) -> dict:

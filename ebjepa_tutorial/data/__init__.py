@@ -12,8 +12,8 @@ from .paths import CorruptDataError, DataNotFoundError, cache_dir, data_dir
 
 def random_subset(images: torch.Tensor, labels: torch.Tensor, n: int,
                   seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-    """``n`` of the ``(N, ...)`` images and their labels, drawn with ``seed`` (all when ``n >= N``):
-    never the first ``n``, which in a copy stored class by class would be one class."""
+    """``n`` of the ``(N, ...)`` images and their labels, drawn with ``seed`` (all if ``n >= N``),
+    not the first ``n``, which in a copy stored class by class would be one class."""
     if n >= len(images):
         return images, labels
     keep = torch.randperm(len(images), generator=torch.Generator().manual_seed(seed))[:n]

@@ -1,16 +1,14 @@
 """CIFAR-10 (Krizhevsky, 2009) as uint8 tensors, read through ``torchvision.datasets``.
 
-:func:`load_cifar10` looks in the data directory for the official release extracted, then a
-tree of class folders, then such a tree packed as ``cifar10*.tar.gz``, and downloads the
-official archive (MD5-checked) only when none is there; ``data/README.md`` gives the paths.
-Decoded image folders are cached as arrays, so only their first load is slow.
+:func:`load_cifar10` reads the official release (``cifar-10-batches-py/``, MD5-checked by
+torchvision), else class folders packed as ``cifar10*.tar.gz`` (decoded once, then cached as
+arrays), and downloads the official archive only when neither is there (``data/README.md``).
 """
 
 from __future__ import annotations
 
 import gzip
 import os
-import shutil
 import tarfile
 import tempfile
 import zlib
@@ -20,46 +18,30 @@ from typing import NamedTuple
 import numpy as np
 import torch
 from torchvision import datasets
-from torchvision.datasets.utils import extract_archive
 from torchvision.transforms import v2
 from tqdm.auto import tqdm
 
-from .paths import (
-    CorruptDataError,
-    DataNotFoundError,
-    cache_dir,
-    check_split,
-    data_dir,
-    read_cache,
-    source_key,
-    write_cache,
-)
+from .paths import CorruptDataError, DataNotFoundError, cached_arrays, check_split, data_dir
 
 CIFAR10_CLASSES = (
     "airplane", "automobile", "bird", "cat", "deer", "dog", "frog", "horse", "ship", "truck",
 )  # fmt: skip
-TREE_DIRS = ("cifar10", "cifar-10", "cifar10-jpeg", ".")
-SIZE = 32
 # Your own images of another size: the largest centred square, resized to 32x32.
-FIT = v2.Compose([v2.PILToTensor(), v2.Resize(SIZE), v2.CenterCrop(SIZE)])
+FIT = v2.Compose([v2.PILToTensor(), v2.Resize(32), v2.CenterCrop(32)])
 
 
 class Source(NamedTuple):
-    """Where one split was found: ``kind`` is official, tree or packed."""
+    """Where CIFAR-10 was found: ``kind`` is "official" or "packed"."""
 
     kind: str
     path: Path
 
 
 def find_cifar10(directory: Path, split: str) -> Source | None:
-    """The first CIFAR-10 source for ``split`` in ``directory`` (search order above), or None."""
+    """The official release in ``directory``, else its first ``cifar10*.tar.gz``, else None."""
     if (directory / datasets.CIFAR10.base_folder).is_dir():
         return Source("official", directory)
-    for name in TREE_DIRS:
-        split_dir = directory / name / split
-        if any((split_dir / c).is_dir() for c in CIFAR10_CLASSES):
-            return Source("tree", split_dir)
-    packed = sorted([*directory.glob("cifar10*.tar.gz"), *directory.glob("cifar10*.tgz")])
+    packed = sorted(directory.glob("cifar10*.tar.gz"))
     return Source("packed", packed[0]) if packed else None
 
 
@@ -67,8 +49,7 @@ def _missing_message(directory: Path, split: str) -> str:
     return (
         f"CIFAR-10 ({split} split) was not found. Looked in {directory} for, in this order:\n"
         f"  {directory / datasets.CIFAR10.base_folder}/      the official release, extracted\n"
-        f"  {directory / 'cifar10' / split}/<class>/*.jpg   your own images, a folder per class\n"
-        f"  {directory / 'cifar10*.tar.gz'}      such a tree of folders, packed\n"
+        f"  {directory / 'cifar10*.tar.gz'}      folders {split}/<class>/ of images, packed\n"
         "To get it: call load_cifar10(download=True) on a machine with internet (torchvision\n"
         f"downloads {datasets.CIFAR10.url} and checks its MD5), or set EBJEPA_DATA\n"
         "(or pass root=...) to a folder that holds one of the above."
@@ -83,31 +64,22 @@ def _read_official(directory: Path, split: str, download: bool) -> tuple[np.ndar
             f"cannot read CIFAR-10 from {directory / datasets.CIFAR10.base_folder}: {err}. A file "
             "there is damaged or incomplete; delete the folder and load again (data/README.md)."
         ) from err
-    images = np.ascontiguousarray(dataset.data.transpose(0, 3, 1, 2))  # NHWC -> NCHW
-    return images, np.asarray(dataset.targets, dtype=np.int64)
-
-
-def _download(directory: Path, split: str) -> tuple[np.ndarray, np.ndarray]:
-    try:
-        return _read_official(directory, split, download=True)
     except (OSError, ValueError) as err:  # no network, an HTTP error, a bad download
         message = _missing_message(directory, split)
         raise DataNotFoundError(f"{message}\n\nThe download failed: {err}") from err
+    images = np.ascontiguousarray(dataset.data.transpose(0, 3, 1, 2))  # NHWC -> NCHW
+    return images, np.asarray(dataset.targets, dtype=np.int64)
 
 
 def _read_tree(split_dir: Path) -> tuple[np.ndarray, np.ndarray]:
     """``<split>/<class>/*`` -> images (N, 3, 32, 32) uint8, labels (N,) int64, in sorted
     order (CIFAR-10's class names sort into its own order)."""
-    try:
-        folder = datasets.ImageFolder(str(split_dir), transform=FIT, allow_empty=True)
-    except OSError as err:
-        raise DataNotFoundError(f"no class folders in {split_dir}: {err}") from err
+    folder = datasets.ImageFolder(str(split_dir), transform=FIT, allow_empty=True)
     present = {folder.classes[label] for label in folder.targets}
-    if missing := [c for c in CIFAR10_CLASSES if c not in present]:
-        raise DataNotFoundError(f"no images for class(es) {', '.join(missing)} in {split_dir}/")
-    if extra := sorted(set(folder.classes) - set(CIFAR10_CLASSES)):
-        raise CorruptDataError(f"{split_dir} holds folders that are not CIFAR-10 classes: {extra}")
-    images = np.empty((len(folder), 3, SIZE, SIZE), dtype=np.uint8)
+    if tuple(folder.classes) != CIFAR10_CLASSES or len(present) < len(CIFAR10_CLASSES):
+        raise DataNotFoundError(f"{split_dir} must hold images in a folder per class, "
+                                f"{', '.join(CIFAR10_CLASSES)}; has some for {sorted(present)}")
+    images = np.empty((len(folder), 3, 32, 32), dtype=np.uint8)
     for i in tqdm(range(len(folder)), desc="decoding", leave=False):
         try:
             images[i] = folder[i][0].numpy()
@@ -116,51 +88,21 @@ def _read_tree(split_dir: Path) -> tuple[np.ndarray, np.ndarray]:
     return images, np.asarray(folder.targets, dtype=np.int64)
 
 
-def _unpack(path: Path) -> Path:
-    """Extract ``path`` once into the cache, via a temp folder renamed when complete (processes
-    of one torchrun may race here; the first rename wins)."""
-    target = cache_dir() / f"{path.name.split('.')[0]}-{source_key(path)}"
-    if target.is_dir():
-        return target
-    target.parent.mkdir(parents=True, exist_ok=True)
-    partial = Path(tempfile.mkdtemp(dir=target.parent, prefix=f".{target.name}.", suffix=".part"))
-    try:
-        extract_archive(str(path), str(partial))
-        partial.rename(target)
-    except (EOFError, tarfile.TarError, zlib.error, gzip.BadGzipFile) as err:
-        raise CorruptDataError(
-            f"cannot read CIFAR-10 from {path}: {type(err).__name__}: {err}. The archive is "
-            "damaged or incomplete; replace it (see data/README.md)."
-        ) from err
-    except OSError:
-        if not target.is_dir():  # not another process's finished copy: a real failure
-            raise
-    finally:
-        shutil.rmtree(partial, ignore_errors=True)
-    return target
-
-
 def _read_packed(path: Path, split: str) -> tuple[np.ndarray, np.ndarray]:
-    """A tree stored as ``[<top>/]<split>/<class>/<file>`` inside a tar.gz."""
-    unpacked = _unpack(path)
-    for split_dir in (unpacked / split, *sorted(unpacked.glob(f"*/{split}"))):
-        if any((split_dir / c).is_dir() for c in CIFAR10_CLASSES):
-            return _read_tree(split_dir)
+    """A tree stored as ``[<top>/]<split>/<class>/<file>`` in a tar.gz, split unpacked in /tmp."""
+    with tempfile.TemporaryDirectory() as unpacked:
+        try:
+            with tarfile.open(path) as archive:  # only this split's files
+                archive.extractall(unpacked, [m for m in archive if split in m.name.split("/")[:2]])
+        except (EOFError, tarfile.TarError, zlib.error, gzip.BadGzipFile) as err:
+            raise CorruptDataError(
+                f"cannot read CIFAR-10 from {path}: {type(err).__name__}: {err}. The archive is "
+                "damaged or incomplete; replace it (see data/README.md)."
+            ) from err
+        for split_dir in (Path(unpacked) / split, *sorted(Path(unpacked).glob(f"*/{split}"))):
+            if any((split_dir / c).is_dir() for c in CIFAR10_CLASSES):
+                return _read_tree(split_dir)
     raise DataNotFoundError(f"{path} holds no {split}/<class>/ folders of CIFAR-10 images")
-
-
-def _load(source: Source, split: str) -> tuple[np.ndarray, np.ndarray]:
-    """The arrays of a source; decoded image folders come from (and go to) the cache."""
-    if source.kind == "official":
-        return _read_official(source.path, split, download=False)
-    folders = [source.path / c for c in CIFAR10_CLASSES if (source.path / c).is_dir()]
-    keyed = [source.path, *folders] if source.kind == "tree" else [source.path]
-    name = f"cifar10-{split}-{source.kind}-{source_key(*keyed)}"
-    if (arrays := read_cache(name)) is not None:
-        return arrays
-    read = _read_tree(source.path) if source.kind == "tree" else _read_packed(source.path, split)
-    write_cache(name, *read)
-    return read
 
 
 def load_cifar10(split: str = "train", root: str | os.PathLike | None = None,
@@ -175,5 +117,9 @@ def load_cifar10(split: str = "train", root: str | os.PathLike | None = None,
     source = find_cifar10(directory, split)
     if source is None and not download:
         raise DataNotFoundError(_missing_message(directory, split))
-    images, labels = _download(directory, split) if source is None else _load(source, split)
+    if source is None or source.kind == "official":
+        images, labels = _read_official(directory, split, download=source is None)
+    else:  # decoding the images takes seconds: their arrays are cached
+        images, labels = cached_arrays(source.path, f"cifar10-{split}-packed",
+                                       lambda: _read_packed(source.path, split))
     return torch.from_numpy(images), torch.from_numpy(labels)

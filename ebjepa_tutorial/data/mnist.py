@@ -25,16 +25,9 @@ MNIST_FILES = {  # split -> (images, labels), without the .gz
 }
 
 
-def _folders(directory: Path) -> list[Path]:
-    return [directory / "MNIST" / "raw", directory / "mnist", directory]
-
-
 def find_mnist(directory: Path, split: str) -> tuple[Path, Path] | None:
-    """Paths of the (images, labels) IDX files of ``split`` under ``directory``, or None.
-
-    Both from one folder (Fashion-MNIST has the same names); ``.gz`` first.
-    """
-    for folder in _folders(directory):
+    """Paths of the (images, labels) IDX files of ``split`` in one folder, ``.gz`` first."""
+    for folder in (directory / "MNIST" / "raw", directory / "mnist", directory):
         pair = [next((p for p in (folder / f"{stem}.gz", folder / stem) if p.is_file()), None)
                 for stem in MNIST_FILES[split]]  # fmt: skip
         if all(pair):
@@ -43,10 +36,11 @@ def find_mnist(directory: Path, split: str) -> tuple[Path, Path] | None:
 
 
 def _missing_message(directory: Path, split: str) -> str:
-    names = [f"{stem}.gz" for stem in MNIST_FILES[split]]
+    images, labels = (f"{stem}.gz" for stem in MNIST_FILES[split])
     message = (
-        f"MNIST ({split} split) was not found. Looked for {names[0]} and {names[1]}\n"
-        f"(or the same files uncompressed) in: {', '.join(map(str, _folders(directory)))}.\n"
+        f"MNIST ({split} split) was not found. Looked for {images} and {labels}\n"
+        f"(or the same files uncompressed) in {directory}/MNIST/raw, {directory}/mnist "
+        f"and {directory}.\n"
         "To get them: call load_mnist(download=True) on a machine with internet (torchvision\n"
         f"downloads them from {datasets.MNIST.mirrors[0]} and checks their MD5), or set\n"
         "EBJEPA_DATA (or pass root=...) to a folder that holds them."
@@ -62,34 +56,15 @@ def _read_idx(path: Path, read) -> torch.Tensor:
     try:
         if path.suffix != ".gz":
             return read(str(path))
-        with tempfile.TemporaryDirectory() as folder:
+        with tempfile.TemporaryDirectory() as folder:  # torchvision reads plain files only
             plain = Path(folder) / path.stem
-            with gzip.open(path, "rb") as packed:
-                plain.write_bytes(packed.read())
+            plain.write_bytes(gzip.decompress(path.read_bytes()))
             return read(str(plain))
     except (OSError, EOFError, zlib.error, AssertionError, RuntimeError, ValueError) as err:
         raise CorruptDataError(
             f"cannot read {path}: {type(err).__name__}: {err}. The file is truncated, damaged "
             "or not an IDX file of unsigned bytes; replace it (see data/README.md)."
         ) from err
-
-
-def _read_split(images_path: Path, labels_path: Path) -> tuple[torch.Tensor, torch.Tensor]:
-    images = _read_idx(images_path, read_image_file)  # (N, 28, 28) uint8
-    labels = _read_idx(labels_path, read_label_file)  # (N,) int64
-    if len(images) != len(labels):
-        raise CorruptDataError(f"{images_path} holds {len(images):,} images but {labels_path} "
-                               f"{len(labels):,} labels: one of them is from another data set")
-    return images, labels
-
-
-def _download(directory: Path, split: str) -> tuple[torch.Tensor, torch.Tensor]:
-    try:
-        dataset = datasets.MNIST(str(directory), train=split == "train", download=True)
-    except (OSError, RuntimeError, ValueError) as err:  # no network, HTTP error, wrong MD5
-        message = _missing_message(directory, split)
-        raise DataNotFoundError(f"{message}\n\nThe download failed: {err}") from err
-    return dataset.data, dataset.targets
 
 
 def load_mnist(split: str = "train", root: str | os.PathLike | None = None,
@@ -102,7 +77,15 @@ def load_mnist(split: str = "train", root: str | os.PathLike | None = None,
     check_split(split)
     directory = data_dir(root)
     files = find_mnist(directory, split)
-    if files is None and not download:
+    if files is not None:
+        images, labels = _read_idx(files[0], read_image_file), _read_idx(files[1], read_label_file)
+    elif not download:
         raise DataNotFoundError(_missing_message(directory, split))
-    images, labels = _download(directory, split) if files is None else _read_split(*files)
+    else:
+        try:
+            dataset = datasets.MNIST(str(directory), train=split == "train", download=True)
+        except (OSError, RuntimeError, ValueError) as err:  # no network, HTTP error, wrong MD5
+            message = _missing_message(directory, split)
+            raise DataNotFoundError(f"{message}\n\nThe download failed: {err}") from err
+        images, labels = dataset.data, dataset.targets
     return images[:, None].contiguous(), labels.long()

@@ -23,9 +23,8 @@ CHUNK = 128  # clips pasted at a time: bounds the index memory, stays in cache
 
 @dataclass
 class MovingMNISTBatch:
-    """Clips and the exact position of every digit in every frame.
-
-    ``N`` clips, ``T`` frames, ``K`` digits per clip, frames ``S x S``:
+    """Clips and the exact position of every digit in every frame; ``N`` clips, ``T`` frames,
+    ``K`` digits per clip, frames ``S x S``:
 
     - ``clips``: uint8 ``(N, T, 1, S, S)``
     - ``centres``: float32 ``(N, T, K, 2)``, ``(x, y)`` centre of the ink box, in pixel units
@@ -49,11 +48,8 @@ class MovingMNISTBatch:
 
 
 def split_digits(digits, n_train: int = 8000) -> tuple[torch.Tensor, torch.Tensor]:
-    """Split digits ``(N, ...)`` into ``n_train`` training and ``N - n_train`` held-out digits.
-
-    A permutation seeded with 0 (the MNIST test file's halves come from different
-    writers), so evaluation clips can use only digits the model never saw.
-    """
+    """Digits ``(N, ...)`` -> ``n_train`` training and ``N - n_train`` held-out digits, by a
+    permutation seeded with 0 (the MNIST test file's halves come from different writers)."""
     n = len(digits)
     if not 0 < n_train < n:
         raise ValueError(f"n_train must be between 1 and {n - 1} for {n} digits, got {n_train}")
@@ -78,12 +74,9 @@ def ink_boxes(digits: torch.Tensor) -> torch.Tensor:
 
 def bounce_trajectories(start: torch.Tensor, velocity: torch.Tensor, n_frames: int,
                         limit: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Move points in straight lines inside ``[0, limit]``, reflecting at the edges.
-
-    ``start``, ``velocity``: ``(..., 2)`` -> ``positions``, ``velocities``, each
-    ``(n_frames, ..., 2)``; a reflected component's velocity changes sign. Needs
-    ``|velocity| <= limit``, so that a step crosses at most one edge per axis.
-    """
+    """Points moving in straight lines inside ``[0, limit]``, reflected at the edges (a step
+    crosses at most one edge per axis, as ``|velocity| <= limit``): ``start``, ``velocity``
+    ``(..., 2)`` -> ``positions``, ``velocities``, each ``(n_frames, ..., 2)``."""
     position, velocity = start.clone(), velocity.clone()
     positions, velocities = [], []
     for _ in range(n_frames):
@@ -98,12 +91,9 @@ def bounce_trajectories(start: torch.Tensor, velocity: torch.Tensor, n_frames: i
 
 
 def paste_digits(frames: torch.Tensor, patches: torch.Tensor, offsets: torch.Tensor) -> None:
-    """Paste patches into ``frames`` in place, combining overlaps by maximum.
-
-    ``frames``: uint8 ``(M, S, S)``, contiguous; ``patches``: uint8 ``(M, K, h, w)``;
-    ``offsets``: int64 ``(M, K, 2)``, ``(x, y)`` top-left of each patch, inside the frame.
-    One ``scatter_reduce`` writes every pixel at its flat index ``(y + i) * S + (x + j)``.
-    """
+    """Paste uint8 ``patches`` ``(M, K, h, w)`` into uint8 ``frames`` ``(M, S, S)`` in place,
+    top-left corners at ``offsets`` ``(M, K, 2)`` ``(x, y)``, overlaps combined by maximum:
+    one ``scatter_reduce`` writes every pixel at its flat index ``(y + i) * S + (x + j)``."""
     m, k, h, w = patches.shape
     size = frames.shape[-1]
     rows, cols = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
@@ -115,38 +105,29 @@ def paste_digits(frames: torch.Tensor, patches: torch.Tensor, offsets: torch.Ten
 
 
 def _check(digits, speed: float, **counts) -> tuple[torch.Tensor, float]:
-    """uint8 ``digits`` ``(N, 1, h, h)`` or ``(N, h, h)`` as ``(N, h, h)`` and the free range
-    ``64 - h``; or a clear error for them, a count that is not a positive int, or the speed."""
-    if digits.ndim == 4 and digits.shape[1] == 1:
-        digits = digits[:, 0]
-    if digits.ndim != 3 or digits.shape[0] == 0:
-        raise ValueError(f"digits must be (N, 1, H, W) or (N, H, W) with N >= 1, got "
-                         f"{tuple(digits.shape)}; pass the images returned by load_mnist")
+    """``digits`` as uint8 ``(N, h, h)`` and the free range ``64 - h``, or a clear error."""
+    digits = digits[:, 0] if digits.ndim == 4 and digits.shape[1] == 1 else digits
+    if digits.ndim != 3 or len(digits) == 0 or not digits.shape[1] == digits.shape[2] <= 64:
+        raise ValueError(f"digits must be square, (N, 1, H, W) or (N, H, W) with N >= 1 and H "
+                         f"<= 64, got {tuple(digits.shape)}; pass the images from load_mnist")
     if digits.dtype != torch.uint8:
         raise TypeError(f"digits must be uint8 in 0..255, got {digits.dtype}; convert floats "
                         "in [0, 1] with (x * 255).round().to(torch.uint8)")
-    for name, value in counts.items():
-        if not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name} must be a positive int, got {value!r}")
-    h, w = digits.shape[1:]
-    if h != w or h > FRAME_SIZE:
-        raise ValueError(f"digits must be square and fit in 64x64 frames, got {h}x{w}")
-    limit = float(FRAME_SIZE - h)
-    if not 0 <= speed <= limit:
-        raise ValueError(f"speed must be in [0, {limit}] px/frame (the free range), got {speed}")
+    limit = float(FRAME_SIZE - digits.shape[1])
+    if not all(isinstance(v, int) and v >= 1 for v in counts.values()) or not 0 <= speed <= limit:
+        raise ValueError(f"{', '.join(counts)} must be positive ints and speed in [0, {limit}] "
+                         f"px/frame (the free range); got {counts}, speed={speed}")
     return digits, limit
 
 
 def paste_clips(digits: torch.Tensor, digit_ids: torch.Tensor,
                 offsets: torch.Tensor) -> torch.Tensor:
-    """uint8 clips ``(N, T, 1, 64, 64)``: digit ``digit_ids[n, k]`` ``(N, K)`` of
-    ``digits`` ``(D, h, w)`` pasted at ``offsets[n, t, k]`` ``(N, T, K, 2)``, ``CHUNK``
-    clips at a time."""
+    """uint8 clips ``(N, T, 1, 64, 64)``: digit ``digit_ids[n, k]`` ``(N, K)`` of ``digits``
+    ``(D, h, w)`` pasted at ``offsets[n, t, k]`` ``(N, T, K, 2)``, ``CHUNK`` clips at a time."""
     (n_clips, n_frames, n_digits, _), (h, w) = offsets.shape, digits.shape[1:]
-    clips = torch.empty(n_clips, n_frames, 1, FRAME_SIZE, FRAME_SIZE, dtype=torch.uint8)
+    clips = torch.zeros(n_clips, n_frames, 1, FRAME_SIZE, FRAME_SIZE, dtype=torch.uint8)
     for lo in range(0, n_clips, CHUNK):
         hi = min(lo + CHUNK, n_clips)
-        clips[lo:hi].zero_()
         patches = digits[digit_ids[lo:hi]].unsqueeze(1).expand(-1, n_frames, -1, -1, -1)
         paste_digits(clips[lo:hi].view(-1, FRAME_SIZE, FRAME_SIZE),
                      patches.reshape(-1, n_digits, h, w),
@@ -180,11 +161,9 @@ def generate_moving_mnist(digits, n_clips: int, n_frames: int = 10, n_digits: in
 
 
 def centres_to_grid(centres: torch.Tensor) -> torch.Tensor:
-    """Detection targets: which cells of a ``GRID x GRID`` (8 x 8) tiling hold a digit centre.
-
-    ``centres``: ``(..., K, 2)`` as ``(x, y)`` pixels in a 64 x 64 frame -> float32
-    ``(..., GRID, GRID)`` of 0/1, indexed ``[y cell, x cell]``.
-    """
+    """Detection targets, the cells of a ``GRID x GRID`` (8 x 8) tiling that hold a digit centre:
+    ``centres`` ``(..., K, 2)``, ``(x, y)`` pixels in a 64 x 64 frame -> float32 ``(..., GRID,
+    GRID)`` of 0/1, indexed ``[y cell, x cell]``."""
     cell = torch.div(centres, FRAME_SIZE / GRID, rounding_mode="floor").long().clamp(0, GRID - 1)
     flat = cell[..., 1] * GRID + cell[..., 0]  # (..., K)
     target = torch.zeros(*flat.shape[:-1], GRID * GRID)

@@ -1,15 +1,12 @@
 """Offline Two Rooms trajectories from the paper's data policy, generated in batches.
 
-A persistent random walk: the heading turns each step by a von Mises increment (``kappa`` =
-5: consecutive headings agree with mean cosine I1(5)/I0(5) = 0.893); the step length is a
-normal (mean 1, std 0.4) truncated to [0.2, 1.8]. The action is the intended displacement;
-the dot moves by :func:`~ebjepa_tutorial.envs.two_rooms.transition`, as in the environment.
-
-Starts: ``door_fraction`` (35%) start 0.5 to 4 px in front of a door (on a random side,
-within 2 px of its centre row, aimed at it), so most of them change rooms; optionally
-``wall_fraction`` start in front of a wall, heading into it; the rest start uniformly on the
-floor with a uniform heading. Each trajectory gets a fresh layout. With ``walls=2`` a door or
-wall start faces one of the walls, picked at random (with one wall no pick is drawn).
+A persistent random walk: the heading turns each step by a von Mises(0, ``kappa`` = 5)
+increment (consecutive headings agree with mean cosine I1(5)/I0(5) = 0.893), the step length
+is a normal (mean 1, std 0.4) truncated to [0.2, 1.8]; the dot moves by the environment's
+:func:`~ebjepa_tutorial.envs.two_rooms.transition`. ``door_fraction`` (35%) start 0.5 to 4 px
+in front of a door (within 2 px of its centre row, aimed at it), so most of them change
+rooms; optionally ``wall_fraction`` start in front of a wall, heading into it; the rest start
+uniformly with a uniform heading. With ``walls=2`` a door or wall start faces one wall.
 """
 
 from __future__ import annotations
@@ -25,7 +22,6 @@ from .two_rooms import (
     HIGH,
     LOW,
     WALL_WIDTH,
-    check_layouts,
     random_layouts,
     render,
     room_of,
@@ -40,10 +36,8 @@ STEP_STD, STEP_RANGE = 0.4, (0.2, 1.8)  # the step length's normal: std and trun
 
 def sample_von_mises(kappa: float, shape, generator: torch.Generator) -> torch.Tensor:
     """Angles from a von Mises with mean 0 and concentration ``kappa`` > 0: float32 ``shape``.
-
     Best and Fisher's (1979) rejection sampler, vectorised: candidates in bulk, repeated
-    until enough are accepted (about 1.1 rounds at kappa 5).
-    """
+    until enough are accepted (about 1.1 rounds at kappa 5)."""
     if kappa <= 0:
         raise ValueError(f"kappa must be positive, got {kappa}")
     n = math.prod(shape)
@@ -75,10 +69,8 @@ def sample_truncated_normal(mean, std, low, high, shape, generator) -> torch.Ten
 
 
 def in_front_of_a_wall(layouts: torch.Tensor, generator: torch.Generator):
-    """A column 0.5 to 4 px in front of one wall (of the W, at random), on a random side.
-
-    layouts (B, 2W) -> wall_x, door_y, x, side (-1 left of the wall, +1 right), each (B,).
-    """
+    """A column 0.5 to 4 px in front of one wall (of the W, at random), on a random side:
+    layouts (B, 2W) -> wall_x, door_y, x, side (-1 left of the wall, +1 right), each (B,)."""
     n, walls = len(layouts), wall_count(layouts)
     if walls > 1:  # with one wall nothing is drawn: Two Rooms data keep their random stream
         pick = torch.randint(0, walls, (n,), generator=generator)
@@ -145,20 +137,14 @@ def generate_trajectories(n: int, steps: int = 16, seed=0, door_fraction: float 
 
     ``seed``: an int or a torch.Generator. Exactly ``round(door_fraction * n)`` start at a
     door, ``round(wall_fraction * n)`` of the others at a wall. ``walls``: 1 for Two Rooms,
-    2 for Three Rooms; ``layouts``: one per trajectory ``(n, 2W)`` instead of fresh ones.
-    The draws' order (layouts, starts, turns, step lengths) made the shipped models' data.
+    2 for Three Rooms; ``layouts``: ``(n, 2W)`` to use instead of fresh ones. The draws'
+    order (layouts, starts, turns, step lengths) made the shipped models' data.
     """
     if not (0 <= door_fraction and 0 <= wall_fraction and door_fraction + wall_fraction <= 1):
         raise ValueError("door_fraction and wall_fraction must be >= 0 with a sum <= 1, got "
                          f"{door_fraction} and {wall_fraction}")
     generator = as_generator(seed)
-    if layouts is None:
-        layouts = random_layouts(n, generator, walls)
-    elif layouts.shape[0] != n:
-        raise ValueError(f"layouts must hold one layout per trajectory, ({n}, 2W); got "
-                         f"{tuple(layouts.shape)}")
-    else:
-        check_layouts(layouts)
+    layouts = random_layouts(n, generator, walls) if layouts is None else layouts
     start, heading, door = random_starts(layouts, door_fraction, wall_fraction, generator)
     actions = random_walk(heading, steps, kappa, step_mean, generator)
     return Trajectories(roll_out(start, actions, layouts), actions, layouts, door)

@@ -1,11 +1,5 @@
-"""How good is a frozen representation? Linear probe and k-nearest-neighbour accuracy.
-
-The encoder runs once, in eval mode, over the un-augmented train and test images
-(:func:`embed`); a classifier fitted on the frozen train features ``(N, D)`` and labels
-``(N,)`` is scored on the test features: :func:`linear_probe`, or :func:`knn_predict`
-(the 20 nearest train features by cosine similarity vote with weights
-``exp(similarity / 0.07)``, the weighted kNN of Wu et al. 2018, also used by DINO).
-"""
+"""How good is a frozen representation? Linear probe and k-nearest-neighbour accuracy
+(chapters 01-02), on features of un-augmented images embedded once in eval mode."""
 
 from __future__ import annotations
 
@@ -25,16 +19,8 @@ from ..training.image import ImageJEPAConfig, resize
 KNN_K, KNN_TEMPERATURE = 20, 0.07  # the kNN's neighbours and the softness of their votes
 
 
-def _check_pair(features: torch.Tensor, labels: torch.Tensor, name: str) -> None:
-    if features.ndim != 2 or labels.ndim != 1 or len(features) != len(labels):
-        raise ValueError(
-            f"{name}: need features (N, D) and labels (N,), got {tuple(features.shape)} "
-            f"and {tuple(labels.shape)}"
-        )
-
-
 def accuracy(logits: torch.Tensor, labels: torch.Tensor) -> float:
-    """Fraction of rows of ``logits`` ``(N, C)`` whose arg-max is the label ``(N,)``."""
+    """Fraction of rows of ``logits (N, C)`` whose arg-max is the label ``(N,)``."""
     return (logits.argmax(dim=1) == labels).float().mean().item()
 
 
@@ -51,15 +37,10 @@ class ProbeResult:
 
 def linear_probe(train_features: torch.Tensor, train_labels: torch.Tensor,
                  test_features: torch.Tensor, test_labels: torch.Tensor) -> ProbeResult:
-    """Train a linear classifier on frozen features; report its test accuracy.
-
-    Features are standardised with the train split's mean and std, then ``nn.Linear(D, C)``
-    is trained with mini-batch Adam (batches of 512, weight decay 1e-4), the rate 1e-3
-    decaying along a cosine to 0, for 30 passes, seeded. ``C`` is ``max(label) + 1``. Never
-    choose the rate or the passes on the test split.
-    """
-    _check_pair(train_features, train_labels, "train")
-    _check_pair(test_features, test_labels, "test")
+    """A linear classifier on frozen features ``(N, D)``, labels ``(N,)``, standardised with
+    the train split's statistics: ``nn.Linear(D, C)``, seeded Adam (batches of 512, weight
+    decay 1e-4) at 1e-3 decaying along a cosine to 0, 30 passes (never chosen on the test
+    split)."""
     mean, std = train_features.mean(dim=0), train_features.std(dim=0) + 1e-6
     x_train = (train_features - mean) / std
     num_classes = int(max(train_labels.max(), test_labels.max())) + 1
@@ -89,8 +70,8 @@ def linear_probe(train_features: torch.Tensor, train_labels: torch.Tensor,
 def knn_predict(train_features: torch.Tensor, train_labels: torch.Tensor,
                 query_features: torch.Tensor) -> torch.Tensor:
     """Labels ``(Q,)`` predicted for queries ``(Q, D)`` by their ``KNN_K`` nearest train rows
-    (cosine similarity), each voting with weight ``exp(similarity / KNN_TEMPERATURE)``."""
-    _check_pair(train_features, train_labels, "train")
+    (cosine similarity), each voting with weight ``exp(similarity / KNN_TEMPERATURE)``: the
+    weighted kNN of Wu et al. 2018, also used by DINO."""
     k = min(KNN_K, len(train_features))
     num_classes = int(train_labels.max()) + 1
     train = F.normalize(train_features.float(), dim=1)
@@ -106,13 +87,8 @@ def knn_predict(train_features: torch.Tensor, train_labels: torch.Tensor,
 
 @torch.no_grad()
 def embed(encoder: nn.Module, images: torch.Tensor, size: int):
-    """Frozen features of un-augmented uint8 images ``(N, 3, 32, 32)`` at ``size``: ``(N, D)``
-    float32 on the CPU.
-
-    The images are normalised with the CIFAR-10 statistics and resized to ``size`` px (32:
-    no resizing). The encoder runs in eval mode (batch norm uses its running statistics);
-    its mode is restored afterwards.
-    """
+    """Frozen features ``(N, D)`` float32 on the CPU of uint8 images ``(N, 3, 32, 32)``,
+    normalised and resized to ``size`` px (32: not resized), the encoder in eval mode."""
     if images.dtype != torch.uint8:
         raise TypeError(f"embed expects the stored uint8 images, got {images.dtype}")
     device = next(encoder.parameters()).device
@@ -127,13 +103,10 @@ def embed(encoder: nn.Module, images: torch.Tensor, size: int):
 
 
 def probe_encoder(encoder, config: ImageJEPAConfig, train, test, cache: bool = False) -> dict:
-    """Probe and kNN test accuracy of frozen features at ``config.eval_image_size`` px;
-    ``train``, ``test``: (images, labels).
-
-    With ``cache``, the scores are kept in ``data/cache/probes/`` under a digest of the
-    encoder's weights, the protocol and the data, and read back when all three match.
-    (Delete that folder after editing this module: the digest cannot see code.)
-    """
+    """``{"probe_acc", "knn_acc"}`` on the test split of frozen features at
+    ``config.eval_image_size`` px; ``train``, ``test``: (images, labels). With ``cache``,
+    the scores are kept in ``data/cache/probes/`` under a digest of the encoder's weights,
+    the protocol and the data (delete it after editing this module: it cannot see code)."""
     path = _scores_path(encoder, config, train, test) if cache else None
     if path is not None and path.exists():
         return json.loads(path.read_text())
@@ -150,7 +123,7 @@ def probe_encoder(encoder, config: ImageJEPAConfig, train, test, cache: bool = F
 
 def _scores_path(encoder: nn.Module, config: ImageJEPAConfig, train, test) -> Path:
     """Where :func:`probe_encoder` keeps the scores of this encoder, protocol and data."""
-    digest = hashlib.sha1(protocol(config).encode())
+    digest = hashlib.sha1(f"probe and kNN (k = {KNN_K}) at {config.eval_image_size} px".encode())
     data = [("train", train[0]), ("train labels", train[1]),
             ("test", test[0]), ("test labels", test[1])]
     for name, tensor in [*encoder.state_dict().items(), *data]:
@@ -159,11 +132,3 @@ def _scores_path(encoder: nn.Module, config: ImageJEPAConfig, train, test) -> Pa
         digest.update(tensor.reshape(-1).view(torch.uint8).numpy().tobytes())
     return cache_dir() / "probes" / f"{digest.hexdigest()[:16]}.json"
 
-
-def protocol(config: ImageJEPAConfig) -> str:
-    """The evaluation protocol of :func:`probe_encoder`, in words, to print beside its numbers."""
-    size = config.eval_image_size
-    native = "their native size, no resizing" if size == 32 else "resized from 32 px"
-    return (f"linear probe (fit on the train split, scored on the test split) and kNN "
-            f"(k = {KNN_K}) on frozen encoder features of un-augmented {size}-px images "
-            f"({native}); the encoder was trained on {config.image_size}-px views")

@@ -1,5 +1,4 @@
-"""How well a distance between latents knows the way round the walls (notebook 07): the latent
-distance and a cost-to-go head set against the exact shortest way."""
+"""How well a distance between latents knows the way round the walls (notebook 07)."""
 
 from __future__ import annotations
 
@@ -12,14 +11,10 @@ from ..envs.two_rooms import shortest_path_length
 @torch.no_grad()
 def cost_calibration(model, head, n: int = 512, walls: int = 1, seed: int = 0,
                      rooms=None) -> dict[str, torch.Tensor]:
-    """``n`` pairs of dot positions in fresh layouts, each measured three ways.
-
-    Returns ``{"shortest": px of the shortest way, "head": head(z_a, z_b) in px,
-    "latent": ||z_a - z_b||}``, each ``(n,)`` on the CPU. ``rooms``: ``(a_room,
-    b_room)`` to draw the pairs from given rooms (0 the leftmost), e.g. ``(0, walls)``
-    for the outer rooms, where the shortest way and the straight line differ most;
-    None draws both positions anywhere on the floor.
-    """
+    """``n`` pairs of dot positions in fresh layouts, from the rooms ``rooms = (a_room,
+    b_room)`` (0 the leftmost; None: anywhere), each measured three ways: ``{"shortest": px
+    of the shortest way, "head": head(z_a, z_b) in px, "latent": ||z_a - z_b||}``, ``(n,)``
+    each on the CPU."""
     generator = torch.Generator().manual_seed(seed)
     layouts = random_layouts(n, generator, walls)
     picks = (None, None) if rooms is None else (torch.full((n,), r) for r in rooms)

@@ -1,12 +1,6 @@
-"""Notebook 03's evaluation: a detection probe on frozen video latents, AP per horizon.
-
-A small head trained on frozen latents marks which cells of an 8x8 grid hold a digit
-centre; on clips of held-out digits it is scored on latents predicted ``k = 1..7`` steps
-ahead, with the average precision (AP) over the whole evaluation set per horizon and their
-mean (mAP). The paper's parallel unroll scores, at horizon k, every frame it predicts k
-steps past its most recent true latent; the autoregressive one rolls each clip's first
-frames forward and scores one frame per clip and horizon, as a planner would use it.
-"""
+"""Notebook 03's evaluation: a probe on frozen video latents marks which cells of an 8x8
+grid hold a digit centre; on clips of held-out digits it is scored on latents predicted
+``k = 1..7`` steps ahead, by the average precision (AP) per horizon and their mean (mAP)."""
 
 from __future__ import annotations
 
@@ -28,9 +22,9 @@ def _pool(z: torch.Tensor) -> torch.Tensor:
 
 
 def scored_frames(unroll: str, context: int, horizon: int, n_frames: int) -> slice:
-    """The frames that ``horizon`` k scores: the first is ``context - 1 + k``, k steps past
-    the true context; the parallel unroll scores every later frame too (each also predicted
-    k steps past its most recent true latent), the autoregressive rollout that one alone."""
+    """The frames that ``horizon`` k scores, from ``context - 1 + k`` on: the paper's parallel
+    unroll scores every later frame too (each predicted k steps past its most recent true
+    latent), the autoregressive rollout (as a planner uses it) that one alone."""
     first = context - 1 + horizon
     return slice(first, n_frames if unroll == "parallel" else first + 1)
 
@@ -38,14 +32,9 @@ def scored_frames(unroll: str, context: int, horizon: int, n_frames: int) -> sli
 @torch.no_grad()
 def grid_features(model: VideoJEPA, clips: torch.Tensor, horizons: int = 7,
                   unroll: str = "parallel"):
-    """Pooled latents of uint8 ``clips`` ``(N, T, 1, 64, 64)`` for the probe, on the CPU,
-    100 clips at a time.
-
-    Returns ``encoded`` ``(N, T, C, 8, 8)``, every frame encoded, and
-    ``predicted``, a list over horizons k = 1..``horizons``: ``(N, F_k, C, 8, 8)``,
-    the predictions of the frames :func:`scored_frames` gives, made k steps ahead by
-    ``unroll`` (:data:`~ebjepa_tutorial.losses.rollout.UNROLLS`).
-    """
+    """Pooled latents on the CPU of uint8 ``clips (N, T, 1, 64, 64)``: ``encoded (N, T, C, 8,
+    8)``, every frame encoded, and ``predicted``, for k = 1..``horizons`` ``(N, F_k, C, 8,
+    8)``, the frames :func:`scored_frames` gives, predicted k steps ahead by ``unroll``."""
     context = model.config.context
     check_clips(clips, context + horizons)
     if unroll not in UNROLLS:
@@ -69,9 +58,6 @@ def fit_detection_probe(features: torch.Tensor, targets: torch.Tensor,
                         steps: int = 400) -> DetectionHead:
     """Train a :class:`DetectionHead` (seeded; binary cross-entropy, Adam at 3e-3, batches
     of 512) on frozen pooled latents ``(M, C, g, g)`` for 0/1 ``targets`` ``(M, g, g)``."""
-    if features.shape[0] != targets.shape[0] or features.shape[-2:] != targets.shape[-2:]:
-        raise ValueError(f"features {tuple(features.shape)} and targets "
-                         f"{tuple(targets.shape)} must be (M, C, g, g) and (M, g, g)")
     generator = torch.Generator().manual_seed(0)
     torch.manual_seed(0)
     probe = DetectionHead(features.shape[1], grid=targets.shape[-1])
@@ -88,15 +74,11 @@ def fit_detection_probe(features: torch.Tensor, targets: torch.Tensor,
 @torch.no_grad()
 def detection_report(model: VideoJEPA, probe_data, eval_data, horizons: int = 7,
                      probe_steps: int = 400, unroll: str = "parallel") -> dict:
-    """Fit the probe on ``probe_data``'s encoded frames; AP per horizon on ``eval_data``.
-
-    Both are ``MovingMNISTBatch`` (``eval_data`` of held-out digits); ``unroll``:
-    ``"parallel"`` or ``"autoregressive"`` (:func:`scored_frames`). Returns float64
-    ``(horizons,)`` tensors ``ap`` (probe on predicted latents), ``ap_encoded`` (on the true
-    encodings of the same frames: a perfect predictor) and ``ap_copy`` (on the most recent
-    true latent: a predictor that never moves), their means ``map``, ``map_encoded``,
-    ``map_copy``, and the ``probe``.
-    """
+    """Fit the probe on ``probe_data``'s encoded frames; AP per horizon on ``eval_data``
+    (``MovingMNISTBatch`` of held-out digits), ``unroll``: ``"parallel"`` or
+    ``"autoregressive"``. Returns float64 ``(horizons,)`` tensors ``ap`` (predicted latents),
+    ``ap_encoded`` (true encodings: a perfect predictor) and ``ap_copy`` (the most recent
+    true latent: a predictor that never moves), their means ``map...``, and the ``probe``."""
     context = model.config.context
     fit_features, _ = grid_features(model, probe_data.clips, horizons=1)  # encodings only
     with torch.enable_grad():

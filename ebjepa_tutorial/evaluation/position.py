@@ -1,10 +1,6 @@
-"""Does the latent know where the agent is? A position probe on frozen world-model latents.
-
-A linear map from latents ``(N, D)`` to the dot's position ``(N, 2)``, fitted on some
-frames and scored in pixels on others, always next to :func:`mean_baseline_px`, where a
-latent that ignores the dot lands. :func:`middle_wall_test` asks whether the *predictor*
-knows the walls, on the steps of real trajectories that a wall stopped.
-"""
+"""Does the latent know where the agent is (a linear position probe, scored in pixels
+beside :func:`mean_baseline_px`), and does the predictor know the walls
+(:func:`middle_wall_test`)? Chapters 05-06."""
 
 from __future__ import annotations
 
@@ -32,15 +28,11 @@ class PositionProbe(nn.Module):
         return self.head((latents - self.mean) / self.std)
 
 
-def _check_pair(latents, positions) -> None:
-    if (not isinstance(latents, torch.Tensor) or not isinstance(positions, torch.Tensor)
-            or latents.ndim != 2 or positions.ndim != 2 or len(latents) != len(positions)):
-        shapes = [tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
-                  for x in (latents, positions)]
-        raise ValueError(
-            f"need latents (N, D) and positions (N, 2) with the same N, got {shapes[0]} and "
-            f"{shapes[1]}; flatten time first: z.reshape(-1, D), positions.reshape(-1, 2)"
-        )
+def _check_pair(latents: torch.Tensor, positions: torch.Tensor) -> None:
+    if latents.ndim != 2 or positions.ndim != 2 or len(latents) != len(positions):
+        raise ValueError(f"need latents (N, D) and positions (N, 2) with the same N, got "
+                         f"{tuple(latents.shape)} and {tuple(positions.shape)}; flatten time "
+                         "first: z.reshape(-1, D), positions.reshape(-1, 2)")
 
 
 @torch.no_grad()
@@ -108,14 +100,13 @@ def _nearer(model, trajectories, steps, max_steps: int | None, through_wall: boo
 
 @torch.no_grad()
 def middle_wall_test(model, trajectories) -> dict:
-    """Does the predictor stop the dot at a wall, and move it elsewhere? Step by step.
+    """Does the predictor stop the dot at a wall, and move it elsewhere?
 
-    ``stopped``: on the steps a wall cut short by more than ``MIN_STOP`` px, the fraction of
-    one-step predictions ``Pred(Enc(o_t), a_t)`` nearer the real ``Enc(o_{t+1})`` than
-    ``Enc`` of the dot moved by the action alone, into the wall (1: the predictor knows the
-    wall). A predictor that never moves anything also scores 1, so the control is ``moved``:
-    on free steps of at least ``MIN_STOP`` px, the fraction of predictions nearer the real
-    next latent than the current one. Each over the first 1000 steps of its kind
+    ``stopped``: on steps a wall cut short by more than ``MIN_STOP`` px, the fraction of
+    predictions ``Pred(Enc(o_t), a_t)`` nearer the real ``Enc(o_{t+1})`` than ``Enc`` of the
+    dot moved by the action alone, into the wall. A predictor that never moves also scores
+    1, so the control is ``moved``: on free steps of at least ``MIN_STOP`` px, the fraction
+    nearer the real next latent than the current one. Each over the first 1000 such steps
     (``n_stopped``, ``n_moved``).
     """
     stopped_steps, moved_steps = _wall_steps(trajectories)
@@ -127,16 +118,17 @@ def middle_wall_test(model, trajectories) -> dict:
 
 @torch.no_grad()
 def wall_test_by_door_distance(model, trajectories, edges=(0, 8, 12, 16, 24, 65)) -> list[dict]:
-    """:func:`middle_wall_test`'s ``stopped``, split by where along the wall the dot was.
-
-    Every wall-stopped step goes in a bin by ``|y_t - door_y|``, its distance along the wall
-    from the door's centre of the wall that stopped it. One dict per bin ``[lo, hi)`` of
-    ``edges``: ``lo``, ``hi``, ``stopped`` (NaN for an empty bin) and ``n``.
-    """
+    """:func:`middle_wall_test`'s ``stopped`` by where along the wall the dot was: each
+    wall-stopped step in a bin ``[lo, hi)`` of ``edges`` by ``|y_t - door_y|``, the door of
+    the wall nearest in x (the one that stopped it: a step that meets a wall starts within
+    4.3 px of its centre column, and walls stand at least 14 px apart). One dict per bin:
+    ``lo``, ``hi``, ``stopped`` (NaN for an empty bin) and ``n``."""
     flags, b, t = _nearer(model, trajectories, _wall_steps(trajectories)[0], None,
                           through_wall=True)
     here = trajectories.positions[b, t]
-    along = (here[:, 1] - stopping_doors(here, trajectories.layouts[b])).abs()
+    walls = walls_of(trajectories.layouts[b]).to(here.dtype)  # (n, W, 2)
+    nearest = (walls[..., 0] - here[:, None, 0]).abs().argmin(dim=1)  # (n,)
+    along = (here[:, 1] - walls[torch.arange(len(walls)), nearest, 1]).abs()
     bins = []
     for lo, hi in zip(edges[:-1], edges[1:]):
         inside = (along >= lo) & (along < hi)
@@ -145,25 +137,11 @@ def wall_test_by_door_distance(model, trajectories, edges=(0, 8, 12, 16, 24, 65)
     return bins
 
 
-def stopping_doors(positions: torch.Tensor, layouts: torch.Tensor) -> torch.Tensor:
-    """The door row of the wall nearest in x to each dot: positions (n, 2), layouts (n, 2W) -> (n,).
-
-    For the start of a wall-stopped step, the wall that stopped it (a step that meets a wall
-    starts within 4.3 px of its centre column; walls stand at least 14 px apart).
-    """
-    walls = walls_of(layouts).to(positions.dtype)  # (n, W, 2)
-    nearest = (walls[..., 0] - positions[:, None, 0]).abs().argmin(dim=1)  # (n,)
-    return walls[torch.arange(len(walls)), nearest, 1]
-
-
 def probe_report(model: WorldModel, n_fit: int = 1000, n_test: int = 300, seed: int = 12345,
                  test_steps: int = 16, walls: int = 1):
-    """Position-probe error (px) of frozen latents on held-out trajectories, and the baseline.
-
-    The probe is fitted on every frame of ``n_fit`` fresh 17-frame trajectories (seed
-    ``seed``) and scored on every frame of ``n_test`` others of ``test_steps`` actions (seed
-    ``seed + 1``); ``walls``: 1 for Two Rooms, 2 for Three Rooms.
-    """
+    """``{"probe_px", "baseline_px", "probe"}``: a position probe fitted on every frame of
+    ``n_fit`` fresh 17-frame trajectories (seed ``seed``), scored on every frame of
+    ``n_test`` others of ``test_steps`` actions (seed ``seed + 1``) in ``walls``' world."""
     fit_trajectories = generate_trajectories(n_fit, seed=seed, walls=walls)
     test_trajectories = generate_trajectories(n_test, steps=test_steps, seed=seed + 1,
                                               walls=walls)

@@ -1,13 +1,6 @@
-"""Notebook 02's sweeps: the course's class-scale results, read back to be drawn.
-
-Two families of short runs of the class recipe (250 steps each, from the same initial
-weights), each scored with :func:`~ebjepa_tutorial.evaluation.classify.probe_encoder`:
-**sensitivity** (the EB-JEPA paper's Figure 3 at our scale: SIGReg's ``sigreg_lambda``
-and VICReg's ``std_coeff`` and ``cov_coeff``, each times the same factors) and
-**projector** (both methods without a projector and with outputs of several widths).
-About twenty class-scale runs, too many for a class period: ``python -m research.sweep
---scale class --out checkpoints/sweeps_class.json`` made the file the notebook reads.
-"""
+"""Notebook 02's sweeps, read back to be drawn: short runs of the class recipe scored with
+:func:`~.classify.probe_encoder`, **sensitivity** (the paper's Figure 3 at our scale) and
+**projector** (widths), made by ``python -m research.sweep --scale class``."""
 
 from __future__ import annotations
 
@@ -27,7 +20,8 @@ SWEEP_LABELS = {
 
 
 def shorten(config: ImageJEPAConfig, steps: int) -> ImageJEPAConfig:
-    """``config`` cut to ``steps`` steps, its warm-up cut to at most a tenth of them."""
+    """``config`` cut to ``steps`` steps, its warm-up cut to at most a tenth of them (the
+    sweeps' recipe, and the notebooks' exercises')."""
     return replace(config, steps=steps, warmup_steps=min(config.warmup_steps, steps // 10))
 
 

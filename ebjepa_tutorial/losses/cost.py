@@ -21,7 +21,4 @@ def spread_loss(distance: torch.Tensor, cap: float) -> torch.Tensor:
 def step_violation(step_distance: torch.Tensor, step_length: torch.Tensor) -> torch.Tensor:
     """``mean(relu(step_distance - step_length)^2)``: how far the head stretches the data's
     steps beyond what their actions asked for (0 when none is longer). Same shapes."""
-    if step_distance.shape != step_length.shape:
-        raise ValueError(f"step_distance and step_length must have the same shape, got "
-                         f"{tuple(step_distance.shape)} and {tuple(step_length.shape)}")
     return F.relu(step_distance - step_length).square().mean()

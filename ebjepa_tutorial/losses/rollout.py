@@ -1,11 +1,10 @@
 """The K-step loss of the video JEPA (notebook 03; the paper's multistep loss).
 
-The predictor sees the last ``context`` spatial latents ``(C, S, S)`` and guesses the next;
-training unrolls it on its own guesses for ``K`` steps, in one of two ways (the same at K = 1):
-``"parallel"`` (:func:`parallel_rollout_loss`, the paper's) predicts every frame of the clip at
-once from the previous step's sequence; ``"autoregressive"`` (:func:`rollout_loss`) rolls one
-true context forward, as a planner does. Unlike the paper's code, we average over predicted
-frames only, on the latents themselves (not after the projector).
+The predictor sees the last ``context`` latents ``(C, S, S)`` and guesses the next; training
+unrolls it on its own guesses for ``K`` steps, in one of two ways (the same at K = 1):
+``"parallel"`` (the paper's) predicts every frame of the clip at once from the previous step's
+sequence; ``"autoregressive"`` rolls one true context forward, as a planner does. Unlike the
+paper's code, we average over predicted frames only, on the latents (not after the projector).
 """
 
 from __future__ import annotations
@@ -20,22 +19,18 @@ Predictor = Callable[[torch.Tensor], torch.Tensor]  # (N, context, C, H, W) -> (
 
 def check_rollout_args(z: torch.Tensor, context: int, steps: int):
     """Raise a clear error unless ``z`` is ``(B, T, C, H, W)`` with ``T >= context + steps``."""
-    if not isinstance(z, torch.Tensor) or z.ndim != 5:
-        got = tuple(z.shape) if isinstance(z, torch.Tensor) else type(z).__name__
-        raise ValueError(f"latents must be (batch, time, channels, height, width), got {got}")
-    if not isinstance(steps, int) or steps < 1 or not isinstance(context, int) or context < 1:
-        raise ValueError(f"steps (K) and context must be ints >= 1, got {steps!r}, {context!r}")
-    if z.shape[1] < context + steps:
+    if z.ndim != 5:
+        raise ValueError(f"latents must be (batch, time, channels, height, width), got "
+                         f"{tuple(z.shape)}")
+    if steps < 1 or z.shape[1] < context + steps:
         raise ValueError(f"a clip of {z.shape[1]} frames is too short for {context} context "
-                         f"frames and {steps} prediction steps: use clips of at least "
-                         f"{context + steps} frames, or fewer steps")
+                         f"frames and {steps} prediction steps (steps >= 1): use clips of at "
+                         f"least {context + steps} frames, or fewer steps")
 
 
 def rollout(predictor: Predictor, window: torch.Tensor, steps: int):
     """Unroll the predictor on its own outputs: ``(N, context, C, H, W) -> (N, steps, C, H, W)``;
     each step slides the window (the oldest latent out, the prediction in)."""
-    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"steps must be an int >= 1 (predictions to unroll), got {steps!r}")
     predictions = []
     for _ in range(steps):
         z_next = predictor(window)

@@ -34,12 +34,8 @@ def epps_pulley(x: torch.Tensor, knots: int = 17, t_max: float = 3.0, sigma: flo
     Zero iff the empirical characteristic function matches exp(-t^2/2) at every knot.
     """
     if x.ndim not in (1, 2) or x.shape[0] < 2:
-        raise ValueError(
-            f"epps_pulley needs at least 2 samples along dimension 0 of a (N,) or (N, M) "
-            f"tensor, got shape {tuple(x.shape)}; a characteristic function of one sample "
-            "says nothing about its distribution")
-    if knots < 2:
-        raise ValueError(f"the trapezoid rule needs at least 2 knots, got {knots}")
+        raise ValueError(f"epps_pulley needs at least 2 samples along dimension 0 of a (N,) or "
+                         f"(N, M) tensor, got shape {tuple(x.shape)}")
     x = at_least_float32(x)  # cos(t x) of large arguments loses every digit in half precision
     t = torch.linspace(0.0, t_max, knots, device=x.device, dtype=x.dtype)  # (K,)
     ecf_real, ecf_imag = EmpiricalCF.apply(x, t_max / (knots - 1), knots)  # (K,) or (M, K)
@@ -105,8 +101,6 @@ def random_directions(dim: int, num_slices: int, generator: torch.Generator | No
                       device: torch.device | str | None = None) -> torch.Tensor:
     """``num_slices`` random unit vectors in R^dim, the columns of a ``(dim, num_slices)``
     matrix, drawn on the generator's device (CPU by default: the same on every machine)."""
-    if isinstance(num_slices, bool) or not isinstance(num_slices, int) or num_slices < 1:
-        raise ValueError(f"num_slices must be an int >= 1 (random directions), got {num_slices!r}")
     gen_device = generator.device if generator is not None else "cpu"
     directions = torch.randn(dim, num_slices, generator=generator, device=gen_device)
     directions = directions / directions.norm(dim=0, keepdim=True)
@@ -123,9 +117,6 @@ def sigreg(z: torch.Tensor, num_slices: int = 256, generator: torch.Generator | 
     _check_embeddings(z, "z", min_batch=2)
     if directions is None:
         directions = random_directions(z.shape[1], num_slices, generator, z.device)
-    if directions.ndim != 2 or directions.shape[0] != z.shape[1]:
-        raise ValueError(
-            f"directions must be (D, M) with D = {z.shape[1]}, got {tuple(directions.shape)}")
     z = at_least_float32(z)
     projected = z @ directions.to(z.device, z.dtype)  # (B, M)
     return epps_pulley(projected, scale_by_n=scale_by_n).mean()
@@ -141,7 +132,6 @@ def sigreg_loss(z_a: torch.Tensor, z_b: torch.Tensor, lam: float = 0.1, num_slic
     setting for ``scale_by_n=True``.
     """
     inv = invariance_term(z_a, z_b)
-    _check_embeddings(z_a, "z_a", min_batch=2)
     directions = random_directions(z_a.shape[1], num_slices, generator, z_a.device)
     reg = (sigreg(z_a, directions=directions, scale_by_n=scale_by_n)
            + sigreg(z_b, directions=directions, scale_by_n=scale_by_n)) / 2

@@ -14,9 +14,8 @@ Term = Callable[[torch.Tensor], torch.Tensor]  # embeddings (B, D) -> 0-d tensor
 
 
 def _check_embeddings(z: torch.Tensor, name: str = "z", min_batch: int = 1) -> None:
-    if not isinstance(z, torch.Tensor) or z.ndim != 2:
-        shape = tuple(z.shape) if isinstance(z, torch.Tensor) else type(z).__name__
-        raise ValueError(f"{name} must be a (batch, dim) tensor, got {shape}")
+    if z.ndim != 2:
+        raise ValueError(f"{name} must be a (batch, dim) tensor, got {tuple(z.shape)}")
     if z.shape[0] < min_batch:
         raise ValueError(f"{name} has a batch of {z.shape[0]}; this term needs at least "
                          f"{min_batch} samples (a standard deviation over one is undefined)")
@@ -26,7 +25,6 @@ def invariance_term(z_a: torch.Tensor, z_b: torch.Tensor) -> torch.Tensor:
     """Mean squared distance between two views ``(B, D)``: ``mean_{b,d} (z_a - z_b)^2``, the
     energy ``E(x, y)`` of a joint-embedding architecture, averaged over pairs."""
     _check_embeddings(z_a, "z_a")
-    _check_embeddings(z_b, "z_b")
     if z_a.shape != z_b.shape:
         raise ValueError(f"views differ in shape: {tuple(z_a.shape)} vs {tuple(z_b.shape)}")
     return F.mse_loss(z_a, z_b)
@@ -88,8 +86,7 @@ def vicreg_loss(z_a: torch.Tensor, z_b: torch.Tensor, inv_coeff: float = 1.0,
                 std_coeff: float = 1.0, cov_coeff: float = 1.0, variance: Term = variance_term,
                 covariance: Term = covariance_term) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """VICReg on two views ``(B, D)``: the weighted sum of :func:`vicreg_terms` and the terms,
-    detached 0-d tensors for logging. ``variance`` and ``covariance``: the regularisers
-    (notebook 00 trains with the learner's own)."""
+    detached 0-d tensors for logging (``variance``, ``covariance``: notebook 00's own)."""
     inv, var, cov = vicreg_terms(z_a, z_b, variance, covariance).values()
     total = inv_coeff * inv + std_coeff * var + cov_coeff * cov
     return total, {"invariance": inv.detach(), "variance": var.detach(),
@@ -98,6 +95,5 @@ def vicreg_loss(z_a: torch.Tensor, z_b: torch.Tensor, inv_coeff: float = 1.0,
 
 def vicreg(z_a: torch.Tensor, z_b: torch.Tensor, inv_coeff: float = 1.0, std_coeff: float = 1.0,
            cov_coeff: float = 1.0) -> torch.Tensor:
-    """The total of :func:`vicreg_loss`, a 0-d tensor: what notebook 01's exercise 1 writes.
-    (``losses.vicreg`` is this module; this function is ``losses.vicreg.vicreg``.)"""
+    """The total of :func:`vicreg_loss`, a 0-d tensor: what notebook 01's exercise 1 writes."""
     return vicreg_loss(z_a, z_b, inv_coeff, std_coeff, cov_coeff)[0]

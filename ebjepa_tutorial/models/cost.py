@@ -15,12 +15,8 @@ COST_SCALE = 10.0  # px per unit of embedding distance: keeps f's outputs near 1
 
 
 class CostToGo(nn.Module):
-    """``d(z, g) >= 0``: the estimated shortest-path length in px from latent ``z`` to ``g``.
-
-    Latents ``(..., D)`` and goals ``(..., D)`` (broadcast) -> ``(...)``:
-    ``COST_SCALE * ||f(z) - f(g)||``, with ``f`` an MLP ``D -> hidden -> hidden -> dims``
-    (GELU).
-    """
+    """``d(z, g) = COST_SCALE ||f(z) - f(g)||``, ``f`` a GELU MLP ``D -> hidden -> hidden ->
+    dims``: latents ``(..., D)`` and goals ``(..., D)`` (broadcast) -> ``(...)``."""
 
     def __init__(self, latent_dim: int, hidden: int = 256, dims: int = 32):
         super().__init__()
@@ -33,12 +29,8 @@ class CostToGo(nn.Module):
 
 
 class WithLearnedCost(nn.Module):
-    """A world model that plans with a cost-to-go head: ``PlannerConfig(cost="learned")``.
-
-    It encodes and imagines with ``world`` and scores with ``head``; the planner
-    (``planning.planning_cost``) and :func:`~ebjepa_tutorial.planning.run_episodes`
-    use it in place of the world model.
-    """
+    """A world model that plans with a cost-to-go head (``PlannerConfig(cost="learned")``): it
+    encodes and imagines with ``world`` and scores with ``head``."""
 
     def __init__(self, world: nn.Module, head: CostToGo):
         super().__init__()

@@ -1,9 +1,7 @@
 """The image encoder of notebooks 01-02, the EB-JEPA paper's CIFAR ResNet-18, and the residual
-block it shares with the video encoder.
-
-Images ``(B, 3, H, W)`` -> one embedding per image ``(B, widths[-1])``. The stem is a 3x3
-stride-1 convolution with padding 1 and no max-pool, so 32x32 inputs keep 32x32 maps in the
-first stage (the paper's code pads by 2: 34x34 maps).
+block it shares with the video encoder. Its stem is a 3x3 stride-1 convolution with padding 1
+and no max-pool, so 32x32 inputs keep 32x32 maps in the first stage (the paper's code pads by
+2: 34x34 maps).
 """
 
 from __future__ import annotations
@@ -20,11 +18,8 @@ def conv_bn_relu(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
 
 
 class ResidualBlock(nn.Module):
-    """conv3x3-BN-ReLU-conv3x3-BN plus a shortcut: ``(N, c_in, s, s) -> (N, c_out, s/stride, ...)``.
-
-    ``relu_out=False`` leaves the sum un-rectified (the video encoder's last block, so that its
-    latent can be negative).
-    """
+    """conv3x3-BN-ReLU-conv3x3-BN plus a shortcut: ``(N, c_in, s, s) -> (N, c_out, s/stride, ...)``;
+    ``relu_out=False`` leaves the sum un-rectified (the video encoder's last block)."""
 
     def __init__(self, c_in: int, c_out: int, stride: int = 1, relu_out: bool = True):
         super().__init__()
@@ -44,11 +39,8 @@ class ResidualBlock(nn.Module):
 
 
 class ResNet18(nn.Module):
-    """CIFAR ResNet-18: ``(B, 3, H, W) -> (B, widths[-1])``.
-
-    Stem (conv3x3, BN, ReLU), then 4 stages of ``blocks_per_stage`` residual blocks; stages 2-4
-    halve the resolution (32 -> 16 -> 8 -> 4), and global average pooling gives the embedding.
-    """
+    """CIFAR ResNet-18: ``(B, 3, H, W) -> (B, widths[-1])``: a stem (conv3x3, BN, ReLU), 4 stages
+    of ``blocks_per_stage`` residual blocks (stages 2-4 halve the resolution), average pooling."""
 
     def __init__(self, widths: tuple[int, int, int, int] = (64, 128, 256, 512),
                  blocks_per_stage: int = 2):
@@ -67,14 +59,8 @@ class ResNet18(nn.Module):
                 nn.init.kaiming_normal_(module.weight, mode="fan_out", nonlinearity="relu")
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if not isinstance(x, torch.Tensor) or x.ndim != 4:
-            shape = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
-            raise ValueError(f"the encoder expects images of shape (batch, 3, height, width), got "
-                             f"{shape}; use x.unsqueeze(0) for one image")
-        if x.shape[1] != 3:
-            raise ValueError(f"the encoder was built for 3 input channels, got {x.shape[1]}; "
-                             "channels go in dimension 1 (x.permute(0, 3, 1, 2) if channels-last)")
-        if not x.is_floating_point():
-            raise TypeError(f"the encoder expects float images, got {x.dtype}; convert uint8 "
-                            "images with ebjepa_tutorial.augment.normalize(images)")
+        if x.ndim != 4 or x.shape[1] != 3 or not x.is_floating_point():
+            raise ValueError(f"the encoder expects float images (batch, 3, height, width), got "
+                             f"{tuple(x.shape)} {x.dtype}: channels first, uint8 images through "
+                             "ebjepa_tutorial.augment.normalize, x.unsqueeze(0) for one image")
         return self.stages(self.stem(x)).mean(dim=(2, 3))  # (B, widths[-1], H/8, W/8) pooled

@@ -1,7 +1,5 @@
-"""The projector (or "expander") of joint-embedding SSL: features ``(B, in_dim)`` -> projections
-``(B, out_dim)``. VICReg and SIGReg shape the projections ``z``, so that the encoder's features
-``y``, which we keep, stay more general.
-"""
+"""The projector (or "expander"): features ``(B, in_dim)`` -> projections ``(B, out_dim)``.
+VICReg and SIGReg shape the projections, so that the features, which we keep, stay general."""
 
 from __future__ import annotations
 

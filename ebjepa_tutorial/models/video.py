@@ -1,15 +1,12 @@
-"""The video JEPA of notebook 03: per-frame encoder, ResUNet predictor, projector, probe heads.
+"""The video JEPA of notebook 03 (``S`` = latent side, ``C`` = latent channels):
 
-Shapes (``S`` = latent side, ``C`` = latent channels):
-
-- ``encode``: frames uint8 or float ``(B, T, 1, 64, 64)`` -> latents ``(B, T, C, S, S)``, each
-  frame on its own; the latent keeps a spatial map, so where a digit is stays where it is.
+- ``encode``: frames ``(B, T, 1, 64, 64)`` -> latents ``(B, T, C, S, S)``, each frame on its own;
+  the latent keeps a spatial map, so where a digit is stays where it is.
 - ``predictor``: the last ``context`` latents ``(N, context, C, S, S)`` -> the next latent
-  ``(N, C, S, S)``, through a small UNet over the window stacked along channels.
-- ``project``: latents ``(..., C, S, S)`` -> one projected vector per location ``(M, D)``; the
-  variance and covariance terms treat each location of each frame as a sample.
-- for evaluation only, on frozen latents: :class:`DetectionHead` (which cells of an 8x8 grid
-  hold a digit centre) and :class:`FrameDecoder` (latents back to pictures).
+  ``(N, C, S, S)``.
+- ``project``: latents ``(..., C, S, S)`` -> one vector per location ``(M, D)``, the rows that
+  the variance and covariance terms see.
+- evaluation heads on frozen latents: :class:`DetectionHead`, :class:`FrameDecoder`.
 
 ``full`` keeps the paper's sizes (S = 64, C = 16); ``ci`` and ``class`` stride down to a small
 latent and predict a change, ``zhat = z_last + UNet(window)``, zero at initialisation.
@@ -46,19 +43,14 @@ class VideoModelConfig:
 
     def __post_init__(self):
         object.__setattr__(self, "strides", tuple(int(s) for s in self.strides))
-        if len(self.strides) != 3 or min(self.strides) < 1 or self.stem_stride < 1:
-            raise ValueError(f"strides must be three positive ints and stem_stride a positive "
-                             f"int, got {self.strides} and {self.stem_stride}")
         down = self.stem_stride * math.prod(self.strides)
-        if FRAME_SIZE % down or (FRAME_SIZE // down) % 2**self.predictor_levels:
+        if down < 1 or FRAME_SIZE % down or (FRAME_SIZE // down) % 2**self.predictor_levels:
             raise ValueError(
-                f"the latent side 64 / (stem_stride * prod(strides)) = {FRAME_SIZE / down:g} "
-                f"must be a whole number that 2**predictor_levels = {2**self.predictor_levels} "
-                "divides; change the strides or predictor_levels")
+                f"the latent side 64 / (stem_stride * prod(strides)) = 64 / {down} must be a whole "
+                f"number that 2**predictor_levels = {2**self.predictor_levels} divides")
 
     @property
-    def latent_side(self) -> int:
-        """S, the side of the latent map."""
+    def latent_side(self) -> int:  # S
         return FRAME_SIZE // (self.stem_stride * math.prod(self.strides))
 
 
@@ -143,11 +135,10 @@ class VideoJEPA(nn.Module):
         """Frames ``(B, T, 1, 64, 64)`` (uint8 0..255 or float 0..1) -> ``(B, T, C, S, S)``."""
         if frames.ndim != 5 or frames.shape[2:] != (1, FRAME_SIZE, FRAME_SIZE):
             raise ValueError(f"frames must be (B, T, 1, 64, 64) clips, got {tuple(frames.shape)}")
-        x = frames.float() / 255 if frames.dtype == torch.uint8 else frames
         if frames.dtype != torch.uint8 and frames.numel() and frames.detach().amax() > 1:
             raise ValueError(f"float frames must be in 0..1, got values up to "
-                             f"{frames.detach().amax().item():g}: pass uint8 clips as "
-                             "generated, or divide by 255")
+                             f"{frames.detach().amax().item():g}: pass uint8 clips, or / 255")
+        x = frames.float() / 255 if frames.dtype == torch.uint8 else frames
         return self.encoder(x.flatten(0, 1)).unflatten(0, frames.shape[:2])
 
     def project(self, z: torch.Tensor) -> torch.Tensor:
@@ -156,11 +147,8 @@ class VideoJEPA(nn.Module):
 
 
 class DetectionHead(nn.Module):
-    """Digit-centre logits on a ``grid x grid`` map: ``(N, C, S, S) -> (N, grid, grid)``.
-
-    Average-pools the latent to the grid, then conv3x3-ReLU-conv3x3 (each cell sees its 3x3
-    neighbourhood); trained with binary cross-entropy on frozen latents.
-    """
+    """Digit-centre logits on a ``grid x grid`` map: ``(N, C, S, S) -> (N, grid, grid)``: the
+    latent average-pooled to the grid, then conv3x3-ReLU-conv3x3."""
 
     def __init__(self, channels: int, grid: int = 8):
         super().__init__()
@@ -173,11 +161,8 @@ class DetectionHead(nn.Module):
 
 
 class FrameDecoder(nn.Module):
-    """Pictures from latents, for looking only: ``(N, C, S, S) -> logits (N, 1, 64, 64)``.
-
-    A conv, one transposed conv per doubling from ``S`` to 64 (16 channels), a conv to one
-    channel; ``torch.sigmoid`` of the output is an image in [0, 1].
-    """
+    """Pictures from latents, for looking only: ``(N, C, S, S) -> logits (N, 1, 64, 64)``: a
+    conv, one transposed conv per doubling from ``S`` to 64, a conv to one channel."""
 
     def __init__(self, channels: int, latent_side: int):
         super().__init__()

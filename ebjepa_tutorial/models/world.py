@@ -1,21 +1,14 @@
 """The action-conditioned world model of notebooks 04-05: encoder, predictor, inverse dynamics.
 
-``encode``: Two Rooms frames ``(B, 2, 65, 65)`` or ``(B, T, 2, 65, 65)`` -> latents ``(B, D)``
-or ``(B, T, D)``; ``predict(z, a)``: one step ``(B, D), (B, 2) -> (B, D)``; ``rollout(z0,
-actions)``: the predictor on its own outputs, ``(B, D), (B, H, 2) -> (B, H, D)``, the one call
-a planner makes to imagine ``B`` futures of ``H`` steps.
+- ``encode``: frames ``(B, [T,] 2, 65, 65)`` -> latents ``(B, [T,] D)``. Each channel is first
+  standardised (:meth:`WorldModel.fit_input_stats`), so the dot (~0.3% of the pixels) is not
+  drowned by the walls (~10%); then IMPALA stacks, ReLU, flatten, linear to ``D``, LayerNorm.
+- ``predict(z, a)``: ``z' = z + W GRUCell(e(a), z)`` or ``z + W MLP([z, e(a)])``, ``(B, D),
+  (B, 2) -> (B, D)``; ``W`` starts at zero, so an untrained step is the identity.
+- ``rollout(z0, actions)``: ``(B, D), (B, H, 2) -> (B, H, D)``, what a planner imagines.
+- ``predict_actions``: inverse dynamics, an MLP on ``[z_t, z_{t+1}]`` -> the action ``(2,)``.
 
-- Inputs: each channel standardised by its own mean and std (:meth:`WorldModel.fit_input_stats`,
-  kept as buffers), so the dot (~0.3% of the pixels) is not drowned by the walls (~10%).
-  ``input_size < 65`` first average-pools the frame.
-- Encoder: IMPALA stacks (conv 3x3, max-pool 3x3 stride 2, residual blocks), ReLU, flatten,
-  linear to ``D``, LayerNorm.
-- Predictor: ``z' = z + W GRUCell(e(a), z)``, or ``z' = z + W MLP([z, e(a)])`` with
-  ``predictor="mlp"``; ``W`` is zero at initialisation, so an untrained step is the identity.
-- Inverse dynamics: an MLP on ``[z_t, z_{t+1}]`` -> the action ``(2,)``.
-
-The :class:`WorldConfig` travels in every ``state_dict``; loading weights into a model built
-differently names the mismatch.
+The :class:`WorldConfig` travels in every ``state_dict``.
 """
 
 from __future__ import annotations
@@ -48,14 +41,6 @@ class WorldConfig:
 
     def __post_init__(self):
         object.__setattr__(self, "widths", tuple(int(w) for w in self.widths))
-        if not self.widths or min(self.widths) < 1 or self.blocks < 0:
-            raise ValueError(f"need >= 1 positive widths and blocks >= 0, got {self}")
-        if not 1 <= self.input_size <= IMAGE_SIZE or self.latent_dim < 2:
-            raise ValueError(f"input_size must be in 1..{IMAGE_SIZE} and latent_dim >= 2, got "
-                             f"{self.input_size} and {self.latent_dim}")
-        if self.predictor not in PREDICTORS or self.predictor_hidden < 1:
-            raise ValueError(f"predictor must be one of {PREDICTORS} with predictor_hidden >= 1, "
-                             f"got {self.predictor!r} and {self.predictor_hidden}")
 
 
 # ``full``: the paper's IMPALA widths, two blocks, full resolution (its latent is a 32-channel
@@ -101,7 +86,7 @@ class ImpalaEncoder(nn.Module):
 class Predictor(nn.Module):
     """One step ``z' = z + W GRUCell(e, z)`` (``"gru"``) or ``z' = z + W MLP([z, e])`` (``"mlp"``,
     two GELU layers of ``predictor_hidden``): latents ``(N, D)``, action embeddings ``(N, E)``
-    -> ``(N, D)``. ``W`` starts at zero, so an untrained step is the identity."""
+    -> ``(N, D)``."""
 
     def __init__(self, config: WorldConfig):
         super().__init__()
@@ -149,7 +134,7 @@ class WorldModel(nn.Module):
     def fit_input_stats(self, frames: torch.Tensor) -> WorldModel:
         """Set the per-channel mean and std from ``frames`` ``(N, [T,] C, 65, 65)``; returns self.
         A few hundred trajectories are plenty."""
-        channels = self._check_frames(frames).movedim(-3, 0).reshape(CHANNELS, -1).float()
+        channels = _check_frames(frames).movedim(-3, 0).reshape(CHANNELS, -1).float()
         self.input_mean.copy_(channels.mean(dim=1))
         self.input_std.copy_(channels.std(dim=1).clamp_min(1e-6))
         self.input_stats_fitted.fill_(True)
@@ -163,22 +148,19 @@ class WorldModel(nn.Module):
 
     def encode(self, frames: torch.Tensor) -> torch.Tensor:
         """Frames ``(B, C, 65, 65)`` -> ``(B, D)``, or ``(B, T, C, 65, 65)`` -> ``(B, T, D)``."""
-        frames = self._check_frames(frames)
+        frames = _check_frames(frames)
         z = self.encoder(self.normalize(frames.flatten(0, frames.ndim - 4)))
         return z.view(*frames.shape[:-3], -1)
 
     def predict(self, z: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """One step: latents ``(B, D)`` and actions ``(B, 2)`` -> next latents ``(B, D)``."""
-        self._check_latents(z)
-        self._check_actions(actions, (z.shape[0], self.config.action_dim))
+        self._check_inputs(z, actions)
         return self.predictor(z, self.action_encoder(actions))  # actions embedded: (B, E)
 
     def rollout(self, z0: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """``H`` steps on the model's own predictions: ``(B, D), (B, H, 2) -> (B, H, D)``; output
         ``[:, k]`` is the latent after actions ``0..k``."""
-        self._check_latents(z0, "z0")
-        steps = actions.shape[1] if isinstance(actions, torch.Tensor) and actions.ndim == 3 else 0
-        self._check_actions(actions, (z0.shape[0], steps or "H", self.config.action_dim))
+        self._check_inputs(z0, actions, steps=actions.shape[1] if actions.ndim == 3 else "H")
         embeddings = self.action_encoder(actions)  # (B, H, E), all steps in one batch
         z, out = z0, []
         for k in range(actions.shape[1]):
@@ -190,32 +172,14 @@ class WorldModel(nn.Module):
         """Inverse dynamics: latents ``(..., D)`` at t and t+1 -> the action ``(..., 2)``."""
         return self.inverse_dynamics(torch.cat([z, z_next], dim=-1))
 
-    def _check_frames(self, frames) -> torch.Tensor:
-        c, s = CHANNELS, IMAGE_SIZE
-        if not isinstance(frames, torch.Tensor) or frames.ndim not in (4, 5):
-            got = tuple(frames.shape) if isinstance(frames, torch.Tensor) else type(frames).__name__
-            raise ValueError(f"frames must be (batch, {c}, {s}, {s}) or (batch, time, {c}, {s}, "
-                             f"{s}), got {got}")
-        if frames.shape[-3:] != (c, s, s):
-            raise ValueError(f"each frame must be ({c}, {s}, {s}) (dot and wall channels), got "
-                             f"{tuple(frames.shape[-3:])}; render them with ebjepa_tutorial.envs "
-                             "(Trajectories.frames) and keep channels first")
-        if not frames.is_floating_point():
-            raise TypeError(f"frames must be float in [0, 1], got {frames.dtype}")
-        return frames
-
-    def _check_latents(self, z, name: str = "z") -> None:
-        d = self.config.latent_dim
-        if not isinstance(z, torch.Tensor) or z.ndim != 2 or z.shape[1] != d:
-            got = tuple(z.shape) if isinstance(z, torch.Tensor) else type(z).__name__
-            raise ValueError(f"{name} must be latents of shape (batch, {d}), got {got}")
-
-    @staticmethod
-    def _check_actions(actions, shape: tuple) -> None:
-        if not isinstance(actions, torch.Tensor) or tuple(actions.shape) != shape:
-            got = tuple(actions.shape) if isinstance(actions, torch.Tensor) else type(actions)
+    def _check_inputs(self, z: torch.Tensor, actions: torch.Tensor, **steps) -> None:
+        if z.ndim != 2 or z.shape[1] != self.config.latent_dim:
+            raise ValueError(f"z must be latents of shape (batch, {self.config.latent_dim}), "
+                             f"got {tuple(z.shape)}")
+        shape = (z.shape[0], *steps.values(), self.config.action_dim)
+        if tuple(actions.shape) != shape:
             raise ValueError(f"actions must have shape {shape} (batch, [steps,] dx-dy), got "
-                             f"{got}; the batch must match the latents'")
+                             f"{tuple(actions.shape)}; the batch must match the latents'")
         if not torch.isfinite(actions).all():
             raise ValueError("actions contain NaN or infinite values; check where they come from")
 
@@ -224,30 +188,38 @@ class WorldModel(nn.Module):
         return {"config": asdict(self.config)}
 
     def set_extra_state(self, state: dict) -> None:
-        """Raise a clear error if the checkpoint's config differs from this model's (a field it
-        does not name counts as its default)."""
-        saved, config = state["config"], self.config
-        values = {f.name: saved.get(f.name, f.default) for f in fields(config)}
-        differences = [f"{name}: the checkpoint has {value!r}, this model has "
-                       f"{getattr(config, name)!r}" for name, value in values.items()
-                       if (tuple(value) if isinstance(value, list) else value)
-                       != getattr(config, name)]
+        """Raise a clear error if the checkpoint's config differs from this model's."""
+        saved = _saved_config(state)
+        differences = [f"{f.name}: the checkpoint has {getattr(saved, f.name)!r}, this model has "
+                       f"{getattr(self.config, f.name)!r}" for f in fields(saved)
+                       if getattr(saved, f.name) != getattr(self.config, f.name)]
         if differences:
             raise ValueError(
                 "this checkpoint was trained with another world model configuration ("
-                + "; ".join(differences) + "). Build the model with WorldConfig(**saved config), "
-                "or use WorldModel.from_state_dict(state_dict).")
+                + "; ".join(differences) + "): use WorldModel.from_state_dict(state_dict)")
 
     @classmethod
     def from_state_dict(cls, state_dict: dict) -> WorldModel:
-        """A model built with the config saved in ``state_dict``, its weights loaded. Saved
-        fields the config no longer has (the frame's size and channels) are left out."""
-        if "_extra_state" not in state_dict:
-            raise KeyError("this state_dict has no saved WorldConfig (not from a WorldModel)")
-        saved, known = state_dict["_extra_state"]["config"], {f.name for f in fields(WorldConfig)}
-        model = cls(WorldConfig(**{name: v for name, v in saved.items() if name in known}))
+        """A model built with the config saved in ``state_dict``, its weights loaded."""
+        model = cls(_saved_config(state_dict["_extra_state"]))
         model.load_state_dict(state_dict)
         return model
+
+
+def _saved_config(state: dict) -> WorldConfig:
+    """The saved config; fields it lacks take their defaults, fields we dropped (the frame's
+    size and channels, now constants) are left out."""
+    names = {f.name for f in fields(WorldConfig)}
+    return WorldConfig(**{name: v for name, v in state["config"].items() if name in names})
+
+
+def _check_frames(frames: torch.Tensor) -> torch.Tensor:
+    shape = (CHANNELS, IMAGE_SIZE, IMAGE_SIZE)
+    if frames.ndim not in (4, 5) or frames.shape[-3:] != shape or not frames.is_floating_point():
+        raise ValueError(f"frames must be float (batch, [time,] 2, 65, 65) in [0, 1]: each frame "
+                         f"must be {shape} (dot and wall channels), got {tuple(frames.shape)} "
+                         f"{frames.dtype}; render them with Trajectories.frames, channels first")
+    return frames
 
 
 @torch.no_grad()
@@ -259,9 +231,3 @@ def encode_trajectories(model, trajectories, batch_size: int = 64):
         frames = trajectories.frames(slice(start, start + batch_size)).to(device)
         chunks.append(model.encode(frames).flatten(0, 1).cpu())
     return torch.cat(chunks), trajectories.positions.reshape(-1, 2)
-
-
-def trajectory_latents(model, trajectories) -> torch.Tensor:
-    """Every frame's latent, trajectory by trajectory, without gradients: ``(N, T+1, D)``."""
-    latents = encode_trajectories(model, trajectories, 200)[0]
-    return latents.view(len(trajectories), -1, latents.shape[-1])

@@ -1,10 +1,6 @@
-"""Goal-conditioned planning with a world model (notebooks 06 and 07).
-
-- ``mppi``: the planning energy, the MPPI and CEM updates, one iteration, a whole re-plan
-- ``mpc``: the agent's re-planning loop and the batched episode runner
-- ``two_level``: a coarse model that picks subgoals (notebook 07)
-- ``diagnosis``: the energy's pictures and a planner that imagines with the true motion
-"""
+"""Goal-conditioned planning with a world model (notebooks 06 and 07): ``mppi`` (the energy
+and one re-plan), ``mpc`` (the agent and the episode runner), ``two_level`` (subgoals, notebook
+07), ``diagnosis`` (the energy's pictures and a planner that imagines with the true motion)."""
 
 from .diagnosis import TrueDynamics, dot_grid, energy_by_distance, energy_map
 from .mpc import EpisodeResults, arrival_distance, episode_generators, mpc_loop, run_episodes

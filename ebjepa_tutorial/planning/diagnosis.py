@@ -1,8 +1,8 @@
 """Is it the predictor or the energy that fails? The energy's pictures and a true-motion planner.
 
 :func:`energy_map` and :func:`energy_by_distance` show the landscape the planner searches;
-with :class:`TrueDynamics`, ``run_episodes(..., world="true")`` plans with a perfect
-predictor and the learned energy, ``world="true_xy"`` with the Euclidean distance in pixels.
+``run_episodes(..., world="true")`` plans with :class:`TrueDynamics`, a perfect predictor,
+and the learned energy, ``world="true_xy"`` with the Euclidean distance in pixels.
 """
 
 from __future__ import annotations
@@ -17,10 +17,8 @@ from ..envs.two_rooms import HIGH, LOW, in_wall, render, transition
 
 
 def dot_grid(spacing: float = 1.0, device=None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Dot positions every ``spacing`` px over the arena: ``coords (G,)``, ``xy (G*G, 2)``.
-
-    Row ``i * G + j`` of ``xy`` is ``(x=coords[j], y=coords[i])``: image order.
-    """
+    """Dot positions every ``spacing`` px over the arena: ``coords (G,)``, ``xy (G*G, 2)``;
+    row ``i * G + j`` of ``xy`` is ``(x=coords[j], y=coords[i])``: image order."""
     coords = torch.arange(LOW, HIGH + 1e-6, spacing, device=device)
     ys, xs = torch.meshgrid(coords, coords, indexing="ij")
     return coords, torch.stack([xs.flatten(), ys.flatten()], dim=1)
@@ -33,8 +31,8 @@ def _states(positions: torch.Tensor) -> torch.Tensor:
 
 
 class StateEnv(TwoRoomsEnv):
-    """The world as a :class:`TrueDynamics` planner sees it: states ``[episode, x, y]`` (B, 3)
-    where the agent sees images, for the observation and the goal alike."""
+    """The world as :class:`TrueDynamics` sees it: states ``[episode, x, y]`` (B, 3) where
+    the agent sees images, for the observation and the goal alike."""
 
     def observe(self) -> torch.Tensor:
         return _states(self.positions)
@@ -46,10 +44,9 @@ class StateEnv(TwoRoomsEnv):
 class TrueDynamics:
     """A stand-in world model that imagines with the TRUE motion of its world (a diagnosis).
 
-    Its state is ``[episode, x, y]`` (what :class:`StateEnv` observes); ``rollout`` moves
-    the dot by ``envs.two_rooms.transition`` in its episode's layout (``layouts`` ``(B, 2W)``),
-    and ``distance`` measures the latent distance between ``model``'s encodings of the
-    nearest points of a 1-px grid (``model=None``: the Euclidean distance in pixels).
+    Its state is ``[episode, x, y]``; ``rollout`` moves the dot by ``transition`` in its
+    episode's layout (``layouts (B, 2W)``), and ``distance`` is the latent distance between
+    ``model``'s encodings of the nearest points of a 1-px grid (``model=None``: pixels).
     """
 
     def __init__(self, layouts: torch.Tensor, model=None):
@@ -66,7 +63,6 @@ class TrueDynamics:
                 for layout in layouts[:, None]])  # (B, G*G, D)
 
     def encode(self, states: torch.Tensor) -> torch.Tensor:
-        """The state is what it observes: ``(B, 3)``."""
         return states
 
     def embed(self, states: torch.Tensor) -> torch.Tensor:
@@ -75,7 +71,6 @@ class TrueDynamics:
         return self.tables[states[..., 0].long(), ij[..., 1] * self.side + ij[..., 0]]
 
     def distance(self, z: torch.Tensor, z_goal: torch.Tensor) -> torch.Tensor:
-        """The latent distance between the table's latents of states ``z`` and ``z_goal``."""
         return (self.embed(z) - self.embed(z_goal)).norm(dim=-1)
 
     def rollout(self, states: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
@@ -88,20 +83,13 @@ class TrueDynamics:
         return torch.stack(out, dim=1)
 
 
-def latent_distance(z: torch.Tensor, z_goal: torch.Tensor) -> torch.Tensor:
-    """``||z - z_goal||`` over the last dimension: chapter 06's energy of one state."""
-    return (z - z_goal).norm(dim=-1)
-
-
 @torch.no_grad()
 def energy_map(model, layout: torch.Tensor, goal: torch.Tensor, spacing: float = 1.0,
-               distance=latent_distance):
-    """The planner's view of one layout: ``distance(Enc(o_x), Enc(o_goal))`` for every dot
-    position x (default: the latent distance; notebook 07 passes a cost-to-go head).
-
-    ``layout``: ``(2W,)`` long; ``goal``: ``(2,)`` px. Returns ``(coords (G,), energy (G, G))``
-    on the CPU, ``energy[i, j]`` at ``(x=coords[j], y=coords[i])``, NaN inside the walls.
-    """
+               distance=None):
+    """The planner's view of one layout, ``layout (2W,)``, goal ``(2,)`` px: the latent
+    distance ``||Enc(o_x) - Enc(o_goal)||`` (or ``distance(z, z_goal)``, such as a cost-to-go
+    head) for every dot position x. Returns ``(coords (G,), energy (G, G))`` on the CPU,
+    ``energy[i, j]`` at ``(x=coords[j], y=coords[i])``, NaN inside the walls."""
     device = next(model.parameters()).device
     layout, goal = layout.cpu(), goal.cpu()
     coords, positions = dot_grid(spacing)
@@ -111,19 +99,17 @@ def energy_map(model, layout: torch.Tensor, goal: torch.Tensor, spacing: float =
     energy = torch.full((len(positions),), math.nan)
     for chunk in free.nonzero().squeeze(1).split(1024):
         z = model.encode(render(positions[chunk], layouts[chunk]).to(device))
-        energy[chunk] = distance(z, z_goal).cpu()
+        energy[chunk] = ((z - z_goal).norm(dim=-1) if distance is None
+                         else distance(z, z_goal)).cpu()
     return coords, energy.view(len(coords), len(coords))
 
 
 @torch.no_grad()
 def energy_by_distance(model, episodes: Episodes, edges=(0, 5, 10, 15, 20, 30, 40, 60, 90),
                        spacing: float = 2.0) -> torch.Tensor:
-    """The energy's shape: its mean in rings of pixel distance from the goal, ``(len(edges)-1,)``.
-
-    Every free dot position of each episode's :func:`energy_map` falls in ring ``i`` when
-    ``edges[i] <= distance < edges[i + 1]``; each ring is averaged over all episodes (NaN if
-    empty). A useful energy keeps rising with distance.
-    """
+    """The energy's mean in rings ``edges[i] <= distance < edges[i + 1]`` px from the goal,
+    over the free dot positions of each episode's :func:`energy_map`: ``(len(edges) - 1,)``
+    (NaN if empty). A useful energy keeps rising with distance."""
     edges = torch.as_tensor(edges, dtype=torch.float32)
     rings = len(edges) - 1
     sums, counts = torch.zeros(rings), torch.zeros(rings)

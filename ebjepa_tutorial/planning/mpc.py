@@ -1,9 +1,8 @@
 """The agent: model-predictive control in Two Rooms, and the batched episode runner (notebook 06).
 
-Each episode's seed fixes its task and its planner's noise; nothing couples the episodes
-of a batch but floating-point rounding (a network's batched kernels may sum in an order
-that depends on the batch size and thread count, which after a few re-plans can change the
-elites). So an episode reproduces exactly with its whole batch and the same threads.
+Each episode's seed fixes its task and its planner's noise; nothing couples the episodes of a
+batch but floating-point rounding (batched kernels may sum in an order that depends on the
+batch size and threads), so an episode reproduces exactly with its whole batch and threads.
 """
 
 from __future__ import annotations
@@ -40,13 +39,11 @@ class EpisodeResults:
     @classmethod
     def concat(cls, parts: Sequence[EpisodeResults]) -> EpisodeResults:
         """One result from batches run one after the other (times add up)."""
-        def cat(name):
-            return torch.cat([getattr(p, name) for p in parts])
-
-        episodes = Episodes.concat([p.episodes for p in parts])
-        return cls([s for p in parts for s in p.seeds], episodes, cat("paths"), cat("actions"),
-                   cat("success"), cat("first_arrival"), sum(p.cpu_seconds for p in parts),
-                   sum(p.wall_seconds for p in parts))
+        tensors = [torch.cat([getattr(p, name) for p in parts])
+                   for name in ("paths", "actions", "success", "first_arrival")]
+        return cls([s for p in parts for s in p.seeds],
+                   Episodes.concat([p.episodes for p in parts]), *tensors,
+                   sum(p.cpu_seconds for p in parts), sum(p.wall_seconds for p in parts))
 
     def first(self, n: int) -> EpisodeResults:
         """The first ``n`` episodes (times: this batch's, pro rata)."""
@@ -82,20 +79,15 @@ def episode_generators(seeds: Sequence[int],
                        walls: int = 1) -> tuple[Episodes, list[torch.Generator]]:
     """The task of each seed and the generator its planner continues with; ``walls``: 1 for
     Two Rooms, 2 for Three Rooms (start and goal in the outer rooms)."""
-    if len(seeds) < 1:
-        raise ValueError("need at least one episode seed")
     generators = [torch.Generator().manual_seed(int(seed)) for seed in seeds]
     return Episodes.concat([make_episodes(1, g, walls) for g in generators]), generators
 
 
 @torch.no_grad()
 def arrival_distance(model, px: float, walls: int = 1) -> float:
-    """The latent distance that means "within ``px`` of the goal" to ``model``.
-
-    The median of ``||Enc(o') - Enc(o)||`` over 512 random frames ``o`` (fresh layouts of
-    ``walls`` walls, seed 0) and ``o'``, the dot moved ``px`` in a random direction (a wall
-    may cut the move short).
-    """
+    """The latent distance that means "within ``px`` of the goal" to ``model``: the median
+    of ``||Enc(o') - Enc(o)||`` over 512 random frames ``o`` (seed 0) and ``o'``, the dot
+    moved ``px`` in a random direction (a wall may cut the move short)."""
     n, generator = 512, torch.Generator().manual_seed(0)
     layouts = random_layouts(n, generator, walls)
     here = sample_positions(layouts, generator)
@@ -141,20 +133,14 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig, steps: int 
     """Plan and act in one episode per seed with ``loop`` and the planner ``config``.
 
     Episode ``seed`` draws its layout, start and goal, then its planner's noise, from
-    ``torch.Generator().manual_seed(seed)``. ``steps``: None gives the world's step budget.
-    ``batch`` episodes run at once (default: all). ``world``: ``"learned"`` imagines with
-    the world model; ``"true"`` and ``"true_xy"`` are the diagnoses of
-    :class:`~ebjepa_tutorial.planning.diagnosis.TrueDynamics`. ``two_level``: a
-    :class:`~ebjepa_tutorial.planning.two_level.TwoLevel` that picks subgoals.
+    ``torch.Generator().manual_seed(seed)``. ``steps``: None gives the world's step budget;
+    ``batch`` episodes run at once (default: all). ``world``: ``"learned"`` imagines with the
+    world model, ``"true"`` and ``"true_xy"`` with :class:`~.diagnosis.TrueDynamics`.
+    ``two_level``: a :class:`~.two_level.TwoLevel` that picks subgoals.
     """
-    seeds, batch = list(seeds), batch or len(seeds)
     if world not in WORLDS:
         raise ValueError(f"world must be one of {WORLDS}, got {world!r}")
-    if two_level is not None and (world != "learned"
-                                  or config.execute != two_level.coarse.stride):
-        raise ValueError(f"a two-level planner needs world='learned' and execute equal to its "
-                         f"stride ({two_level.coarse.stride}); got world={world!r}, "
-                         f"execute={config.execute}")
+    seeds, batch = list(seeds), batch or len(seeds)
     model.eval()
     cpu, wall = time.process_time(), time.perf_counter()
     arrived = None  # the energy below which the agent stands still: pixels for "true_xy"

@@ -1,18 +1,15 @@
 """MPPI and CEM on a latent energy: one re-plan of notebook 06's agent.
 
-From the start latent ``z0 = Enc(o_t)`` the planner imagines ``N`` action sequences of
-``H`` steps with the world model's predictor and scores each with the planning energy
-(the paper's Eq. 13):
+From ``z0 = Enc(o_t)`` the planner imagines ``N`` action sequences of ``H`` steps with the
+predictor and scores each with the planning energy (the paper's Eq. 13):
 
     S(a_1..a_H) = sum_{k=1..H} || zhat_k - z_goal ||       (cost="sum", the paper's)
     S(a_1..a_H) =               || zhat_H - z_goal ||       (cost="last", its ablation)
     S(a_1..a_H) =               d(zhat_H, z_goal)           (cost="learned", notebook 07)
 
-MPPI (the paper's Algorithm 1) keeps the ``Q`` cheapest sequences (the elites), weights
-them by ``exp(-(S_i - S_min) / tau)`` and moves the mean plan and its spread to their
-weighted average; :func:`plan` repeats that ``J`` times. CEM weights the elites equally.
-Unlike the paper's code, the noise is smooth (:class:`Noise`), and each episode of a batch
-draws it from its own generator.
+MPPI (the paper's Algorithm 1) moves the plan and its spread ``J`` times to the average of
+the ``Q`` cheapest sequences weighted by ``exp(-(S_i - S_min) / tau)``; CEM weights them
+equally. Unlike the paper's code, the noise is smooth, drawn per episode from its generator.
 """
 
 from __future__ import annotations
@@ -32,8 +29,8 @@ MIN_STD = 0.05  # the smallest spread after an update, px: agreeing elites still
 
 @dataclass(frozen=True)
 class Noise:
-    """How a re-plan samples plans around its mean: a spread of ``std`` px at first, a fresh
-    draw every ``period`` steps joined by straight lines, each step clipped to ``bound`` px."""
+    """How a re-plan samples around its mean: a spread of ``std`` px at first, a fresh draw
+    every ``period`` steps joined by straight lines, each step clipped to ``bound`` px."""
 
     std: float = 2.0  # wide enough for samples pressed on the wall to slide along it to the door
     period: int = 8  # 1: i.i.d. noise per step (Algorithm 1); white noise explores too little
@@ -43,22 +40,20 @@ class Noise:
         check_fields(self, {
             "std": (is_positive, "a finite number > 0", "the spread of the first samples, px"),
             "period": (is_int_at_least(1), "an int >= 1"),
-            "bound": (is_positive, "a finite number > 0",
-                      f"the longest sampled step, px (the world allows {MAX_STEP})")})
+            "bound": (is_positive, "a finite number > 0", "the longest sampled step, px")})
 
 
 @dataclass(frozen=True)
 class Habits:
-    """Two habits of a sensible agent that cut an episode's cost several times (notebook 06,
-    "Speed"). The paper's agent has neither: ``Habits(warm_iterations=0, stop_px=0)``."""
+    """Two habits that cut an episode's cost several times (notebook 06, "Speed"). The
+    paper's agent has neither: ``Habits(warm_iterations=0, stop_px=0)``."""
 
     warm_iterations: int = 3  # refinements (at most J) of a re-plan from the previous plan; 0: J
     stop_px: float = 2.0  # stand still within this of the goal (mpc.arrival_distance); 0: never
 
     def __post_init__(self):
-        check_fields(self, {
-            "warm_iterations": (is_int_at_least(0), "an int >= 0 (0: iterations)"),
-            "stop_px": (is_non_negative, "a finite number >= 0 (0: never stop)")})
+        check_fields(self, {"warm_iterations": (is_int_at_least(0), "an int >= 0"),
+                            "stop_px": (is_non_negative, "a finite number >= 0")})
 
 
 @dataclass(frozen=True)
@@ -80,15 +75,13 @@ class PlannerConfig:
         if self.method not in METHODS or self.cost not in COSTS:
             raise ValueError(f"method must be one of {METHODS} and cost one of {COSTS}, "
                              f"got method={self.method!r}, cost={self.cost!r}")
-        check_fields(self, {name: (is_int_at_least(1), "an int >= 1") for name in
-                            ("horizon", "samples", "elites", "iterations", "execute")})
-        check_fields(self, {"temperature": (is_positive, "a finite number > 0",
-                                            "MPPI's softness in latent-distance units")})
-        if self.elites > self.samples:
-            raise ValueError(f"elites (Q={self.elites}) cannot exceed samples (N={self.samples})")
-        if self.execute > self.horizon:
-            raise ValueError(f"execute (m={self.execute}) cannot exceed horizon "
-                             f"(H={self.horizon})")
+        rules = {name: (is_int_at_least(1), "an int >= 1")
+                 for name in ("horizon", "samples", "elites", "iterations", "execute")}
+        check_fields(self, {**rules, "temperature": (is_positive, "a finite number > 0")})
+        if self.elites > self.samples or self.execute > self.horizon:
+            raise ValueError(f"need elites <= samples and execute <= horizon, got elites "
+                             f"(Q={self.elites}), samples (N={self.samples}), execute "
+                             f"(m={self.execute}), horizon (H={self.horizon})")
 
     def warm(self) -> PlannerConfig:
         """This planner for the re-plans after an episode's first: warm_iterations (at most J)."""
@@ -97,28 +90,16 @@ class PlannerConfig:
 
 
 def check_start_and_goal(z0, z_goal) -> None:
-    """Raise a clear error unless ``z0`` and ``z_goal`` are both ``(B, D)`` (one goal per
-    episode: a goal batch of 1 would broadcast silently towards the first goal)."""
-    for name, z in (("z0", z0), ("z_goal", z_goal)):
-        if not isinstance(z, torch.Tensor):
-            raise TypeError(f"{name} must be a tensor of latents (B, D), got {type(z).__name__}")
-    if z0.ndim != 2:
-        raise ValueError(f"z0 must be start latents of shape (B, D), got {tuple(z0.shape)}")
-    if z_goal.ndim != 2 or len(z_goal) != len(z0):
-        raise ValueError(f"z_goal must be goal latents of shape ({len(z0)}, D), one per start "
-                         f"in z0 {tuple(z0.shape)}; got {tuple(z_goal.shape)}"
-                         f"{_goal_hint(len(z0), z_goal)}")
-
-
-def _goal_hint(batch: int, z_goal: torch.Tensor) -> str:
-    """What a wrongly shaped goal most likely is, and what to pass instead."""
-    if z_goal.ndim in (4, 5):
-        return "; that looks like images: encode them first with model.encode"
-    if z_goal.ndim == 1:
-        return "; a single latent needs its batch dimension: z_goal[None]"
-    if z_goal.ndim == 2 and len(z_goal) == 1:
-        return f"; for one goal shared by all episodes pass z_goal.expand({batch}, -1)"
-    return ""
+    """Raise unless ``z0`` and ``z_goal`` are both ``(B, D)``: a goal batch of 1 would
+    broadcast silently towards the first goal."""
+    if z0.ndim != 2 or z_goal.ndim != 2 or len(z_goal) != len(z0):
+        hint = {1: "; a single latent needs its batch dimension: z_goal[None]",
+                4: "; that looks like images: encode them first with model.encode"}
+        hint = hint.get(min(z_goal.ndim, 4), "")
+        if z_goal.ndim == 2 and len(z_goal) == 1:
+            hint = f"; for one goal shared by all starts pass z_goal.expand({len(z0)}, -1)"
+        raise ValueError(f"z0 and z_goal must be latents (B, D), one goal per start; got z0 "
+                         f"{tuple(z0.shape)}, z_goal {tuple(z_goal.shape)}{hint}")
 
 
 def goal_distance(model, z: torch.Tensor, z_goal: torch.Tensor) -> torch.Tensor:
@@ -131,27 +112,18 @@ def goal_distance(model, z: torch.Tensor, z_goal: torch.Tensor) -> torch.Tensor:
 
 def planning_cost(model, z0: torch.Tensor, z_goal: torch.Tensor, actions: torch.Tensor,
                   cost: str = "sum") -> torch.Tensor:
-    """Energy of each imagined plan: ``z0 (B, D), z_goal (B, D), actions (B, N, H, A) -> (B, N)``.
-
-    ``model.rollout`` imagines the ``B x N`` plans in one batch; the cost is the latent
-    distance to the goal summed over the horizon (``"sum"``), at the last step (``"last"``),
-    or ``model.cost_to_go`` from the last latent (``"learned"``).
-    """
-    if cost not in COSTS:
-        raise ValueError(f"cost must be one of {COSTS}, got {cost!r}")
-    if cost == "learned" and not hasattr(model, "cost_to_go"):
-        raise ValueError("cost='learned' needs a model with a cost-to-go head: "
-                         "models.cost.WithLearnedCost(world_model, head)")
+    """Energy of each imagined plan: ``z0 (B, D), z_goal (B, D), actions (B, N, H, A) -> (B, N)``:
+    the latent distance to the goal summed over the horizon (``"sum"``), at the last step
+    (``"last"``), or ``model.cost_to_go`` from the last latent (``"learned"``)."""
+    if cost not in COSTS or (cost == "learned" and not hasattr(model, "cost_to_go")):
+        raise ValueError(f"cost must be one of {COSTS}, got {cost!r} ('learned' needs a model "
+                         "with a cost-to-go head: models.cost.WithLearnedCost)")
     check_start_and_goal(z0, z_goal)
     if actions.ndim != 4 or len(actions) != len(z0):
-        raise ValueError(f"actions must be plans of shape ({len(z0)}, N, H, A), one batch of N "
-                         f"per start in z0 {tuple(z0.shape)}; got {tuple(actions.shape)}")
+        raise ValueError(f"actions must be plans ({len(z0)}, N, H, A), N per start in z0 "
+                         f"{tuple(z0.shape)}; got {tuple(actions.shape)}")
     b, n, h, _ = actions.shape
     z = model.rollout(z0.repeat_interleave(n, dim=0), actions.flatten(0, 1)).view(b, n, h, -1)
-    if z_goal.shape[1] != z.shape[-1]:
-        raise ValueError(f"z_goal has latents of size {z_goal.shape[1]} but the model imagines "
-                         f"latents of size {z.shape[-1]}: z_goal {tuple(z_goal.shape)}, z0 "
-                         f"{tuple(z0.shape)}; encode the goal with the planning model")
     if cost == "learned":
         return model.cost_to_go(z[:, :, -1], z_goal[:, None])
     energy = goal_distance(model, z, z_goal[:, None, None])  # (B, N, H)
@@ -197,11 +169,8 @@ def cem_update(actions: torch.Tensor, costs: torch.Tensor, elites: int):
 
 def smooth_noise(samples: int, horizon: int, dims: int, period: int,
                  generator: torch.Generator) -> torch.Tensor:
-    """Standard normal noise ``(samples, horizon, dims)``, correlated over ``period`` steps.
-
-    Independent draws at steps ``0, period, 2 period, ...`` joined by straight lines
-    (``period=1``: i.i.d.) move a plan coherently: they explore farther than white noise.
-    """
+    """Standard normal noise ``(samples, horizon, dims)``: independent draws at steps ``0,
+    period, 2 period, ...`` joined by straight lines (``period=1``: i.i.d.)."""
     knots = torch.randn(samples, dims, horizon // period + 2, generator=generator)
     if period == 1:
         return knots[..., :horizon].transpose(1, 2)
@@ -237,9 +206,9 @@ def mppi_iteration(model, z0, z_goal, mean, std, config, generators):
 
 @dataclass
 class Plan:
-    """The result of :func:`plan`: the mean plan ``(B, H, A)``, its spread, ``costs`` ``(B, J)``
-    (the cheapest sample's at each iteration) and, when recorded, the ``history`` of each
-    iteration's samples ``(B, N, H, A)`` and costs ``(B, N)``."""
+    """What :func:`plan` returns: the mean plan ``(B, H, A)``, its spread, ``costs (B, J)``
+    (the cheapest sample's per iteration) and, with ``record``, each iteration's samples
+    ``(B, N, H, A)`` and costs ``(B, N)``."""
 
     mean: torch.Tensor
     std: torch.Tensor
@@ -253,13 +222,8 @@ def plan(model, z0: torch.Tensor, z_goal: torch.Tensor, config: PlannerConfig,
          record: bool = False, iteration=mppi_iteration) -> Plan:
     """Run ``J`` iterations from latents ``z0`` to goals ``z_goal`` (both ``(B, D)``) from the
     warm start ``mean`` ``(B, H, A)`` (default zeros: stand still) with ``iteration``."""
-    check_start_and_goal(z0, z_goal)
-    b, h = z0.shape[0], config.horizon
     if mean is None:
-        mean = z0.new_zeros(b, h, model.config.action_dim)
-    if mean.shape != (b, h, model.config.action_dim) or len(generators) != b:
-        raise ValueError(f"need a mean plan ({b}, {h}, {model.config.action_dim}) and {b} "
-                         f"generators, got {tuple(mean.shape)} and {len(generators)}")
+        mean = z0.new_zeros(len(z0), config.horizon, model.config.action_dim)
     std = torch.full_like(mean, config.noise.std)
     best, history = [], [] if record else None
     for _ in range(config.iterations):

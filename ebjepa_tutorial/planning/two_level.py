@@ -1,10 +1,6 @@
-"""A two-level planner: a coarse model picks subgoals for the flat planner (notebook 07).
-
-At every re-plan the coarse level (MPPI over macro-actions of ``coarse.stride`` steps,
-warm-started like the flat plan) plans from the current latent to the goal; the latent it
-imagines ``lookahead`` coarse steps ahead is the subgoal that the flat planner of
-:func:`~ebjepa_tutorial.planning.mpc.mpc_loop` plans towards over its short horizon.
-"""
+"""A two-level planner (notebook 07): at every re-plan a coarse level (MPPI over macro-actions
+of ``coarse.stride`` steps) plans to the goal, and the latent it imagines ``lookahead``
+coarse steps ahead is the subgoal the flat planner of :func:`~.mpc.mpc_loop` plans towards."""
 
 from __future__ import annotations
 
@@ -21,25 +17,16 @@ from .mppi import PlannerConfig, plan, shift_plan
 class TwoLevel:
     """The coarse level of a two-level planner.
 
-    The final approach: once the coarse plan comes within ``reach_px`` of the goal
-    (as the model sees it, :func:`~ebjepa_tutorial.planning.mpc.arrival_distance`)
-    by its subgoal, the subgoal is the goal itself. Without it an agent at the goal
-    keeps chasing the coarse model's imprecise latents, and can walk off the goal again.
+    The final approach: once the coarse plan comes within ``reach_px`` of the goal (as the
+    model sees it, :func:`~.mpc.arrival_distance`) by its subgoal, the subgoal is the goal
+    itself; otherwise an agent at the goal keeps chasing the coarse model's imprecise latents.
     """
 
     coarse: torch.nn.Module  # models.hierarchy.CoarseModel: rollout(z0, macro) -> latents
     config: PlannerConfig
-    lookahead: int = 1
+    lookahead: int = 1  # coarse steps ahead, at most config.horizon
     reach_px: float = 0.0  # 0: no final approach, always the coarse plan's latent
     reach: float | None = None  # reach_px in latent units, set by calibrate()
-
-    def __post_init__(self):
-        if not 1 <= self.lookahead <= self.config.horizon:
-            raise ValueError(f"lookahead must be in 1..{self.config.horizon} coarse steps (the "
-                             f"coarse plan's horizon), got {self.lookahead}")
-        if self.reach_px < 0:
-            raise ValueError(f"reach_px must be >= 0 px (0: no final approach), got "
-                             f"{self.reach_px}")
 
     def calibrate(self, model, walls: int = 1) -> TwoLevel:
         """The same planner with ``reach`` measured on ``model``'s latents of ``walls``' world
@@ -62,28 +49,23 @@ class TwoLevel:
             subgoal = torch.where(there[:, None], z_goal, subgoal)
         return subgoal, coarse
 
-    def aim(self, generators: Sequence[torch.Generator]) -> _Aim:
-        """The ``aim`` of :func:`~ebjepa_tutorial.planning.mpc.mpc_loop` for one batch."""
-        return _Aim(self, list(generators))
+    def aim(self, generators: Sequence[torch.Generator]):
+        """The ``aim(z, z_goal, moving)`` of :func:`~.mpc.mpc_loop` for one batch: the
+        subgoals ``(B, D)`` of the episodes under way (``moving (B,)``), from a coarse plan
+        carried from re-plan to re-plan, shifted by one coarse step each time, its first plan
+        cold (J iterations)."""
+        state = {"config": self.config, "coarse": None}
 
+        def aim(z: torch.Tensor, z_goal: torch.Tensor, moving: torch.Tensor) -> torch.Tensor:
+            config, coarse = state["config"], state["coarse"]
+            if coarse is None:
+                coarse = z.new_zeros(len(z), config.horizon, 2)  # (B, H', 2)
+            target, rows = z_goal.clone(), moving.nonzero()[:, 0]
+            if len(rows):
+                mine = [generators[i] for i in rows.tolist()]
+                target[rows], coarse[rows] = self.subgoals(z[rows], z_goal[rows], config, mine,
+                                                           coarse[rows])
+            state.update(config=config.warm(), coarse=shift_plan(coarse, 1))
+            return target
 
-class _Aim:
-    """The subgoals of one batch of episodes: the coarse plan carried from re-plan to
-    re-plan, shifted by one coarse step each time, its first plan cold (J iterations)."""
-
-    def __init__(self, two_level: TwoLevel, generators: list[torch.Generator]):
-        self.two_level, self.generators = two_level, generators
-        self.config, self.coarse = two_level.config, None
-
-    def __call__(self, z: torch.Tensor, z_goal: torch.Tensor,
-                 moving: torch.Tensor) -> torch.Tensor:
-        """Targets ``(B, D)``: the subgoal of each episode under way (``moving (B,)``)."""
-        if self.coarse is None:
-            self.coarse = z.new_zeros(len(z), self.config.horizon, 2)  # (B, H', 2)
-        target, rows = z_goal.clone(), moving.nonzero()[:, 0]
-        if len(rows):
-            mine = [self.generators[i] for i in rows.tolist()]
-            target[rows], self.coarse[rows] = self.two_level.subgoals(
-                z[rows], z_goal[rows], self.config, mine, self.coarse[rows])
-        self.config, self.coarse = self.config.warm(), shift_plan(self.coarse, 1)
-        return target
+        return aim

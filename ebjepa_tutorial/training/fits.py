@@ -9,7 +9,7 @@ from pathlib import Path
 
 from torch import nn
 
-from .checkpoints import SHIPPED_DIR, CheckpointError, load_checkpoint
+from .checkpoints import SHIPPED_DIR, CheckpointError, load_made_by
 
 
 def load_fit(kind: str, world: str, module: nn.Module, base: dict,
@@ -19,22 +19,16 @@ def load_fit(kind: str, world: str, module: nn.Module, base: dict,
     ``"three_rooms"``; ``base``: the identity of the world model it was fitted on, which the
     file stores (``training.world.identity``)."""
     path = Path(folder) / f"{kind}_{world}_class.pt"
-    remedy = (f"Make it with `python -m research.fit_beyond --world {world} --fits {kind} "
-              f"--out-dir {folder}` (from the repository's root).")
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} is missing. {remedy}")
-    try:
-        state = load_checkpoint(path)
-    except CheckpointError as err:  # damaged, or holding more than weights
-        raise type(err)(f"{err}\n{remedy}") from None
+    made_by = f"python -m research.fit_beyond --world {world} --fits {kind} --out-dir {folder}"
+    state = load_made_by(path, made_by)
     stored = state.get("config") if isinstance(state, dict) else None
     if not isinstance(stored, dict) or stored.get("base") != base:
         raise CheckpointError(f"{path} was not fitted on the world model loaded here (the "
-                              f"identity it stores differs). {remedy}")
+                              f"identity it stores differs). It is made by: {made_by}")
     try:
         module.load_state_dict(state["model"])
     except (KeyError, RuntimeError) as err:
-        reason = str(err).splitlines()[0][:160]
         raise CheckpointError(f"{path} holds no {type(module).__name__} of this shape "
-                              f"({reason}). {remedy}") from None
+                              f"({str(err).splitlines()[0][:160]}). It is made by: {made_by}"
+                              ) from None
     return module.eval()

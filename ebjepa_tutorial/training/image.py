@@ -1,12 +1,6 @@
-"""Image JEPA on CIFAR-10: the training recipe of notebooks 01 (VICReg) and 02 (SIGReg).
-
-Two augmented views of each image go through one encoder and a projector, and a regulariser
-keeps the embeddings from collapsing. The encoder is what we keep (the projector only trains).
-
-Under ``torchrun``, ``batch_size`` is the global batch (per-rank batch x world size): every
-rank draws the same global batch, keeps its own rows, and gathers every rank's embeddings
-before the loss. Batch norm normalises over each rank's rows, unless ``sync_batchnorm``.
-"""
+"""Image JEPA on CIFAR-10, the recipe of notebooks 01 (VICReg) and 02 (SIGReg): two views of
+each image through one encoder and a projector, and a regulariser against collapse. The encoder
+is what we keep. Under ``torchrun``, ``batch_size`` is the global batch."""
 
 from __future__ import annotations
 
@@ -23,19 +17,12 @@ from ..losses.sigreg import sigreg_loss
 from ..losses.vicreg import vicreg, vicreg_terms
 from ..models.encoders import ResNet18
 from ..models.heads import build_projector
-from ..utils import (
-    at_least_float32,
-    check_fields,
-    is_int_at_least,
-    is_non_negative,
-    memory_format,
-    mixed_precision,
-)
+from ..utils import at_least_float32, memory_format, mixed_precision
 from .checkpoints import checkpoint_paths, run_identity, step_identity
-from .loop import History, load_or_train, resume, run_steps, saver, step_generator, training_state
+from .loop import History, load_or_train, run_steps, step_generator
 from .optim import split_decay_params, warmup_cosine_scheduler
 
-LOG_EVERY = 10  # steps between the history's rows: reading a value waits for the GPU
+LOG_EVERY, CHECKPOINT_EVERY = 10, 250  # steps between the history's rows, and between saves
 WEIGHT_DECAY = 1e-4  # AdamW's, on weight matrices only (optim.split_decay_params)
 LR = 2e-3  # AdamW's peak rate (warm-up, then cosine to 0), the same at every scale
 
@@ -50,10 +37,6 @@ class VICReg:
     std_coeff: float = 2.0
     cov_coeff: float = 160.0
 
-    def __post_init__(self):
-        check_fields(self, {name: (is_non_negative, "a number >= 0")
-                            for name in ("inv_coeff", "std_coeff", "cov_coeff")})
-
 
 @dataclass(frozen=True)
 class SIGReg:
@@ -63,10 +46,6 @@ class SIGReg:
     lam: float = 0.1
     slices: int = 256
     scale_by_n: bool = True
-
-    def __post_init__(self):
-        check_fields(self, {"lam": (is_non_negative, "a number >= 0"),
-                            "slices": (is_int_at_least(1), "an int >= 1 (random directions)")})
 
 
 @dataclass(frozen=True)
@@ -80,7 +59,7 @@ class ImageJEPAConfig:
     # the linear probe and kNN see un-augmented images at this side (32: CIFAR-10's own)
     eval_image_size: int = 32
     projector: tuple[int, int] | None = (1024, 1024)  # (hidden, output); None: no projector
-    batch_size: int = 256  # the global batch: per-rank batch x world size under torchrun
+    batch_size: int = 256  # the global batch: per-process batch x processes under torchrun
     steps: int = 2000
     warmup_steps: int = 200  # linear warm-up from step 0 to LR, then cosine to 0
     seed: int = 0
@@ -89,19 +68,9 @@ class ImageJEPAConfig:
         if not (self.loss is None or isinstance(self.loss, (VICReg, SIGReg))):
             raise ValueError(f"ImageJEPAConfig.loss must be VICReg(...), SIGReg(...) or None "
                              f"(invariance alone), got {self.loss!r}")
-        pixels = (is_int_at_least(1), "a positive int (pixels per side)")
-        check_fields(self, {
-            "steps": (is_int_at_least(1), "an int >= 1"),
-            "warmup_steps": (lambda w: is_int_at_least(0)(w) and w < self.steps,
-                             f"an int in 0..steps-1 = {self.steps - 1}"),
-            "batch_size": (is_int_at_least(2), "an int >= 2 (a batch of one has no variance)"),
-            "image_size": pixels, "eval_image_size": pixels,
-            "widths": (lambda w: len(w) == 4 and all(map(is_int_at_least(1), w)),
-                       "four positive ints (the ResNet stage widths)"),
-            "blocks_per_stage": (is_int_at_least(1), "an int >= 1 (2: ResNet-18, 1: ResNet-10)"),
-            "projector": (lambda p: p is None or (len(p) == 2 and all(map(is_int_at_least(1), p))),
-                          "None or two positive ints (hidden, output)"),
-        })
+        if not 0 <= self.warmup_steps < self.steps:
+            raise ValueError(f"ImageJEPAConfig.warmup_steps must be an int in 0..steps-1 = "
+                             f"{self.steps - 1}, got {self.warmup_steps}")
 
     @property
     def method(self) -> str:
@@ -115,7 +84,7 @@ class ImageJEPA(nn.Module):
     def __init__(self, config: ImageJEPAConfig):
         super().__init__()
         self.encoder = ResNet18(config.widths, blocks_per_stage=config.blocks_per_stage)
-        hidden, out = config.projector if config.projector is not None else (0, 0)
+        hidden, out = config.projector or (0, 0)
         depth = 3 if config.projector is not None else 0
         self.projector = build_projector(self.encoder.out_dim, hidden, out, depth=depth)
 
@@ -150,7 +119,7 @@ def make_optimizer(model: nn.Module, config: ImageJEPAConfig) -> torch.optim.Ada
 
 def embed(net: nn.Module, views) -> tuple[torch.Tensor, torch.Tensor]:
     """Both views ``(b, 3, S, S)`` through ``net`` (encoder, then projector): ``(B, D)`` each,
-    in float32 (the networks run in bf16 where fast); under ``torchrun``, every rank's rows."""
+    in float32 (the networks run in bf16 where fast); under ``torchrun``, every process's rows."""
     with mixed_precision(views[0].device, cpu=True):
         embedded = net(*views)
     z_a, z_b = (distributed.gather_rows(at_least_float32(z)) for z in embedded)
@@ -184,7 +153,7 @@ def sigreg_step(net, batch, optimizer, scheduler, weights):
     return loss.detach(), terms
 
 
-INVARIANCE_ONLY = VICReg(1.0, 0.0, 0.0)  # the step of ``loss=None``: no regulariser
+INVARIANCE_ONLY = VICReg(1.0, 0.0, 0.0)  # the weights of ``loss=None``: no regulariser
 
 
 def package_step(config: ImageJEPAConfig):
@@ -195,47 +164,36 @@ def package_step(config: ImageJEPAConfig):
 
 def train_image_jepa(config: ImageJEPAConfig, images: torch.Tensor,
                      checkpoint: str | Path | None = None, device: torch.device | str = "cpu",
-                     progress: bool = True, checkpoint_every: int = 250,
-                     sync_batchnorm: bool = False, step=None) -> tuple[ImageJEPA, History]:
+                     progress: bool = True, step=None) -> tuple[ImageJEPA, History]:
     """Train on uint8 ``images (N, 3, 32, 32)``, resumable from ``checkpoint``, each update a
-    ``step(net, batch, optimizer, scheduler, weights)`` (default :func:`package_step`). Under
-    ``torchrun`` it trains with DDP; ``sync_batchnorm`` (GPUs): over the global batch."""
-    distributed.per_rank_batch(config.batch_size)  # refuses an uneven split before any work
+    ``step(net, batch, optimizer, scheduler, weights)`` (default :func:`package_step`)."""
     torch.manual_seed(config.seed)
     # channels_last on a GPU; on the CPU it is faster but two identical runs then differ
     layout = memory_format(device)
     model = ImageJEPA(config).to(device, memory_format=layout)
-    net = distributed.data_parallel(AllViews(model), device, sync_batchnorm)
+    net = distributed.data_parallel(AllViews(model), device)
     optimizer = make_optimizer(model, config)
     scheduler = warmup_cosine_scheduler(optimizer, config.steps, config.warmup_steps)
     run = identity(config, step=step)
-    start, history = resume(checkpoint, model, optimizer, scheduler, run)  # (0, empty): none
-    batch = _batches(config, images.to(device), layout)  # CIFAR-10 stays on the GPU (150 MB)
-    save = saver(checkpoint, lambda done: training_state(
-        done, run, history, model, optimizer, scheduler), config.steps, checkpoint_every)
-    model.train()
     step = package_step(config) if step is None else step
     weights = INVARIANCE_ONLY if config.loss is None else config.loss
-    run_steps(lambda views, i: step(net, views, optimizer, scheduler, weights), batch,
-              config.steps, start_step=start, history=history, log_every=LOG_EVERY,
-              desc=f"{config.method} training", progress=progress, after=save)
-    return model, history
-
-
-def _batches(config: ImageJEPAConfig, images: torch.Tensor, layout):
-    """``batch(step)``: the step's two views of this rank's rows, ``(b, 3, S, S)`` each, and
-    the step's generator (SIGReg draws its directions from it)."""
+    images = images.to(device)  # CIFAR-10 stays on the GPU (150 MB)
     pipeline = augment.build_augmentation(augment.AugmentConfig(size=config.image_size))
 
-    def batch(step: int):
-        generator = step_generator(config.seed, step)
+    def batch(n: int):  # step n's two views of this process's rows, and its generator
+        generator = step_generator(config.seed, n)
         index = torch.randint(0, len(images), (config.batch_size,), generator=generator)
         views = augment.two_views(images[index.to(images.device)], pipeline, generator)
-        # every rank made the same global batch; each keeps its rows (all of them on one)
         views = [distributed.local_rows(v).contiguous(memory_format=layout) for v in views]
         return views, generator
 
-    return batch
+    model.train()
+    history = run_steps(
+        lambda views, i: step(net, views, optimizer, scheduler, weights), batch, config.steps,
+        log_every=LOG_EVERY, desc=f"{config.method} training", progress=progress,
+        checkpoint=checkpoint, parts=(model, optimizer, scheduler), identity=run,
+        every=CHECKPOINT_EVERY)
+    return model, history
 
 
 def seconds_per_step(config: ImageJEPAConfig, images: torch.Tensor, steps: int = 5,
@@ -255,36 +213,30 @@ def seconds_per_step(config: ImageJEPAConfig, images: torch.Tensor, steps: int =
 
 def identity(config: ImageJEPAConfig, encoder_only: bool = False, step=None) -> dict:
     """What a checkpoint stores to recognise its run (:func:`run_identity`), without
-    ``eval_image_size`` (how a network is probed is not how it trains). A file of the encoder
-    alone is marked so; an edited ``step`` is another run (:func:`step_identity`).
-    """
-    always = ("loss", "steps", "batch_size", "seed")
+    ``eval_image_size`` (how a network is probed is not how it trains); a file of the encoder
+    alone is marked so, and an edited ``step`` is another run."""
     extra = {"weights": "encoder only"} if encoder_only else {}
     # the rate stays recorded as when it was a field: the shipped files keep loading
-    stored = run_identity(config, always, lr=LR, **extra,
+    stored = run_identity(config, ("loss", "steps", "batch_size", "seed"), lr=LR, **extra,
                           **step_identity(step, package_step(config)))
     return {k: v for k, v in stored.items() if k != "eval_image_size"}
 
 
 def train_or_load(config: ImageJEPAConfig, name: str, images: torch.Tensor, device="cpu",
                   encoder_only: bool = False, step=None):
-    """``(model in eval mode, history)`` of ``config``: loaded from ``checkpoints/<name>.pt``
-    or the cache if this run was saved, else trained on uint8 ``images (N, 3, 32, 32)``
-    (resumable from ``<name>.partial``) and saved. ``encoder_only``: the encoder alone, as the
-    long shipped runs store it. ``step``: the training step (:func:`train_image_jepa`).
-    """
+    """``(model in eval mode, history)`` of ``config``: loaded if this run was saved as
+    ``name``, else trained on uint8 ``images (N, 3, 32, 32)`` and saved. ``encoder_only``: the
+    encoder alone, as the long shipped runs store it."""
     torch.manual_seed(config.seed)
     model = ImageJEPA(config)
     module = (model.encoder if encoder_only else model).to(device)
-    cache_path, shipped = checkpoint_paths(name)
-    partial = cache_path.with_suffix(".partial")
+    path, shipped = checkpoint_paths(name)
 
     def train() -> History:
-        trained, history = train_image_jepa(config, images, checkpoint=partial, device=device,
-                                            step=step)
+        trained, history = train_image_jepa(config, images, path.with_suffix(".partial"),
+                                            device, step=step)
         module.load_state_dict((trained.encoder if encoder_only else trained).state_dict())
         return history
 
-    history = load_or_train(cache_path, module, train, identity(config, encoder_only, step),
-                            shipped, partial=partial)
+    history = load_or_train(path, module, train, identity(config, encoder_only, step), shipped)
     return module.eval(), history

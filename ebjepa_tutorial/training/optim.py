@@ -9,18 +9,14 @@ import torch
 from torch.optim.lr_scheduler import LambdaLR
 
 
-def warmup_cosine(
-    step: int, total_steps: int, warmup_steps: int, base_lr: float, final_lr: float = 0.0
-) -> float:
+def warmup_cosine(step: int, total_steps: int, warmup_steps: int, base_lr: float,
+                  final_lr: float = 0.0) -> float:
     """Learning rate of the update with index ``step`` (0-based) out of ``total_steps``.
 
-    Warm-up: ``base_lr * (step + 1) / warmup_steps`` for ``step < warmup_steps`` (never zero,
-    and the full ``base_lr`` at the last warm-up step; the paper's code spends a first step at
-    its start value). Then a half cosine from that peak down to ``final_lr``, reached at the
-    last step ``total_steps - 1``. ``warmup_steps = 0`` starts the cosine at step 0.
+    Warm-up: ``base_lr * (step + 1) / warmup_steps`` for ``step < warmup_steps`` (the full
+    ``base_lr`` at the last warm-up step). Then a half cosine from that peak down to
+    ``final_lr``, reached at the last step ``total_steps - 1``.
     """
-    if not 0 <= warmup_steps < total_steps:
-        raise ValueError(f"need 0 <= warmup_steps < total_steps, got {warmup_steps}, {total_steps}")
     if not 0 <= step < total_steps:
         raise ValueError(f"step {step} is outside the schedule's 0..{total_steps - 1}")
     if step < warmup_steps:
@@ -35,20 +31,15 @@ def warmup_cosine(
 def warmup_cosine_scheduler(optimizer: torch.optim.Optimizer, total_steps: int,
                             warmup_steps: int) -> LambdaLR:
     """A scheduler following :func:`warmup_cosine` from each group's ``lr`` to 0; call
-    ``.step()`` after each update (creating it sets the step-0 rate)."""
-
-    def factor(step: int) -> float:
-        step = min(step, total_steps - 1)  # hold the final value if training runs over
-        return warmup_cosine(step, total_steps, warmup_steps, 1.0)
-
-    return LambdaLR(optimizer, factor)
+    ``.step()`` after each update (creating it sets the step-0 rate). Past the last step it
+    holds the final rate."""
+    return LambdaLR(optimizer, lambda step: warmup_cosine(
+        min(step, total_steps - 1), total_steps, warmup_steps, 1.0))
 
 
 def split_decay_params(model: torch.nn.Module, weight_decay: float) -> list[dict]:
     """Parameter groups for AdamW / SGD: weight decay on matrices only, none on 1-D params."""
-    decay, no_decay = [], []
-    for parameter in model.parameters():
-        if parameter.requires_grad:
-            (decay if parameter.ndim > 1 else no_decay).append(parameter)
+    decay = [p for p in model.parameters() if p.requires_grad and p.ndim > 1]
+    no_decay = [p for p in model.parameters() if p.requires_grad and p.ndim <= 1]
     return [{"params": decay, "weight_decay": weight_decay},
             {"params": no_decay, "weight_decay": 0.0}]

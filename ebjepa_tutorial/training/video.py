@@ -6,11 +6,8 @@ covariance of the projected latents (each location of each frame one sample):
     L = (1/K) sum_k mean ||zhat_k - z||^2 + std v(P(Z)) + cov c(P(Z))
 
 The class run is a curriculum: its first half trains K = 1, its second half K steps with
-orders 2..K on detached latents; the paper trains K steps throughout.
-
-Under ``torchrun``, ``batch_size`` is the global batch of clips (per-rank batch x world
-size); the variance and covariance are the global batch's and the step averages the
-gradients itself. Batch norm normalises over each rank's frames, unless ``sync_batchnorm``.
+orders 2..K on detached latents; the paper trains K steps throughout. Under ``torchrun``,
+``batch_size`` is the global batch of clips (per-process batch x processes).
 """
 
 from __future__ import annotations
@@ -27,21 +24,12 @@ from .. import distributed
 from ..data.moving_mnist import generate_moving_mnist
 from ..losses.rollout import UNROLLS, parallel_rollout_loss, rollout_loss
 from ..models.video import VIDEO_MODEL_CONFIGS, FrameDecoder, VideoJEPA, VideoModelConfig
-from ..utils import (
-    at_least_float32,
-    check_fields,
-    get_device,
-    is_int_at_least,
-    is_non_negative,
-    is_positive,
-    mixed_precision,
-)
+from ..utils import at_least_float32, get_device, mixed_precision
 from .checkpoints import checkpoint_paths, run_identity, step_identity
-from .loop import History, load_or_train, resume, run_steps, saver, step_generator, training_state
+from .loop import History, load_or_train, run_steps, step_generator
 from .optim import warmup_cosine_scheduler
 
-LOG_EVERY = 10  # steps between the history's rows: reading a value waits for the GPU
-CHECKPOINT_EVERY = 100  # steps between saves of a resumable run
+LOG_EVERY, CHECKPOINT_EVERY = 10, 100  # steps between the history's rows, and between saves
 STD_COEFF = 10.0  # std, the variance term's weight: the paper's, in every run of the course
 COV_COEFF = 100.0  # cov, the covariance term's weight: likewise
 
@@ -55,14 +43,9 @@ class Recipe:
     # convolutions in channels_last: faster on CPUs too (PyTorch's CPU backward in this
     # layout crashes on some strided 1x1 convolutions at 64x64, the ci encoder's)
     channels_last: bool = True
-    # this fraction of the steps trains K = 1, the rest K steps (the paper: 0)
-    one_step_fraction: float = 0.5
+    one_step_fraction: float = 0.5  # this share of the steps trains K = 1 (the paper: 0)
     # orders 2..K unroll from detached latents: the encoder learns from one-step errors only
     detach_later_orders: bool = True
-
-    def __post_init__(self):
-        check_fields(self, {"one_step_fraction": (lambda f: is_non_negative(f) and f < 1,
-                                                  "a number in [0, 1)")})
 
 
 PAPER_RECIPE = Recipe(cosine=False, channels_last=False, one_step_fraction=0.0,
@@ -87,26 +70,18 @@ class VideoJEPAConfig:
     seed: int = 0
 
     def __post_init__(self):
-        at_least = {name: (is_int_at_least(1), "an int >= 1")
-                    for name in ("n_clips", "batch_size", "steps", "rollout_steps")}
-        frames = self.model.context + self.rollout_steps if is_int_at_least(1)(
-            self.rollout_steps) else self.model.context + 1
-        check_fields(self, {
-            **at_least,
-            "n_frames": (is_int_at_least(frames),
-                         f"an int >= context + rollout_steps = {frames}"),
-            "lr": (is_positive, "a number > 0"),
-            "unroll": (lambda u: u in UNROLLS, f"one of {sorted(UNROLLS)}"),
-        })
-
-    def rollout_steps_at(self, step: int) -> int:
-        """K at optimiser step ``step``: 1 during the recipe's ``one_step_fraction`` of the run."""
-        return 1 if step < self.switch_step else self.rollout_steps
+        if self.unroll not in UNROLLS:
+            raise ValueError(f"VideoJEPAConfig.unroll must be one of {sorted(UNROLLS)}, "
+                             f"got {self.unroll!r}")
 
     @property
     def switch_step(self) -> int:
         """The steps trained at K = 1 before the rollout begins (0 without a curriculum)."""
         return math.ceil(self.recipe.one_step_fraction * self.steps)
+
+    def rollout_steps_at(self, step: int) -> int:
+        """K at optimiser step ``step``: 1 during the recipe's ``one_step_fraction`` of the run."""
+        return 1 if step < self.switch_step else self.rollout_steps
 
 
 VIDEO_CONFIGS = {
@@ -122,8 +97,8 @@ VIDEO_CONFIGS = {
 def make_clips(config: VideoJEPAConfig, train_digits: torch.Tensor) -> torch.Tensor:
     """The run's training clips: uint8 ``(n_clips, n_frames, 1, 64, 64)`` from ``train_digits``
     (the first half of ``split_digits``; evaluation clips come from the other half)."""
-    batch = generate_moving_mnist(train_digits, config.n_clips, config.n_frames, seed=config.seed)
-    return batch.clips
+    return generate_moving_mnist(train_digits, config.n_clips, config.n_frames,
+                                 seed=config.seed).clips
 
 
 def check_clips(clips: torch.Tensor, min_frames: int) -> None:
@@ -140,7 +115,7 @@ def check_clips(clips: torch.Tensor, min_frames: int) -> None:
 
 def video_jepa_step(model, optimizer, scheduler, frames, k, config):
     """One training step, as notebook 03 shows it: the loss of a batch of clips, its gradient,
-    the update. ``frames``: this rank's clips, uint8 ``(b, T, 1, 64, 64)``; ``k``: K of this
+    the update. ``frames``: this process's clips, uint8 ``(b, T, 1, 64, 64)``; ``k``: K of this
     step (:meth:`VideoJEPAConfig.rollout_steps_at`). Returns the detached total and terms.
     """
     with mixed_precision(frames.device, cpu=True):  # bf16 networks where fast; statistics in fp32
@@ -171,60 +146,39 @@ def new_scheduler(optimizer: torch.optim.Optimizer, config: VideoJEPAConfig):
 
 def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
                      checkpoint: str | Path | None = None, progress: bool = True,
-                     device: torch.device | str | None = None, sync_batchnorm: bool = False,
-                     step=None, after=None) -> tuple[VideoJEPA, History]:
+                     device: torch.device | str | None = None, step=None,
+                     after=None) -> tuple[VideoJEPA, History]:
     """Train on uint8 ``clips (N, T, 1, 64, 64)``, resumable from ``checkpoint``, each update a
-    ``step`` (default :func:`video_jepa_step`); ``sync_batchnorm`` (GPUs, ``torchrun``): over
-    the global batch. ``after(done, (model, optimizer, scheduler), history)``, on rank 0 after
-    each step's save, sees the run as it trains. Returns the model (eval mode), history.
+    ``step`` (default :func:`video_jepa_step`). ``after(done, (model, optimizer, scheduler),
+    history)`` sees the run after each step. Returns the model (eval mode) and history.
     """
     step = step or video_jepa_step
-    if distributed.world_size() > 1:  # (one process may take one-clip batches)
-        distributed.per_rank_batch(config.batch_size)
     check_clips(clips, config.model.context + config.rollout_steps)
     device = get_device(device)
-    torch.manual_seed(config.seed)  # the same initial model on every rank
+    torch.manual_seed(config.seed)  # the same initial model in every process
     layout = torch.channels_last if config.recipe.channels_last else torch.contiguous_format
     model = VideoJEPA(config.model).to(device, memory_format=layout)
-    model = distributed.with_sync_batchnorm(model, device) if sync_batchnorm else model
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
     parts = (model, optimizer, new_scheduler(optimizer, config))
-    run = identity(config, step=step)
-    start, history = resume(checkpoint, *parts, run)  # (0, empty): none
-    save = saver(checkpoint, lambda done: training_state(done, run, history, *parts),
-                 config.steps, CHECKPOINT_EVERY)
 
-    def saves(done: int) -> None:
-        save(done)
-        if after is not None:
-            after(done, parts, history)
+    def batch(n: int) -> tuple[torch.Tensor, int]:  # this process's clips of step n, and K
+        index = torch.randint(0, len(clips), (config.batch_size,),
+                              generator=step_generator(config.seed, n))
+        return clips[distributed.local_rows(index)].to(device), config.rollout_steps_at(n)
 
     model.train()
-    run_steps(lambda frames_and_k, n: step(*parts, *frames_and_k, config),
-              _batches(config, clips, device), config.steps, start_step=start,
-              history=history, log_every=LOG_EVERY, desc="video JEPA", progress=progress,
-              after=saves)
+    history = run_steps(
+        lambda frames_and_k, n: step(*parts, *frames_and_k, config), batch, config.steps,
+        log_every=LOG_EVERY, desc="video JEPA", progress=progress, checkpoint=checkpoint,
+        parts=parts, identity=identity(config, step=step), every=CHECKPOINT_EVERY,
+        after=None if after is None else lambda done, history: after(done, parts, history))
     return model.eval(), history
-
-
-def _batches(config: VideoJEPAConfig, clips: torch.Tensor, device):
-    """``batch(step) -> (frames, k)``: this rank's clips of step ``step``'s global batch,
-    ``(b, T, 1, 64, 64)`` uint8 on ``device``, and K of that step."""
-
-    def batch(step: int) -> tuple[torch.Tensor, int]:
-        generator = step_generator(config.seed, step)
-        index = torch.randint(0, len(clips), (config.batch_size,), generator=generator)
-        # every rank drew the global batch and keeps its own rows (all of them in one process)
-        return clips[distributed.local_rows(index)].to(device), config.rollout_steps_at(step)
-
-    return batch
 
 
 def identity(config: VideoJEPAConfig, train_digits: torch.Tensor | None = None,
              step=None) -> dict:
     """What a checkpoint stores to recognise its run: ``config``, for a finished run a hash of
-    the digits its clips were made from (a run in progress has its clips from the caller), and
-    an edited ``step``'s code (:func:`~.checkpoints.step_identity`)."""
+    the digits its clips were made from, and an edited ``step``'s code."""
     digits = {} if train_digits is None else {"train_digits": hashlib.sha1(
         train_digits.contiguous().numpy().tobytes()).hexdigest()[:12]}
     return run_identity(config, ("steps", "batch_size", "lr", "rollout_steps", "seed"),
@@ -238,24 +192,21 @@ def run_name(scale: str, config: VideoJEPAConfig) -> str:
 
 def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor,
                   device: torch.device | str | None = None, step=None, **options):
-    """``(model in eval mode, history)`` of ``config``: loaded from ``checkpoints/<name>.pt`` or
-    the cache if this run (config, training digits ``(D, 1, 28, 28)`` and step) was saved, else
-    trained on clips of ``train_digits`` (resumable from ``<name>.partial``) and saved.
-    ``options``: of :func:`train_video_jepa` (``progress``, ``sync_batchnorm``, ``after``).
-    """
+    """``(model in eval mode, history)`` of ``config``: loaded if this run (config, training
+    digits ``(D, 1, 28, 28)`` and step) was saved as ``name``, else trained on clips of
+    ``train_digits`` and saved. ``options``: of :func:`train_video_jepa`."""
     torch.manual_seed(config.seed)
     model = VideoJEPA(config.model).to(get_device(device))
-    cache_path, shipped = checkpoint_paths(name)
-    partial = cache_path.with_suffix(".partial")
+    path, shipped = checkpoint_paths(name)
 
     def train() -> History:
-        trained, history = train_video_jepa(config, make_clips(config, train_digits), partial,
-                                            device=device, step=step, **options)
+        trained, history = train_video_jepa(config, make_clips(config, train_digits),
+                                            path.with_suffix(".partial"), device=device,
+                                            step=step, **options)
         model.load_state_dict(trained.state_dict())
         return history
 
-    history = load_or_train(cache_path, model, train, identity(config, train_digits, step), shipped,
-                            partial=partial)
+    history = load_or_train(path, model, train, identity(config, train_digits, step), shipped)
     return model.eval(), history
 
 
@@ -287,5 +238,3 @@ def fit_decoder(model: VideoJEPA, clips: torch.Tensor, steps: int = 200, batch_s
 def ablation_configs(config: VideoJEPAConfig, rollout_steps=(1, 2, 4), seeds=(0, 1, 2)):
     """``config`` with every ``K`` in ``rollout_steps`` and every seed (clips and weights)."""
     return [replace(config, rollout_steps=k, seed=s) for k in rollout_steps for s in seeds]
-
-

@@ -1,11 +1,6 @@
-"""Training the Two Rooms world model (notebook 05; its checkpoint serves 06).
-
-Data: offline trajectories of the paper's data policy, rendered to frames batch by batch.
-Each update is :func:`world_model_step`, the code notebook 05 shows.
-
-Under ``torchrun`` ``batch_size`` is the global batch: every rank draws the same global batch
-(seeded by the step), renders its own rows, and the step averages the gradients over ranks.
-"""
+"""Training the Two Rooms world model (notebook 05; its checkpoint serves 06): offline
+trajectories of the paper's data policy, rendered batch by batch, each update
+:func:`world_model_step`. Under ``torchrun``, ``batch_size`` is the global batch."""
 
 from __future__ import annotations
 
@@ -28,20 +23,13 @@ from ..losses.world import (
     variance_covariance_loss,
 )
 from ..models.world import WORLD_CONFIGS, WorldConfig, WorldModel
-from ..utils import check_fields, get_device, is_int_at_least, is_non_negative, is_positive
-from .checkpoints import (
-    CheckpointError,
-    checkpoint_paths,
-    load_checkpoint,
-    run_identity,
-    step_identity,
-)
-from .loop import History, load_or_train, resume, run_steps, saver, step_generator, training_state
+from ..utils import get_device
+from .checkpoints import checkpoint_paths, load_made_by, run_identity, step_identity
+from .loop import History, load_or_train, run_steps, step_generator
 
 TRAJECTORY_ACTIONS = 16  # per training trajectory (17 frames, the paper's clips)
 WEIGHT_DECAY = 1e-5  # AdamW's, as in the paper
-# Latent replay (LatentReplay): each replayed update draws REPLAY_BATCH windows from the
-# detached latents of the last REPLAY_CAPACITY training windows, with its own Adam
+# each replayed update draws REPLAY_BATCH windows of the last REPLAY_CAPACITY, with its Adam
 REPLAY_BATCH, REPLAY_CAPACITY, REPLAY_LR = 1024, 6400, 1e-3
 LOG_EVERY, CHECKPOINT_EVERY = 10, 250  # steps between logged rows and resumable saves
 
@@ -59,17 +47,6 @@ class Recipe:
     decay_steps: int = 0  # the last decay_steps lower the rate linearly towards 0 (0: constant)
     grad_clip: float = 0.0  # every update's gradient scaled to at most this norm (0: none)
 
-    def __post_init__(self):
-        check_fields(self, {
-            "window": (lambda w: w == 0 or is_int_at_least(2)(w) and w <= TRAJECTORY_ACTIONS + 1,
-                       f"0 (whole trajectories) or an int in 2..{TRAJECTORY_ACTIONS + 1}"),
-            "wall_fraction": (lambda p: is_non_negative(p) and p <= 0.65, "a number in [0, 0.65]"),
-            "stay_probability": (lambda p: is_non_negative(p) and p < 1, "a number in [0, 1)"),
-            "replay_steps": (is_int_at_least(0), "an int >= 0"),
-            "decay_steps": (is_int_at_least(0), "an int >= 0 (0: a constant rate)"),
-            "grad_clip": (is_non_negative, "a number >= 0 (0: no clipping)"),
-        })
-
 
 @dataclass(frozen=True)
 class WorldTrainConfig:
@@ -84,21 +61,8 @@ class WorldTrainConfig:
     batch_size: int = 64  # trajectories of 17 frames per step (the paper: 384)
     steps: int = 1000
     lr: float = 1e-3  # AdamW, as in the paper
-    rollout_steps: int = 8  # K, the prediction horizon of the loss
+    rollout_steps: int = 8  # K, the prediction horizon of the loss (at most the window - 1)
     seed: int = 0
-
-    def __post_init__(self):
-        check_fields(self, {
-            "walls": (lambda w: w in WALL_X_RANGES, f"one of {sorted(WALL_X_RANGES)}"),
-            "batch_size": (is_int_at_least(2), "an int >= 2 (a batch of one has no variance)"),
-            "steps": (is_int_at_least(1), "an int >= 1"),
-            "lr": (is_positive, "a number > 0"),
-            "rollout_steps": (lambda k: is_int_at_least(1)(k) and k <= TRAJECTORY_ACTIONS,
-                              f"an int in 1..{TRAJECTORY_ACTIONS} (the actions per trajectory)"),
-        })
-        window, frames = self.recipe.window, self.rollout_steps + 1
-        if window and window < frames:
-            raise ValueError(f"window must hold rollout_steps + 1 = {frames} frames, got {window}")
 
 
 def course_recipe(config: WorldTrainConfig) -> WorldTrainConfig:
@@ -135,23 +99,19 @@ def random_windows(data: Trajectories, index: torch.Tensor, window: int,
 
 
 class LatentReplay:
-    """Cheap predictor-only updates on the detached latents of recent batches (a replay buffer).
-
-    :meth:`add` stores latents ``(B, T, D)`` and actions ``(B, T-1, A)`` (every rank's, under
-    torchrun); calling it with ``step`` makes ``recipe.replay_steps`` updates.
-    """
+    """Cheap predictor-only updates on the detached latents of recent batches: :meth:`add`
+    stores latents ``(B, T, D)`` and actions ``(B, T-1, A)``; ``replay(step)`` makes
+    ``recipe.replay_steps`` updates."""
 
     STREAM = 2**40  # the replay's generators: seeded apart from the batches' (step_generator)
 
     def __init__(self, model: WorldModel, config: WorldTrainConfig, frames: int, device):
-        distributed.per_rank_batch(REPLAY_BATCH)  # refuse an uneven split early
-        self.model, self.config, self.batch = model, config, REPLAY_BATCH
+        self.model, self.config, self.filled, self.head = model, config, 0, 0
         self.parameters = [*model.predictor.parameters(), *model.action_encoder.parameters()]
         self.optimizer = torch.optim.Adam(self.parameters, lr=REPLAY_LR)
-        capacity, actions = REPLAY_CAPACITY, model.config.action_dim
-        self.latents = torch.zeros(capacity, frames, model.latent_dim, device=device)
-        self.actions = torch.zeros(capacity, frames - 1, actions, device=device)
-        self.filled, self.head = 0, 0
+        self.latents = torch.zeros(REPLAY_CAPACITY, frames, model.latent_dim, device=device)
+        self.actions = torch.zeros(REPLAY_CAPACITY, frames - 1, model.config.action_dim,
+                                   device=device)
 
     def add(self, z: torch.Tensor, actions: torch.Tensor) -> None:
         z, actions = distributed.gather_rows(z.detach()), distributed.gather_rows(actions)
@@ -161,22 +121,22 @@ class LatentReplay:
         self.filled = min(self.filled + len(z), len(self.latents))
 
     def __call__(self, step: int) -> None:
-        config = self.config
+        config, recipe = self.config, self.config.recipe
         generator = torch.Generator().manual_seed(self.STREAM + config.seed * 1_000_003 + step)
-        for group in self.optimizer.param_groups:  # the joint step's schedule: a constant
-            group["lr"] = REPLAY_LR * decay_factor(config, step)  # rate undid the decay
-        for _ in range(config.recipe.replay_steps):
-            pick = torch.randint(0, self.filled, (self.batch,), generator=generator)
+        for group in self.optimizer.param_groups:  # the joint step's schedule
+            group["lr"] = REPLAY_LR * decay_factor(config, step)
+        for _ in range(recipe.replay_steps):
+            pick = torch.randint(0, self.filled, (REPLAY_BATCH,), generator=generator)
             pick = distributed.local_rows(pick).to(self.latents.device)
             loss = multistep_prediction_loss(
                 self.model.predict, self.latents[pick], self.actions[pick], config.rollout_steps,
-                stay_probability=config.recipe.stay_probability, generator=generator,
+                stay_probability=recipe.stay_probability, generator=generator,
                 rand=distributed.rand_rows)
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             distributed.average_gradients(self.parameters)
-            if config.recipe.grad_clip:
-                torch.nn.utils.clip_grad_norm_(self.parameters, config.recipe.grad_clip)
+            if recipe.grad_clip:
+                torch.nn.utils.clip_grad_norm_(self.parameters, recipe.grad_clip)
             self.optimizer.step()
 
     def state_dict(self) -> dict:
@@ -193,8 +153,7 @@ class LatentReplay:
 def new_model(config: WorldTrainConfig, data: Trajectories) -> WorldModel:
     """A fresh model whose input standardisation is fitted on 256 of the trajectories."""
     torch.manual_seed(config.seed)
-    model = WorldModel(config.model)
-    return model.fit_input_stats(data.frames(slice(0, 256)))
+    return WorldModel(config.model).fit_input_stats(data.frames(slice(0, 256)))
 
 
 def new_optimizer(model: WorldModel, config: WorldTrainConfig) -> torch.optim.AdamW:
@@ -214,13 +173,9 @@ temporal_similarity, inverse_dynamics = temporal_similarity_loss, inverse_dynami
 
 
 def world_model_step(model, optimizer, frames, actions, generator, config, step, replay=None):
-    """One training step: the five terms, their weighted total, the update, the replay.
-
-    Notebook 05 shows this code and hands it to :func:`train_world_model`. ``frames``
-    ``(B, T, 2, 65, 65)``, ``actions`` ``(B, T-1, 2)``; ``generator`` draws the still steps
-    and SIGReg's directions; ``step`` seeds the replay's draws. Returns ``(total, terms)``,
-    detached: a 0-d tensor and a dict of 0-d tensors, for the history.
-    """
+    """One training step, as notebook 05 shows it: the five terms, their weighted total, the
+    update, the replay. ``frames (B, T, 2, 65, 65)``, ``actions (B, T-1, 2)``; ``generator``
+    draws the still steps and SIGReg's directions. Returns ``(total, terms)``, detached."""
     z = encode_for_loss(model, frames)
     coeffs, recipe = config.coeffs, config.recipe
     terms = {
@@ -253,40 +208,32 @@ def train_world_model(config: WorldTrainConfig, data: Trajectories | None = None
                       device: torch.device | str | None = None,
                       step=world_model_step) -> tuple[WorldModel, History]:
     """Train a world model on ``data`` (default :func:`make_data`), each update a ``step``
-    (notebook 05 passes its cell's); resume from ``checkpoint`` (rank 0 alone writes it).
-    Batches come from generators seeded by ``(seed, step)``: a resumed run sees the same ones.
-    """
-    per_rank = distributed.per_rank_batch(config.batch_size)  # refuse an uneven split early
+    (notebook 05 passes its cell's), resumable from ``checkpoint``. Returns it in eval mode."""
+    per_process = distributed.per_rank_batch(config.batch_size)  # an uneven split fails here
     data = make_data(config) if data is None else data
     device, run = get_device(device), identity(config, step)
     layout = torch.channels_last if config.recipe.channels_last else torch.contiguous_format
     model = new_model(config, data).to(device, memory_format=layout)
     optimizer = new_optimizer(model, config)
-    scheduler = torch.optim.lr_scheduler.LambdaLR(
-        optimizer, lambda n: decay_factor(config, n)) if config.recipe.decay_steps else None
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda n: decay_factor(config, n))
     frames = config.recipe.window or data.positions.shape[1]
     replay = LatentReplay(model, config, frames, device) if config.recipe.replay_steps else None
-    start, history = resume(checkpoint, model, optimizer, scheduler, run, after_step=replay)
-    batch = _batches(config, data, torch.empty(per_rank, frames, 2, 65, 65), device)
+    buffer = torch.empty(per_process, frames, 2, 65, 65)
 
     def update(batch, n: int):
         total, terms = step(model, optimizer, *batch, config, n, replay)
-        if scheduler is not None:
-            scheduler.step()
+        scheduler.step()  # the rate of the next step: a constant without decay_steps
         return total, terms
 
-    def state(done: int) -> dict:  # what resume() reads back; rank 0 alone writes
-        return training_state(done, run, history, model, optimizer, scheduler, replay)
-
-    run_steps(update, batch, config.steps, start_step=start, history=history,
-              log_every=LOG_EVERY, desc="world model", progress=progress,
-              after=saver(checkpoint, state, config.steps, CHECKPOINT_EVERY))
-    model.eval()
-    return model, history
+    history = run_steps(
+        update, _batches(config, data, buffer, device), config.steps, log_every=LOG_EVERY,
+        desc="world model", progress=progress, checkpoint=checkpoint,
+        parts=(model, optimizer, scheduler, replay), identity=run, every=CHECKPOINT_EVERY)
+    return model.eval(), history
 
 
 def _batches(config: WorldTrainConfig, data: Trajectories, buffer: torch.Tensor, device):
-    """``batch(step) -> (frames, actions, generator)``: this rank's rows of the global batch
+    """``batch(step) -> (frames, actions, generator)``: this process's rows of the global batch
     of step ``step``, rendered into ``buffer (b, T, 2, 65, 65)``, and the step's generator."""
     window = config.recipe.window
 
@@ -294,10 +241,10 @@ def _batches(config: WorldTrainConfig, data: Trajectories, buffer: torch.Tensor,
         generator = step_generator(config.seed, step)  # then draws still steps and SIGReg's
         index = torch.randint(0, len(data), (config.batch_size,), generator=generator)
         if not window:
-            index = distributed.local_rows(index)  # every rank drew the global batch: keep ours
+            index = distributed.local_rows(index)
             frames = data.frames(index, out=buffer)
             return frames.to(device), data.actions[index].to(device), generator
-        # the global batch's windows (positions only: cheap), then this rank's rows rendered
+        # the global batch's windows (positions only: cheap), then this process's rows rendered
         windows = (*random_windows(data, index, window, generator), data.layouts[index])
         positions, actions, layouts = (distributed.local_rows(x) for x in windows)
         return render(positions, layouts, out=buffer).to(device), actions.to(device), generator
@@ -305,45 +252,33 @@ def _batches(config: WorldTrainConfig, data: Trajectories, buffer: torch.Tensor,
     return batch
 
 
-def train_or_load(config: WorldTrainConfig, name: str,
-                  device: torch.device | str | None = None,
+def train_or_load(config: WorldTrainConfig, name: str, device: torch.device | str | None = None,
                   step=world_model_step) -> tuple[WorldModel, History]:
-    """``(model in eval mode on device, history)`` of ``config``: loaded from
-    ``checkpoints/<name>.pt`` or ``data/cache/checkpoints/<name>.pt`` if this run was saved,
-    else trained with ``step`` (resumable from ``<name>.partial``) and saved. A ``step`` edited
-    from :func:`world_model_step` is a run of its own (:func:`identity`).
-    """
+    """``(model in eval mode on device, history)`` of ``config``: loaded if this run was saved
+    as ``name``, else trained with ``step`` and saved. A ``step`` edited from
+    :func:`world_model_step` is a run of its own (:func:`identity`)."""
     device = get_device(device)
     model = WorldModel(config.model).to(device)
-    cache_path, shipped = checkpoint_paths(name)
-    partial = cache_path.with_suffix(".partial")
+    path, shipped = checkpoint_paths(name)
 
     def train() -> History:
-        trained, history = train_world_model(config, make_data(config), checkpoint=partial,
-                                             device=device, step=step)
+        trained, history = train_world_model(config, make_data(config), path.with_suffix(
+            ".partial"), device=device, step=step)
         model.load_state_dict(trained.state_dict())
         return history
 
-    history = load_or_train(cache_path, model, train, identity(config, step), shipped,
-                            partial=partial)
+    history = load_or_train(path, model, train, identity(config, step), shipped)
     return model.eval(), history
 
 
 def load_world_model(path: str | Path, device: torch.device | str | None = None,
-                     made_by: str = "") -> WorldModel:
+                     made_by: str = "python -m research.train_world --out PATH") -> WorldModel:
     """The world model saved at ``path`` (``{"model": state_dict}``, read safely), in eval mode
     on ``device`` (default: the best available). ``made_by``: the command that writes the
-    file, named if it is missing or damaged."""
-    try:
-        state = load_checkpoint(path)
-    except (FileNotFoundError, CheckpointError) as error:
-        if not made_by:
-            raise
-        raise type(error)(f"{error}\nIt is made by: {made_by}") from None
-    weights = state.get("model") if isinstance(state, dict) else None
+    file, named if it is missing, damaged or holds no world model."""
+    weights = load_made_by(path, made_by).get("model")
     if not isinstance(weights, dict) or "_extra_state" not in weights:
-        raise ValueError(f"{path} holds no world model (expected a file written by "
-                         f"{made_by or 'python -m research.train_world --out PATH'})")
+        raise ValueError(f"{path} holds no world model (expected a file written by {made_by})")
     return WorldModel.from_state_dict(weights).to(get_device(device)).eval()
 
 
@@ -354,9 +289,6 @@ ABLATABLE_TERMS = tuple(ABLATION_SUFFIXES)
 
 def ablation_config(config: WorldTrainConfig, *without: str) -> WorldTrainConfig:
     """``config`` with the coefficients of the terms in ``without`` set to 0 (paper, Table 4)."""
-    unknown = set(without) - set(ABLATABLE_TERMS)
-    if unknown:
-        raise ValueError(f"unknown loss terms {sorted(unknown)}; choose from {ABLATABLE_TERMS}")
     return replace(config, coeffs=replace(config.coeffs, **{term: 0.0 for term in without}))
 
 

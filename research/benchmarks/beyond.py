@@ -29,8 +29,8 @@ from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.models.cost import CostToGo, WithLearnedCost
 from ebjepa_tutorial.models.hierarchy import CoarseModel
 from ebjepa_tutorial.planning import TwoLevel, run_episodes
+from ebjepa_tutorial.training import train_or_load
 from ebjepa_tutorial.training.fits import load_fit
-from ebjepa_tutorial.training.runs import train_or_load
 from ebjepa_tutorial.training.world import identity
 from research import fit_beyond
 from tools import figures

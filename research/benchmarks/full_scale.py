@@ -277,7 +277,7 @@ def parse(argv: list[str] | None = None) -> tuple[argparse.ArgumentParser, argpa
     parser.add_argument("--matmul-precision", choices=("highest", "high", "medium"),
                         help="torch.set_float32_matmul_precision: high allows TF32 on a GPU "
                              "(default: torch's, highest)")
-    launch.add_flags(parser, sync_bn=False)
+    launch.add_flags(parser)
     args = parser.parse_args(argv)
     if args.steps < 1 or args.warmup < 1:
         parser.error("--steps and --warmup must be at least 1")

@@ -27,7 +27,7 @@ import torch
 from ebjepa_tutorial.augment import AugmentConfig, build_augmentation, two_views
 from ebjepa_tutorial.course.presets import SCALES, image_preset
 from ebjepa_tutorial.data import load_cifar10, random_subset
-from ebjepa_tutorial.evaluation.classify import probe_encoder, protocol
+from ebjepa_tutorial.evaluation.classify import probe_encoder
 from ebjepa_tutorial.evaluation.sweeps import shorten
 from ebjepa_tutorial.losses.sigreg import sigreg_loss
 from ebjepa_tutorial.losses.vicreg import vicreg
@@ -47,6 +47,7 @@ from research.benchmarks.timing import (
     print_parts,
     time_parts,
 )
+from research.train_image import protocol
 from tools import figures
 
 

@@ -1,9 +1,6 @@
-"""Checkers for the notebooks' exercises, one module per chapter; the hints and the words for
-each exercise's typical mistakes are in hints.yaml. ``check_xxx(fn)`` returns the function the
-notebook goes on with (the course's while ``fn`` is the student stub) or raises
-:class:`ExerciseError`, naming the mistake and offering the next hint; ``hint("name")`` asks for
-one; ``whose(fn)`` says whose function a notebook runs.
-"""
+"""Checkers for the notebooks' exercises, one module per chapter (common.py: what they share;
+hints.yaml: each exercise's hints and the words for its typical mistakes; general.yaml: the
+words for mistakes any exercise can make)."""
 
 from .beyond import check_spread_loss, check_step_violation
 from .common import ExerciseError, hint, whose

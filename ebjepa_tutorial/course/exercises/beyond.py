@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 
 from ...losses.cost import spread_loss, step_violation
-from .common import Case, exercise, slips
+from .common import Case, Exercise, slips
 
 
 def _violation_cases() -> list[Case]:
@@ -30,7 +30,7 @@ def _violation(hinge=F.relu, power=2, reduce=torch.mean, swapped=False):
     return step_violation
 
 
-check_step_violation = exercise(
+check_step_violation = Exercise(
     "step_violation", step_violation, slips(
         "step_violation", no_hinge=_violation(hinge=lambda x: x),
         swapped=_violation(swapped=True), unsquared=_violation(power=1),
@@ -56,7 +56,7 @@ def _spread(sign=1.0, hinge=F.softplus, reduce=torch.mean, cap=True):
     return spread_loss
 
 
-check_spread_loss = exercise(
+check_spread_loss = Exercise(
     "spread_loss", spread_loss, slips(
         "spread_loss", sign_flipped=_spread(sign=-1.0), relu=_spread(hinge=F.relu),
         no_cap=_spread(cap=False), summed=_spread(reduce=torch.sum)),

@@ -1,12 +1,10 @@
-"""What every checker shares: the graded hints (:func:`hint`), :class:`Comparison` of a
-learner's function with the course's, which names a wrong answer in words, and :func:`exercise`,
-which lets a notebook run on past an exercise not yet done."""
+"""What every checker shares: the graded hints (:func:`hint`) and :class:`Exercise`, which
+compares a learner's function with the course's, names a wrong answer in words, and lets a
+notebook run on past an exercise not yet done."""
 
 from __future__ import annotations
 
 import inspect
-import itertools
-import sys
 import textwrap
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -38,9 +36,8 @@ class NotImplementedYet(ExerciseError):
 
 def slips(exercise: str, **variants) -> list[Diagnosis]:
     """``(words, variant)`` for each typical mistake of ``exercise``, in the order given (on a
-    tie the first wins: list the slips that change only a gradient first). A variant has the
-    exercise's signature and makes the mistake (a tuple: several ways to make it); its words
-    are hints.yaml's under the same key."""
+    tie the first wins). A variant has the exercise's signature and makes the mistake (a
+    tuple: several ways to make it); its words are hints.yaml's under the same key."""
     words = TEXTS[exercise]["slips"]
     return [(words[key], f) for key, fs in variants.items()
             for f in (fs if isinstance(fs, tuple) else (fs,))]
@@ -81,60 +78,11 @@ def _offer(name: str) -> str:
     return "\n\n" + say("still_stuck", name=name)
 
 
-# --------------------------------------------------------------- watching the learner's call
-
-_NOT_THE_LEARNER = (str(Path(torch.__file__).parent), str(Path(__file__).parent))
-_CUTS = {"detach": ".detach()", "detach_": ".detach_()", "numpy": ".numpy()",  # C methods
-         "item": ".item()", "tolist": ".tolist()"}
-_GRAD_OFF = {"no_grad.__enter__": "torch.no_grad()",  # Python functions, by qualified name
-             "inference_mode.__enter__": "torch.inference_mode()",
-             "set_grad_enabled.__init__": "torch.set_grad_enabled(False)"}
-_WHAT_CUTS = {".detach()": "cut_detach", ".detach_()": "cut_detach", ".numpy()": "cut_numpy",
-              "numpy": "cut_numpy", ".item()": "cut_item", ".tolist()": "cut_tolist",
-              **{word: "cut_grad_off" for word in _GRAD_OFF.values()}}  # -> general.yaml
-
-
-def _learners(frame) -> bool:
-    return frame is not None and not frame.f_code.co_filename.startswith(_NOT_THE_LEARNER)
-
-
-class _Spy:
-    """Watches one call of a learner's function (``sys.setprofile``): what in it can cut a
-    gradient (``cuts``), and which of the course's own answers (``_Spy.answers``, code ->
-    name, set by :func:`exercise`) it calls (``_Spy.called``, kept for the whole check)."""
-
-    answers: dict = {}
-    called: dict = {}  # used as an ordered set, as is cuts
-
-    def __enter__(self) -> _Spy:
-        self.cuts, self._previous = {}, sys.getprofile()
-        sys.setprofile(self._event)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        sys.setprofile(self._previous)
-
-    def _event(self, frame, event, arg) -> None:
-        if event == "c_call":
-            if (word := _CUTS.get(getattr(arg, "__name__", None))) and _learners(frame):
-                self.cuts.setdefault(word)
-        elif event == "call":
-            code, learner = frame.f_code, _learners(frame.f_back)
-            qualname = getattr(code, "co_qualname", code.co_name)
-            # a decorator's no_grad is entered from torch's own code: count it wherever it is
-            if qualname in _GRAD_OFF and (learner or code.co_name == "__enter__"):
-                self.cuts.setdefault(_GRAD_OFF[qualname])
-            elif code.co_name == "__array__" and learner:
-                self.cuts.setdefault("numpy")
-            elif code in _Spy.answers:
-                _Spy.called.setdefault(_Spy.answers[code])
-
-
 @dataclass
 class Case:
-    """One test input. ``sizes``: named sizes (``{"K": 3}``) the factor detector tries besides
-    the shapes' (``dims``); ``atol``: a looser tolerance where float32 cannot do better, and
-    ``why_loose`` the note printed when an answer needed it (``{diff}``: the largest gap)."""
+    """One test input. ``sizes``: named sizes (``{"K": 3}``) a factor may be off by; ``atol``:
+    a looser tolerance where float32 cannot do better, and ``why_loose`` the note printed when
+    an answer needed it (``{diff}``: the largest gap)."""
 
     description: str
     args: tuple
@@ -144,67 +92,39 @@ class Case:
     why_loose: str = ""
 
 
-def _run(fn: Callable, name: str, case: Case, labels: Sequence[str] = ()):
-    """``fn`` on its own copy of ``case``'s inputs -> ``(output, spy)``; raises
-    :class:`ExerciseError` if it crashes or changes an input in place."""
-    def copy(v):
-        return v.clone() if isinstance(v, torch.Tensor) else v
-    args, kwargs = [copy(v) for v in case.args], {k: copy(v) for k, v in case.kwargs.items()}
-    with _Spy() as spy:
-        try:
-            out = fn(*args, **kwargs)
-        except NotImplementedError:
-            raise NotImplementedYet(f"{name} is not implemented yet") from None
-        except Exception as err:
-            numpy = "numpy" in str(err) and "grad" in str(err)
-            raise ExerciseError(say("raised_numpy" if numpy else "raised", name=name,
-                                    case=case.description, error=f"{type(err).__name__}: {err}")
-                                ) from err
-    for where, after in [*enumerate(args), *kwargs.items()]:
-        before = case.kwargs[where] if isinstance(where, str) else case.args[where]
-        if isinstance(before, torch.Tensor) and (after.shape != before.shape
-                                                 or not torch.equal(after, before)):
-            label = where if isinstance(where, str) else (
-                labels[where] if where < len(labels) else f"argument {where + 1}")
-            raise ExerciseError(say("in_place", name=name, label=label, case=case.description))
-    return out, spy
+def gradient(fn: Callable, index: int) -> Callable:
+    """``fn`` returning the gradient of its output's sum with respect to positional argument
+    ``index`` instead (zeros where none reaches it; None when the output is not connected to
+    the autograd graph at all)."""
+    def run(*args, **kwargs):
+        x = args[index].detach().clone().requires_grad_()
+        out = fn(*args[:index], x.clone(), *args[index + 1:], **kwargs)  # clone: in place is ok
+        if not (isinstance(out, torch.Tensor) and out.requires_grad):
+            return None
+        grad = torch.autograd.grad(out.sum(), x, allow_unused=True)[0]
+        return torch.zeros_like(x) if grad is None else grad
+
+    return run
 
 
-# -------------------------------------------------------------- naming what went wrong
+# ------------------------------------------------------------------- naming what went wrong
+
+def _numbers(value) -> torch.Tensor | None:
+    """``value`` as a float64 tensor (a tuple of tensors flattened and joined), else None."""
+    if isinstance(value, (tuple, list)) and value and all(torch.is_tensor(v) for v in value):
+        return torch.cat([v.detach().double().flatten() for v in value])
+    try:
+        return torch.as_tensor(value).detach().double()
+    except (TypeError, ValueError, RuntimeError):
+        return None
+
 
 def _describe(value) -> str:
     if isinstance(value, torch.Tensor):
         return f"a tensor of shape {tuple(value.shape)}"
     if isinstance(value, (tuple, list)):
         return f"a {type(value).__name__} of {len(value)}"
-    return f"a {type(value).__module__}.{type(value).__name__}".replace("builtins.", "Python ")
-
-
-def _type_problem(got, name: str, case: Case, label: str = "") -> str | None:
-    """Words for a non-tensor ``got`` (a Python number, numpy, a tuple, None), else None."""
-    if isinstance(got, torch.Tensor):
-        return None
-    key = ("returned_none" if got is None
-           else "returned_numpy" if type(got).__module__.split(".")[0] == "numpy"
-           else "returned_number" if isinstance(got, (bool, int, float))
-           else "returned_several" if isinstance(got, (tuple, list)) else "returned_other")
-    return say(key, yours=f"{name} returned {label + ' as ' if label else ''}", value=got,
-               where=f"on {case.description}, where a torch tensor is expected",
-               kind=_describe(got) if key == "returned_other" else type(got).__name__,
-               n=len(got) if isinstance(got, (tuple, list)) else 0)
-
-
-def _numbers(value) -> torch.Tensor | None:
-    """``value`` as a float64 tensor (a tuple of tensors flattened and joined), else None."""
-    if isinstance(value, torch.Tensor):
-        return value.detach().double()
-    if isinstance(value, (tuple, list)) and value and all(
-            isinstance(v, torch.Tensor) for v in value):
-        return torch.cat([v.detach().double().flatten() for v in value])
-    try:
-        return torch.as_tensor(value, dtype=torch.float64)
-    except (TypeError, ValueError, RuntimeError):
-        return None
+    return f"a {type(value).__module__.replace('builtins', 'Python')} {type(value).__name__}"
 
 
 def diagnose(got, diagnoses: Sequence[Diagnosis], case: Case, atol: float = 1e-5) -> str:
@@ -222,25 +142,10 @@ def diagnose(got, diagnoses: Sequence[Diagnosis], case: Case, atol: float = 1e-5
     return f" Likely cause: {min(matches)[2]}" if matches else ""
 
 
-def _factors(sizes: dict) -> list[tuple[str, float, str]]:
-    """``(words, value, what to look at)`` for each factor a value can be off by: for each
-    named size n, n, n - 1, n/(n - 1) and its square (an unbiased estimate divided by n,
-    then squared); then 2. A named size comes first: its advice is the more telling."""
-    out = []
-    for k, n in sizes.items():
-        if n >= 2:
-            out.append((k, n, say("factor_n", k=k)))
-        if n > 2:
-            ratio = say("factor_ratio", k=k)
-            out += [(f"{k} - 1", n - 1, say("factor_n_1", k=k)),
-                    (f"{k}/({k} - 1)", n / (n - 1), ratio),
-                    (f"({k}/({k} - 1))²", (n / (n - 1)) ** 2, ratio)]
-    return out + [("2", 2, say("factor_2"))]
-
-
 def _factor_off(got, expected, sizes: dict, advice: dict) -> tuple[str, str, str] | None:
-    """The cause when ``got`` is ``expected`` times one of :func:`_factors` (``advice``, by the
-    factor's words, replaces the general one), else None."""
+    """``(what was found, '', what to look at)`` when ``got`` is ``expected`` times or divided
+    by a named size n, n - 1, n/(n - 1) or its square (an unbiased estimate divided by n, then
+    squared), or 2; ``advice`` by the factor's words replaces the general look. Else None."""
     big = expected.abs() > 1e-8
     if not big.any() or not torch.isfinite(got).all():
         return None
@@ -248,104 +153,109 @@ def _factor_off(got, expected, sizes: dict, advice: dict) -> tuple[str, str, str
     r = float(ratio.median())
     if r <= 0 or not torch.allclose(ratio, torch.full_like(ratio, r), rtol=1e-4, atol=0):
         return None
-    for words, value, look in _factors(sizes):
+    factors = [(k, n) for k, n in sizes.items() if n >= 2] + [
+        (words, value) for k, n in sizes.items() if n > 2 for words, value in
+        [(f"{k} - 1", n - 1), (f"{k}/({k} - 1)", n / (n - 1)),
+         (f"({k}/({k} - 1))²", (n / (n - 1)) ** 2)]] + [("2", 2)]
+    for words, value in factors:
         for direction, target in (("too large", value), ("too small", 1 / value)):
             if abs(r - target) < 1e-4 * target:
                 shown = "" if words == "2" else f" = {value:.4g}"
                 return (say("factor", direction=direction, words=words, shown=shown), "",
-                        say("factor_look", look=advice.get(words, look)))
+                        say("factor_look", look=advice.get(words, say("factor_any"))))
     return None
 
 
-def _transposed(got, expected, atol: float) -> bool:
-    """Whether ``got`` is ``expected`` with its axes in another order."""
-    if got.ndim != expected.ndim or got.ndim < 2 or got.shape == expected.shape:
-        return False
-    return any(tuple(expected.shape[i] for i in order) == tuple(got.shape) and torch.allclose(
-        expected.permute(order).double(), got.double(), atol=atol, rtol=1e-4)
-        for order in itertools.permutations(range(expected.ndim)))
-
-
-def _shape_problem(got, expected, name: str, case: Case, label: str, atol: float) -> str:
-    yours = f"your {label}" if label else "your output"
-    return say("transposed" if _transposed(got, expected, atol) else "wrong_shape", name=name,
-               case=case.description, yours=yours, got=tuple(got.shape),
-               expected=tuple(expected.shape), label=" for " + yours if label else "",
-               single=" (a single number)" if expected.ndim == 0 else "")
-
-
 def _disagreement(got, expected, atol: float) -> str:
-    """``'x, but the answer is y'``, naming the first element that differs."""
-    got, expected = got.detach(), expected.detach()
+    """``'x, but the answer is y'`` (float64 tensors), naming the first element that differs."""
     if expected.numel() == 1:
         return f"{float(got):.6g}, but the answer is {float(expected):.6g}"
-    bad = ~torch.isclose(got.double(), expected.double(), atol=atol, rtol=1e-4)
+    bad = ~torch.isclose(got, expected, atol=atol, rtol=1e-4)
     first = tuple(int(i) for i in bad.nonzero()[0])
-    g, e = float(got[first]), float(expected[first])
-    return (f"{g:.6g} at index {list(first)}, but the answer is {e:.6g} (the first of "
-            f"{int(bad.sum())} wrong elements out of {bad.numel()})")
-
-
-def gradient(fn: Callable, index: int) -> Callable:
-    """``fn`` returning the gradient of its output's sum with respect to positional argument
-    ``index`` instead (zeros where none reaches it); ``.connected``, after a call: whether the
-    output was connected to the autograd graph at all."""
-    def run(*args, **kwargs):
-        x = args[index].detach().clone().requires_grad_()
-        out = fn(*args[:index], x.clone(), *args[index + 1:], **kwargs)  # clone: in place is ok
-        run.connected = isinstance(out, torch.Tensor) and out.requires_grad
-        grad = torch.autograd.grad(out.sum(), x, allow_unused=True)[0] if run.connected else None
-        return torch.zeros_like(x) if grad is None else grad
-
-    run.__name__ = getattr(fn, "__name__", "your function")
-    run.connected = True
-    return run
+    return (f"{float(got[first]):.6g} at index {list(first)}, but the answer is "
+            f"{float(expected[first]):.6g} (the first of {int(bad.sum())} wrong elements out "
+            f"of {bad.numel()})")
 
 
 def _and(words: Sequence[str]) -> str:
     return words[0] if len(words) == 1 else ", ".join(words[:-1]) + " and " + words[-1]
 
 
-def _no_flow(name: str, case: Case, label: str, cuts: Sequence[str], connected: bool,
-             why: str = "") -> ExerciseError:
-    """The error for a right value whose gradient does not reach ``label``: what cut it."""
-    look = say("no_flow_cuts" if cuts else "no_flow_one" if connected else "no_flow_unconnected",
-               cuts=_and([f"{c} ({say(_WHAT_CUTS[c])})" for c in cuts]) if cuts else "",
-               label=label)
-    return ExerciseError(say("no_flow", name=name, case=case.description, label=label,
-                             look=look, why=why))
+# ----------------------------------------------------------------------------- the exercises
+
+_REFERENCES: list[Callable] = []
 
 
-# ---------------------------------------------------------------------- the comparison
+def whose(fn: Callable) -> str:
+    """``"the course's"`` when ``fn`` is an implementation a check handed over in place of an
+    unfinished exercise, else ``"your"``: for a notebook to print whose function it runs."""
+    return "the course's" if any(fn is r for r in _REFERENCES) else "your"
+
 
 @dataclass
-class Comparison:
-    """Checks a learner's function against ``reference`` on ``cases()``: every value, then the
-    gradient with respect to each ``grad`` ``(argument index, its label)``; prints a verdict or
-    raises :class:`ExerciseError`. A wrong answer is named by one of the exercise's own
-    ``diagnoses`` (:func:`diagnose`), else by a general mistake: NaN, a sign flip, a factor off
-    (the sizes of the axes ``dims`` names, ``{index: "BD"}``, ``_`` skipping one; ``factors``:
-    advice by the factor's words), the wrong axis (``swap``: ``(index, a, b, what it means,
-    what to look at)``, axes ``a`` and ``b`` of one argument exchanged), a transposed result,
-    a non-tensor. ``parts``: the outputs' names when a tuple is returned; ``labels``: the
-    arguments' (default: the reference's parameters)."""
+class Exercise:
+    """The check of the exercise ``exercise``: ``check(fn)`` returns ``fn`` when it agrees
+    with ``reference`` (the course's, same signature) on ``cases()``, in value and in its
+    gradient with respect to each ``grad`` ``(argument index, label)``; ``reference`` while
+    ``fn`` is the student stub, so that "Run All" reaches the end of the chapter. Else it
+    raises an :class:`ExerciseError` naming the mistake (one of ``mistakes``, else
+    ``explain(case, got, expected, diagnosed)``'s words, else NaN, a sign flip, a factor off
+    by a size of ``dims`` (``{index: "BD"}``, ``_`` skips an axis) or ``case.sizes``, with
+    hints.yaml's advice) and offers the next hint. ``parts``: the outputs' names when a
+    tuple is returned; ``adapt``: turns the reference, the mistakes and ``fn`` into what the
+    cases call."""
 
+    exercise: str
     reference: Callable
+    mistakes: Sequence[Diagnosis]
     cases: Callable[[], list[Case]]
-    diagnoses: Sequence[Diagnosis] = ()
     atol: float = 1e-5
     parts: Sequence[str] | None = None
     grad: Sequence[tuple[int, str]] = ()
-    labels: Sequence[str] | None = None
     dims: dict = field(default_factory=dict)
-    swap: tuple | None = None
-    factors: dict = field(default_factory=dict)
+    explain: Callable | None = None
+    adapt: Callable = lambda f: f
 
     def __post_init__(self):
-        self.labels = self.labels or list(inspect.signature(self.reference).parameters)
+        _REFERENCES.append(self.reference)
+        self._reference = self.adapt(self.reference)
+        self._mistakes = [(words, self.adapt(v)) for words, v in self.mistakes]
+        self._labels = list(inspect.signature(self._reference).parameters)
 
-    def __call__(self, fn: Callable) -> None:
-        name, cases = getattr(fn, "__name__", "your function"), self.cases()
+    def __call__(self, fn: Callable) -> Callable:
+        if fn is self.reference:  # this cell ran again after handing the course's one over
+            print(say("still_the_course"))
+            return fn
+        name = getattr(fn, "__name__", "your function")
+        try:
+            self._compare(self.adapt(fn), name)
+        except NotImplementedYet:
+            print(say("not_yet", name=name, exercise=self.exercise))
+            return self.reference
+        except ExerciseError as error:  # raised from here, it shows the learner's cell only
+            raise ExerciseError(str(error) + _offer(self.exercise)) from None
+        return fn
+
+    def _run(self, fn: Callable, name: str, case: Case):
+        """``fn``'s output on its own copy of ``case``'s inputs; raises :class:`ExerciseError`
+        if it crashes or changes an input in place."""
+        args = [v.clone() if isinstance(v, torch.Tensor) else v for v in case.args]
+        try:
+            out = fn(*args, **case.kwargs)  # keyword arguments are numbers
+        except NotImplementedError:
+            raise NotImplementedYet(f"{name} is not implemented yet") from None
+        except Exception as err:
+            raise ExerciseError(say("raised", name=name, case=case.description,
+                                    error=f"{type(err).__name__}: {err}")) from err
+        for label, before, after in zip(self._labels, case.args, args):
+            if isinstance(before, torch.Tensor) and (after.shape != before.shape
+                                                     or not torch.equal(after, before)):
+                raise ExerciseError(say("in_place", name=name, label=label,
+                                        case=case.description))
+        return out
+
+    def _compare(self, fn: Callable, name: str) -> None:
+        cases = self.cases()
         notes = [self._values(fn, name, case) for case in cases]
         for case in cases:
             for index, label in self.grad:
@@ -359,19 +269,26 @@ class Comparison:
     def _values(self, fn: Callable, name: str, case: Case) -> str:
         """Raise unless ``fn`` agrees with the reference on ``case``; returns the case's note
         when it agreed only within the case's looser tolerance."""
-        expected = self.reference(*case.args, **case.kwargs)
-        got, _ = _run(fn, name, case, self.labels)
+        expected = self._reference(*case.args, **case.kwargs)
+        got = self._run(fn, name, case)
         atol, parts, note = self.atol if case.atol is None else case.atol, self.parts, ""
         if parts and (not isinstance(got, (tuple, list)) or len(got) != len(parts)):
-            raise ExerciseError(say("not_a_pair", name=name, kind=_describe(got), n=len(parts),
-                                    case=case.description, parts=", ".join(parts)))
+            raise ExerciseError(say("not_a_tuple", name=name, n=len(parts), case=case.description,
+                                    parts=", ".join(parts), kind=_describe(got)))
         for label, g, e in zip(parts, got, expected) if parts else [("", got, expected)]:
-            if (problem := _type_problem(g, name, case, label)):
-                raise ExerciseError(problem)
+            if (torch.is_tensor(e) and not torch.is_tensor(g)) or _numbers(g) is None:
+                key = ("returned_none" if g is None else "returned_several"
+                       if isinstance(g, (tuple, list)) else "returned_other")
+                raise ExerciseError(say(key, name=name, label=f"{label} as " if label else "",
+                                        kind=_describe(g), case=case.description, what="a torch "
+                                        "tensor" if torch.is_tensor(e) else "a number"))
+            g, e = _numbers(g), _numbers(e)
             if g.shape != e.shape:
-                raise ExerciseError(_shape_problem(g, e, name, case, label, atol)
-                                    + diagnose(got, self.diagnoses, case, atol))
-            g, e = g.double(), e.double()
+                raise ExerciseError(say("wrong_shape", name=name, case=case.description,
+                                        got=tuple(g.shape), expected=tuple(e.shape),
+                                        label=f" for your {label}" if label else "",
+                                        single=" (a single number)" if e.ndim == 0 else "")
+                                    + diagnose(got, self._mistakes, case, atol))
             if not torch.allclose(g, e, atol=atol, rtol=1e-4):
                 raise ExerciseError(self._value_problem(name, got, g, e, case, label, atol))
             if not torch.allclose(g, e, atol=self.atol, rtol=1e-4):
@@ -382,7 +299,9 @@ class Comparison:
         """Words for a wrong output ``g`` (a part of ``got``; ``e`` the answer): one of the
         exercise's own mistakes, else a general one, else only the numbers."""
         numbers = f"{'your ' + label + ' ' if label else ''}{_disagreement(g, e, atol)}"
-        why = diagnose(got, self.diagnoses, case, atol)
+        why = diagnose(got, self._mistakes, case, atol)
+        if self.explain and (words := self.explain(case, g, e, bool(why))):
+            return f"{name} {words}{why}"
         if why or not (general := self._general_cause(g, e, case)):
             return say("wrong_value", name=name, numbers=numbers, case=case.description, why=why)
         found, means, look = general
@@ -393,104 +312,32 @@ class Comparison:
         """``(what was found, ': what it means' or '', what to look at)``, or None."""
         if torch.isfinite(expected).all() and not torch.isfinite(got).all():
             return say("nan"), "", say("nan_look")
-        scale = float(expected.abs().max()) if expected.numel() else 0.0
-        if scale > 10 * self.atol and torch.allclose(got, -expected, atol=self.atol, rtol=1e-4):
+        if expected.abs().max() > 10 * self.atol and torch.allclose(got, -expected,
+                                                                     atol=self.atol, rtol=1e-4):
             return say("sign"), say("sign_means"), say("sign_look")
         sizes = {k: n for i, axes in self.dims.items()
                  for k, n in zip(axes, case.args[i].shape) if k != "_"}
-        return (_factor_off(got, expected, {**sizes, **case.sizes}, self.factors)
-                or self._wrong_axis(got, case))
-
-    def _wrong_axis(self, got, case: Case) -> tuple[str, str, str] | None:
-        if self.swap is None:
-            return None
-        index, a, b, means, look = self.swap
-        args = list(case.args)
-        args[index] = args[index].transpose(a, b).contiguous()
-        try:
-            wrong = _numbers(self.reference(*args, **case.kwargs))
-        except Exception:
-            return None
-        if wrong is not None and wrong.shape == got.shape and torch.allclose(
-                got, wrong, atol=self.atol / 10, rtol=1e-5):
-            return say("axis"), say("axis_means", means=means), look
-        return None
+        return _factor_off(got, expected, {**sizes, **case.sizes},
+                           TEXTS[self.exercise].get("factors", {}))
 
     def _gradient(self, fn: Callable, name: str, case: Case, index: int, label: str) -> None:
         """Raise unless ``fn``'s gradient with respect to argument ``index`` is the reference's."""
         atol = self.atol if case.atol is None else case.atol
-        expected = gradient(self.reference, index)(*case.args, **case.kwargs)
-        probe = gradient(fn, index)
+        zeros = torch.zeros_like(case.args[index], dtype=torch.float64)
+        expected = gradient(self._reference, index)(*case.args, **case.kwargs)
+        expected = zeros if expected is None else expected.double()
         try:
-            got, spy = _run(probe, name, case, self.labels)
+            got = self._run(gradient(fn, index), name, case)
         except ExerciseError as error:  # numpy refuses a tensor that requires a gradient
-            if "numpy" in str(error) and "grad" in str(error):
-                raise _no_flow(name, case, label, ["numpy"], False) from None
-            raise
-        if torch.allclose(got.double(), expected.double(), atol=atol, rtol=1e-4):
+            if "numpy" not in str(error) or "grad" not in str(error):
+                raise
+            got = None
+        connected = got is not None
+        got = got.double() if connected else zeros
+        if torch.allclose(got, expected, atol=atol, rtol=1e-4):
             return
-        why = diagnose(got, [(w, gradient(v, index)) for w, v in self.diagnoses], case, atol)
-        if expected.abs().max() > 0 and not got.any():  # an own slip explains only a partial cut
-            raise _no_flow(name, case, label, list(spy.cuts), probe.connected,
-                           why if probe.connected else "")
-        raise ExerciseError(say("wrong_gradient", name=name, case=case.description, label=label,
-                                numbers=_disagreement(got, expected, atol), why=why))
-
-
-# -------------------------------------------------------------------------- the exercises
-
-_REFERENCES: list[Callable] = []
-
-
-def whose(fn: Callable) -> str:
-    """``"the course's"`` when ``fn`` is an implementation a check handed over in place of an
-    unfinished exercise, else ``"your"``: for a notebook to print whose function it runs."""
-    return "the course's" if any(fn is r for r in _REFERENCES) else "your"
-
-
-def exercise(name: str, reference: Callable, mistakes: Sequence[Diagnosis] = (),
-             cases: Callable[[], list[Case]] | None = None, *, check: Callable | None = None,
-             answers: Sequence[Callable] = (), **options) -> Callable:
-    """The check of the exercise ``name``: ``check_name(fn)`` returns the function the notebook
-    goes on with. That is ``fn`` when it is right; ``reference`` (the course's, same signature)
-    while ``fn`` is the student stub, so that "Run All" reaches the end of the chapter; when
-    ``fn`` is wrong, an :class:`ExerciseError` names the mistake and offers the next hint.
-    ``check(fn)`` judges, by default a :class:`Comparison` of ``fn`` with ``reference`` on
-    ``cases()`` naming ``mistakes``, with ``options``. ``answers``: the course's other
-    functions that compute the answer: a right ``fn`` that only calls one is told so."""
-    _REFERENCES.append(reference)
-    check = check or Comparison(reference, cases, mistakes, **options)
-    codes = {f.__code__: f"{f.__module__.removeprefix('ebjepa_tutorial.')}.{f.__name__}"
-             for f in (reference, *answers) if hasattr(f, "__code__")}
-
-    def run(fn: Callable) -> Callable:
-        verdict = _judge(check, fn, reference, name, codes)
-        if isinstance(verdict, ExerciseError):  # raised here, its traceback shows the
-            raise verdict from None  # learner's cell, not the checker's insides
-        return verdict
-
-    run.reference, run.mistakes, run.exercise = reference, tuple(mistakes), name
-    run.__doc__ = f"Check your {name}; returns the function the notebook goes on with."
-    return run
-
-
-def _judge(check: Callable, fn: Callable, reference: Callable, name: str,
-           codes: dict) -> Callable | ExerciseError:
-    """Run ``check(fn)``: the function the notebook goes on with, or the error to raise."""
-    if fn is reference:  # this cell ran again after handing the course's one over
-        print(say("still_the_course"))
-        return reference
-    _Spy.answers, _Spy.called = codes, {}
-    try:
-        check(fn)
-    except NotImplementedYet:
-        print(say("not_yet", name=getattr(fn, "__name__", "your function"), exercise=name))
-        return reference
-    except ExerciseError as error:
-        return ExerciseError(str(error) + _offer(name))
-    finally:
-        _Spy.answers = {}
-    if _Spy.called:
-        print(say("calls_the_course", name=getattr(fn, "__name__", "function"),
-                  answers=_and(list(_Spy.called))))
-    return fn
+        why = diagnose(got, [(w, gradient(v, index)) for w, v in self._mistakes], case,
+                       atol) if connected else ""  # an own slip explains only a partial cut
+        key = "no_flow" if expected.abs().max() > 0 and not got.any() else "wrong_gradient"
+        raise ExerciseError(say(key, name=name, case=case.description, label=label, why=why,
+                                numbers=_disagreement(got, expected, atol)))

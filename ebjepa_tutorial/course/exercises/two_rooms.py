@@ -1,10 +1,6 @@
-"""Checkers of chapter 04: the wall collision for one step, in two checked steps:
-``slab_crossing(x0, x1, x_lo, x_hi) -> (t_in, t_out)``, all ``(B,)``, the fractions of a move
-spent inside the wall's slab; then ``wall_collision(positions, moves, layouts)`` -> new positions
-``(B, 2)``. For the second, the checker says in plain words what went wrong first (leaving the
-arena, passing through the wall, ending inside it, stopping at an open door), or names the
-typical wrong rule that gives the learner's positions.
-"""
+"""Checkers of chapter 04: ``slab_crossing(x0, x1, x_lo, x_hi) -> (t_in, t_out)``, all
+``(B,)``, the fractions of a move spent inside the wall's slab; then ``wall_collision(positions,
+moves, layouts)`` -> new positions ``(B, 2)``, whose check says what went wrong first."""
 
 from __future__ import annotations
 
@@ -12,7 +8,7 @@ import torch
 
 from ...envs import two_rooms as rooms
 from ...envs.two_rooms import HIGH, LOW, stop_at_wall, wall_bounds, wall_collision
-from .common import Case, ExerciseError, _run, _transposed, _type_problem, diagnose, exercise, slips
+from .common import TEXTS, Case, Exercise, slips
 
 
 def _crossing_slip(order=True, clamp=True, still=True, strict=True):
@@ -66,7 +62,7 @@ def _crossing_cases(n: int = 64) -> list[Case]:
     ]
 
 
-check_slab_crossing = exercise(
+check_slab_crossing = Exercise(
     "slab_crossing", _slab_crossing, slips(
         "slab_crossing", unordered=_crossing_slip(order=False),
         unclamped=_crossing_slip(clamp=False), division_by_zero=_crossing_slip(still=False),
@@ -110,69 +106,36 @@ def _wall_cases(n: int = 512) -> list[Case]:
     return [Case(desc, (pos, move, layouts)) for desc, pos, move in cases]
 
 
-_WALL_PROBLEMS = {  # what can go wrong, in the order it is looked for -> its words
-    "nan": "returned NaN or infinity {at}.",
-    "arena": f"moved the dot to {{got}}, outside the arena (the dot centre must stay in "
-             f"[{LOW}, {HIGH}] in x and y), {{at}}: rule 1 clamps the target to the arena "
-             "before anything else.",
-    "through": "let the dot pass through the wall at y={y_cross:.1f} where {door}; {at} it "
-               "ended at {got}.",
-    "inside": "left the dot centre inside the wall at {got} (the slab {x_lo:.1f} < x < "
-              "{x_hi:.1f} is open only for {y_lo:.1f} <= y <= {y_hi:.1f}), {at}.",
-    "door": "stopped the dot at the wall, but the door is open there: {door}; {at} the "
-            "reference goes on to {expected}, yours stopped at {got}.",
-    "other": "gave {got} but the reference gives {expected}, {at}.{rule}",
-}
-_RULE = (" The rule: clamp the target to the arena first; stop only the blocked coordinate (x "
-         "at the wall's face, or y at the door's edge) and let the other one move.")
-
-
-def _symptoms(pos, layouts, got, expected) -> tuple[dict, torch.Tensor]:
-    """Masks ``(n,)`` of what went wrong with the new positions ``got``, by the keys of
-    ``_WALL_PROBLEMS``, and the height at which each move crosses the wall's line."""
+def _first_problem(case: Case, got, expected, diagnosed: bool) -> str | None:
+    """Words for the first wrong new position in ``got`` ``(n, 2)``: the first symptom found,
+    in the order of hints.yaml's ``symptoms``. When a typical wrong rule explains ``got``
+    (``diagnosed``), only the positions: the symptom could mislead (an unclamped target can
+    look like a dot stopped at an open door), and the rule, named after this, says more."""
+    pos, move, layouts = case.args
     x_lo, x_hi, y_lo, y_hi = wall_bounds(layouts)
     wall_x, tol = layouts[:, 0].float(), 1e-4
     (x0, y0), (x1, y1) = pos.unbind(-1), got.unbind(-1)
-    crossed = (x0 < wall_x) != (x1 < wall_x)
-    ref_crossed = (x0 < wall_x) != (expected[:, 0] < wall_x)
     face = torch.where(x0 <= x_lo, x_lo, torch.where(x0 >= x_hi, x_hi, torch.nan))
     t = ((wall_x - x0) / torch.where(x1 == x0, torch.ones_like(x1), x1 - x0)).clamp(0, 1)
-    y_cross = y0 + t * (y1 - y0)
-
-    def shut(y):  # outside the doorway's span
-        return (y < y_lo - tol) | (y > y_hi + tol)
-
-    return {"nan": ~torch.isfinite(got).all(-1),
-            "arena": ((got < LOW - tol) | (got > HIGH + tol)).any(-1),
-            "through": crossed & ~ref_crossed & shut(y_cross),
-            "inside": (x1 > x_lo + tol) & (x1 < x_hi - tol) & shut(y1),
-            "door": ((x1 - face).abs() < tol) & ((expected[:, 0] - face).abs() > tol),
-            "other": ~torch.isclose(got, expected, atol=1e-4, rtol=0).all(-1)}, y_cross
-
-
-def _first_problem(name: str, case: Case, got, expected, diagnosed: bool) -> str | None:
-    """Words for the first wrong position, or None if all agree. When a typical wrong rule
-    explains the output (``diagnosed``), only the positions are given: the symptom could
-    mislead (an unclamped target can look like a dot stopped at an open door), and the
-    rule, named after this, says what to change."""
-    pos, move, layouts = case.args
-    masks, y_cross = _symptoms(pos, layouts, got, expected)
-    kind = next((k for k in (["other"] if diagnosed else _WALL_PROBLEMS) if masks[k].any()), None)
-    if kind is None:
-        return None
-    i = int(masks[kind].nonzero()[0])
-    (x, y), (dx, dy), (wall_x, door_y) = pos[i].tolist(), move[i].tolist(), layouts[i].tolist()
-    x_lo, x_hi, y_lo, y_hi = (float(b[i]) for b in wall_bounds(layouts))
-    words = _WALL_PROBLEMS[kind].format(
-        at=f"from (x={x:.2f}, y={y:.2f}) moving by ({dx:.2f}, {dy:.2f}) with wall_x={wall_x}, "
-           f"door_y={door_y} ({case.description})",
-        door=f"the door spans rows {door_y - 4}..{door_y + 4}, so the dot centre may cross "
-             f"only for {y_lo:.1f} <= y <= {y_hi:.1f}",
-        got="({:.2f}, {:.2f})".format(*got[i].tolist()),
-        expected="({:.2f}, {:.2f})".format(*expected[i].tolist()),
-        y_cross=float(y_cross[i]), x_lo=x_lo, x_hi=x_hi, y_lo=y_lo, y_hi=y_hi,
-        rule="" if diagnosed else _RULE)
-    return f"{name} {words}"
+    y_cross = y0 + t * (y1 - y0)  # where the move crosses the wall's line
+    shut = [(y < y_lo - tol) | (y > y_hi + tol) for y in (y_cross, y1)]  # not in the doorway
+    found = {"arena": ((got < LOW - tol) | (got > HIGH + tol)).any(-1),
+             "through": ((x0 < wall_x) != (x1 < wall_x)) & shut[0]
+             & ((x0 < wall_x) == (expected[:, 0] < wall_x)),
+             "inside": (x1 > x_lo + tol) & (x1 < x_hi - tol) & shut[1],
+             "door": ((x1 - face).abs() < tol) & ((expected[:, 0] - face).abs() > tol),
+             "other": ~torch.isclose(got, expected, atol=1e-4, rtol=0).all(-1)}
+    kind = next(k for k in (["other"] if diagnosed else found) if found[k].any())
+    i = int(found[kind].nonzero()[0])
+    x, y, dx, dy, wall, door = *pos[i].tolist(), *move[i].tolist(), *layouts[i].tolist()
+    return TEXTS["wall_collision"]["symptoms"][kind].format(
+        at=f"from (x={x:.2f}, y={y:.2f}) moving by ({dx:.2f}, {dy:.2f}) with wall_x={wall}, "
+           f"door_y={door} ({case.description})", low=LOW, high=HIGH,
+        door=f"the door spans rows {door - 4}..{door + 4}, so the dot centre may cross only "
+             f"for {y_lo[i]:.1f} <= y <= {y_hi[i]:.1f}", y_cross=y_cross[i], x_lo=x_lo[i],
+        x_hi=x_hi[i], y_lo=y_lo[i], y_hi=y_hi[i], got="({:.2f}, {:.2f})".format(*got[i]),
+        expected="({:.2f}, {:.2f})".format(*expected[i]),
+        rule="" if diagnosed else " " + TEXTS["wall_collision"]["symptoms"]["rule"])
 
 
 def _stay_put(positions, moves, layouts):
@@ -207,30 +170,5 @@ _WALL_SLIPS = slips(  # the wall rules on the unclamped target, clamped at the e
     stay_put=_stay_put, stop_at_contact=_stop_at_contact, no_door_sides=_no_door_sides)
 
 
-def _check_wall_collision(fn) -> None:
-    name = getattr(fn, "__name__", "your function")
-    cases = _wall_cases()
-    for case in cases:
-        expected, desc = wall_collision(*case.args), case.description
-        got, _ = _run(fn, name, case, ("positions", "moves", "layouts"))
-        if (problem := _type_problem(got, name, case)):
-            raise ExerciseError(problem)
-        if got.shape != expected.shape and _transposed(got, expected, 1e-4):
-            raise ExerciseError(
-                f"{name} put the right positions in the wrong layout on {desc}: shape "
-                f"{tuple(got.shape)}, where {tuple(expected.shape)} is expected, one row (x, y) "
-                "per world. Look at the axis along which you stack x and y: the last one.")
-        if got.shape != expected.shape:
-            raise ExerciseError(
-                f"{name} returned a tensor of shape {tuple(got.shape)} on {desc}; it should "
-                f"return new positions of shape {tuple(expected.shape)}, one (x, y) per world.")
-        got = got.detach().float()
-        why = diagnose(got, _WALL_SLIPS, case, atol=1e-3)
-        if (problem := _first_problem(name, case, got, expected, bool(why))):
-            raise ExerciseError(problem + why)
-    moves = sum(len(case.args[0]) for case in cases)
-    print(f"Correct: {name} matches the reference wall collision on {moves} moves.")
-
-
-check_wall_collision = exercise("wall_collision", wall_collision, _WALL_SLIPS,
-                                check=_check_wall_collision, answers=(stop_at_wall,))
+check_wall_collision = Exercise(
+    "wall_collision", wall_collision, _WALL_SLIPS, _wall_cases, atol=1e-4, explain=_first_problem)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 
 from ...losses import world as world_losses
-from .common import Case, exercise, slips
+from .common import Case, Exercise, slips
 
 
 def _trajectory_latents() -> list[Case]:
@@ -29,18 +29,14 @@ def _change(z: torch.Tensor) -> torch.Tensor:
     return z[:, 1:] - z[:, :-1]
 
 
-check_temporal_similarity = exercise(
+check_temporal_similarity = Exercise(
     "temporal_similarity", world_losses.temporal_similarity_loss, slips(
         "temporal_similarity", unsquared=lambda z: _change(z).norm(dim=-1).mean(),
         absolute=lambda z: _change(z).abs().mean(), summed=lambda z: _change(z).pow(2).sum(),
         earlier_detached=lambda z: (z[:, 1:] - z[:, :-1].detach()).pow(2).mean(),
-        later_detached=lambda z: (z[:, 1:].detach() - z[:, :-1]).pow(2).mean()),
-    _trajectory_latents, grad=[(0, "the latents z")], dims={0: "BTD"},
-    swap=(0, 0, 1, "the batch and the time axes of z exchanged",
-          "Here z is (B, T, D): consecutive latents of one trajectory are neighbours along "
-          "axis 1, time, not along axis 0"),
-    factors={"D": "the change is averaged over the D dimensions too, not summed over them",
-             "T/(T - 1)": "T latents make T - 1 changes: average over those"})
+        later_detached=lambda z: (z[:, 1:].detach() - z[:, :-1]).pow(2).mean(),
+        wrong_axis=lambda z: world_losses.temporal_similarity_loss(z.transpose(0, 1))),
+    _trajectory_latents, grad=[(0, "the latents z")], dims={0: "BTD"})
 
 
 def _linear_inverse_model(latent_dim: int, action_dim: int, seed: int, dtype=torch.float32):
@@ -80,7 +76,7 @@ def _pairs(g, z, a, earlier=lambda z: z, later=lambda z: z):
     return g(earlier(z[:, :-1]), later(z[:, 1:])) - a
 
 
-check_inverse_dynamics = exercise(
+check_inverse_dynamics = Exercise(
     "inverse_dynamics", world_losses.inverse_dynamics_loss, slips(
         "inverse_dynamics",
         wrong_order=lambda g, z, a: (g(z[:, 1:], z[:, :-1]) - a).pow(2).mean(),
@@ -89,5 +85,4 @@ check_inverse_dynamics = exercise(
         summed=lambda g, z, a: _pairs(g, z, a).pow(2).sum(),
         later_detached=lambda g, z, a: _pairs(g, z, a, later=torch.detach).pow(2).mean(),
         earlier_detached=lambda g, z, a: _pairs(g, z, a, earlier=torch.detach).pow(2).mean()),
-    _inverse_cases, grad=[(1, "the latents z")], dims={1: "BTD", 2: "__A"},
-    factors={"A": "the error is averaged over the A action dimensions too, not summed over them"})
+    _inverse_cases, grad=[(1, "the latents z")], dims={1: "BTD", 2: "__A"})
