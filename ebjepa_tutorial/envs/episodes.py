@@ -2,10 +2,9 @@
 
 An episode: a fresh layout, a start in one outer room and a goal in the other, shown as an
 image. It succeeds when the dot ends within ``SUCCESS_RADIUS`` = 4.5 px of the goal within
-the step budget: 200 steps in Two Rooms, where a good path (straight segments through the
-doors' centres) takes 30.1 steps at the median and 69.9 at worst; 120 in Three Rooms (42.4
-at the median, 94.8 at worst), tight enough that a planner sliding along the walls until it
-stumbles on a door runs out of time.
+the step budget: 200 steps in Two Rooms, where a good path takes 30.1 steps at the median
+and 69.9 at worst; 120 in Three Rooms (42.4 and 94.8), tight enough that a planner sliding
+along the walls until it stumbles on a door runs out of time.
 """
 
 from __future__ import annotations
@@ -51,12 +50,10 @@ class Episodes:
         return Episodes(self.layouts.to(device), self.starts.to(device), self.goals.to(device))
 
     def __getitem__(self, index) -> Episodes:
-        """A subset of the tasks (an int, slice, index tensor or mask)."""
         return Episodes(self.layouts[index], self.starts[index], self.goals[index])
 
     @staticmethod
     def concat(parts: list[Episodes]) -> Episodes:
-        """Several batches of tasks as one, in order."""
         return Episodes(*(torch.cat([getattr(p, name) for p in parts])
                           for name in ("layouts", "starts", "goals")))
 
@@ -92,9 +89,7 @@ class TwoRoomsEnv:
 
     def __init__(self, device: str | torch.device = "cpu"):
         self.device = torch.device(device)
-        self.episodes: Episodes | None = None
         self.positions: torch.Tensor | None = None
-        self.steps_taken, self.path, self.actions = 0, [], []
 
     def reset(self, n: int = 1, seed=0, episodes: Episodes | None = None) -> torch.Tensor:
         """Start ``n`` new Two Rooms episodes from ``seed`` (or the given ones); observe them."""
@@ -102,38 +97,28 @@ class TwoRoomsEnv:
         check_layouts(episodes.layouts)
         check_positions(episodes.starts, episodes.layouts)
         self.episodes = episodes.to(self.device)
+        self.layouts, self.goals = self.episodes.layouts, self.episodes.goals
+        self.step_budget = step_budget(self.layouts)  # EPISODE_STEPS or THREE_ROOMS_...
         self.positions = self.episodes.starts.clone()
         self.steps_taken, self.path, self.actions = 0, [self.positions], []
         return self.observe()
 
-    def _require_reset(self) -> Episodes:
-        if self.episodes is None:
-            raise RuntimeError("call env.reset(n, seed) before using the environment")
-        return self.episodes
-
-    @property
-    def layouts(self) -> torch.Tensor:
-        return self._require_reset().layouts
-
-    @property
-    def goals(self) -> torch.Tensor:
-        return self._require_reset().goals
-
-    @property
-    def step_budget(self) -> int:
-        """Steps these episodes allow: ``EPISODE_STEPS`` or ``THREE_ROOMS_EPISODE_STEPS``."""
-        return step_budget(self.layouts)
-
     def observe(self) -> torch.Tensor:
         """Current images: (B, 2, 65, 65) float32."""
+        self._check_started()
         return render(self.positions, self.layouts)
+
+    def _check_started(self) -> None:
+        if self.positions is None:
+            raise RuntimeError("call env.reset(n, seed) before using the environment")
 
     def goal_images(self) -> torch.Tensor:
         """Goal images: (B, 2, 65, 65) float32."""
-        return self._require_reset().goal_images()
+        return self.episodes.goal_images()
 
     def step(self, actions: torch.Tensor) -> torch.Tensor:
         """Move every world by its action (B, 2); returns the new observations."""
+        self._check_started()
         check_actions(actions, len(self.layouts), self.positions.dtype)
         self.actions.append(actions.clone())  # the caller may reuse its tensor
         actions = actions.to(device=self.device, dtype=self.positions.dtype)
