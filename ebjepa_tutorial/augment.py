@@ -1,9 +1,5 @@
 """Batched two-view image augmentations on tensors, drawn per image, on the images' device.
-
-kornia draws from torch's global RNG, so :func:`augment` draws a seed from the caller's
-generator and runs under ``fork_rng``: same generator state, same views, and the global RNG
-is left as it was. Images: ``(B, 3, H, W)``, float in ``[0, 1]`` or uint8 in ``[0, 255]``.
-"""
+Images: ``(B, 3, H, W)``, float in ``[0, 1]`` or uint8 in ``[0, 255]``."""
 
 from __future__ import annotations
 
@@ -33,17 +29,14 @@ class AugmentConfig:
 
 def build_augmentation(config: AugmentConfig = AugmentConfig()) -> K.AugmentationSequential:
     """The pipeline as a kornia module: ``(B, 3, H, W) -> (B, 3, size, size)``, normalised.
-
-    ``ColorJitter`` (not ``ColorJiggle``) has torchvision's formulas, which the SSL
-    literature tuned these strengths for; solarize inverts pixels above 0.5, as in BYOL.
-    """
+    ``ColorJitter`` has torchvision's formulas, which the SSL literature tuned these for."""
     brightness, contrast, saturation, hue = config.jitter
     return K.AugmentationSequential(
         K.RandomResizedCrop((config.size, config.size), scale=config.crop_scale),
         K.RandomHorizontalFlip(p=config.flip_p),
         K.ColorJitter(brightness, contrast, saturation, hue, p=config.jitter_p),
         K.RandomGrayscale(p=config.grayscale_p),
-        K.RandomSolarize(thresholds=0.0, additions=0.0, p=config.solarize_p),
+        K.RandomSolarize(thresholds=0.0, additions=0.0, p=config.solarize_p),  # as in BYOL
         K.Normalize(mean=torch.tensor(CIFAR10_MEAN), std=torch.tensor(CIFAR10_STD)),
     )
 
@@ -56,29 +49,22 @@ def to_float_images(images: torch.Tensor) -> torch.Tensor:
                          "put channels first with .permute(0, 3, 1, 2)")
     if images.dtype == torch.uint8:
         return images.float().div_(255)
-    if not images.is_floating_point():
-        raise TypeError(f"images must be uint8 or float, got {images.dtype}")
     low, high = images.min().item(), images.max().item()
-    if low < -1e-6 or high > 1 + 1e-6:
-        raise ValueError(f"float images must lie in [0, 1], got values in [{low:.3g}, {high:.3g}]; "
-                         "augment raw images (uint8, or float / 255), not normalised ones")
+    if not images.is_floating_point() or low < -1e-6 or high > 1 + 1e-6:
+        raise ValueError(f"images must be uint8, or float in [0, 1], got {images.dtype} in "
+                         f"[{low:.3g}, {high:.3g}]; augment raw images, not normalised ones")
     return images.float()
 
 
 def augment(images: torch.Tensor, pipeline: nn.Module, generator: torch.Generator) -> torch.Tensor:
-    """One random view of each image: ``(B, 3, H, W)`` -> ``(B, 3, size, size)`` float32.
-
-    ``pipeline``: :func:`build_augmentation`'s, built once. The views depend only on the
-    ``generator``'s state.
-    """
+    """One random view of each image: ``(B, 3, H, W)`` -> ``(B, 3, size, size)`` float32, by
+    :func:`build_augmentation`'s ``pipeline``; the views depend only on ``generator``'s state
+    (kornia draws from the global RNG: it runs seeded from ``generator``, under ``fork_rng``)."""
     images = to_float_images(images)
     seed = int(torch.randint(0, 2**62, (1,), generator=generator, device=generator.device))
-    device = images.device  # fork_rng saves and restores this accelerator's RNG state too
-    if device.type == "cuda":
-        devices = [torch.cuda.current_device() if device.index is None else device.index]
-    else:
-        devices = [0] if device.type == "mps" else []
-    with torch.random.fork_rng(devices=devices, device_type=device.type if devices else "cuda"):
+    device = images.device
+    with torch.random.fork_rng(devices=[] if device.type == "cpu" else [device],
+                               device_type=device.type):
         torch.manual_seed(seed)
         return pipeline(images)
 
@@ -90,8 +76,7 @@ def two_views(images: torch.Tensor, pipeline: nn.Module,
 
 
 def normalize(images: torch.Tensor) -> torch.Tensor:
-    """Standardise ``(B, 3, H, W)`` images in ``[0, 1]`` (or uint8) with CIFAR-10's statistics,
-    as the pipeline does: evaluation images must match what the encoder saw in training."""
+    """Standardise ``(B, 3, H, W)`` images in ``[0, 1]`` (or uint8) as the pipeline does."""
     images = to_float_images(images)
     mean = torch.tensor(CIFAR10_MEAN, device=images.device).view(1, 3, 1, 1)
     std = torch.tensor(CIFAR10_STD, device=images.device).view(1, 3, 1, 1)

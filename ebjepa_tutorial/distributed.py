@@ -1,16 +1,7 @@
-"""Several processes, one model: what data-parallel training needs beyond averaging gradients.
-
-``torchrun --nproc_per_node=W`` starts W processes (the *ranks*), each with a copy of the model
-and an equal share of every batch; the gradients are averaged over the ranks. A loss sees one
-process's rows: right for a mean of per-sample terms, but VICReg's variance and covariance and
-SIGReg are statistics of the whole batch, so the training steps wrap the losses with
-:func:`gather_rows`, :func:`variance_and_covariance` and :func:`rand_rows`.
-
-Training minimises ``J = (1/W) sum_r L_r``. Through a collective every ``L_r`` depends on rank
-s's rows ``x_s``, so ``dJ/dx_s = (1/W) sum_r dL_r/dx_s``: the collectives' backward sums the
-gradients over the ranks, and the average of the gradients over ranks supplies the 1/W.
-Everything here is a no-op in a single process.
-"""
+"""Data parallelism under ``torchrun --nproc_per_node=W``: W ranks, each with a copy of the model
+and an equal share of every batch; batch statistics (VICReg, SIGReg) see the global batch through
+collectives whose backward sums ``dL_r/dx_s`` over ranks ``r``, and averaging the gradients
+supplies the 1/W of ``J = (1/W) sum_r L_r``. Everything here is a no-op in one process."""
 
 from __future__ import annotations
 
@@ -46,14 +37,12 @@ def is_main() -> bool:
 
 
 def per_rank_batch(global_batch: int) -> int:
-    """The rule: global batch = per-rank batch x world size. Raises ValueError unless the
-    world size divides the global batch and leaves each rank at least 2 samples."""
+    """The rule: global batch = per-rank batch x world size, at least 2 samples per rank."""
     world = world_size()
     if global_batch % world or global_batch // world < 2:
-        raise ValueError(
-            f"the global batch of {global_batch} cannot be split evenly over {world} processes "
-            f"with at least 2 samples each (batch norm needs 2): choose a batch_size that is a "
-            f"multiple of the world size {world}")
+        raise ValueError(f"the global batch of {global_batch} cannot be split evenly over {world} "
+                         f"processes with at least 2 samples each (batch norm needs 2): choose a "
+                         f"batch_size that is a multiple of the world size {world}")
     return global_batch // world
 
 
@@ -66,8 +55,8 @@ def local_rows(x: torch.Tensor) -> torch.Tensor:
 
 
 def rand_rows(rows: int, *size: int, generator: torch.Generator | None = None) -> torch.Tensor:
-    """``torch.rand(rows, *size)`` for this rank's rows: the draw of ``(W rows, *size)`` (the
-    generator seeded alike on every rank), cut to our rows, as one process would draw them."""
+    """``torch.rand(rows, *size)`` for this rank: its rows of one process's draw of
+    ``(W rows, *size)``, the generator seeded alike on every rank."""
     return local_rows(torch.rand(rows * world_size(), *size, generator=generator))
 
 
@@ -95,8 +84,7 @@ def mean_of_floats(values: list[float]) -> list[float]:
     """The mean over ranks of each number in ``values`` (for logging)."""
     if world_size() == 1:
         return list(values)
-    device = torch.device("cuda", torch.cuda.current_device()) \
-        if dist.get_backend() == "nccl" else torch.device("cpu")  # nccl moves CUDA tensors only
+    device = "cuda" if dist.get_backend() == "nccl" else "cpu"  # nccl moves CUDA tensors only
     packed = torch.tensor(values, dtype=torch.float64, device=device)
     dist.all_reduce(packed)
     return (packed / world_size()).tolist()
@@ -113,15 +101,13 @@ def average_gradients(parameters) -> None:
 
 
 def gather_rows(x: torch.Tensor) -> torch.Tensor:
-    """Every rank's rows of ``x`` ``(b, ...)`` in rank order, ``(W b, ...)``, each rank holding
-    the same ``b``; gradients flow back to each rank's own rows. ``x`` itself in one process."""
+    """Every rank's ``x (b, ...)`` in rank order, ``(W b, ...)``; gradients reach each rank."""
     return x if world_size() == 1 else torch.cat(collective.all_gather(x))
 
 
 def variance_and_covariance(z: torch.Tensor, gamma: float = 1.0, eps: float = 1e-4):
-    """:func:`ebjepa_tutorial.losses.variance_and_covariance` of the global batch ``(W b, D)``,
-    each rank holding ``b`` rows ``(b, D)``, from per-rank sums (two all-reduces of ``D`` and
-    ``D x D`` numbers, however many rows). Returns two 0-d tensors."""
+    """:func:`ebjepa_tutorial.losses.variance_and_covariance` (two 0-d tensors) of the global
+    batch ``(W b, D)`` from each rank's ``(b, D)``, by all-reducing the mean and scatter."""
     if world_size() == 1:
         return vicreg.variance_and_covariance(z, gamma, eps)
     world = world_size()
@@ -136,7 +122,5 @@ def variance_and_covariance(z: torch.Tensor, gamma: float = 1.0, eps: float = 1e
 def data_parallel(module: nn.Module, device: torch.device | str) -> nn.Module:
     """``module`` wrapped in DDP inside a process group, ``module`` itself outside one."""
     device = torch.device(device)
-    if not running():
-        return module
     ids = [device.index] if device.type == "cuda" else None
-    return nn.parallel.DistributedDataParallel(module, device_ids=ids)
+    return nn.parallel.DistributedDataParallel(module, device_ids=ids) if running() else module

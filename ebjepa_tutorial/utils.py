@@ -26,8 +26,8 @@ def cpu_has_bf16() -> bool:
 
 
 def network_dtype(device: torch.device | str, cpu: bool = False) -> torch.dtype:
-    """What :func:`mixed_precision` computes networks in: bfloat16 on a CUDA GPU that has
-    it and, with ``cpu=True``, on a CPU that has it (:func:`cpu_has_bf16`); else float32."""
+    """bfloat16 on a CUDA GPU that has it and, with ``cpu=True``, on a CPU that has it;
+    else float32: what :func:`mixed_precision` computes networks in."""
     kind = torch.device(device).type
     gpu_bf16 = kind == "cuda" and torch.cuda.is_bf16_supported()
     return torch.bfloat16 if gpu_bf16 or kind == "cpu" and cpu and cpu_has_bf16() else torch.float32
@@ -35,11 +35,8 @@ def network_dtype(device: torch.device | str, cpu: bool = False) -> torch.dtype:
 
 def mixed_precision(device: torch.device | str, cpu: bool = False
                     ) -> contextlib.AbstractContextManager:
-    """bfloat16 autocast where :func:`network_dtype` says so; elsewhere, nothing.
-
-    Losses are computed after it, on ``.float()`` outputs: batch statistics lose their
-    digits in bfloat16. ``cpu=True`` is for the image and video networks only.
-    """
+    """bfloat16 autocast where :func:`network_dtype` says so; elsewhere, nothing. Compute
+    losses after it, on ``.float()`` outputs: batch statistics lose their digits in bf16."""
     dtype = network_dtype(device, cpu)
     if dtype == torch.float32:
         return contextlib.nullcontext()
@@ -77,11 +74,8 @@ def as_generator(seed: int | torch.Generator) -> torch.Generator:
     return seed if isinstance(seed, torch.Generator) else make_generator(seed)
 
 
-# --- checking configurations: a field that cannot work is named when the config is built ---
-
-
 def is_int_at_least(least: int):
-    """A predicate: an ``int`` (not a bool) ``>= least``."""
+    """A predicate for :func:`check_fields`: an ``int`` (not a bool) ``>= least``."""
     return lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= least
 
 
@@ -96,10 +90,8 @@ def is_non_negative(v) -> bool:
 
 
 def check_fields(config, rules: dict) -> None:
-    """Raise ValueError naming the first field of ``config`` that breaks its rule.
-
-    ``rules`` maps a field name to ``(predicate, "what it must be"[, "what it means"])``.
-    """
+    """Raise ValueError naming the first field of ``config`` that breaks its rule; ``rules``
+    maps a field name to ``(predicate, "what it must be"[, "what it means"])``."""
     for name, (ok, rule, *meaning) in rules.items():
         value = getattr(config, name)
         if not ok(value):

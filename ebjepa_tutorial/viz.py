@@ -40,15 +40,12 @@ def plot_history(history: dict, names: list[str], ax=None):
     return _legend(ax, xlabel="step", ylabel="loss term")
 
 
-def _by_rank(ax, series: dict[str, torch.Tensor], **style):
-    for label, values in series.items():
-        ax.semilogy(torch.arange(1, len(values) + 1), values.clamp_min(1e-8), label=label, **style)
-
-
-def plot_spectrum(eigenvalues: dict[str, torch.Tensor], ax=None):
-    """Covariance eigenvalues (largest first, log scale), one line per labelled run."""
+def plot_spectrum(eigenvalues: dict[str, torch.Tensor], ax=None, marker: str | None = "o"):
+    """Covariance eigenvalues ``(D,)`` (largest first, log scale), one line per labelled run."""
     ax = _axes(ax)
-    _by_rank(ax, eigenvalues, marker="o")
+    for label, values in eigenvalues.items():
+        ranks = torch.arange(1, len(values) + 1)
+        ax.semilogy(ranks, values.clamp_min(1e-8), marker=marker, label=label)
     return _legend(ax, xlabel="eigenvalue rank", ylabel="eigenvalue of Cov(z)")
 
 
@@ -96,10 +93,8 @@ def play(animation):
     html = re.sub(r'<link rel="stylesheet"\s+href="https://[^"]*font-awesome[^"]*">', "", html)
     rules = "".join(f".anim-buttons .fa-{name}::before {{content: '{char}';}}"
                     for name, char in _PLAYER_ICONS.items())
-    style = ("<style>.anim-buttons .fa {font-style: normal;} "
-             ".anim-buttons .fa-flip-horizontal {display: inline-block; transform: scaleX(-1);} "
-             f"{rules}</style>")
-    return HTML(style + html)
+    flip = ".anim-buttons .fa-flip-horizontal {display: inline-block; transform: scaleX(-1);}"
+    return HTML(f"<style>.anim-buttons .fa {{font-style: normal;}} {flip} {rules}</style>{html}")
 
 
 def _gray(frame: torch.Tensor):
@@ -182,16 +177,14 @@ def show_views(images: torch.Tensor, views):
         for ax, image in zip(row, batch):
             ax.imshow(image.detach().cpu().permute(1, 2, 0).numpy(), interpolation="nearest")
             ax.set(xticks=[], yticks=[])
-        size = batch.shape[-1]
-        row[0].set_ylabel("original" if r == 0 else f"view {r}\n({size} px)", fontsize=8)
+        row[0].set_ylabel("original" if r == 0 else f"view {r}\n({batch.shape[-1]} px)", fontsize=8)
     return axes
 
 
 def plot_dimension_std(stds: dict[str, torch.Tensor], ax=None, target: float | None = None):
     """Each embedding dimension's std ``(D,)``, sorted, per run; ``target``: the hinge's, dashed."""
-    ax = _axes(ax)
-    _by_rank(ax, {label: v.detach().cpu().sort(descending=True).values
-                  for label, v in stds.items()})
+    ax = plot_spectrum({label: v.detach().cpu().sort(descending=True).values
+                        for label, v in stds.items()}, ax, marker=None)
     if target is not None:
         ax.axhline(target, color="k", ls="--", lw=0.8, label=f"hinge threshold {target:g}")
     return _legend(ax, xlabel="dimension (sorted)", ylabel="std over images")
@@ -206,7 +199,7 @@ def plot_characteristic_functions(samples: dict[str, torch.Tensor]):
     gaussian_cf = torch.exp(-(t**2) / 2)
     grid = torch.linspace(-4, 4, 161)
     axes[0].plot(grid, torch.exp(-(grid**2) / 2) / (2 * torch.pi) ** 0.5, "k--", label="N(0, 1)")
-    axes[1].plot(t, gaussian_cf, "k--", lw=2, label="exp(-t²/2), N(0, 1)")
+    axes[1].plot(t, gaussian_cf, "k--", lw=2, label=r"$e^{-t^2/2}$, N(0, 1)")
     for i, (label, x) in enumerate(samples.items()):
         x = x.detach().float().cpu()
         color = f"C{i}"
@@ -220,8 +213,8 @@ def plot_characteristic_functions(samples: dict[str, torch.Tensor]):
         axes[2].semilogy(t, gap, color=color, label=f"{label}: EP = {epps_pulley(x).item():.3g}")
         axes[2].fill_between(t, 1e-4, gap, color=color, alpha=0.15)
     axes[0].set(xlabel="x", ylabel="density", ylim=(0, 0.8), title="samples")
-    axes[1].set(xlabel="t", title="Re φ_N(t) (solid) and |φ_N(t)| (dotted)")
-    axes[2].set(xlabel="t", ylim=(1e-4, None), title="N · w(t) · |φ_N(t) − φ(t)|²")
+    axes[1].set(xlabel="t", title=r"Re $\varphi_N(t)$ (solid) and $|\varphi_N(t)|$ (dotted)")
+    axes[2].set(xlabel="t", ylim=(1e-4, None), title=r"$N\,w(t)\,|\varphi_N(t) - \varphi(t)|^2$")
     for ax in axes:
         ax.legend(fontsize=7)
     return axes
@@ -264,10 +257,9 @@ def plot_success_rates(rows: dict[str, tuple[float, float, float]], ax=None,
     """Bars of ``name: (rate, low, high)``; ``reference`` rates as black ticks across their bars."""
     ax = _axes(ax)
     names = list(rows)
-    yerr = [[rate - low for rate, low, _ in rows.values()],
-            [high - rate for rate, _, high in rows.values()]]
-    ax.bar(range(len(names)), [rate for rate, _, _ in rows.values()], yerr=yerr, color=colors,
-           capsize=3)
+    rates, lows, highs = zip(*rows.values())  # (bars,) each
+    yerr = [[r - low for r, low in zip(rates, lows)], [high - r for r, high in zip(rates, highs)]]
+    ax.bar(range(len(names)), rates, yerr=yerr, color=colors, capsize=3)
     marked = [(i, reference[name]) for i, name in enumerate(names) if name in (reference or {})]
     if marked:
         xs, ys = zip(*marked)
@@ -331,10 +323,10 @@ def animate_episodes(results, indices: list[int], every: int, titles: list[str])
     dot's trail over the walls and goal, ``every`` steps a frame: an animation."""
     fig, axes = plt.subplots(1, len(indices), figsize=(3 * len(indices), 3.2), squeeze=False)
     trails, dots = [], []
-    for k, (ax, i) in enumerate(zip(axes[0], indices)):
+    for ax, i, title in zip(axes[0], indices, titles):
         draw_two_rooms(ax, results.episodes.layouts[i], results.episodes.goals[i],
                        results.episodes.starts[i])
-        ax.set_title(titles[k], fontsize=9)
+        ax.set_title(title, fontsize=9)
         trails.append(ax.plot([], [], color="tab:red", lw=1)[0])
         dots.append(ax.plot([], [], "o", color="tab:red", ms=6)[0])
 

@@ -1,19 +1,21 @@
 """Chapter 07's fits on a frozen world model's latents: the cost-to-go head and the coarse model.
 
 What made ``checkpoints/cost_head_*_class.pt`` and ``coarse_*_class.pt`` (run by
-``research.fit_beyond``); notebook 07 loads those files (``training.fits.load_fit``).
+``research.fit_beyond``); notebook 07 loads those files (its ``load_fit``). The head, its two
+loss terms, the coarse model and the two-level planner are notebook 07's own definitions
+(:data:`NOTEBOOK`, read from its cells by ``research.from_notebook``).
 
-The cost head (``models.cost.CostToGo``) is fitted by the rule of ``losses.cost``: pairs of
-frames of one layout pushed apart, each observed step held within its action's length by a
-Lagrange multiplier. The world model's encoder turns fresh data-policy trajectories into
-latents once, its predictor imagines short rollouts of them once. The trajectories come in
-groups that share a layout (a distance between two layouts means nothing), long enough to
-cross a room, and a quarter start at a wall heading in. A planner scores the head on the
-predictor's IMAGINED latents, and MPPI seeks out any plan whose imagined latents the head
-reads as progress; pushed into a wall the predictor drifts a little, so the fit also asks the
-head to read each imagined latent as the true one it stands for (``consistency``).
+The cost head (``CostToGo``) is fitted by the rule of the notebook's ``spread_loss`` and
+``step_violation``: pairs of frames of one layout pushed apart, each observed step held within
+its action's length by a Lagrange multiplier. The world model's encoder turns fresh data-policy
+trajectories into latents once, its predictor imagines short rollouts of them once. The
+trajectories come in groups that share a layout (a distance between two layouts means nothing),
+long enough to cross a room, and a quarter start at a wall heading in. A planner scores the
+head on the predictor's IMAGINED latents, and MPPI seeks out any plan whose imagined latents
+the head reads as progress; pushed into a wall the predictor drifts a little, so the fit also
+asks the head to read each imagined latent as the true one it stands for (``consistency``).
 
-The coarse model (``models.hierarchy.CoarseModel``) is fitted on the data policy's random
+The coarse model (``CoarseModel``) is fitted on the data policy's random
 walks, then again with its own two-level planner's episodes added (DAgger, Ross et al., 2011).
 """
 
@@ -27,16 +29,21 @@ import torch.nn.functional as F
 from torch import nn
 
 from ebjepa_tutorial.envs import Trajectories, generate_trajectories, random_layouts
-from ebjepa_tutorial.losses.cost import spread_loss, step_violation
 from ebjepa_tutorial.losses.world import multistep_prediction_loss
-from ebjepa_tutorial.models.cost import COST_SCALE, CostToGo
-from ebjepa_tutorial.models.hierarchy import CoarseModel
 from ebjepa_tutorial.models.world import WorldModel
-from ebjepa_tutorial.planning import EpisodeResults, PlannerConfig, TwoLevel, run_episodes
+from ebjepa_tutorial.planning import EpisodeResults, PlannerConfig, run_episodes
 from ebjepa_tutorial.training.loop import History, step_generator
 from ebjepa_tutorial.utils import check_fields, is_int_at_least
 
 from .fitting import fit, trajectory_latents
+from .from_notebook import definitions
+
+# Notebook 07's definitions, run from its cells: what the fits train and the commands load.
+NOTEBOOK = definitions("07_beyond_the_paper.ipynb", "COST_SCALE", "CostToGo", "WithLearnedCost",
+                       "step_violation", "spread_loss", "load_fit", "CoarseModel", "TwoLevel",
+                       "cost_calibration", "correlation")
+COST_SCALE, CostToGo, CoarseModel = NOTEBOOK.COST_SCALE, NOTEBOOK.CostToGo, NOTEBOOK.CoarseModel
+spread_loss, step_violation = NOTEBOOK.spread_loss, NOTEBOOK.step_violation
 
 # ---- the cost-to-go head ----------------------------------------------------------------------
 
@@ -264,7 +271,7 @@ class CoarseFit:
     A planner seeks out what its model gets wrong, a long macro-action into a wall beside
     a door, and random walks rarely go there; the planner's own episodes show the model
     what really happens where it is asked. The planner: ``low`` and, over the coarse model,
-    ``high``, ``lookahead`` and ``reach_px`` (``planning.TwoLevel``). It plays ``episodes``
+    ``high``, ``lookahead`` and ``reach_px`` (notebook 07's ``TwoLevel``). It plays ``episodes``
     episodes of ``steps`` steps (:func:`two_level_episodes`), cut into windows as long as the
     walks, one starting every ``VISIT_EVERY`` steps.
     """
@@ -288,7 +295,7 @@ def two_level_episodes(model: WorldModel, coarse: CoarseModel, fit: CoarseFit) -
     ``fit.coarse.walls``' world."""
     seeds = range(VISIT_SEED, VISIT_SEED + fit.episodes)
     coarse = copy.deepcopy(coarse).to(next(model.parameters()).device)  # plans beside model
-    two_level = TwoLevel(coarse, fit.high, fit.lookahead, fit.reach_px)
+    two_level = NOTEBOOK.TwoLevel(coarse, fit.high, fit.lookahead, fit.reach_px)
     return as_trajectories(run_episodes(model, seeds, fit.low, fit.steps, batch=10,
                                         walls=fit.coarse.walls, two_level=two_level))
 

@@ -7,7 +7,7 @@ The world model is notebook 07's (chapter 05's class run on ``--world``: shipped
 trained first); the fits are ``research.beyond_fits``' (:func:`fit_configs`). Writes
 ``cost_head_<world>_class.pt`` and ``coarse_<world>_class.pt`` (``--fits coarse``: the second
 alone), each with the identity of its fit and of the world model; notebook 07 loads them
-(``training.fits.load_fit``) after checking the world model's. ``--tiny`` fits in seconds, to
+(its ``load_fit``) after checking the world model's. ``--tiny`` fits in seconds, to
 check that the command runs; ``--set`` and ``--walks-only`` make the notebook's exercises'
 variants (in another ``--out-dir``).
 """

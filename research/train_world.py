@@ -29,7 +29,7 @@ from ebjepa_tutorial.envs import generate_trajectories
 from ebjepa_tutorial.envs.two_rooms import WALL_X_RANGES
 from ebjepa_tutorial.evaluation.position import middle_wall_test, probe_report
 from ebjepa_tutorial.losses.world import WorldLossCoeffs
-from ebjepa_tutorial.models.world import PREDICTORS, WorldConfig
+from ebjepa_tutorial.models.world import WorldConfig
 from ebjepa_tutorial.training.checkpoints import load_checkpoint, save_checkpoint
 from ebjepa_tutorial.training.world import (
     ABLATABLE_TERMS,
@@ -88,7 +88,7 @@ def main(argv: list[str] | None = None) -> None:
                              "(0: whole 17-frame trajectories)")
     parser.add_argument("--channels-last", action="store_true",
                         help="convolutions in channels_last (faster on CPUs too; changes the sums)")
-    parser.add_argument("--predictor", choices=PREDICTORS,
+    parser.add_argument("--predictor", choices=("gru", "mlp"),
                         help="the one-step predictor (default: the recipe's)")
     parser.add_argument("--predictor-hidden", type=int,
                         help="width of the MLP predictor's two hidden layers (default "

@@ -1,5 +1,6 @@
-"""The learned cost-to-go of notebook 07: its loss, its targets, its fit (research.beyond_fits),
-its use in planning, and the loading of the shipped fits."""
+"""The learned cost-to-go of notebook 07 (defined in its cells, run here through
+research.beyond_fits.NOTEBOOK): its loss, its targets, its fit (research.beyond_fits), its use
+in planning, and the loading of the shipped fits."""
 
 import math
 from types import SimpleNamespace
@@ -8,19 +9,16 @@ import pytest
 import torch
 from torch import nn
 
-from ebjepa_tutorial.losses.cost import spread_loss, step_violation
-from ebjepa_tutorial.models.cost import COST_SCALE, CostToGo, WithLearnedCost
-from ebjepa_tutorial.models.hierarchy import CoarseModel
 from ebjepa_tutorial.planning import PlannerConfig, planning_cost
 from ebjepa_tutorial.training.checkpoints import (
     CheckpointError,
     UnsafeCheckpointError,
     save_checkpoint,
 )
-from ebjepa_tutorial.training.fits import load_fit
 from ebjepa_tutorial.training.world import identity
 from research.beyond_fits import (
     CAP,
+    NOTEBOOK,
     TOLERANCE,
     CostConfig,
     CostData,
@@ -30,6 +28,11 @@ from research.beyond_fits import (
     imagination_gap,
     sample_batch,
 )
+
+COST_SCALE, CostToGo, WithLearnedCost = (NOTEBOOK.COST_SCALE, NOTEBOOK.CostToGo,
+                                         NOTEBOOK.WithLearnedCost)
+CoarseModel, load_fit = NOTEBOOK.CoarseModel, NOTEBOOK.load_fit
+spread_loss, step_violation = NOTEBOOK.spread_loss, NOTEBOOK.step_violation
 
 
 def test_spread_loss_by_hand():
@@ -219,7 +222,7 @@ def test_a_missing_damaged_or_foreign_fit_is_refused_naming_the_file_and_command
 def test_calibration_sets_the_straight_distance_against_the_way_round_the_walls():
     from test_planning import LinearLatentModel
 
-    from ebjepa_tutorial.evaluation.cost import correlation, cost_calibration
+    cost_calibration, correlation = NOTEBOOK.cost_calibration, NOTEBOOK.correlation
 
     # the latent is the dot's centre and the head the straight distance: both read the
     # straight line, which the shortest way equals within a room and exceeds across walls

@@ -5,7 +5,7 @@ import torch
 
 from ebjepa_tutorial.augment import build_augmentation, two_views
 from ebjepa_tutorial.losses import vicreg_loss
-from ebjepa_tutorial.models import Projector, ResNet18, build_projector
+from ebjepa_tutorial.models.encoders import Projector, ResNet18, build_projector
 from ebjepa_tutorial.utils import make_generator
 
 SMALL = (8, 16, 32, 64)

@@ -9,7 +9,6 @@ from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.envs import (
     MAX_STEP,
     SUCCESS_RADIUS,
-    THREE_ROOMS_EPISODE_STEPS,
     TwoRoomsEnv,
     clip_actions,
     generate_trajectories,
@@ -19,18 +18,18 @@ from ebjepa_tutorial.envs import (
     room_of,
     sample_positions,
     transition,
-    wall_collision,
 )
+from ebjepa_tutorial.envs.episodes import THREE_ROOMS_EPISODE_STEPS
 from ebjepa_tutorial.envs.two_rooms import (
     HIGH,
     LOW,
     MIN_WALL_GAP,
     WALL_X_RANGES,
-    check_layouts,
-    check_positions,
+    check_world,
     in_wall,
     room_floors,
     wall_bounds,
+    wall_collision,
     wall_images,
 )
 from ebjepa_tutorial.training import world
@@ -80,7 +79,7 @@ def walk(positions, waypoints, layouts, steps):
 def test_layouts_ranges_and_room_widths():
     layouts = random_layouts(5000, torch.Generator().manual_seed(0), walls=2)
     assert layouts.shape == (5000, 4) and layouts.dtype == torch.long
-    check_layouts(layouts)
+    check_world(layouts, sample_positions(layouts, torch.Generator()))
     for column, (lo, hi) in enumerate([(14, 25), (10, 54), (39, 50), (10, 54)]):
         assert layouts[:, column].min() == lo and layouts[:, column].max() == hi
     assert not torch.equal(layouts[:, 1], layouts[:, 3])  # doors drawn independently
@@ -113,10 +112,10 @@ def test_sample_positions_in_each_room():
     layouts = random_layouts(3000, g, walls=2)
     rooms = torch.randint(0, 3, (3000,), generator=g)
     positions = sample_positions(layouts, g, rooms)
-    check_positions(positions, layouts)
+    check_world(layouts, positions)
     assert torch.equal(room_of(positions, layouts), rooms)
     anywhere = sample_positions(layouts, g)
-    check_positions(anywhere, layouts)
+    check_world(layouts, anywhere)
     share = torch.bincount(room_of(anywhere, layouts), minlength=3) / 3000
     _, width = room_floors(layouts)
     assert (share - width.sum(0) / width.sum()).abs().max() < 0.03  # uniform by area
@@ -218,21 +217,22 @@ def test_the_dot_crosses_each_door_and_not_the_walls():
 @pytest.mark.parametrize("layout, message", [
     ([[20, 30, 26, 30]], "walls must go left to right, at least 14 px apart"),
     ([[40, 30, 20, 30]], "walls must go left to right"),
-    ([[10, 30, 40, 30]], r"wall 0: wall_x=10 is outside the allowed range 14\.\.50"),
-    ([[20, 30, 40, 60]], r"wall 1: door_y=60 is outside the allowed range 10\.\.54"),
+    ([[10, 30, 40, 30]], r"\[10, 30, 40, 30\]: each wall_x must be in 14\.\.50"),
+    ([[20, 30, 40, 60]], r"\[20, 30, 40, 60\]: .* each door_y in 10\.\.54"),
     ([[20, 30, 40]], r"shape \(B, 2W\)"),
 ])
 def test_bad_layouts_are_named(layout, message):
     with pytest.raises(ValueError, match=message):
-        check_layouts(torch.tensor(layout))
+        check_world(torch.tensor(layout), torch.tensor([[5.0, 5.0]]))
 
 
 def test_good_layouts_and_other_errors():
-    check_layouts(torch.tensor([[14, 10, 14 + MIN_WALL_GAP, 54], [25, 54, 50, 10]]))
+    check_world(torch.tensor([[14, 10, 14 + MIN_WALL_GAP, 54], [25, 54, 50, 10]]),
+                torch.tensor([[5.0, 5.0], [60.0, 60.0]]))
     with pytest.raises(ValueError, match="walls must be 1"):
         random_layouts(3, torch.Generator(), walls=3)
     with pytest.raises(ValueError, match="inside the wall"):
-        check_positions(torch.tensor([[44.0, 30.0]]), LAYOUT)
+        check_world(LAYOUT, torch.tensor([[44.0, 30.0]]))
 
 
 # ----------------------------------------------------------------- data and episodes
@@ -276,8 +276,8 @@ def test_door_and_wall_starts_face_one_wall_each():
 def test_three_room_episodes_go_between_the_outer_rooms_within_budget():
     episodes = make_episodes(400, seed=5, walls=2)
     assert episodes.layouts.shape == (400, 4)
-    check_positions(episodes.starts, episodes.layouts)
-    check_positions(episodes.goals, episodes.layouts)
+    check_world(episodes.layouts, episodes.starts)
+    check_world(episodes.layouts, episodes.goals)
     start_rooms = room_of(episodes.starts, episodes.layouts)
     assert set(start_rooms.tolist()) == {0, 2} and 0.4 < (start_rooms == 0).float().mean() < 0.6
     assert torch.equal(room_of(episodes.goals, episodes.layouts), 2 - start_rooms)

@@ -5,14 +5,13 @@ from test_planning import SMALL_PLANNER, LinearLatentModel
 
 from ebjepa_tutorial import planning
 from ebjepa_tutorial.envs import (
-    EPISODE_STEPS,
-    THREE_ROOMS_EPISODE_STEPS,
     Trajectories,
     generate_trajectories,
     render,
     room_of,
     transition,
 )
+from ebjepa_tutorial.envs.episodes import EPISODE_STEPS, THREE_ROOMS_EPISODE_STEPS
 from ebjepa_tutorial.envs.two_rooms import DOT_STD, in_wall
 from ebjepa_tutorial.evaluation.position import middle_wall_test, wall_test_by_door_distance
 from ebjepa_tutorial.planning import PlannerConfig

@@ -1,4 +1,5 @@
-"""The coarse model, its fit (research.beyond_fits) and the two-level planner of notebook 07."""
+"""The coarse model, its fit (research.beyond_fits) and the two-level planner of notebook 07
+(defined in its cells, run here through research.beyond_fits.NOTEBOOK)."""
 
 from dataclasses import replace
 from types import SimpleNamespace
@@ -8,15 +9,17 @@ import torch
 from torch import nn
 
 from ebjepa_tutorial.envs import MAX_STEP, clip_actions
-from ebjepa_tutorial.planning import (
-    Habits,
-    Noise,
-    PlannerConfig,
-    TwoLevel,
-    plan,
-    shift_plan,
+from ebjepa_tutorial.planning import Habits, Noise, PlannerConfig, plan, shift_plan
+from research.beyond_fits import (
+    NOTEBOOK,
+    CoarseConfig,
+    CoarseFit,
+    fit_coarse_on,
+    macro_actions,
+    windows,
 )
-from research.beyond_fits import CoarseConfig, CoarseFit, fit_coarse_on, macro_actions, windows
+
+TwoLevel = NOTEBOOK.TwoLevel
 
 
 class Drift(nn.Module):

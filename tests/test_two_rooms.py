@@ -16,18 +16,17 @@ from ebjepa_tutorial.envs import (
     render,
     room_of,
     sample_positions,
-    sample_von_mises,
     transition,
-    wall_collision,
 )
-from ebjepa_tutorial.envs.trajectories import sample_truncated_normal
+from ebjepa_tutorial.envs.trajectories import sample_truncated_normal, sample_von_mises
 from ebjepa_tutorial.envs.two_rooms import (
     HIGH,
     LOW,
-    check_positions,
+    check_world,
     in_wall,
     shortest_path_length,
     wall_bounds,
+    wall_collision,
     wall_images,
 )
 
@@ -223,8 +222,8 @@ def test_bad_inputs_give_clear_errors():
         env.step(torch.zeros(1, 3))
     with pytest.raises(ValueError, match="NaN"):
         env.step(torch.tensor([[float("nan"), 0.0]]))
-    for layouts, message in (([[50, 30]], "wall_x=50 is outside"),
-                             ([[30, 5]], "door_y=5 is outside")):
+    for layouts, message in (([[50, 30]], r"\[50, 30\]: each wall_x must be in 20\.\.44"),
+                             ([[30, 5]], r"\[30, 5\]: .* each door_y in 10\.\.54")):
         with pytest.raises(ValueError, match=message):
             reset(layouts)
     with pytest.raises(ValueError, match="inside the wall"):
@@ -318,7 +317,7 @@ def test_wall_starts_face_the_wall_away_from_the_door_and_leave_other_data_alone
     moved = (base.positions[:, 0] != more.positions[:, 0]).any(-1)
     assert moved.sum() == 500 and not (moved & more.door).any()
     start, layouts = more.positions[moved, 0], more.layouts[moved].float()
-    check_positions(start, more.layouts[moved])
+    check_world(more.layouts[moved], start)
     gap = (start[:, 0] - layouts[:, 0]).abs() - 2.5  # from the face of the slab
     assert gap.min() >= 0.5 - 1e-4 and gap.max() <= 4 + 1e-4
     assert (start[:, 1] - layouts[:, 1]).abs().min() >= 10.5 - 1e-4  # 6 px beyond the door
@@ -341,8 +340,8 @@ def test_wall_starts_face_the_wall_away_from_the_door_and_leave_other_data_alone
 
 def test_episodes_start_and_goal_in_opposite_rooms():
     episodes = make_episodes(1000, seed=3)
-    check_positions(episodes.starts, episodes.layouts)
-    check_positions(episodes.goals, episodes.layouts)
+    check_world(episodes.layouts, episodes.starts)
+    check_world(episodes.layouts, episodes.goals)
     start_rooms = room_of(episodes.starts, episodes.layouts)
     assert (start_rooms != room_of(episodes.goals, episodes.layouts)).all()
     assert 0.4 < start_rooms.float().mean() < 0.6

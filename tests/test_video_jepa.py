@@ -246,7 +246,7 @@ def test_bad_inputs_raise_clear_errors():
     short = torch.zeros(4, 5, 1, 64, 64, dtype=torch.uint8)
     with pytest.raises(ValueError, match="at least 6"):
         train_video_jepa(CI, short, progress=False)
-    with pytest.raises(TypeError, match="uint8"):
+    with pytest.raises(ValueError, match="uint8"):
         train_video_jepa(CI, torch.zeros(4, 8, 1, 64, 64), progress=False)
 
 

@@ -1,2 +1,1 @@
-"""The teaching layer: the scales' presets, the exercises and the reference figures. Nothing
-below this layer imports it."""
+"""The teaching layer: presets (the scales), exercises and reference figures."""

@@ -1,7 +1,6 @@
 """The one switch that sizes every notebook, ``EBJEPA_SCALE``: ``ci`` (well under a minute on 2
 CPU cores: it runs, it does not learn), ``class`` (default: about 10 minutes or less on a 2-core
-laptop, a real result) or ``full`` (the paper's configuration, for a GPU).
-Each notebook asks for its own preset: ``cfg = preset("00")``."""
+laptop, a real result) or ``full`` (the paper's configuration, for a GPU): ``preset("00")``."""
 
 from __future__ import annotations
 
@@ -37,6 +36,17 @@ class CollapsePreset:
     hidden: int = 64  # width of the MLP encoder
     steps: int = 600  # full-batch Adam steps per training run
     lr: float = 3e-3
+
+
+@dataclass(frozen=True)
+class ImagePreset:
+    """Notebooks 01 and 02: the CIFAR-10 runs (the VICReg config; others derive from it)."""
+
+    config: ImageJEPAConfig  # the VICReg run; SIGReg and ablations use dataclasses.replace
+    long_config: ImageJEPAConfig  # the longer run they load (shipped at class; full: config)
+    train_images: int = 50_000  # CIFAR-10 train images used to train and to fit the probe
+    test_images: int = 10_000  # CIFAR-10 test images the probe and kNN are scored on
+    sweep_steps: int = 500  # steps per run of notebook 02's sweeps and ablations
 
 
 @dataclass(frozen=True)
@@ -76,46 +86,6 @@ class TwoRoomsWorldPreset:
 
 
 @dataclass(frozen=True)
-class ImagePreset:
-    """Notebooks 01 and 02: the CIFAR-10 runs (the VICReg config; others derive from it)."""
-
-    config: ImageJEPAConfig  # the VICReg run; SIGReg and ablations use dataclasses.replace
-    long_config: ImageJEPAConfig  # the longer run they load (shipped at class; full: config)
-    train_images: int = 50_000  # CIFAR-10 train images used to train and to fit the probe
-    test_images: int = 10_000  # CIFAR-10 test images the probe and kNN are scored on
-    sweep_steps: int = 500  # steps per run of notebook 02's sweeps and ablations
-
-
-_IMAGE = {  # chapter 01's run at each scale, and chapter 02's changes to it
-    "ci": (ImageJEPAConfig(widths=(8, 8, 16, 16), blocks_per_stage=1, projector=(64, 64),
-                           batch_size=32, steps=15, warmup_steps=3, eval_image_size=16),
-           dict(loss=SIGReg(), projector=(64, 16))),  # narrower than VICReg's, as at class
-    # about 10 minutes on 2 cores with bf16 instructions, 13-17 without (RESULTS.md, 01-02)
-    "class": (ImageJEPAConfig(widths=(32, 64, 128, 256), blocks_per_stage=1, steps=1600,
-                              warmup_steps=160),
-              dict(loss=SIGReg(slices=1024), projector=(1024, 256))),
-    "full": (ImageJEPAConfig(  # the paper's network and 300 epochs of batch 256, all at 32 px
-        widths=(64, 128, 256, 512), image_size=32, projector=(2048, 2048), batch_size=256,
-        steps=300 * 195, warmup_steps=10 * 195),
-             dict(loss=SIGReg(10.0, scale_by_n=False), projector=(2048, 128))),  # the paper's
-}
-
-
-def image_preset(scale: str, loss: str) -> ImagePreset:
-    """The preset of notebook 01 (``loss="vicreg"``) or 02 (``"sigreg"``) at ``scale``."""
-    config, sigreg = _IMAGE[scale]
-    config = replace(config, **sigreg) if loss == "sigreg" else config
-    if scale == "ci":
-        return ImagePreset(config, replace(config, steps=30), train_images=2000, test_images=1000,
-                           sweep_steps=5)
-    if scale == "class":  # the shipped long runs; SIGReg at its preferred lambda (RESULTS.md)
-        tuned = {"loss": SIGReg(0.05, 1024)} if loss == "sigreg" else {}
-        return ImagePreset(config, replace(config, steps=12_000, warmup_steps=1200, **tuned),
-                           sweep_steps=250)
-    return ImagePreset(config, config)
-
-
-@dataclass(frozen=True)
 class WorldModelPreset:
     """Notebook 05: the world-model training run, and how much we evaluate it on."""
 
@@ -125,13 +95,6 @@ class WorldModelPreset:
     horizon: int = 32  # actions per held-out trajectory: how far rollouts go (training: K = 8)
     n_layouts: int = 64  # layouts x dot positions for the "dot or walls?" variance split
     n_positions: int = 32
-
-
-_WORLD_CI = course_recipe(WorldTrainConfig(model=WORLD_CONFIGS["ci"], n_trajectories=500,
-                                           batch_size=16, steps=10))
-_WORLD_CLASS = course_recipe(WorldTrainConfig(steps=2800))  # under 10 min on 2 cores; shipped
-_WORLD_FULL = WorldTrainConfig(  # the paper: batch 384, 12 epochs of 100,000 trajectories
-    model=WORLD_CONFIGS["full"], n_trajectories=100_000, batch_size=384, steps=12 * 100_000 // 384)
 
 
 @dataclass(frozen=True)
@@ -159,20 +122,9 @@ class PlanningPreset:
     longer: LongerRuns = LongerRuns()  # the optional section 9's models
 
 
-def course_long(config: WorldTrainConfig, steps: int, n_trajectories: int) -> WorldTrainConfig:
-    """``config``'s recipe trained longer: a predictor twice as wide, the rate falling to 0 over
-    the last 40% and every update's gradient clipped to norm 1 (RESULTS.md)."""
-    model = replace(config.model, predictor_hidden=2 * config.model.predictor_hidden)
-    recipe = replace(config.recipe, decay_steps=steps * 2 // 5, grad_clip=1.0)
-    return replace(config, model=model, recipe=recipe, steps=steps, n_trajectories=n_trajectories)
-
-
-_PLANNER_CI = PlannerConfig(horizon=8, samples=32, elites=4, iterations=2, execute=4)
-
-
 @dataclass(frozen=True)
 class TwoLevelPreset:
-    """Notebook 07's two-level planner (``planning.TwoLevel``)."""
+    """Notebook 07's two-level planner (its ``TwoLevel``)."""
 
     low: PlannerConfig  # the lower level: a few steps to the subgoal
     high: tuple[PlannerConfig, PlannerConfig]  # the coarse level, in Two and Three Rooms
@@ -182,8 +134,7 @@ class TwoLevelPreset:
 
 @dataclass(frozen=True)
 class BeyondPreset:
-    """Notebook 07: the shipped world models, cost heads and coarse models of two worlds (the
-    same at every scale), and four planners compared on each world."""
+    """Notebook 07: the shipped models of two worlds (at every scale), four planners on each."""
 
     two_rooms: WorldTrainConfig  # chapter 05's class run (three_rooms: the same on Three Rooms)
     flat: PlannerConfig  # chapter 06's planner
@@ -205,8 +156,50 @@ class BeyondPreset:
         return replace(self.short, cost="learned", temperature=1.0)
 
 
-# Chosen on seeds 10,600-10,699, Three Rooms' 200 coarse samples on 10,600-10,999 (RESULTS.md,
-# "07 · Beyond the paper"). The bound and spread of a macro-action scale with CoarseModel's
+def image_preset(scale: str, loss: str) -> ImagePreset:
+    """The preset of notebook 01 (``loss="vicreg"``) or 02 (``"sigreg"``) at ``scale``."""
+    config, sigreg = _IMAGE[scale]
+    config = replace(config, **sigreg) if loss == "sigreg" else config
+    if scale == "ci":
+        return ImagePreset(config, replace(config, steps=30), train_images=2000, test_images=1000,
+                           sweep_steps=5)
+    if scale == "class":  # the shipped long runs; SIGReg at its preferred lambda
+        tuned = {"loss": SIGReg(0.05, 1024)} if loss == "sigreg" else {}
+        return ImagePreset(config, replace(config, steps=12_000, warmup_steps=1200, **tuned),
+                           sweep_steps=250)
+    return ImagePreset(config, config)
+
+
+def course_long(config: WorldTrainConfig, steps: int, n_trajectories: int) -> WorldTrainConfig:
+    """``config``'s recipe trained longer: a predictor twice as wide, the rate falling to 0 over
+    the last 40% and every update's gradient clipped to norm 1."""
+    model = replace(config.model, predictor_hidden=2 * config.model.predictor_hidden)
+    recipe = replace(config.recipe, decay_steps=steps * 2 // 5, grad_clip=1.0)
+    return replace(config, model=model, recipe=recipe, steps=steps, n_trajectories=n_trajectories)
+
+
+_IMAGE = {  # chapter 01's run at each scale, and chapter 02's changes to it
+    "ci": (ImageJEPAConfig(widths=(8, 8, 16, 16), blocks_per_stage=1, projector=(64, 64),
+                           batch_size=32, steps=15, warmup_steps=3, eval_image_size=16),
+           dict(loss=SIGReg(), projector=(64, 16))),  # narrower than VICReg's, as at class
+    # about 10 minutes on 2 cores with bf16 instructions, 13-17 without
+    "class": (ImageJEPAConfig(widths=(32, 64, 128, 256), blocks_per_stage=1, steps=1600,
+                              warmup_steps=160),
+              dict(loss=SIGReg(slices=1024), projector=(1024, 256))),
+    "full": (ImageJEPAConfig(  # the paper's network and 300 epochs of batch 256, all at 32 px
+        widths=(64, 128, 256, 512), image_size=32, projector=(2048, 2048), batch_size=256,
+        steps=300 * 195, warmup_steps=10 * 195),
+             dict(loss=SIGReg(10.0, scale_by_n=False), projector=(2048, 128))),  # the paper's
+}
+
+_WORLD_CI = course_recipe(WorldTrainConfig(model=WORLD_CONFIGS["ci"], n_trajectories=500,
+                                           batch_size=16, steps=10))
+_WORLD_CLASS = course_recipe(WorldTrainConfig(steps=2800))  # under 10 min on 2 cores; shipped
+_WORLD_FULL = WorldTrainConfig(  # the paper: batch 384, 12 epochs of 100,000 trajectories
+    model=WORLD_CONFIGS["full"], n_trajectories=100_000, batch_size=384, steps=12 * 100_000 // 384)
+_PLANNER_CI = PlannerConfig(horizon=8, samples=32, elites=4, iterations=2, execute=4)
+
+# Chapter 07's planners. The bound and spread of a macro-action scale with CoarseModel's
 # stride; the fine planners keep the spread chapter 07 was measured with (1.5 px).
 _STRIDE = 4
 _FLAT_07 = PlannerConfig(noise=Noise(std=1.5))
@@ -226,7 +219,6 @@ _BEYOND_CI = replace(  # the class models with tiny planners
     _BEYOND_CLASS, flat=_PLANNER_CI, short=_TINY,
     two_level=TwoLevelPreset(_TINY, (replace(_HIGH, horizon=4, samples=16, elites=2),) * 2),
     n_episodes=2, episode_batch=2, episode_steps=24)
-
 
 PRESETS: dict[str, dict[str, object]] = {
     "00": {

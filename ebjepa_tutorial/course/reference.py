@@ -1,7 +1,6 @@
-"""Reference figures a notebook prints beside the learner's result: the course's class run of
-the same recipe, recorded by a benchmark's ``--record`` in ``checkpoints/reference.json`` (with
-its command, threads and date), and the paper's (EB-JEPA, Terver et al., 2026, arXiv 2602.03604).
-"""
+"""Reference figures a notebook prints beside the learner's: the course's class run, recorded by
+a benchmark's ``--record`` in ``checkpoints/reference.json``, and the paper's (EB-JEPA, Terver et
+al., 2026, arXiv 2602.03604). In a notebook: ``print(compare("world_probe_px", error))``."""
 
 from __future__ import annotations
 
@@ -35,10 +34,8 @@ BEYOND_PLANNERS = ("flat", "short", "learned_cost", "two_level")  # notebook 07'
 METRICS = {  # the figures the notebooks print (the pages' others: tools/figures.py)
     "vicreg_probe_acc": Metric(_PROBE, "{:.1%}", 0.901, _CIFAR, _IMAGE),
     "sigreg_probe_acc": Metric(_PROBE, "{:.1%}", 0.910, _CIFAR, _IMAGE),
-    "vicreg_random_init_probe_acc": Metric("random-init probe accuracy", "{:.1%}",
-                                           benchmark=_IMAGE),
-    "sigreg_random_init_probe_acc": Metric("random-init probe accuracy", "{:.1%}",
-                                           benchmark=_IMAGE),
+    **dict.fromkeys(["vicreg_random_init_probe_acc", "sigreg_random_init_probe_acc"],
+                    Metric("random-init probe accuracy", "{:.1%}", benchmark=_IMAGE)),
     "video_map_class_K4": Metric("detection mAP, K = 4", "{:.3f}", 0.607,
                                  "K = 4, trained on a GPU"),
     "world_probe_px": Metric("position probe error", "{:.2f} px",
@@ -61,25 +58,23 @@ def load(path: Path = REFERENCE_FILE) -> dict:
 def references(key: str, path: Path = REFERENCE_FILE) -> list[str]:
     """The course's recorded class run (where a benchmark records it) and the paper's figure."""
     metric, parts, ours = METRICS[key], [], load(path).get(key)
+    fmt = metric.fmt.format
     if ours is not None:  # with its range where one was measured (seeds, runs, hosts)
         low, high = ours.get("spread", (None, None))
-        spread = "" if low is None else \
-            f"range {metric.fmt.format(low)} to {metric.fmt.format(high)}, "
-        parts.append(f"{metric.ours} {metric.fmt.format(ours['value'])} ({spread}"
-                     f"{ours['threads']} CPU thread{'s' * (ours['threads'] != 1)}, "
-                     f"{ours['date']})")
+        spread = "" if low is None else f"range {fmt(low)} to {fmt(high)}, "
+        threads = f"{ours['threads']} CPU thread{'s' * (ours['threads'] != 1)}"
+        parts.append(f"{metric.ours} {fmt(ours['value'])} ({spread}{threads}, {ours['date']})")
     elif metric.benchmark is not None:
         parts.append(f"{metric.ours}: not recorded (run {metric.benchmark} --record)")
     if metric.paper is not None:
-        parts.append(f"the paper {metric.fmt.format(metric.paper)} ({metric.paper_setting})")
+        parts.append(f"the paper {fmt(metric.paper)} ({metric.paper_setting})")
     return parts
 
 
 def compare(key: str, yours: float, scale: str | None = None, path: Path = REFERENCE_FILE) -> str:
     """One line: your figure, the course's recorded class run and the paper's, each labelled."""
     metric = METRICS[key]
-    line = " | ".join([f"{metric.label}: yours {metric.fmt.format(yours)}",
-                       *references(key, path)])
+    line = " | ".join([f"{metric.label}: yours {metric.fmt.format(yours)}", *references(key, path)])
     if (scale or current_scale()) == "ci":
         line += "\n(a ci run is a smoke test, far too short for its figure to mean anything)"
     return line

@@ -1,7 +1,5 @@
-"""CIFAR-10 and MNIST as uint8 ``(N, C, H, W)`` images and int64 ``(N,)`` labels, cached.
-
-Where the files are looked for, and how to bring your own: ``data/README.md``.
-"""
+"""CIFAR-10 and MNIST as uint8 ``(N, C, H, W)`` images and int64 ``(N,)`` labels
+(``data/README.md``: where the files are looked for), and Moving MNIST made from them."""
 
 import torch
 

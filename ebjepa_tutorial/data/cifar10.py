@@ -1,9 +1,6 @@
-"""CIFAR-10 (Krizhevsky, 2009) as uint8 tensors, read through ``torchvision.datasets``.
-
-:func:`load_cifar10` reads the official release (``cifar-10-batches-py/``, MD5-checked by
-torchvision), else class folders packed as ``cifar10*.tar.gz`` (decoded once, then cached as
-arrays), and downloads the official archive only when neither is there (``data/README.md``).
-"""
+"""CIFAR-10 (Krizhevsky, 2009) as uint8 tensors, read with ``torchvision.datasets``: the
+official release (MD5-checked), else class folders packed as ``cifar10*.tar.gz`` (decoded
+once, then cached), else a download of the official archive (``data/README.md``)."""
 
 from __future__ import annotations
 
@@ -108,10 +105,7 @@ def _read_packed(path: Path, split: str) -> tuple[np.ndarray, np.ndarray]:
 def load_cifar10(split: str = "train", root: str | os.PathLike | None = None,
                  download: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """One CIFAR-10 split: images (N, 3, 32, 32) uint8, labels (N,) int64; N = 50,000 or 10,000.
-
-    ``root`` overrides the data directory; ``download=False`` raises DataNotFoundError
-    instead of fetching the official archive.
-    """
+    ``root``: the data directory; ``download=False``: DataNotFoundError instead of fetching."""
     check_split(split)
     directory = data_dir(root)
     source = find_cifar10(directory, split)

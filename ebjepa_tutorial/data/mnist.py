@@ -1,9 +1,5 @@
-"""MNIST digits (LeCun et al., 1998) as uint8 tensors, read through ``torchvision.datasets``.
-
-:func:`load_mnist` reads a split's two IDX files (``.gz`` or not) from ``<data>/MNIST/raw/``,
-``<data>/mnist/`` or ``<data>/``, file by file (``datasets.MNIST`` wants all four files, and
-the course's offline copy has one split), and downloads them only when none is there.
-"""
+"""MNIST digits (LeCun et al., 1998) as uint8 tensors, read with ``torchvision.datasets``; one
+split's two IDX files are enough (``datasets.MNIST``, which downloads them, wants all four)."""
 
 from __future__ import annotations
 
@@ -26,7 +22,8 @@ MNIST_FILES = {  # split -> (images, labels), without the .gz
 
 
 def find_mnist(directory: Path, split: str) -> tuple[Path, Path] | None:
-    """Paths of the (images, labels) IDX files of ``split`` in one folder, ``.gz`` first."""
+    """Paths of the (images, labels) IDX files of ``split``, ``.gz`` or not, in
+    ``directory/MNIST/raw``, ``directory/mnist`` or ``directory``; None if absent."""
     for folder in (directory / "MNIST" / "raw", directory / "mnist", directory):
         pair = [next((p for p in (folder / f"{stem}.gz", folder / stem) if p.is_file()), None)
                 for stem in MNIST_FILES[split]]  # fmt: skip
@@ -70,10 +67,7 @@ def _read_idx(path: Path, read) -> torch.Tensor:
 def load_mnist(split: str = "train", root: str | os.PathLike | None = None,
                download: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """One MNIST split: images (N, 1, 28, 28) uint8, labels (N,) int64; N = 60,000 or 10,000.
-
-    ``root`` overrides the data directory; ``download=False`` raises DataNotFoundError
-    instead of fetching the files.
-    """
+    ``root``: the data directory; ``download=False``: DataNotFoundError instead of fetching."""
     check_split(split)
     directory = data_dir(root)
     files = find_mnist(directory, split)

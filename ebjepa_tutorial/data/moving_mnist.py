@@ -1,10 +1,6 @@
-"""Moving MNIST (Srivastava et al., 2015), generated in code: digits bouncing in a 64x64 frame.
-
-Each digit's 28x28 patch starts at a top-left corner uniform in ``[0, 36]^2`` and moves at a
-fixed ``speed`` (3.6 px/frame, a tenth of the free range) in a uniform direction, reflected at
-the frame's edges; it is pasted at the rounded position, overlaps combined by maximum. All
-clips are made at once in tensor operations, and every digit's position is known exactly.
-"""
+"""Moving MNIST (Srivastava et al., 2015), generated in code: digits bouncing in a 64x64 frame,
+from uniform corners in uniform directions at a fixed speed, overlaps combined by maximum; all
+clips at once, with every digit's position known exactly."""
 
 from __future__ import annotations
 
@@ -18,30 +14,20 @@ from ..utils import as_generator, make_generator
 FRAME_SIZE = 64
 DEFAULT_SPEED = 3.6  # px per frame: 0.1 of the free range 64 - 28 = 36
 GRID = 8  # the detection targets' cells per side: 8 px each
-CHUNK = 128  # clips pasted at a time: bounds the index memory, stays in cache
+CHUNK = 128  # clips pasted at a time: bounds the index memory
 
 
 @dataclass
 class MovingMNISTBatch:
-    """Clips and the exact position of every digit in every frame; ``N`` clips, ``T`` frames,
-    ``K`` digits per clip, frames ``S x S``:
+    """``N`` clips of ``T`` frames ``S x S``, ``K`` digits each, and where every digit is, in
+    pixel units (pixel ``i`` covers ``[i, i + 1)``; MNIST digits are not centred in their patch)."""
 
-    - ``clips``: uint8 ``(N, T, 1, S, S)``
-    - ``centres``: float32 ``(N, T, K, 2)``, ``(x, y)`` centre of the ink box, in pixel units
-      (pixel ``i`` covers ``[i, i + 1)``)
-    - ``boxes``: int64 ``(N, T, K, 4)``, ink box ``(x0, y0, x1, y1)``, ends exclusive: the tight
-      box around the digit's non-zero pixels (MNIST digits are not centred in their patch)
-    - ``offsets``: int64 ``(N, T, K, 2)``, ``(x, y)`` top-left of the pasted patch
-    - ``velocities``: float32 ``(N, T, K, 2)``, velocity from frame ``t`` to ``t + 1``
-    - ``digit_ids``: int64 ``(N, K)``, which row of ``digits`` each digit is
-    """
-
-    clips: torch.Tensor
-    centres: torch.Tensor
-    boxes: torch.Tensor
-    offsets: torch.Tensor
-    velocities: torch.Tensor
-    digit_ids: torch.Tensor
+    clips: torch.Tensor  # uint8 (N, T, 1, S, S)
+    centres: torch.Tensor  # float32 (N, T, K, 2): (x, y) centre of the ink box
+    boxes: torch.Tensor  # int64 (N, T, K, 4): tight box (x0, y0, x1, y1) of the ink, ends excluded
+    offsets: torch.Tensor  # int64 (N, T, K, 2): (x, y) top-left corner of the pasted patch
+    velocities: torch.Tensor  # float32 (N, T, K, 2): velocity from frame t to t + 1
+    digit_ids: torch.Tensor  # int64 (N, K): which row of digits each digit is
 
     def __len__(self) -> int:
         return self.clips.shape[0]
@@ -138,11 +124,9 @@ def paste_clips(digits: torch.Tensor, digit_ids: torch.Tensor,
 def generate_moving_mnist(digits, n_clips: int, n_frames: int = 10, n_digits: int = 2,
                           speed: float = DEFAULT_SPEED,
                           seed: int | torch.Generator = 0) -> MovingMNISTBatch:
-    """Make ``n_clips`` Moving MNIST clips of ``n_frames`` frames from ``digits``.
-
-    ``digits``: uint8 ``(D, 1, h, w)`` or ``(D, h, w)``; each clip shows ``n_digits`` of
-    them, drawn with replacement. ``seed``: an int or a ``torch.Generator``.
-    """
+    """``n_clips`` clips of ``n_frames`` frames, each showing ``n_digits`` of ``digits``
+    (uint8 ``(D, 1, h, w)`` or ``(D, h, w)``, drawn with replacement) moving at ``speed``
+    px/frame; ``seed``: an int or a ``torch.Generator``."""
     digits, limit = _check(digits, speed, n_clips=n_clips, n_frames=n_frames, n_digits=n_digits)
     generator = as_generator(seed)
     digit_ids = torch.randint(len(digits), (n_clips, n_digits), generator=generator)

@@ -1,9 +1,6 @@
-"""Where data lives, the cache of decoded arrays, and files written atomically.
-
-The data directory is an explicit ``root``, else ``$EBJEPA_DATA``, else ``<project>/data``.
-The cache is ``$EBJEPA_CACHE``, else ``<project>/data/cache`` (git-ignored), never under
-``EBJEPA_DATA``, which may be a read-only shared folder.
-"""
+"""Where data lives (``root``, else ``$EBJEPA_DATA``, else ``<project>/data``), the cache of
+decoded arrays (``$EBJEPA_CACHE``, else ``<project>/data/cache``, never under a read-only
+``EBJEPA_DATA``), and files written atomically."""
 
 from __future__ import annotations
 
@@ -88,9 +85,9 @@ def atomic_file(path: Path):
 
 
 def cached_arrays(source: Path, name: str, decode) -> tuple[np.ndarray, np.ndarray]:
-    """``decode()``'s ``(images, labels)`` arrays, kept in the cache as two ``.npy`` files named
-    after ``name`` and a hash of ``source`` (path, size, modification time), so that a replaced
-    source is decoded again, as is a damaged cache file; a failure to save only warns."""
+    """``decode()``'s ``(images, labels)`` arrays, cached as two ``.npy`` files named after
+    ``name`` and ``source``'s path, size and time, so that a replaced source or a damaged
+    cache file is decoded again; a failure to save only warns."""
     info, folder = source.stat(), cache_dir()
     key = hashlib.sha1(f"{source.resolve()}|{info.st_size}|{info.st_mtime_ns};".encode())
     files = [folder / f"{name}-{key.hexdigest()[:12]}-{part}.npy" for part in ("images", "labels")]

@@ -1,11 +1,5 @@
-"""Evaluation episodes in Two Rooms, and the batched environment a planner acts in.
-
-An episode: a fresh layout, a start in one outer room and a goal in the other, shown as an
-image. It succeeds when the dot ends within ``SUCCESS_RADIUS`` = 4.5 px of the goal within
-the step budget: 200 steps in Two Rooms, where a good path takes 30.1 steps at the median
-and 69.9 at worst; 120 in Three Rooms (42.4 and 94.8), tight enough that a planner sliding
-along the walls until it stumbles on a door runs out of time.
-"""
+"""Evaluation episodes in Two Rooms (start in one outer room, goal in the other, success within
+``SUCCESS_RADIUS`` px), and :class:`TwoRoomsEnv`, the batched environment a planner acts in."""
 
 from __future__ import annotations
 
@@ -16,19 +10,19 @@ import torch
 from ..utils import as_generator
 from .two_rooms import (
     check_actions,
-    check_layouts,
-    check_positions,
+    check_world,
     random_layouts,
     render,
     room_of,
     sample_positions,
     transition,
-    wall_count,
 )
 
 SUCCESS_RADIUS = 4.5
+# step budgets: a good path takes 30.1 steps at the median and 69.9 at worst in Two Rooms, 42.4
+# and 94.8 in Three Rooms, whose budget is too short for sliding along walls to find a door
 EPISODE_STEPS = 200
-THREE_ROOMS_EPISODE_STEPS = 120  # the worst good path's 95 steps and 25 to spare
+THREE_ROOMS_EPISODE_STEPS = 120
 
 
 @dataclass
@@ -59,8 +53,8 @@ class Episodes:
 
 
 def make_episodes(n: int, seed=0, walls: int = 1) -> Episodes:
-    """``n`` tasks, start and goal uniform over the floors of the two outer rooms (which holds
-    the start is drawn per task). ``walls``: 1 or 2; ``seed``: an int or a ``torch.Generator``."""
+    """``n`` tasks of ``walls`` walls, start and goal uniform over the floors of the two outer
+    rooms (which holds the start is drawn per task); ``seed``: an int or a torch.Generator."""
     generator = as_generator(seed)
     layouts = random_layouts(n, generator, walls)
     start_rooms = torch.randint(0, 2, (n,), generator=generator) * walls  # 0 or the last room
@@ -71,21 +65,14 @@ def make_episodes(n: int, seed=0, walls: int = 1) -> Episodes:
 
 def step_budget(layouts: torch.Tensor) -> int:
     """The steps an episode of these layouts (B, 2W) may take: 200 with one wall, 120 with two."""
-    return {1: EPISODE_STEPS, 2: THREE_ROOMS_EPISODE_STEPS}[wall_count(layouts)]
+    return EPISODE_STEPS if layouts.shape[1] == 2 else THREE_ROOMS_EPISODE_STEPS
 
 
 class TwoRoomsEnv:
-    """A batch of Two (or Three) Rooms worlds that a planner acts in, all stepped at once.
-
-    >>> env = TwoRoomsEnv()
-    >>> obs = env.reset(n=100, seed=1)          # (100, 2, 65, 65)
-    >>> goal = env.goal_images()                # (100, 2, 65, 65)
-    >>> obs = env.step(torch.zeros(100, 2))      # actions (B, 2), clipped to MAX_STEP
-    >>> env.success()                           # (100,) bool
-
-    State: ``positions``, ``goals`` (B, 2), ``layouts`` (B, 2W), ``steps_taken``; ``path``
-    (each step's positions, start first) and ``actions``. Steps use :func:`transition`.
-    """
+    """B Two (or Three) Rooms worlds that a planner acts in, all stepped at once: ``reset(n,
+    seed)`` or ``reset(episodes=...)``, then ``step(actions)``, actions (B, 2), each return the
+    images (B, 2, 65, 65). State: ``positions``, ``goals`` (B, 2), ``layouts`` (B, 2W),
+    ``steps_taken``, ``path`` (each step's positions, start first) and ``actions``."""
 
     def __init__(self, device: str | torch.device = "cpu"):
         self.device = torch.device(device)
@@ -94,30 +81,29 @@ class TwoRoomsEnv:
     def reset(self, n: int = 1, seed=0, episodes: Episodes | None = None) -> torch.Tensor:
         """Start ``n`` new Two Rooms episodes from ``seed`` (or the given ones); observe them."""
         episodes = make_episodes(n, seed) if episodes is None else episodes
-        check_layouts(episodes.layouts)
-        check_positions(episodes.starts, episodes.layouts)
+        check_world(episodes.layouts, episodes.starts)
         self.episodes = episodes.to(self.device)
         self.layouts, self.goals = self.episodes.layouts, self.episodes.goals
-        self.step_budget = step_budget(self.layouts)  # EPISODE_STEPS or THREE_ROOMS_...
+        self.step_budget = step_budget(self.layouts)
         self.positions = self.episodes.starts.clone()
         self.steps_taken, self.path, self.actions = 0, [self.positions], []
         return self.observe()
+
+    def _check_started(self) -> None:
+        if self.positions is None:
+            raise RuntimeError("call env.reset(n, seed) before using the environment")
 
     def observe(self) -> torch.Tensor:
         """Current images: (B, 2, 65, 65) float32."""
         self._check_started()
         return render(self.positions, self.layouts)
 
-    def _check_started(self) -> None:
-        if self.positions is None:
-            raise RuntimeError("call env.reset(n, seed) before using the environment")
-
     def goal_images(self) -> torch.Tensor:
         """Goal images: (B, 2, 65, 65) float32."""
         return self.episodes.goal_images()
 
     def step(self, actions: torch.Tensor) -> torch.Tensor:
-        """Move every world by its action (B, 2); returns the new observations."""
+        """Move every world by its action (B, 2) with ``transition``; observe them."""
         self._check_started()
         check_actions(actions, len(self.layouts), self.positions.dtype)
         self.actions.append(actions.clone())  # the caller may reuse its tensor

@@ -1,13 +1,6 @@
-"""Offline Two Rooms trajectories from the paper's data policy, generated in batches.
-
-A persistent random walk: the heading turns each step by a von Mises(0, ``kappa`` = 5)
-increment (consecutive headings agree with mean cosine I1(5)/I0(5) = 0.893), the step length
-is a normal (mean 1, std 0.4) truncated to [0.2, 1.8]; the dot moves by the environment's
-:func:`~ebjepa_tutorial.envs.two_rooms.transition`. ``door_fraction`` (35%) start 0.5 to 4 px
-in front of a door (within 2 px of its centre row, aimed at it), so most of them change
-rooms; optionally ``wall_fraction`` start in front of a wall, heading into it; the rest start
-uniformly with a uniform heading. With ``walls=2`` a door or wall start faces one wall.
-"""
+"""Offline Two Rooms trajectories from the paper's data policy, generated in batches: a random
+walk whose heading turns by von Mises(0, ``kappa``) steps and whose step lengths are truncated
+normals, moved by :func:`~ebjepa_tutorial.envs.two_rooms.transition`."""
 
 from __future__ import annotations
 
@@ -27,7 +20,6 @@ from .two_rooms import (
     room_of,
     sample_positions,
     transition,
-    wall_count,
     walls_of,
 )
 
@@ -71,10 +63,10 @@ def sample_truncated_normal(mean, std, low, high, shape, generator) -> torch.Ten
 def in_front_of_a_wall(layouts: torch.Tensor, generator: torch.Generator):
     """A column 0.5 to 4 px in front of one wall (of the W, at random), on a random side:
     layouts (B, 2W) -> wall_x, door_y, x, side (-1 left of the wall, +1 right), each (B,)."""
-    n, walls = len(layouts), wall_count(layouts)
-    if walls > 1:  # with one wall nothing is drawn: Two Rooms data keep their random stream
-        pick = torch.randint(0, walls, (n,), generator=generator)
-        layouts = walls_of(layouts)[torch.arange(n), pick]
+    n, walls = len(layouts), walls_of(layouts)
+    if walls.shape[1] > 1:  # with one wall nothing is drawn: Two Rooms data keep their draws
+        pick = torch.randint(0, walls.shape[1], (n,), generator=generator)
+        layouts = walls[torch.arange(n), pick]
     wall_x, door_y = layouts.float().unbind(-1)
     side = torch.randint(0, 2, (n,), generator=generator).float() * 2 - 1
     gap = 0.5 + 3.5 * torch.rand(n, generator=generator)  # px from the wall's face
@@ -82,7 +74,8 @@ def in_front_of_a_wall(layouts: torch.Tensor, generator: torch.Generator):
 
 
 def door_starts(layouts: torch.Tensor, generator: torch.Generator):
-    """Starts in front of a door, aimed at it: layouts (B, 2W) -> positions (B, 2), heading (B,)."""
+    """Starts in front of a door, within 2 px of its centre row, aimed at it: layouts (B, 2W)
+    -> positions (B, 2), headings (B,)."""
     wall_x, door_y, x, _ = in_front_of_a_wall(layouts, generator)
     y = door_y + 4 * torch.rand(len(layouts), generator=generator) - 2
     heading = torch.atan2(door_y - y, wall_x - x)
@@ -133,17 +126,13 @@ class Trajectories:
 def generate_trajectories(n: int, steps: int = 16, seed=0, door_fraction: float = 0.35,
                           wall_fraction: float = 0.0, kappa: float = 5.0, step_mean: float = 1.0,
                           walls: int = 1, layouts: torch.Tensor | None = None) -> Trajectories:
-    """``n`` random-walk trajectories of ``steps`` actions (``steps + 1`` frames).
-
-    ``seed``: an int or a torch.Generator. Exactly ``round(door_fraction * n)`` start at a
-    door, ``round(wall_fraction * n)`` of the others at a wall. ``walls``: 1 for Two Rooms,
-    2 for Three Rooms; ``layouts``: ``(n, 2W)`` to use instead of fresh ones. The draws'
-    order (layouts, starts, turns, step lengths) made the shipped models' data.
-    """
+    """``n`` random walks of ``steps`` actions (``steps + 1`` frames), in fresh layouts of
+    ``walls`` walls or in ``layouts`` (n, 2W); ``seed``: an int or a torch.Generator.
+    ``round(door_fraction * n)`` start at a door, ``round(wall_fraction * n)`` at a wall."""
     if not (0 <= door_fraction and 0 <= wall_fraction and door_fraction + wall_fraction <= 1):
         raise ValueError("door_fraction and wall_fraction must be >= 0 with a sum <= 1, got "
                          f"{door_fraction} and {wall_fraction}")
-    generator = as_generator(seed)
+    generator = as_generator(seed)  # the draws' order made the shipped models' data: keep it
     layouts = random_layouts(n, generator, walls) if layouts is None else layouts
     start, heading, door = random_starts(layouts, door_fraction, wall_fraction, generator)
     actions = random_walk(heading, steps, kappa, step_mean, generator)

@@ -1,19 +1,9 @@
 """The Two Rooms world (after PLDM, Sobal et al., 2025): geometry, the one transition, rendering.
 
-A batch of B worlds, each a 65x65 arena cut by W vertical walls in a row, each with a door
-(W=1: Two Rooms; W=2: Three Rooms, chapter 07's harder world).
-
-Coordinates: a position is ``(x, y)`` in pixels, float32, ``x`` the column and ``y`` the row
-(growing downwards); pixel ``(row i, column j)`` has its centre at ``(x=j, y=i)``.
-
-Walls (image channel 1): the border (rows and columns 0 and 64); each wall, columns
-``wall_x-1 .. wall_x+1``, with its door, rows ``door_y-4 .. door_y+4``, left open. A layout
-is ``(B, 2W)`` = ``(wall_x_0, door_y_0, wall_x_1, ...)``, walls left to right. The agent
-(channel 0) is a Gaussian dot, whose centre keeps ``DOT_MARGIN`` = 1 px from every wall
-pixel's edge: ``1.5 <= x, y <= 62.5``, and outside each wall's slab ``wall_x-2.5 < x <
-wall_x+2.5`` except in its doorway, ``door_y-3.5 <= y <= door_y+3.5``. :func:`transition`
-is the ONE transition of both the offline data and the environment.
-"""
+B arenas of 65x65 px, each cut by W walls with a door (W=1: Two Rooms, W=2: Three Rooms); a
+layout is ``(B, 2W)`` long, ``(wall_x, door_y)`` per wall, left to right. A position is
+``(x, y)`` float32 px: ``x`` the column, ``y`` the row (downwards); pixel ``(row i, column j)``
+is centred at ``(x=j, y=i)``."""
 
 from __future__ import annotations
 
@@ -21,8 +11,8 @@ import torch
 
 IMAGE_SIZE = 65
 BORDER = 1  # border wall thickness, px
-WALL_WIDTH = 3  # middle wall thickness, px
-DOOR_HEIGHT = 9  # door opening, px
+WALL_WIDTH = 3  # middle wall thickness, px: columns wall_x-1 .. wall_x+1
+DOOR_HEIGHT = 9  # door opening, px: rows door_y-4 .. door_y+4
 WALL_X_RANGE = (20, 44)  # inclusive range of the wall's centre column
 DOOR_Y_RANGE = (10, 54)  # inclusive range of the door's centre row
 DOT_STD = 1.3
@@ -34,11 +24,6 @@ HIGH = IMAGE_SIZE - BORDER - 0.5 - DOT_MARGIN  # 62.5, largest
 MIN_WALL_GAP = WALL_WIDTH + 2 * int(DOT_MARGIN) + 9
 WALL_X_RANGES = {1: (WALL_X_RANGE,), 2: ((14, 25), (39, 50))}  # by number of walls, inclusive
 WALLS_X_LIMITS = (14, 50)  # any wall, W >= 2: the outer rooms keep >= 10 px of floor
-
-
-def wall_count(layouts: torch.Tensor) -> int:
-    """How many walls a layout batch holds: (B, 2W) -> W."""
-    return layouts.shape[-1] // 2
 
 
 def walls_of(layouts: torch.Tensor) -> torch.Tensor:
@@ -69,10 +54,9 @@ def in_wall(positions: torch.Tensor, layouts: torch.Tensor) -> torch.Tensor:
 
 
 def wall_collision(positions: torch.Tensor, moves: torch.Tensor, layouts: torch.Tensor):
-    """Move each dot by its displacement, stopping at walls: positions (B, 2) allowed dot
-    centres, moves (B, 2), layouts (B, 2W) -> (B, 2). Exact for moves of x-extent up to 9 px,
-    so for every step of :func:`transition`; a longer one is approximated, never ends in a wall.
-    """
+    """Each dot moved by its displacement, stopped by walls: positions (B, 2), moves (B, 2),
+    layouts (B, 2W) -> (B, 2). Exact for moves of x-extent up to 9 px, so for every step of
+    :func:`transition`; a longer one is approximated, but never ends in a wall."""
     target = (positions + moves).clamp(LOW, HIGH)
     walls = walls_of(layouts)  # (B, W, 2)
     n = walls.shape[1]
@@ -110,8 +94,8 @@ def stop_at_wall(positions: torch.Tensor, target: torch.Tensor, wall: torch.Tens
 
 
 def clip_actions(actions: torch.Tensor, bound: float = MAX_STEP) -> torch.Tensor:
-    """Shrink every action (..., 2) longer than ``bound`` to length ``bound``, same direction
-    (the data policy's steps fill that disc), even one whose length overflows the dtype."""
+    """Actions (..., 2), each longer than ``bound`` shrunk to length ``bound`` in its direction,
+    even one whose length overflows the dtype."""
     norm = actions.norm(dim=-1, keepdim=True)
     scale = (bound / norm.clamp_min(1e-12)).clamp(max=1.0)
     largest = actions.abs().amax(dim=-1, keepdim=True)  # an overflowing norm: divide by it first
@@ -121,8 +105,8 @@ def clip_actions(actions: torch.Tensor, bound: float = MAX_STEP) -> torch.Tensor
 
 
 def transition(positions: torch.Tensor, actions: torch.Tensor, layouts: torch.Tensor):
-    """THE transition: clip the action to ``MAX_STEP``, then move. positions (B, 2), actions
-    (B, 2), layouts (B, 2W) -> (B, 2). No input checks: ``TwoRoomsEnv.step`` checks."""
+    """THE transition of both the offline data and the environment: clip the action to
+    ``MAX_STEP``, then move. positions (B, 2), actions (B, 2), layouts (B, 2W) -> (B, 2)."""
     return wall_collision(positions, clip_actions(actions), layouts)
 
 
@@ -176,11 +160,9 @@ def wall_images(layouts: torch.Tensor) -> torch.Tensor:
 
 
 def render(positions: torch.Tensor, layouts: torch.Tensor, out: torch.Tensor | None = None):
-    """Images of dots and walls, float32 in [0, 1]: positions (B, 2) -> (B, 2, 65, 65), or
-    (B, T, 2) -> (B, T, 2, 65, 65); layouts (B, 2W). Channel 0: the dot, ``exp(-d^2 / (2 *
-    1.3^2))``, ``d`` the distance from the pixel's centre; channel 1: the walls. ``out``: a
-    float32 buffer of that shape to reuse (faster).
-    """
+    """Images, float32 in [0, 1]: positions (B, 2) -> (B, 2, 65, 65), or (B, T, 2) -> (B, T, 2,
+    65, 65), layouts (B, 2W); channel 0 the dot, ``exp(-d^2 / (2 * 1.3^2))`` at distance ``d``
+    from the pixel's centre, channel 1 the walls. ``out``: a buffer of that shape to reuse."""
     single = positions.dim() == 2
     pos = positions[:, None] if single else positions
     if out is None:
@@ -238,34 +220,27 @@ def _pick(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     return values.gather(1, index[:, None]).squeeze(1)
 
 
-def check_layouts(layouts) -> None:
-    """Raise a clear error unless ``layouts`` is (B, 2W) of allowed walls and doors."""
-    if layouts.dim() != 2 or layouts.shape[1] == 0 or layouts.shape[1] % 2:
-        raise ValueError("layouts must have shape (B, 2W) = (wall_x, door_y) for each of W "
-                         "walls, e.g. (B, 2) for Two Rooms, (B, 4) for Three Rooms; got "
-                         f"{tuple(layouts.shape)}")
-    walls = wall_count(layouts)
-    wall_x = WALL_X_RANGE if walls == 1 else WALLS_X_LIMITS
-    for column, ((lo, hi), values) in enumerate(zip([wall_x, DOOR_Y_RANGE] * walls, layouts.T)):
-        if (i := _first((values < lo) | (values > hi))) is not None:
-            name = ("wall_x", "door_y")[column % 2]
-            raise ValueError(f"wall {column // 2}: {name}={values[i].item()} is outside the "
-                             f"allowed range {lo}..{hi}")
-    if (i := _first((layouts[:, 2::2] - layouts[:, :-2:2] < MIN_WALL_GAP).any(1))) is not None:
-        raise ValueError(f"layout {i} = {layouts[i].tolist()}: walls must go left to right, "
-                         f"at least {MIN_WALL_GAP} px apart, so that a dot fits between them")
-
-
 def _first(mask: torch.Tensor) -> int | None:
     """The index of the first True of a (B,) bool mask, or None."""
     return int(mask.nonzero()[0]) if mask.any() else None
 
 
-def check_positions(positions, layouts: torch.Tensor) -> None:
-    """Raise a clear error unless ``positions`` (B, 2) are allowed dot centres for ``layouts``."""
-    if positions.shape != (len(layouts), 2):
-        raise ValueError(f"positions must be a tensor of shape ({len(layouts)}, 2), got "
+def check_world(layouts: torch.Tensor, positions: torch.Tensor) -> None:
+    """Raise a clear error unless ``layouts`` (B, 2W) hold allowed walls and doors, and
+    ``positions`` (B, 2) are dot centres allowed in them."""
+    if layouts.dim() != 2 or layouts.shape[1] not in (2, 4) or positions.shape != (len(layouts), 2):
+        raise ValueError("layouts must have shape (B, 2W), (wall_x, door_y) for each of W = 1 or 2 "
+                         f"walls, and positions (B, 2); got {tuple(layouts.shape)} and "
                          f"{tuple(positions.shape)}")
+    wall_x, door_y = walls_of(layouts).unbind(-1)
+    lo, hi = WALL_X_RANGE if wall_x.shape[1] == 1 else WALLS_X_LIMITS
+    door_lo, door_hi = DOOR_Y_RANGE
+    bad = (wall_x < lo) | (wall_x > hi) | (door_y < door_lo) | (door_y > door_hi)
+    bad = bad.any(1) | (wall_x.diff(dim=1) < MIN_WALL_GAP).any(1)  # walls left to right
+    if (i := _first(bad)) is not None:
+        raise ValueError(f"layout {i} = {layouts[i].tolist()}: each wall_x must be in {lo}..{hi}, "
+                         f"each door_y in {door_lo}..{door_hi}; walls must go left to right, at "
+                         f"least {MIN_WALL_GAP} px apart, so that a dot fits between them")
     x, y = positions.unbind(-1)
     outside = ~torch.isfinite(positions).all(-1) | (x < LOW) | (x > HIGH) | (y < LOW) | (y > HIGH)
     if (i := _first(outside | in_wall(positions, layouts))) is not None:
@@ -280,5 +255,4 @@ def check_actions(actions, batch: int, dtype: torch.dtype) -> None:
                          f"world; got {tuple(actions.shape)}")
     if (i := _first(~torch.isfinite(actions.to(dtype)).all(-1))) is not None:
         raise ValueError(f"action {i} = {actions[i].tolist()} is too large for {dtype}, or NaN "
-                         f"or infinite; check the planner's output (a step longer than "
-                         f"{MAX_STEP} px is clipped to it anyway)")
+                         "or infinite; check the planner's output")

@@ -1,5 +1,4 @@
-"""How good is a frozen representation? Linear probe and k-nearest-neighbour accuracy
-(chapters 01-02), on features of un-augmented images embedded once in eval mode."""
+"""Linear-probe and k-nearest-neighbour accuracy of frozen image features (chapters 01-02)."""
 
 from __future__ import annotations
 
@@ -26,10 +25,9 @@ def accuracy(logits: torch.Tensor, labels: torch.Tensor) -> float:
 
 @dataclass
 class ProbeResult:
-    """What :func:`linear_probe` returns; accuracies are fractions in [0, 1]."""
+    """What :func:`linear_probe` returns; the accuracy is a fraction in [0, 1]."""
 
     test_accuracy: float
-    train_accuracy: float
     head: nn.Linear  # expects standardised features: (x - mean) / std
     mean: torch.Tensor  # (D,) train-feature mean used for standardising
     std: torch.Tensor  # (D,)
@@ -37,10 +35,8 @@ class ProbeResult:
 
 def linear_probe(train_features: torch.Tensor, train_labels: torch.Tensor,
                  test_features: torch.Tensor, test_labels: torch.Tensor) -> ProbeResult:
-    """A linear classifier on frozen features ``(N, D)``, labels ``(N,)``, standardised with
-    the train split's statistics: ``nn.Linear(D, C)``, seeded Adam (batches of 512, weight
-    decay 1e-4) at 1e-3 decaying along a cosine to 0, 30 passes (never chosen on the test
-    split)."""
+    """``nn.Linear(D, C)`` on features ``(N, D)`` standardised by the train split, labels ``(N,)``:
+    seeded Adam at 1e-3 (cosine to 0, weight decay 1e-4), batches of 512, 30 passes."""
     mean, std = train_features.mean(dim=0), train_features.std(dim=0) + 1e-6
     x_train = (train_features - mean) / std
     num_classes = int(max(train_labels.max(), test_labels.max())) + 1
@@ -61,17 +57,15 @@ def linear_probe(train_features: torch.Tensor, train_labels: torch.Tensor,
             optimizer.step()
             scheduler.step()
     with torch.no_grad():
-        train_acc = accuracy(head(x_train), train_labels)
         test_acc = accuracy(head((test_features - mean) / std), test_labels)
-    return ProbeResult(test_acc, train_acc, head, mean, std)
+    return ProbeResult(test_acc, head, mean, std)
 
 
 @torch.no_grad()
 def knn_predict(train_features: torch.Tensor, train_labels: torch.Tensor,
                 query_features: torch.Tensor) -> torch.Tensor:
-    """Labels ``(Q,)`` predicted for queries ``(Q, D)`` by their ``KNN_K`` nearest train rows
-    (cosine similarity), each voting with weight ``exp(similarity / KNN_TEMPERATURE)``: the
-    weighted kNN of Wu et al. 2018, also used by DINO."""
+    """Labels ``(Q,)`` of queries ``(Q, D)``: the ``KNN_K`` nearest train rows (cosine) vote with
+    weights ``exp(similarity / KNN_TEMPERATURE)``, the kNN of Wu et al. 2018 and DINO."""
     k = min(KNN_K, len(train_features))
     num_classes = int(train_labels.max()) + 1
     train = F.normalize(train_features.float(), dim=1)
@@ -103,10 +97,9 @@ def embed(encoder: nn.Module, images: torch.Tensor, size: int):
 
 
 def probe_encoder(encoder, config: ImageJEPAConfig, train, test, cache: bool = False) -> dict:
-    """``{"probe_acc", "knn_acc"}`` on the test split of frozen features at
-    ``config.eval_image_size`` px; ``train``, ``test``: (images, labels). With ``cache``,
-    the scores are kept in ``data/cache/probes/`` under a digest of the encoder's weights,
-    the protocol and the data (delete it after editing this module: it cannot see code)."""
+    """``{"probe_acc", "knn_acc"}`` on ``test`` of frozen features at ``config.eval_image_size``
+    px; ``train``, ``test``: (images, labels). ``cache``: keep the scores in data/cache/probes/
+    under a digest of the weights, protocol and data (not of this code)."""
     path = _scores_path(encoder, config, train, test) if cache else None
     if path is not None and path.exists():
         return json.loads(path.read_text())
@@ -124,8 +117,7 @@ def probe_encoder(encoder, config: ImageJEPAConfig, train, test, cache: bool = F
 def _scores_path(encoder: nn.Module, config: ImageJEPAConfig, train, test) -> Path:
     """Where :func:`probe_encoder` keeps the scores of this encoder, protocol and data."""
     digest = hashlib.sha1(f"probe and kNN (k = {KNN_K}) at {config.eval_image_size} px".encode())
-    data = [("train", train[0]), ("train labels", train[1]),
-            ("test", test[0]), ("test labels", test[1])]
+    data = zip(("train", "train labels", "test", "test labels"), (*train, *test))
     for name, tensor in [*encoder.state_dict().items(), *data]:
         tensor = tensor.detach().cpu().contiguous()
         digest.update(f"{name} {tensor.dtype} {tuple(tensor.shape)}".encode())

@@ -1,6 +1,5 @@
-"""Notebook 03's evaluation: a probe on frozen video latents marks which cells of an 8x8
-grid hold a digit centre; on clips of held-out digits it is scored on latents predicted
-``k = 1..7`` steps ahead, by the average precision (AP) per horizon and their mean (mAP)."""
+"""Notebook 03's evaluation: a probe on frozen video latents marks the cells of an 8x8 grid that
+hold a digit centre, scored by average precision (AP) on latents predicted k steps ahead."""
 
 from __future__ import annotations
 
@@ -21,20 +20,12 @@ def _pool(z: torch.Tensor) -> torch.Tensor:
     return F.adaptive_avg_pool2d(z.flatten(0, 1), GRID).unflatten(0, z.shape[:2])
 
 
-def scored_frames(unroll: str, context: int, horizon: int, n_frames: int) -> slice:
-    """The frames that ``horizon`` k scores, from ``context - 1 + k`` on: the paper's parallel
-    unroll scores every later frame too (each predicted k steps past its most recent true
-    latent), the autoregressive rollout (as a planner uses it) that one alone."""
-    first = context - 1 + horizon
-    return slice(first, n_frames if unroll == "parallel" else first + 1)
-
-
 @torch.no_grad()
 def grid_features(model: VideoJEPA, clips: torch.Tensor, horizons: int = 7,
                   unroll: str = "parallel"):
-    """Pooled latents on the CPU of uint8 ``clips (N, T, 1, 64, 64)``: ``encoded (N, T, C, 8,
-    8)``, every frame encoded, and ``predicted``, for k = 1..``horizons`` ``(N, F_k, C, 8,
-    8)``, the frames :func:`scored_frames` gives, predicted k steps ahead by ``unroll``."""
+    """Pooled latents on the CPU of uint8 ``clips (N, T, 1, 64, 64)``: ``encoded (N, T, C, 8, 8)``
+    and, for k = 1..``horizons``, ``predicted[k - 1] (N, F_k, C, 8, 8)``: frames from
+    ``context - 1 + k`` on (``parallel``: all later ones; else that one), predicted k ahead."""
     context = model.config.context
     check_clips(clips, context + horizons)
     if unroll not in UNROLLS:
@@ -74,11 +65,10 @@ def fit_detection_probe(features: torch.Tensor, targets: torch.Tensor,
 @torch.no_grad()
 def detection_report(model: VideoJEPA, probe_data, eval_data, horizons: int = 7,
                      probe_steps: int = 400, unroll: str = "parallel") -> dict:
-    """Fit the probe on ``probe_data``'s encoded frames; AP per horizon on ``eval_data``
-    (``MovingMNISTBatch`` of held-out digits), ``unroll``: ``"parallel"`` or
-    ``"autoregressive"``. Returns float64 ``(horizons,)`` tensors ``ap`` (predicted latents),
-    ``ap_encoded`` (true encodings: a perfect predictor) and ``ap_copy`` (the most recent
-    true latent: a predictor that never moves), their means ``map...``, and the ``probe``."""
+    """Fit the probe on ``probe_data``'s encoded frames; AP per horizon on ``eval_data``'s, as
+    float64 ``(horizons,)`` tensors: ``ap`` (predicted by ``unroll``), ``ap_encoded`` (true
+    latents: a perfect predictor), ``ap_copy`` (the latest true latent: a predictor that never
+    moves); their means ``map...``, and the ``probe``."""
     context = model.config.context
     fit_features, _ = grid_features(model, probe_data.clips, horizons=1)  # encodings only
     with torch.enable_grad():
@@ -87,24 +77,21 @@ def detection_report(model: VideoJEPA, probe_data, eval_data, horizons: int = 7,
                                     steps=probe_steps)
     encoded, predicted = grid_features(model, eval_data.clips, horizons, unroll=unroll)
     cells = centres_to_grid(eval_data.centres)  # (N, T, g, g)
-    frames = [scored_frames(unroll, context, k, cells.shape[1]) for k in range(1, horizons + 1)]
+    # Horizon k scores frames from context - 1 + k on: the paper's parallel unroll every later
+    # frame too (each k steps past its latest true latent), the rollout (a planner's) that one.
+    frames = [slice(context - 1 + k, cells.shape[1] if unroll == "parallel" else context + k)
+              for k in range(1, horizons + 1)]
+    latest = [slice(f.start - k, f.stop - k) for k, f in enumerate(frames, 1)]  # true latents
 
-    def aps(features):  # k -> (N, F_k, C, g, g), for k = 1..horizons -> float64 (horizons,)
-        return torch.tensor([average_precision(probe(features(k).flatten(0, 1)),
-                                               cells[:, frames[k - 1]].flatten(0, 1))
-                             for k in range(1, horizons + 1)], dtype=torch.float64)
+    def aps(features):  # [(N, F_k, C, g, g) for k = 1..horizons] -> float64 (horizons,)
+        return torch.tensor([average_precision(probe(f.flatten(0, 1)), cells[:, s].flatten(0, 1))
+                             for f, s in zip(features, frames)], dtype=torch.float64)
 
-    def shifted(k):  # the frames k before the scored ones: the most recent true latents
-        f = frames[k - 1]
-        return slice(f.start - k, f.stop - k)
-
-    report = {"probe": probe,
-              "ap": aps(lambda k: predicted[k - 1]),
-              "ap_encoded": aps(lambda k: encoded[:, frames[k - 1]]),
-              "ap_copy": aps(lambda k: encoded[:, shifted(k)])}
-    report.update({"map" + name[2:]: float(report[name].mean())
-                   for name in ("ap", "ap_encoded", "ap_copy")})
-    return report
+    report = {"probe": probe, "ap": aps(predicted),
+              "ap_encoded": aps([encoded[:, f] for f in frames]),
+              "ap_copy": aps([encoded[:, f] for f in latest])}
+    return report | {"map" + name[2:]: float(report[name].mean())
+                     for name in ("ap", "ap_encoded", "ap_copy")}
 
 
 def evaluation_clips(train_digits: torch.Tensor, held_out: torch.Tensor, n_probe: int,

@@ -1,4 +1,4 @@
-"""Detection average precision (AP) for the Moving MNIST probe, and a success rate's interval."""
+"""Average precision (AP) of a detection probe, and a success rate's interval."""
 
 from __future__ import annotations
 
@@ -7,14 +7,9 @@ import torch
 
 def average_precision(scores: torch.Tensor, targets: torch.Tensor) -> float:
     """``AP = sum_k (R_k - R_{k-1}) P_k`` over all cells of ``scores`` / ``targets`` (any equal
-    shapes): 1 for a perfect ranking, about the fraction of positives for a random one.
-
-    ``k`` runs over the distinct scores from highest to lowest, ``P_k`` and ``R_k`` are the
-    precision and recall of "score >= threshold k", ``R_0 = 0`` (sklearn's
-    ``average_precision_score``): tied scores form one threshold, so their order cannot
-    matter. All cells are ranked together, not per batch as the reference code does (a
-    batch's AP depends on what else is in it).
-    """
+    shapes), ranked together: 1 for a perfect ranking, about the fraction of positives for a
+    random one. ``k`` runs over the distinct scores, highest first; ``P_k``, ``R_k``: precision
+    and recall of "score >= threshold k", ``R_0 = 0`` (sklearn's ``average_precision_score``)."""
     if not targets.any():
         raise ValueError("targets hold no positive cell, so recall and AP are undefined")
     scores, order = torch.sort(scores.detach().flatten().cpu(), descending=True, stable=True)
@@ -31,9 +26,8 @@ def average_precision(scores: torch.Tensor, targets: torch.Tensor) -> float:
 
 
 def wilson_interval(successes: int, n: int) -> tuple[float, float]:
-    """The 95% Wilson score interval of a success rate ``successes / n``:
-    ``(p + z^2/2n +- z sqrt(p(1-p)/n + z^2/4n^2)) / (1 + z^2/n)`` with ``z = 1.96``, which
-    unlike ``p +- z sqrt(p(1-p)/n)`` stays inside [0, 1] and is not a point at 0 or 1."""
+    """The 95% Wilson score interval of a success rate ``p = successes / n``:
+    ``(p + z^2/2n +- z sqrt(p(1-p)/n + z^2/4n^2)) / (1 + z^2/n)`` with ``z = 1.96``."""
     if not 0 <= successes <= n or n < 1:
         raise ValueError(f"need 0 <= successes <= n and n >= 1, got {successes} of {n}")
     p, z = successes / n, 1.96

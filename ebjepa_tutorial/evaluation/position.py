@@ -1,6 +1,5 @@
-"""Does the latent know where the agent is (a linear position probe, scored in pixels
-beside :func:`mean_baseline_px`), and does the predictor know the walls
-(:func:`middle_wall_test`)? Chapters 05-06."""
+"""Does the latent know where the agent is (a linear position probe, in pixels), and does
+the predictor know the walls (the wall test)? Chapters 05-06."""
 
 from __future__ import annotations
 
@@ -81,9 +80,9 @@ def _wall_steps(trajectories):
 
 
 def _nearer(model, trajectories, steps, max_steps: int | None, through_wall: bool):
-    """For the first ``max_steps`` steps of the mask ``steps``: is ``Pred(z_t, a_t)`` nearer
-    the real ``z_{t+1}`` than the alternative (the dot moved by the action alone, inside the
-    wall; or, without ``through_wall``, ``z_t``)? Returns the flags and the steps' ``(b, t)``."""
+    """Flags ``(n,)``, and the steps' ``b``, ``t``, for the first ``max_steps`` of the mask
+    ``steps``: is ``Pred(z_t, a_t)`` nearer the real ``z_{t+1}`` than the dot moved by the
+    action alone, into the wall (without ``through_wall``: than ``z_t``)?"""
     positions, actions, layouts = trajectories.positions, trajectories.actions, trajectories.layouts
     device = next(model.parameters()).device
     b, t = steps.nonzero()[:max_steps].unbind(1)
@@ -100,15 +99,10 @@ def _nearer(model, trajectories, steps, max_steps: int | None, through_wall: boo
 
 @torch.no_grad()
 def middle_wall_test(model, trajectories) -> dict:
-    """Does the predictor stop the dot at a wall, and move it elsewhere?
-
-    ``stopped``: on steps a wall cut short by more than ``MIN_STOP`` px, the fraction of
-    predictions ``Pred(Enc(o_t), a_t)`` nearer the real ``Enc(o_{t+1})`` than ``Enc`` of the
-    dot moved by the action alone, into the wall. A predictor that never moves also scores
-    1, so the control is ``moved``: on free steps of at least ``MIN_STOP`` px, the fraction
-    nearer the real next latent than the current one. Each over the first 1000 such steps
-    (``n_stopped``, ``n_moved``).
-    """
+    """Does the predictor stop the dot at a wall, and move it elsewhere? ``stopped``: on the
+    first 1000 (``n_stopped``) steps a wall cut short, the fraction of predictions nearer the
+    real next latent than the dot moved into the wall. ``moved`` (the control, as a predictor
+    that never moves also scores 1): the same on free steps (``n_moved``), against ``z_t``."""
     stopped_steps, moved_steps = _wall_steps(trajectories)
     stopped = _nearer(model, trajectories, stopped_steps, 1000, through_wall=True)[0]
     moved = _nearer(model, trajectories, moved_steps, 1000, through_wall=False)[0]
@@ -118,16 +112,15 @@ def middle_wall_test(model, trajectories) -> dict:
 
 @torch.no_grad()
 def wall_test_by_door_distance(model, trajectories, edges=(0, 8, 12, 16, 24, 65)) -> list[dict]:
-    """:func:`middle_wall_test`'s ``stopped`` by where along the wall the dot was: each
-    wall-stopped step in a bin ``[lo, hi)`` of ``edges`` by ``|y_t - door_y|``, the door of
-    the wall nearest in x (the one that stopped it: a step that meets a wall starts within
-    4.3 px of its centre column, and walls stand at least 14 px apart). One dict per bin:
-    ``lo``, ``hi``, ``stopped`` (NaN for an empty bin) and ``n``."""
+    """:func:`middle_wall_test`'s ``stopped`` over each bin ``[lo, hi)`` of ``edges`` of
+    ``|y_t - door_y|``, the door of the wall nearest in x (the one that stopped the dot):
+    a dict per bin, ``lo``, ``hi``, ``stopped`` (NaN if empty) and ``n``."""
     flags, b, t = _nearer(model, trajectories, _wall_steps(trajectories)[0], None,
                           through_wall=True)
     here = trajectories.positions[b, t]
     walls = walls_of(trajectories.layouts[b]).to(here.dtype)  # (n, W, 2)
-    nearest = (walls[..., 0] - here[:, None, 0]).abs().argmin(dim=1)  # (n,)
+    # (n,): the wall that stopped the dot (its step began within 4.3 px; walls are 14+ apart)
+    nearest = (walls[..., 0] - here[:, None, 0]).abs().argmin(dim=1)
     along = (here[:, 1] - walls[torch.arange(len(walls)), nearest, 1]).abs()
     bins = []
     for lo, hi in zip(edges[:-1], edges[1:]):
@@ -139,9 +132,8 @@ def wall_test_by_door_distance(model, trajectories, edges=(0, 8, 12, 16, 24, 65)
 
 def probe_report(model: WorldModel, n_fit: int = 1000, n_test: int = 300, seed: int = 12345,
                  test_steps: int = 16, walls: int = 1):
-    """``{"probe_px", "baseline_px", "probe"}``: a position probe fitted on every frame of
-    ``n_fit`` fresh 17-frame trajectories (seed ``seed``), scored on every frame of
-    ``n_test`` others of ``test_steps`` actions (seed ``seed + 1``) in ``walls``' world."""
+    """``{"probe_px", "baseline_px", "probe"}``: a position probe fitted on the frames of
+    ``n_fit`` fresh trajectories (seed ``seed``), scored on ``n_test`` others (``seed + 1``)."""
     fit_trajectories = generate_trajectories(n_fit, seed=seed, walls=walls)
     test_trajectories = generate_trajectories(n_test, steps=test_steps, seed=seed + 1,
                                               walls=walls)

@@ -1,6 +1,5 @@
-"""Notebook 02's sweeps, read back to be drawn: short runs of the class recipe scored with
-:func:`~.classify.probe_encoder`, **sensitivity** (the paper's Figure 3 at our scale) and
-**projector** (widths), made by ``python -m research.sweep --scale class``."""
+"""Notebook 02's sweeps (loss weights: the paper's Figure 3; projector widths), as written by
+``python -m research.sweep --scale class``."""
 
 from __future__ import annotations
 
@@ -10,18 +9,13 @@ from pathlib import Path
 
 from ..training.image import ImageJEPAConfig
 
-SWEEP_LABELS = {
-    "sigreg_lambda": "SIGReg: lambda",
-    "std_coeff": "VICReg: variance weight",
-    "cov_coeff": "VICReg: covariance weight",
-    "projector_sigreg": "SIGReg",
-    "projector_vicreg": "VICReg",
-}
+SWEEP_LABELS = {"sigreg_lambda": "SIGReg: lambda", "std_coeff": "VICReg: variance weight",
+                "cov_coeff": "VICReg: covariance weight", "projector_sigreg": "SIGReg",
+                "projector_vicreg": "VICReg"}
 
 
 def shorten(config: ImageJEPAConfig, steps: int) -> ImageJEPAConfig:
-    """``config`` cut to ``steps`` steps, its warm-up cut to at most a tenth of them (the
-    sweeps' recipe, and the notebooks' exercises')."""
+    """``config`` cut to ``steps`` steps, its warm-up to at most a tenth of them."""
     return replace(config, steps=steps, warmup_steps=min(config.warmup_steps, steps // 10))
 
 

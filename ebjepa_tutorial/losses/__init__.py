@@ -1,6 +1,5 @@
-"""Energies and losses, one module per family: ``vicreg`` (chapters 00-01; its terms are
-re-exported here), ``sigreg`` (chapter 02), ``rollout`` (the video JEPA's K-step loss, chapter
-03) and ``world`` (the world model's terms, chapter 05)."""
+"""Energies and losses, one module per family: ``vicreg`` (chapters 00-01, its terms re-exported
+here), ``sigreg`` (02), ``rollout`` (the video JEPA's K-step loss, 03), ``world`` (05)."""
 
 from . import rollout, sigreg, vicreg, world
 from .vicreg import (

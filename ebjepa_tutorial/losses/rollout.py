@@ -1,11 +1,6 @@
-"""The K-step loss of the video JEPA (notebook 03; the paper's multistep loss).
-
-The predictor sees the last ``context`` latents ``(C, S, S)`` and guesses the next; training
-unrolls it on its own guesses for ``K`` steps, in one of two ways (the same at K = 1):
-``"parallel"`` (the paper's) predicts every frame of the clip at once from the previous step's
-sequence; ``"autoregressive"`` rolls one true context forward, as a planner does. Unlike the
-paper's code, we average over predicted frames only, on the latents (not after the projector).
-"""
+"""The video JEPA's K-step loss (notebook 03), unrolled two ways (the same at K = 1): "parallel"
+(the paper's) or "autoregressive" (one true context rolled forward, as a planner does). Unlike the
+paper's code, we average over predicted frames only, on the latents (not after the projector)."""
 
 from __future__ import annotations
 
@@ -18,14 +13,10 @@ Predictor = Callable[[torch.Tensor], torch.Tensor]  # (N, context, C, H, W) -> (
 
 
 def check_rollout_args(z: torch.Tensor, context: int, steps: int):
-    """Raise a clear error unless ``z`` is ``(B, T, C, H, W)`` with ``T >= context + steps``."""
-    if z.ndim != 5:
-        raise ValueError(f"latents must be (batch, time, channels, height, width), got "
-                         f"{tuple(z.shape)}")
-    if steps < 1 or z.shape[1] < context + steps:
-        raise ValueError(f"a clip of {z.shape[1]} frames is too short for {context} context "
-                         f"frames and {steps} prediction steps (steps >= 1): use clips of at "
-                         f"least {context + steps} frames, or fewer steps")
+    if z.ndim != 5 or steps < 1 or z.shape[1] < context + steps:
+        raise ValueError(f"latents must be (batch, time, channels, height, width), time >= "
+                         f"context + steps = {context} + {steps}, steps >= 1; got {tuple(z.shape)}"
+                         " (a clip too short: use longer clips or fewer steps)")
 
 
 def rollout(predictor: Predictor, window: torch.Tensor, steps: int):
@@ -41,14 +32,9 @@ def rollout(predictor: Predictor, window: torch.Tensor, steps: int):
 
 def rollout_loss(predictor: Predictor, z: torch.Tensor, context: int = 2, steps: int = 4,
                  detach_later: bool = False) -> torch.Tensor:
-    """The autoregressive K-step loss over latents ``z`` ``(B, T, C, H, W)``: a 0-d tensor.
-
-    From every start ``s`` (``0 <= s <= T - context - K``) the predictor gets the true window
-    ``z_s .. z_{s+context-1}`` and runs ``K = steps`` steps on its own predictions; prediction
-    ``k`` is compared with ``z_{s+context-1+k}``. The mean squared error over starts, orders and
-    elements. ``detach_later``: orders 2..K unroll from, and aim at, detached latents, so the
-    encoder learns from one-step errors only (the same value).
-    """
+    """The autoregressive K-step loss over latents ``z`` ``(B, T, C, H, W)``, a 0-d tensor: from
+    every start ``s``, ``K = steps`` steps from the true ``z_s .. z_{s+context-1}``, prediction
+    ``k`` against ``z_{s+context-1+k}``; the MSE. ``detach_later``: orders 2..K on detached z."""
     check_rollout_args(z, context, steps)
     if detach_later and steps > 1:
         n = z.shape[1] - context - steps + 1  # the order-1 term of the same n starts
@@ -69,12 +55,9 @@ def _rollouts(predictor: Predictor, z: torch.Tensor, context: int,
 
 def parallel_unroll(predictor: Predictor, z: torch.Tensor, context: int = 2,
                     steps: int = 4) -> list[torch.Tensor]:
-    """The paper's parallel unroll of latents ``z`` ``(B, T, C, H, W)``: ``steps`` tensors
-    ``(B, T - context, C, H, W)``, step k's predictions of frames ``context .. T-1``.
-
-    Step k predicts every frame t from frames ``t - context .. t - 1`` of step k-1's sequence
-    (the true latents at step 1), then puts the true ``z_0 .. z_{context-1}`` back in front.
-    """
+    """The paper's parallel unroll of ``z`` ``(B, T, C, H, W)``: ``steps`` tensors ``(B, T -
+    context, C, H, W)``; step k predicts every frame t >= context from frames t - context .. t - 1
+    of step k-1's sequence (the true latents at step 1; the true first ``context`` kept)."""
     check_rollout_args(z, context, steps)
     sequence, out = z, []
     for _ in range(steps):
@@ -92,10 +75,8 @@ def parallel_rollout_loss(predictor: Predictor, z: torch.Tensor, context: int = 
 
         L_pred = (1/K) sum_k mean_{b, t >= context} ||z~^(k)_{b,t} - z_{b,t}||^2   (a 0-d tensor)
 
-    with ``z~^(k)`` step k of :func:`parallel_unroll`. Targets keep their gradient (the paper's
-    choice). ``detach_later``: steps 2..K unroll from, and aim at, ``z.detach()``, so the encoder
-    learns from the step-1 error only (the course's class runs; the paper: False).
-    """
+    with ``z~^(k)`` step k of :func:`parallel_unroll`. ``detach_later`` (the course's, not the
+    paper's): steps 2..K unroll from, and aim at, ``z.detach()``."""
     errors = []
     if detach_later and steps > 1:  # step 1 on the latents, steps 2..K on detached ones
         errors.append(parallel_rollout_loss(predictor, z, context, 1))

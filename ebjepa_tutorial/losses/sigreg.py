@@ -1,21 +1,14 @@
-"""SIGReg (LeJEPA, Balestriero & LeCun, 2025): push embeddings towards N(0, I) with 1-D tests.
+"""SIGReg (LeJEPA, Balestriero & LeCun, 2025): push embeddings ``z`` ``(B, D)`` towards N(0, I).
 
-Testing Gaussianity in D dimensions is hard, along one direction it is easy. So each step
-draws ``num_slices`` random unit directions ``a``, projects the embeddings ``z`` ``(B, D)`` to
-``x = z @ a`` (B numbers per direction), and scores each projection with the Epps-Pulley
-statistic, which compares characteristic functions:
+Each step projects ``z`` on ``num_slices`` random unit directions ``a`` (``x = z @ a``, B numbers
+per direction), unstandardised, and scores each projection against N(0, 1) with Epps-Pulley:
 
     phi_N(t) = (1/N) sum_n exp(i t x_n)        empirical characteristic function
-    phi(t)   = exp(-t^2 / 2)                   that of N(0, 1)
-    EP       = N * integral_{-T}^{T} |phi_N(t) - phi(t)|^2 w(t) dt,
-    w(t)     = exp(-t^2 / (2 sigma^2))         Gaussian weight
+    EP       = N * integral_{-T}^{T} |phi_N(t) - exp(-t^2 / 2)|^2 w(t) dt
+    w(t)     = exp(-t^2 / (2 sigma^2))         weight (sigma = 1: EB-JEPA's)
 
-By the Cramer-Wold theorem, a distribution whose every 1-D projection is N(0, 1) is N(0, I).
-The projections are not standardised: the statistic must see the mean and the scale, or it
-could not prevent collapse. The factor N (``scale_by_n=True``, LeJEPA's) makes EP about 1.05
-for Gaussian samples at any batch size and about 0.4 N for a collapsed batch; without it the
-statistic is N times smaller, and so must its coefficient ``lam`` be N times larger.
-"""
+By Cramer-Wold, if every 1-D projection is N(0, 1), ``z`` is N(0, I). The factor N (LeJEPA's;
+``scale_by_n=False`` drops it, and ``lam`` must grow N-fold) makes EP about 1.05 for Gaussians."""
 
 from __future__ import annotations
 
@@ -24,15 +17,13 @@ import torch
 from ..utils import at_least_float32
 from .vicreg import _check_embeddings, invariance_term
 
+_ANCHOR_EVERY = 8  # knots between exact cos/sin: bounds the angle-addition drift to ~8 ulp
+
 
 def epps_pulley(x: torch.Tensor, knots: int = 17, t_max: float = 3.0, sigma: float = 1.0,
                 scale_by_n: bool = True) -> torch.Tensor:
-    """Epps-Pulley statistic of 1-D samples against N(0, 1): ``(N,) -> ()`` or ``(N, M) -> (M,)``.
-
-    ``x``: N samples of one projection, or of M projections (one per column). The integrand is
-    even in t, so we integrate over [0, t_max] with ``knots`` trapezoid knots and double it.
-    Zero iff the empirical characteristic function matches exp(-t^2/2) at every knot.
-    """
+    """Epps-Pulley statistic of N samples of one projection ``(N,) -> ()``, or of M projections
+    ``(N, M) -> (M,)``. The integrand is even in t: trapezoids on [0, t_max], doubled."""
     if x.ndim not in (1, 2) or x.shape[0] < 2:
         raise ValueError(f"epps_pulley needs at least 2 samples along dimension 0 of a (N,) or "
                          f"(N, M) tensor, got shape {tuple(x.shape)}")
@@ -41,22 +32,15 @@ def epps_pulley(x: torch.Tensor, knots: int = 17, t_max: float = 3.0, sigma: flo
     ecf_real, ecf_imag = EmpiricalCF.apply(x, t_max / (knots - 1), knots)  # (K,) or (M, K)
     gaussian_cf = torch.exp(-(t**2) / 2)  # phi(t) of N(0, 1): real
     weight = torch.exp(-(t**2) / (2 * sigma**2))  # w(t)
-
     squared_gap = (ecf_real - gaussian_cf) ** 2 + ecf_imag**2  # |phi_N(t) - phi(t)|^2
     half_integral = torch.trapezoid(weight * squared_gap, t, dim=-1)  # over [0, t_max]
     statistic = 2 * half_integral  # over [-t_max, t_max], by symmetry
     return statistic * x.shape[0] if scale_by_n else statistic
 
 
-_ANCHOR_EVERY = 8  # knots between exact cos/sin: bounds the angle-addition drift to ~8 ulp
-
-
 def _cos_sin_at_knots(x: torch.Tensor, dt: float, knots: int):
-    """Yield ``(cos(k dt x), sin(k dt x))`` for k = 0 .. knots - 1, each shaped like ``x``.
-
-    By angle addition, e^{i (k+1) dt x} = e^{i k dt x} e^{i dt x}: six multiply-adds per knot
-    instead of a cos and a sin, recomputed exactly every ``_ANCHOR_EVERY`` knots.
-    """
+    """Yield ``(cos(k dt x), sin(k dt x))`` for k < knots, shaped like ``x``, by angle addition
+    (e^{i (k+1) dt x} = e^{i k dt x} e^{i dt x}), exact again every ``_ANCHOR_EVERY`` knots."""
     cos_step, sin_step = torch.cos(x * dt), torch.sin(x * dt)
     cos_k, sin_k = torch.ones_like(x), torch.zeros_like(x)
     for k in range(knots):
@@ -70,15 +54,8 @@ def _cos_sin_at_knots(x: torch.Tensor, dt: float, knots: int):
 
 
 class EmpiricalCF(torch.autograd.Function):
-    """Re and Im of phi_N(t_k) = (1/N) sum_n exp(i t_k x_n) at t_k = k dt, k < knots:
-    ``apply(x (N, ...), dt, knots) -> two (..., knots)``.
-
-    Autograd would store cos and sin of every knot (2 K copies of x); the gradient has a
-    closed form instead,
-        d Re phi_N(t_k) / d x_n = -t_k sin(t_k x_n) / N,
-        d Im phi_N(t_k) / d x_n =  t_k cos(t_k x_n) / N,
-    so the backward pass rebuilds the cosines and sines, knot by knot, from x alone.
-    """
+    """Re and Im of phi_N(k dt), k < knots: ``apply(x (N, ...), dt, knots) -> two (..., knots)``;
+    backward rebuilds cos and sin from x: ``d Re phi_N(t) / d x_n = -t sin(t x_n) / N``, etc."""
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, dt: float, knots: int):
@@ -97,26 +74,22 @@ class EmpiricalCF(torch.autograd.Function):
         return grad_x, None, None
 
 
-def random_directions(dim: int, num_slices: int, generator: torch.Generator | None = None,
-                      device: torch.device | str | None = None) -> torch.Tensor:
-    """``num_slices`` random unit vectors in R^dim, the columns of a ``(dim, num_slices)``
-    matrix, drawn on the generator's device (CPU by default: the same on every machine)."""
-    gen_device = generator.device if generator is not None else "cpu"
-    directions = torch.randn(dim, num_slices, generator=generator, device=gen_device)
-    directions = directions / directions.norm(dim=0, keepdim=True)
-    return directions.to(device) if device is not None else directions
+def random_directions(dim: int, num_slices: int,
+                      generator: torch.Generator | None = None) -> torch.Tensor:
+    """``num_slices`` random unit vectors, the columns of a ``(dim, num_slices)`` matrix, on the
+    generator's device (CPU by default: the same on every machine)."""
+    device = generator.device if generator is not None else "cpu"
+    directions = torch.randn(dim, num_slices, generator=generator, device=device)
+    return directions / directions.norm(dim=0, keepdim=True)
 
 
 def sigreg(z: torch.Tensor, num_slices: int = 256, generator: torch.Generator | None = None,
            directions: torch.Tensor | None = None, scale_by_n: bool = True) -> torch.Tensor:
-    """Sliced Epps-Pulley statistic of embeddings ``z`` ``(B, D)``, averaged over slices: ``()``.
-
-    Fresh directions are drawn from ``generator`` on every call (a training loop tests new
-    ones each step), unless ``directions`` ``(D, M)`` are given. Cost: O(B num_slices knots).
-    """
-    _check_embeddings(z, "z", min_batch=2)
+    """Epps-Pulley statistic of embeddings ``z`` ``(B, D)`` averaged over slices, ``()``: fresh
+    directions from ``generator`` on every call, unless ``directions`` ``(D, M)`` are given."""
+    _check_embeddings(z)
     if directions is None:
-        directions = random_directions(z.shape[1], num_slices, generator, z.device)
+        directions = random_directions(z.shape[1], num_slices, generator)
     z = at_least_float32(z)
     projected = z @ directions.to(z.device, z.dtype)  # (B, M)
     return epps_pulley(projected, scale_by_n=scale_by_n).mean()
@@ -125,14 +98,10 @@ def sigreg(z: torch.Tensor, num_slices: int = 256, generator: torch.Generator | 
 def sigreg_loss(z_a: torch.Tensor, z_b: torch.Tensor, lam: float = 0.1, num_slices: int = 256,
                 generator: torch.Generator | None = None,
                 scale_by_n: bool = True) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """Invariance + ``lam`` * SIGReg on two views ``(B, D)``: returns ``(total, terms)``.
-
-    SIGReg is applied to each view with the same random directions and averaged; ``terms``
-    holds the unweighted terms, detached 0-d tensors. ``lam = 0.1`` is the EB-JEPA CIFAR-10
-    setting for ``scale_by_n=True``.
-    """
+    """``(L, terms)`` of two views ``(B, D)``: ``L = invariance + lam * SIGReg``, SIGReg averaged
+    over the views (same directions); ``terms``: unweighted, detached 0-d tensors."""
     inv = invariance_term(z_a, z_b)
-    directions = random_directions(z_a.shape[1], num_slices, generator, z_a.device)
+    directions = random_directions(z_a.shape[1], num_slices, generator)
     reg = (sigreg(z_a, directions=directions, scale_by_n=scale_by_n)
            + sigreg(z_b, directions=directions, scale_by_n=scale_by_n)) / 2
     total = inv + lam * reg

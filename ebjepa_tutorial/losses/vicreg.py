@@ -1,7 +1,5 @@
-"""VICReg's loss terms, one function per term of the paper (notebooks 00, 01, 03 and 05).
-
-Each takes embeddings ``z`` of shape ``(B, D)`` (batch, dimensions) and returns a 0-d tensor.
-"""
+"""VICReg's loss terms, one function per term of the paper (notebooks 00, 01, 03 and 05). Each
+takes embeddings ``z`` of shape ``(B, D)`` (batch, dimensions) and returns a 0-d tensor."""
 
 from __future__ import annotations
 
@@ -13,20 +11,18 @@ import torch.nn.functional as F
 Term = Callable[[torch.Tensor], torch.Tensor]  # embeddings (B, D) -> 0-d tensor
 
 
-def _check_embeddings(z: torch.Tensor, name: str = "z", min_batch: int = 1) -> None:
-    if z.ndim != 2:
-        raise ValueError(f"{name} must be a (batch, dim) tensor, got {tuple(z.shape)}")
-    if z.shape[0] < min_batch:
-        raise ValueError(f"{name} has a batch of {z.shape[0]}; this term needs at least "
-                         f"{min_batch} samples (a standard deviation over one is undefined)")
+def _check_embeddings(z: torch.Tensor) -> None:
+    if z.ndim != 2 or z.shape[0] < 2:
+        raise ValueError(f"embeddings must be a (batch, dim) tensor with at least 2 samples (a "
+                         f"standard deviation over one is undefined), got {tuple(z.shape)}")
 
 
 def invariance_term(z_a: torch.Tensor, z_b: torch.Tensor) -> torch.Tensor:
     """Mean squared distance between two views ``(B, D)``: ``mean_{b,d} (z_a - z_b)^2``, the
     energy ``E(x, y)`` of a joint-embedding architecture, averaged over pairs."""
-    _check_embeddings(z_a, "z_a")
-    if z_a.shape != z_b.shape:
-        raise ValueError(f"views differ in shape: {tuple(z_a.shape)} vs {tuple(z_b.shape)}")
+    if z_a.ndim != 2 or z_a.shape != z_b.shape:
+        raise ValueError(f"the views must be (batch, dim) tensors and not differ in shape, got "
+                         f"{tuple(z_a.shape)} and {tuple(z_b.shape)}")
     return F.mse_loss(z_a, z_b)
 
 
@@ -35,25 +31,23 @@ def variance_term(z: torch.Tensor, gamma: float = 1.0, eps: float = 1e-4) -> tor
 
         v(Z) = (1/D) sum_d max(0, gamma - sqrt(Var(z_d) + eps))
     """
-    _check_embeddings(z, min_batch=2)
+    _check_embeddings(z)
     std = torch.sqrt(z.var(dim=0) + eps)
     return F.relu(gamma - std).mean()
 
 
 def covariance_matrix(z: torch.Tensor) -> torch.Tensor:
     """Sample covariance ``C = (Z - mean)^T (Z - mean) / (B - 1)``: ``(B, D) -> (D, D)``."""
-    _check_embeddings(z, min_batch=2)
+    _check_embeddings(z)
     centred = z - z.mean(dim=0)
     return centred.T @ centred / (z.shape[0] - 1)
 
 
 def covariance_term(z: torch.Tensor) -> torch.Tensor:
-    """Mean squared off-diagonal covariance of ``(B, D)``, ``D >= 2``:
+    """Mean squared off-diagonal covariance of ``(B, D)``, ``D >= 2`` (the VICReg paper divides
+    by ``D``; EB-JEPA's average keeps the coefficient independent of ``D``):
 
         c(Z) = sum_{i != j} C_ij^2 / (D (D - 1))
-
-    (the VICReg paper divides by ``D``; the EB-JEPA paper's average keeps the coefficient
-    independent of the embedding size).
     """
     return off_diagonal_term(covariance_matrix(z))
 
@@ -75,7 +69,7 @@ def variance_and_covariance(z: torch.Tensor, gamma: float = 1.0,
 
 def vicreg_terms(z_a: torch.Tensor, z_b: torch.Tensor, variance: Term = variance_term,
                  covariance: Term = covariance_term) -> dict[str, torch.Tensor]:
-    """VICReg's three terms of two views ``(B, D)``, unweighted: ``{"invariance", "variance",
+    """VICReg's unweighted terms of two views ``(B, D)``: ``{"invariance", "variance",
     "covariance"}``, 0-d each; the last two computed on each view and averaged."""
     return {"invariance": invariance_term(z_a, z_b),
             "variance": (variance(z_a) + variance(z_b)) / 2,
@@ -85,8 +79,8 @@ def vicreg_terms(z_a: torch.Tensor, z_b: torch.Tensor, variance: Term = variance
 def vicreg_loss(z_a: torch.Tensor, z_b: torch.Tensor, inv_coeff: float = 1.0,
                 std_coeff: float = 1.0, cov_coeff: float = 1.0, variance: Term = variance_term,
                 covariance: Term = covariance_term) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """VICReg on two views ``(B, D)``: the weighted sum of :func:`vicreg_terms` and the terms,
-    detached 0-d tensors for logging (``variance``, ``covariance``: notebook 00's own)."""
+    """``(L, terms)`` of two views ``(B, D)``, ``L = inv_coeff s + std_coeff v + cov_coeff c``
+    over :func:`vicreg_terms`; ``terms`` are detached 0-d tensors for logging."""
     inv, var, cov = vicreg_terms(z_a, z_b, variance, covariance).values()
     total = inv_coeff * inv + std_coeff * var + cov_coeff * cov
     return total, {"invariance": inv.detach(), "variance": var.detach(),

@@ -1,6 +1,1 @@
-"""Networks: encoders (images -> embeddings) and heads (embeddings -> projections)."""
-
-from .encoders import ResNet18
-from .heads import Projector, build_projector
-
-__all__ = ["ResNet18", "Projector", "build_projector"]
+"""Networks: the image encoder and projector, the video JEPA, the world model."""

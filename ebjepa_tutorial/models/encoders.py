@@ -1,8 +1,5 @@
-"""The image encoder of notebooks 01-02, the EB-JEPA paper's CIFAR ResNet-18, and the residual
-block it shares with the video encoder. Its stem is a 3x3 stride-1 convolution with padding 1
-and no max-pool, so 32x32 inputs keep 32x32 maps in the first stage (the paper's code pads by
-2: 34x34 maps).
-"""
+"""The image encoder of notebooks 01-02 (the paper's CIFAR ResNet-18; its code pads the stem by 2,
+we by 1), the residual block it shares with the video encoder, and the projector ("expander")."""
 
 from __future__ import annotations
 
@@ -61,6 +58,28 @@ class ResNet18(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if x.ndim != 4 or x.shape[1] != 3 or not x.is_floating_point():
             raise ValueError(f"the encoder expects float images (batch, 3, height, width), got "
-                             f"{tuple(x.shape)} {x.dtype}: channels first, uint8 images through "
-                             "ebjepa_tutorial.augment.normalize, x.unsqueeze(0) for one image")
+                             f"{tuple(x.shape)} {x.dtype}: uint8 images through augment.normalize")
         return self.stages(self.stem(x)).mean(dim=(2, 3))  # (B, widths[-1], H/8, W/8) pooled
+
+
+class Projector(nn.Sequential):
+    """``(B, in_dim) -> (B, out_dim)``: ``depth - 1`` Linear-BN-ReLU layers (Linears without
+    bias: the BN removes it), then a Linear. ``depth=3`` is the VICReg / EB-JEPA projector."""
+
+    def __init__(self, in_dim: int, hidden_dim: int, out_dim: int, depth: int):
+        layers, width = [], in_dim
+        for _ in range(depth - 1):
+            layers += [nn.Linear(width, hidden_dim, bias=False), nn.BatchNorm1d(hidden_dim),
+                       nn.ReLU(inplace=True)]
+            width = hidden_dim
+        super().__init__(*layers, nn.Linear(width, out_dim))
+        self.in_dim, self.out_dim = in_dim, out_dim
+
+
+def build_projector(in_dim: int, hidden_dim: int, out_dim: int, depth: int) -> nn.Module:
+    """A :class:`Projector`, or for ``depth == 0`` an ``nn.Identity()`` with ``in_dim, out_dim``."""
+    if depth:
+        return Projector(in_dim, hidden_dim, out_dim, depth)
+    identity = nn.Identity()
+    identity.in_dim = identity.out_dim = in_dim
+    return identity

@@ -1,16 +1,5 @@
-"""The video JEPA of notebook 03 (``S`` = latent side, ``C`` = latent channels):
-
-- ``encode``: frames ``(B, T, 1, 64, 64)`` -> latents ``(B, T, C, S, S)``, each frame on its own;
-  the latent keeps a spatial map, so where a digit is stays where it is.
-- ``predictor``: the last ``context`` latents ``(N, context, C, S, S)`` -> the next latent
-  ``(N, C, S, S)``.
-- ``project``: latents ``(..., C, S, S)`` -> one vector per location ``(M, D)``, the rows that
-  the variance and covariance terms see.
-- evaluation heads on frozen latents: :class:`DetectionHead`, :class:`FrameDecoder`.
-
-``full`` keeps the paper's sizes (S = 64, C = 16); ``ci`` and ``class`` stride down to a small
-latent and predict a change, ``zhat = z_last + UNet(window)``, zero at initialisation.
-"""
+"""The video JEPA of notebook 03 (a frame encoder to a spatial latent ``(C, S, S)``, a ResUNet
+predictor, a per-location projector) and two evaluation heads for frozen latents."""
 
 from __future__ import annotations
 
@@ -21,10 +10,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .encoders import ResidualBlock, conv_bn_relu
-from .heads import build_projector
-
-FRAME_SIZE = 64
+from ..data.moving_mnist import FRAME_SIZE
+from .encoders import ResidualBlock, build_projector, conv_bn_relu
 
 
 @dataclass(frozen=True)
@@ -45,9 +32,8 @@ class VideoModelConfig:
         object.__setattr__(self, "strides", tuple(int(s) for s in self.strides))
         down = self.stem_stride * math.prod(self.strides)
         if down < 1 or FRAME_SIZE % down or (FRAME_SIZE // down) % 2**self.predictor_levels:
-            raise ValueError(
-                f"the latent side 64 / (stem_stride * prod(strides)) = 64 / {down} must be a whole "
-                f"number that 2**predictor_levels = {2**self.predictor_levels} divides")
+            raise ValueError(f"the latent side 64 / (stem_stride * prod(strides)) = 64 / {down} "
+                             "must be a whole number that 2**predictor_levels divides")
 
     @property
     def latent_side(self) -> int:  # S
@@ -68,24 +54,18 @@ class FrameEncoder(nn.Module):
 
     def __init__(self, config: VideoModelConfig):
         super().__init__()
-        h, (s1, s2, s3) = config.encoder_width, config.strides
+        h, c, (s1, s2, s3) = config.encoder_width, config.latent_channels, config.strides
         self.stem = conv_bn_relu(1, h, config.stem_stride)
-        self.blocks = nn.Sequential(
-            ResidualBlock(h, h, s1),
-            ResidualBlock(h, 2 * h, s2),
-            ResidualBlock(2 * h, config.latent_channels, s3, relu_out=False),
-        )
+        self.blocks = nn.Sequential(ResidualBlock(h, h, s1), ResidualBlock(h, 2 * h, s2),
+                                    ResidualBlock(2 * h, c, s3, relu_out=False))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.blocks(self.stem(x))
 
 
 class ResUNetPredictor(nn.Module):
-    """Next latent from a window: ``(N, context, C, S, S) -> (N, C, S, S)``.
-
-    The window is stacked along channels, then a UNet: residual blocks at widths h, 2h, 4h, ...
-    each halving the map, transposed convs back up, each level fusing the skip from the way down.
-    """
+    """Next latent from a window, ``(N, context, C, S, S) -> (N, C, S, S)``: a UNet of residual
+    blocks (widths h, 2h, 4h, ...) on the window stacked along channels."""
 
     def __init__(self, config: VideoModelConfig):
         super().__init__()
@@ -132,7 +112,7 @@ class VideoJEPA(nn.Module):
                                          config.projector_dim, depth=2)
 
     def encode(self, frames: torch.Tensor) -> torch.Tensor:
-        """Frames ``(B, T, 1, 64, 64)`` (uint8 0..255 or float 0..1) -> ``(B, T, C, S, S)``."""
+        """Frames ``(B, T, 1, 64, 64)`` (uint8, or float in 0..1) -> ``(B, T, C, S, S)``."""
         if frames.ndim != 5 or frames.shape[2:] != (1, FRAME_SIZE, FRAME_SIZE):
             raise ValueError(f"frames must be (B, T, 1, 64, 64) clips, got {tuple(frames.shape)}")
         if frames.dtype != torch.uint8 and frames.numel() and frames.detach().amax() > 1:

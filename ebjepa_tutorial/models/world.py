@@ -1,15 +1,5 @@
-"""The action-conditioned world model of notebooks 04-05: encoder, predictor, inverse dynamics.
-
-- ``encode``: frames ``(B, [T,] 2, 65, 65)`` -> latents ``(B, [T,] D)``. Each channel is first
-  standardised (:meth:`WorldModel.fit_input_stats`), so the dot (~0.3% of the pixels) is not
-  drowned by the walls (~10%); then IMPALA stacks, ReLU, flatten, linear to ``D``, LayerNorm.
-- ``predict(z, a)``: ``z' = z + W GRUCell(e(a), z)`` or ``z + W MLP([z, e(a)])``, ``(B, D),
-  (B, 2) -> (B, D)``; ``W`` starts at zero, so an untrained step is the identity.
-- ``rollout(z0, actions)``: ``(B, D), (B, H, 2) -> (B, H, D)``, what a planner imagines.
-- ``predict_actions``: inverse dynamics, an MLP on ``[z_t, z_{t+1}]`` -> the action ``(2,)``.
-
-The :class:`WorldConfig` travels in every ``state_dict``.
-"""
+"""The world model of notebooks 04-05: an IMPALA encoder, a residual predictor ``z' = z + W f(z,
+e(a))`` (``W`` zero at first), an inverse-dynamics head; its config travels in its state_dict."""
 
 from __future__ import annotations
 
@@ -21,7 +11,6 @@ from torch import nn
 
 from ..envs.two_rooms import IMAGE_SIZE
 
-PREDICTORS = ("gru", "mlp")  # the kinds of WorldConfig.predictor
 CHANNELS = 2  # a Two Rooms frame's channels: the dot and the walls, (2, 65, 65)
 
 
@@ -43,8 +32,6 @@ class WorldConfig:
         object.__setattr__(self, "widths", tuple(int(w) for w in self.widths))
 
 
-# ``full``: the paper's IMPALA widths, two blocks, full resolution (its latent is a 32-channel
-# map; ours is a vector). ``class`` fits training and planning into a class period on a CPU.
 WORLD_CONFIGS = {
     "ci": WorldConfig(widths=(8, 16, 16), blocks=1, latent_dim=32),
     "class": WorldConfig(),
@@ -84,9 +71,8 @@ class ImpalaEncoder(nn.Module):
 
 
 class Predictor(nn.Module):
-    """One step ``z' = z + W GRUCell(e, z)`` (``"gru"``) or ``z' = z + W MLP([z, e])`` (``"mlp"``,
-    two GELU layers of ``predictor_hidden``): latents ``(N, D)``, action embeddings ``(N, E)``
-    -> ``(N, D)``."""
+    """``z' = z + W GRUCell(e, z)`` (``"gru"``) or ``z + W MLP([z, e])`` (``"mlp"``, two GELU
+    layers): latents ``(N, D)``, action embeddings ``(N, E)`` -> ``(N, D)``."""
 
     def __init__(self, config: WorldConfig):
         super().__init__()
@@ -107,33 +93,27 @@ class Predictor(nn.Module):
         return z + self.out(self.body(torch.cat([z, action_embedding], dim=-1)))
 
 
-def mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
-    """Linear-ReLU-Linear: ``(N, in_dim) -> (N, out_dim)``."""
-    return nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, out_dim))
-
-
 class WorldModel(nn.Module):
-    """Encoder, action encoder, predictor (GRU or MLP) and inverse-dynamics head."""
+    """Encoder, predictor, and two Linear-ReLU-Linear MLPs: action encoder, inverse dynamics."""
 
     def __init__(self, config: WorldConfig | None = None):
         super().__init__()
         self.config = c = WorldConfig() if config is None else config
+        self.latent_dim = c.latent_dim
         self.register_buffer("input_mean", torch.zeros(CHANNELS))
         self.register_buffer("input_std", torch.ones(CHANNELS))
         self.register_buffer("input_stats_fitted", torch.tensor(False))
         self.encoder = ImpalaEncoder(c)
-        self.action_encoder = mlp(c.action_dim, c.action_embed_dim, c.action_embed_dim)
+        self.action_encoder = nn.Sequential(nn.Linear(c.action_dim, c.action_embed_dim), nn.ReLU(),
+                                            nn.Linear(c.action_embed_dim, c.action_embed_dim))
         self.predictor = Predictor(c)
-        self.inverse_dynamics = mlp(2 * c.latent_dim, c.idm_hidden, c.action_dim)
-
-    @property
-    def latent_dim(self) -> int:
-        return self.config.latent_dim
+        self.inverse_dynamics = nn.Sequential(nn.Linear(2 * c.latent_dim, c.idm_hidden), nn.ReLU(),
+                                              nn.Linear(c.idm_hidden, c.action_dim))
 
     @torch.no_grad()
     def fit_input_stats(self, frames: torch.Tensor) -> WorldModel:
-        """Set the per-channel mean and std from ``frames`` ``(N, [T,] C, 65, 65)``; returns self.
-        A few hundred trajectories are plenty."""
+        """Set the per-channel mean and std from ``frames`` ``(N, [T,] C, 65, 65)`` (a few hundred
+        trajectories: then the dot, 0.3% of the pixels, is not drowned by the walls); self."""
         channels = _check_frames(frames).movedim(-3, 0).reshape(CHANNELS, -1).float()
         self.input_mean.copy_(channels.mean(dim=1))
         self.input_std.copy_(channels.std(dim=1).clamp_min(1e-6))
@@ -173,30 +153,24 @@ class WorldModel(nn.Module):
         return self.inverse_dynamics(torch.cat([z, z_next], dim=-1))
 
     def _check_inputs(self, z: torch.Tensor, actions: torch.Tensor, **steps) -> None:
-        if z.ndim != 2 or z.shape[1] != self.config.latent_dim:
-            raise ValueError(f"z must be latents of shape (batch, {self.config.latent_dim}), "
-                             f"got {tuple(z.shape)}")
+        if z.ndim != 2 or z.shape[1] != self.latent_dim:
+            raise ValueError(f"need latents of shape (B, {self.latent_dim}), got {list(z.shape)}")
         shape = (z.shape[0], *steps.values(), self.config.action_dim)
-        if tuple(actions.shape) != shape:
-            raise ValueError(f"actions must have shape {shape} (batch, [steps,] dx-dy), got "
-                             f"{tuple(actions.shape)}; the batch must match the latents'")
-        if not torch.isfinite(actions).all():
-            raise ValueError("actions contain NaN or infinite values; check where they come from")
+        if tuple(actions.shape) != shape or not torch.isfinite(actions).all():
+            raise ValueError(f"actions must have shape {shape} (batch, [steps,] dx-dy), without "
+                             f"NaN or infinite values; got {tuple(actions.shape)}")
 
-    # -- checkpoints: the config travels inside every state_dict ---------------------------
     def get_extra_state(self) -> dict:
         return {"config": asdict(self.config)}
 
     def set_extra_state(self, state: dict) -> None:
         """Raise a clear error if the checkpoint's config differs from this model's."""
-        saved = _saved_config(state)
-        differences = [f"{f.name}: the checkpoint has {getattr(saved, f.name)!r}, this model has "
-                       f"{getattr(self.config, f.name)!r}" for f in fields(saved)
-                       if getattr(saved, f.name) != getattr(self.config, f.name)]
+        saved, ours = asdict(_saved_config(state)), asdict(self.config)
+        differences = [f"{name}: the checkpoint has {value!r}, this model has {ours[name]!r}"
+                       for name, value in saved.items() if value != ours[name]]
         if differences:
-            raise ValueError(
-                "this checkpoint was trained with another world model configuration ("
-                + "; ".join(differences) + "): use WorldModel.from_state_dict(state_dict)")
+            raise ValueError("this checkpoint's world model has another configuration ("
+                             + "; ".join(differences) + "): use WorldModel.from_state_dict")
 
     @classmethod
     def from_state_dict(cls, state_dict: dict) -> WorldModel:
@@ -207,8 +181,7 @@ class WorldModel(nn.Module):
 
 
 def _saved_config(state: dict) -> WorldConfig:
-    """The saved config; fields it lacks take their defaults, fields we dropped (the frame's
-    size and channels, now constants) are left out."""
+    """The saved config; fields it lacks take their defaults, fields we dropped are left out."""
     names = {f.name for f in fields(WorldConfig)}
     return WorldConfig(**{name: v for name, v in state["config"].items() if name in names})
 
@@ -216,9 +189,8 @@ def _saved_config(state: dict) -> WorldConfig:
 def _check_frames(frames: torch.Tensor) -> torch.Tensor:
     shape = (CHANNELS, IMAGE_SIZE, IMAGE_SIZE)
     if frames.ndim not in (4, 5) or frames.shape[-3:] != shape or not frames.is_floating_point():
-        raise ValueError(f"frames must be float (batch, [time,] 2, 65, 65) in [0, 1]: each frame "
-                         f"must be {shape} (dot and wall channels), got {tuple(frames.shape)} "
-                         f"{frames.dtype}; render them with Trajectories.frames, channels first")
+        raise ValueError(f"each frame must be {shape} (dot and walls), float in [0, 1], batched as "
+                         f"Trajectories.frames renders; got {tuple(frames.shape)} {frames.dtype}")
     return frames
 
 

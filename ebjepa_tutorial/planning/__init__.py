@@ -1,6 +1,5 @@
-"""Goal-conditioned planning with a world model (notebooks 06 and 07): ``mppi`` (the energy
-and one re-plan), ``mpc`` (the agent and the episode runner), ``two_level`` (subgoals, notebook
-07), ``diagnosis`` (the energy's pictures and a planner that imagines with the true motion)."""
+"""Goal-conditioned planning with a world model (notebooks 06 and 07): ``mppi`` (the energy, one
+re-plan), ``mpc`` (the agent, the episode runner), ``diagnosis`` (pictures, true motion)."""
 
 from .diagnosis import TrueDynamics, dot_grid, energy_by_distance, energy_map
 from .mpc import EpisodeResults, arrival_distance, episode_generators, mpc_loop, run_episodes
@@ -16,17 +15,15 @@ from .mppi import (
     mppi_weights,
     plan,
     planning_cost,
-    select_elites,
     shift_plan,
     smooth_noise,
     weighted_mean_std,
 )
-from .two_level import TwoLevel
 
 __all__ = [
-    "MIN_STD", "EpisodeResults", "Habits", "Noise", "PlannerConfig", "TrueDynamics", "TwoLevel",
+    "MIN_STD", "EpisodeResults", "Habits", "Noise", "PlannerConfig", "TrueDynamics",
     "arrival_distance", "cem_update", "dot_grid", "energy_by_distance", "energy_map",
     "episode_generators", "goal_distance", "mpc_loop", "mppi_iteration", "mppi_update",
-    "mppi_weights", "plan", "planning_cost", "run_episodes", "select_elites", "shift_plan",
-    "smooth_noise", "weighted_mean_std",
+    "mppi_weights", "plan", "planning_cost", "run_episodes", "shift_plan", "smooth_noise",
+    "weighted_mean_std",
 ]

@@ -1,9 +1,6 @@
-"""Is it the predictor or the energy that fails? The energy's pictures and a true-motion planner.
-
-:func:`energy_map` and :func:`energy_by_distance` show the landscape the planner searches;
-``run_episodes(..., world="true")`` plans with :class:`TrueDynamics`, a perfect predictor,
-and the learned energy, ``world="true_xy"`` with the Euclidean distance in pixels.
-"""
+"""Is it the predictor or the energy that fails? The energy's pictures (:func:`energy_map`,
+:func:`energy_by_distance`) and :class:`TrueDynamics`, a perfect predictor for
+``run_episodes(..., world="true")`` (the learned energy) or ``"true_xy"`` (pixels)."""
 
 from __future__ import annotations
 

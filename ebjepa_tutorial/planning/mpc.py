@@ -1,9 +1,6 @@
 """The agent: model-predictive control in Two Rooms, and the batched episode runner (notebook 06).
-
-Each episode's seed fixes its task and its planner's noise; nothing couples the episodes of a
-batch but floating-point rounding (batched kernels may sum in an order that depends on the
-batch size and threads), so an episode reproduces exactly with its whole batch and threads.
-"""
+An episode's seed fixes its task and its planner's noise; it reproduces exactly with the same
+batch and threads (batched kernels may sum in another order)."""
 
 from __future__ import annotations
 
@@ -136,7 +133,8 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig, steps: int 
     ``torch.Generator().manual_seed(seed)``. ``steps``: None gives the world's step budget;
     ``batch`` episodes run at once (default: all). ``world``: ``"learned"`` imagines with the
     world model, ``"true"`` and ``"true_xy"`` with :class:`~.diagnosis.TrueDynamics`.
-    ``two_level``: a :class:`~.two_level.TwoLevel` that picks subgoals.
+    ``two_level``: a high level that picks subgoals, such as notebook 07's ``TwoLevel``:
+    ``calibrate(model, walls)`` -> the one to use, ``aim(generators)`` -> one batch's ``aim``.
     """
     if world not in WORLDS:
         raise ValueError(f"world must be one of {WORLDS}, got {world!r}")

@@ -1,15 +1,11 @@
-"""MPPI and CEM on a latent energy: one re-plan of notebook 06's agent.
+"""MPPI and CEM on a latent energy: one re-plan of notebook 06's agent. A plan of ``H``
+imagined steps from ``z0 = Enc(o_t)`` costs (the paper's Eq. 13; cost="last" keeps its last
+term, cost="learned" is ``model.cost_to_go(zhat_H, z_goal)``, notebook 07)
 
-From ``z0 = Enc(o_t)`` the planner imagines ``N`` action sequences of ``H`` steps with the
-predictor and scores each with the planning energy (the paper's Eq. 13):
+    S(a_1..a_H) = sum_{k=1..H} || zhat_k - z_goal ||       (cost="sum")
 
-    S(a_1..a_H) = sum_{k=1..H} || zhat_k - z_goal ||       (cost="sum", the paper's)
-    S(a_1..a_H) =               || zhat_H - z_goal ||       (cost="last", its ablation)
-    S(a_1..a_H) =               d(zhat_H, z_goal)           (cost="learned", notebook 07)
-
-MPPI (the paper's Algorithm 1) moves the plan and its spread ``J`` times to the average of
-the ``Q`` cheapest sequences weighted by ``exp(-(S_i - S_min) / tau)``; CEM weights them
-equally. Unlike the paper's code, the noise is smooth, drawn per episode from its generator.
+MPPI (the paper's Algorithm 1) moves the plan ``J`` times to the average of the ``Q``
+cheapest of ``N`` samples weighted by ``exp(-(S_i - S_min) / tau)``; CEM weights them equally.
 """
 
 from __future__ import annotations
@@ -114,10 +110,10 @@ def planning_cost(model, z0: torch.Tensor, z_goal: torch.Tensor, actions: torch.
                   cost: str = "sum") -> torch.Tensor:
     """Energy of each imagined plan: ``z0 (B, D), z_goal (B, D), actions (B, N, H, A) -> (B, N)``:
     the latent distance to the goal summed over the horizon (``"sum"``), at the last step
-    (``"last"``), or ``model.cost_to_go`` from the last latent (``"learned"``)."""
+    (``"last"``), or ``model.cost_to_go(zhat_H (B, N, D), z_goal (B, 1, D))`` (``"learned"``)."""
     if cost not in COSTS or (cost == "learned" and not hasattr(model, "cost_to_go")):
         raise ValueError(f"cost must be one of {COSTS}, got {cost!r} ('learned' needs a model "
-                         "with a cost-to-go head: models.cost.WithLearnedCost)")
+                         "with a cost_to_go(z, z_goal) method: notebook 07's WithLearnedCost)")
     check_start_and_goal(z0, z_goal)
     if actions.ndim != 4 or len(actions) != len(z0):
         raise ValueError(f"actions must be plans ({len(z0)}, N, H, A), N per start in z0 "

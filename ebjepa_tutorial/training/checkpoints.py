@@ -1,8 +1,5 @@
-"""Checkpoint files: written atomically, read safely, recognised by their run's identity.
-
-A file stores :func:`run_identity`, the fields that define its run; a file of another run is
-never loaded in its place, nor overwritten (it is kept under :func:`kept_path`).
-"""
+"""Checkpoint files: written atomically, read safely, recognised by their run's identity
+(:func:`run_identity`); another run's file is never loaded in its place, nor overwritten."""
 
 from __future__ import annotations
 
@@ -41,8 +38,7 @@ def checkpoint_paths(name: str) -> tuple[Path, Path]:
 
 
 def save_checkpoint(path: str | Path, **state: Any) -> Path:
-    """Write ``state`` with ``torch.save`` atomically (a temp file, synced, then renamed: a
-    crash leaves the previous file whole), after removing the temp files of killed writers."""
+    """Write ``state`` with ``torch.save`` atomically (a crash leaves the previous file whole)."""
     path = Path(path)
     remove_stale_temporaries(path.parent, [temporaries_of(path)], STALE_AFTER_S)
     with atomic_file(path) as f:
@@ -73,8 +69,7 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
 
 
 def load_made_by(path: str | Path, made_by: str) -> dict:
-    """:func:`load_checkpoint` of a file that the command ``made_by`` writes, which a missing
-    or damaged file's error names."""
+    """:func:`load_checkpoint`, naming the command ``made_by`` if the file is missing or damaged."""
     try:
         return load_checkpoint(path)
     except (FileNotFoundError, CheckpointError) as error:
@@ -84,8 +79,8 @@ def load_made_by(path: str | Path, made_by: str) -> dict:
 def run_identity(config: Any, always: tuple[str, ...] = (), **extra: Any) -> dict:
     """What a checkpoint stores to recognise its run: the fields of ``config`` (a dataclass)
     named in ``always``, every other field only where it differs from its default (inside
-    nested dataclasses too), and the ``extra`` fields. A new option with a default thus leaves
-    every stored identity as it was (``python -m research.resave_checkpoints`` checks them)."""
+    nested dataclasses too), and the ``extra`` fields: a new option with a default leaves every
+    stored identity as it was."""
     out = {}
     for field in fields(config):
         value, base = getattr(config, field.name), field.default
@@ -101,8 +96,7 @@ def run_identity(config: Any, always: tuple[str, ...] = (), **extra: Any) -> dic
 
 
 def code_of(function) -> str:
-    """``function``'s code as a syntax tree, without docstring and comments; its ``repr``
-    where Python cannot read its source."""
+    """``function``'s syntax tree without docstring and comments (its ``repr`` if no source)."""
     try:
         tree = ast.parse(textwrap.dedent(inspect.getsource(function))).body[0]
     except (OSError, TypeError, SyntaxError, IndexError):
@@ -114,16 +108,14 @@ def code_of(function) -> str:
 
 
 def step_identity(step, course_step) -> dict:
-    """What an identity adds for the training ``step`` a run used: nothing for ``None`` or a
-    copy of ``course_step``'s code, else a hash of its code (an edited step is another run)."""
+    """``{}`` for ``step`` None or a copy of ``course_step``'s code, else ``{"step": hash}``."""
     if step is None or code_of(step) == code_of(course_step):
         return {}
     return {"step": hashlib.sha256(code_of(step).encode()).hexdigest()[:16]}
 
 
 def kept_path(path: Path, config: Any) -> Path:
-    """Where the run of ``config`` (a stored identity) is kept when another run takes ``path``:
-    ``<stem>.run-<hash of config>.pt`` beside it."""
+    """Where the run ``config`` is kept when another takes ``path``: ``<stem>.run-<hash>.pt``."""
     key = hashlib.sha1(json.dumps(config, sort_keys=True, default=repr).encode()).hexdigest()[:8]
     return path.with_name(f"{path.stem}.run-{key}{path.suffix}")
 
@@ -138,8 +130,7 @@ def _move(path: Path, target: Path, why: str) -> None:
 
 
 def read_run(path: Path, device, movable: bool = True) -> dict | None:
-    """The state stored at ``path``; None if there is none or it is damaged (then moved aside
-    to ``<name>.damaged`` if ``movable``, else only reported). An unsafe file raises."""
+    """The state at ``path``; None if none or damaged (moved to ``<name>.damaged`` if movable)."""
     try:
         return load_checkpoint(path, map_location=device) if path.is_file() else None
     except UnsafeCheckpointError:
@@ -153,9 +144,8 @@ def read_run(path: Path, device, movable: bool = True) -> dict | None:
 
 
 def find_run(path: Path, identity: Any, device, shipped: Path | None = None):
-    """``(state, file)`` of the run ``identity``: ``shipped`` (only read) if it holds that run,
-    else ``path``; None if neither does. Another run's file at ``path`` is renamed to its
-    :func:`kept_path`, and a kept file of this run is moved back."""
+    """``(state, file)`` of the run ``identity``, from ``shipped`` (only read) or ``path``, else
+    None. Another run's file at ``path`` moves to its :func:`kept_path`; this run's moves back."""
     state = None if shipped is None else read_run(Path(shipped), device, movable=False)
     if state is not None and state.get("config") == identity:
         return state, shipped

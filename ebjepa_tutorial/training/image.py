@@ -1,6 +1,5 @@
-"""Image JEPA on CIFAR-10, the recipe of notebooks 01 (VICReg) and 02 (SIGReg): two views of
-each image through one encoder and a projector, and a regulariser against collapse. The encoder
-is what we keep. Under ``torchrun``, ``batch_size`` is the global batch."""
+"""Image JEPA on CIFAR-10 (notebooks 01, VICReg, and 02, SIGReg): two views of each image
+through one encoder and a projector, and a regulariser against collapse; the encoder is kept."""
 
 from __future__ import annotations
 
@@ -15,8 +14,7 @@ from torch import nn
 from .. import augment, distributed
 from ..losses.sigreg import sigreg_loss
 from ..losses.vicreg import vicreg, vicreg_terms
-from ..models.encoders import ResNet18
-from ..models.heads import build_projector
+from ..models.encoders import ResNet18, build_projector
 from ..utils import at_least_float32, memory_format, mixed_precision
 from .checkpoints import checkpoint_paths, run_identity, step_identity
 from .loop import History, load_or_train, run_steps, step_generator
@@ -29,9 +27,8 @@ LR = 2e-3  # AdamW's peak rate (warm-up, then cosine to 0), the same at every sc
 
 @dataclass(frozen=True)
 class VICReg:
-    """VICReg's weights: covariance averaged over D(D-1) entries as in the EB-JEPA paper, but
-    the two views' regularisers averaged (losses.vicreg_loss) where the papers add them: the
-    paper's 1 / 1 / 80 reads 1 / 2 / 160 here (the results page compares the two)."""
+    """VICReg's weights. The two views' regularisers are averaged (losses.vicreg_loss) where
+    the paper adds them, so the paper's 1 / 1 / 80 reads 1 / 2 / 160 here."""
 
     inv_coeff: float = 1.0
     std_coeff: float = 2.0
@@ -40,8 +37,8 @@ class VICReg:
 
 @dataclass(frozen=True)
 class SIGReg:
-    """Invariance + ``lam`` x SIGReg on ``slices`` random directions a step; ``scale_by_n``:
-    the statistic times N, as LeJEPA (False: the paper's, with a lambda N times larger)."""
+    """Invariance + ``lam`` x SIGReg on ``slices`` random directions; ``scale_by_n``: the
+    statistic times N, as LeJEPA (False: the paper's, with a lambda N times larger)."""
 
     lam: float = 0.1
     slices: int = 256
@@ -50,14 +47,13 @@ class SIGReg:
 
 @dataclass(frozen=True)
 class ImageJEPAConfig:
-    """Everything that defines a training run. Defaults: the class-scale VICReg run."""
+    """One training run. Defaults: the class-scale VICReg run."""
 
     loss: VICReg | SIGReg | None = VICReg()  # None: invariance alone (no regulariser: collapses)
     widths: tuple[int, int, int, int] = (16, 32, 64, 128)  # ResNet stage widths
     blocks_per_stage: int = 2  # BasicBlocks per ResNet stage: 2 is ResNet-18, 1 is ResNet-10
     image_size: int = 16  # training views are this many pixels wide
-    # the linear probe and kNN see un-augmented images at this side (32: CIFAR-10's own)
-    eval_image_size: int = 32
+    eval_image_size: int = 32  # the side of the images the probes see (32: CIFAR-10's own)
     projector: tuple[int, int] | None = (1024, 1024)  # (hidden, output); None: no projector
     batch_size: int = 256  # the global batch: per-process batch x processes under torchrun
     steps: int = 2000
@@ -93,8 +89,8 @@ class ImageJEPA(nn.Module):
 
 
 class AllViews(nn.Module):
-    """``model`` on every view in one call (DDP pairs each forward call with one backward):
-    ``(b, 3, S, S) x V -> (b, D) x V``, each view its own pass, so batch norm sees its batch."""
+    """``model`` on every view in one call, as DDP needs: ``(b, 3, S, S) x V -> (b, D) x V``,
+    each view its own pass, so batch norm sees its batch."""
 
     def __init__(self, model: nn.Module):
         super().__init__()
@@ -112,14 +108,8 @@ def resize(images: torch.Tensor, size: int) -> torch.Tensor:
     return F.interpolate(images, size=size, mode="bilinear", antialias=True, align_corners=False)
 
 
-def make_optimizer(model: nn.Module, config: ImageJEPAConfig) -> torch.optim.AdamW:
-    """AdamW at :data:`LR`, with biases and norm parameters excluded from weight decay."""
-    return torch.optim.AdamW(split_decay_params(model, WEIGHT_DECAY), lr=LR)
-
-
 def embed(net: nn.Module, views) -> tuple[torch.Tensor, torch.Tensor]:
-    """Both views ``(b, 3, S, S)`` through ``net`` (encoder, then projector): ``(B, D)`` each,
-    in float32 (the networks run in bf16 where fast); under ``torchrun``, every process's rows."""
+    """Both views ``(b, 3, S, S)`` through ``net``: ``(B, D)`` each, float32, every rank's rows."""
     with mixed_precision(views[0].device, cpu=True):
         embedded = net(*views)
     z_a, z_b = (distributed.gather_rows(at_least_float32(z)) for z in embedded)
@@ -127,9 +117,7 @@ def embed(net: nn.Module, views) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def vicreg_step(net, batch, optimizer, scheduler, weights):
-    """One VICReg training step, as notebook 01 shows it. ``batch``: the step's two views and
-    generator; ``weights``: a :class:`VICReg`. Returns the loss and a function giving the terms.
-    """
+    """One VICReg step (notebook 01): returns the loss and a function giving its terms."""
     views, _ = batch  # two augmented views of the step's images: (b, 3, S, S) each
     z_a, z_b = embed(net, views)  # encoder, then projector: (B, D) each
     loss = vicreg(z_a, z_b, weights.inv_coeff, weights.std_coeff, weights.cov_coeff)
@@ -157,22 +145,20 @@ INVARIANCE_ONLY = VICReg(1.0, 0.0, 0.0)  # the weights of ``loss=None``: no regu
 
 
 def package_step(config: ImageJEPAConfig):
-    """The step that trains ``config`` when none is passed (``loss=None``: :func:`vicreg_step`
-    with :data:`INVARIANCE_ONLY`)."""
+    """The step that trains ``config`` when none is passed."""
     return sigreg_step if isinstance(config.loss, SIGReg) else vicreg_step
 
 
 def train_image_jepa(config: ImageJEPAConfig, images: torch.Tensor,
                      checkpoint: str | Path | None = None, device: torch.device | str = "cpu",
                      progress: bool = True, step=None) -> tuple[ImageJEPA, History]:
-    """Train on uint8 ``images (N, 3, 32, 32)``, resumable from ``checkpoint``, each update a
-    ``step(net, batch, optimizer, scheduler, weights)`` (default :func:`package_step`)."""
+    """``(model, history)`` trained on uint8 ``images (N, 3, 32, 32)``, resumable from a file."""
     torch.manual_seed(config.seed)
     # channels_last on a GPU; on the CPU it is faster but two identical runs then differ
     layout = memory_format(device)
     model = ImageJEPA(config).to(device, memory_format=layout)
     net = distributed.data_parallel(AllViews(model), device)
-    optimizer = make_optimizer(model, config)
+    optimizer = torch.optim.AdamW(split_decay_params(model, WEIGHT_DECAY), lr=LR)
     scheduler = warmup_cosine_scheduler(optimizer, config.steps, config.warmup_steps)
     run = identity(config, step=step)
     step = package_step(config) if step is None else step
@@ -198,8 +184,8 @@ def train_image_jepa(config: ImageJEPAConfig, images: torch.Tensor,
 
 def seconds_per_step(config: ImageJEPAConfig, images: torch.Tensor, steps: int = 5,
                      device: torch.device | str = "cpu") -> float:
-    """Seconds per training step of ``config`` here: runs of ``1 + steps`` and 1 steps, their
-    difference over ``steps`` (after a 1-step run that pays the process's one-time costs)."""
+    """Seconds per training step of ``config`` here: the difference of runs of ``1 + steps``
+    and 1 steps over ``steps`` (after a run that pays the one-time costs)."""
     def run(n: int) -> float:
         start = time.perf_counter()
         train_image_jepa(replace(config, steps=n, warmup_steps=0), images, device=device,
@@ -212,9 +198,7 @@ def seconds_per_step(config: ImageJEPAConfig, images: torch.Tensor, steps: int =
 
 
 def identity(config: ImageJEPAConfig, encoder_only: bool = False, step=None) -> dict:
-    """What a checkpoint stores to recognise its run (:func:`run_identity`), without
-    ``eval_image_size`` (how a network is probed is not how it trains); a file of the encoder
-    alone is marked so, and an edited ``step`` is another run."""
+    """The run's :func:`run_identity` without ``eval_image_size``: probing is not training."""
     extra = {"weights": "encoder only"} if encoder_only else {}
     # the rate stays recorded as when it was a field: the shipped files keep loading
     stored = run_identity(config, ("loss", "steps", "batch_size", "seed"), lr=LR, **extra,
@@ -224,9 +208,8 @@ def identity(config: ImageJEPAConfig, encoder_only: bool = False, step=None) -> 
 
 def train_or_load(config: ImageJEPAConfig, name: str, images: torch.Tensor, device="cpu",
                   encoder_only: bool = False, step=None):
-    """``(model in eval mode, history)`` of ``config``: loaded if this run was saved as
-    ``name``, else trained on uint8 ``images (N, 3, 32, 32)`` and saved. ``encoder_only``: the
-    encoder alone, as the long shipped runs store it."""
+    """``(model in eval mode, history)`` of ``config``: loaded if saved as ``name``, else trained
+    on uint8 ``images (N, 3, 32, 32)`` and saved. ``encoder_only``: as the long runs ship."""
     torch.manual_seed(config.seed)
     model = ImageJEPA(config)
     module = (model.encoder if encoder_only else model).to(device)

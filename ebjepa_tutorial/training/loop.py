@@ -1,9 +1,6 @@
-"""The loop every training run goes through: seeded batches, a loss history, resumable runs.
-
-A batch depends only on its step (:func:`step_generator`), so a resumed run sees exactly the
-batches it would have seen. Under ``torchrun`` the history holds the mean over processes, and
-process 0 alone shows progress and reads and writes the files.
-"""
+"""The loop of every training run: seeded batches (a batch depends only on its step, so a
+resumed run sees the batches it would have seen), a loss history, resumable runs. Under
+``torchrun``, the history holds the mean over processes; process 0 alone reads and writes."""
 
 from __future__ import annotations
 
@@ -21,8 +18,8 @@ from .checkpoints import find_run, save_or_warn
 
 
 class History(dict):
-    """Metrics over training, a plain ``dict`` of lists: ``history["loss"]`` holds one value
-    per logged step, ``history["step"]`` the step numbers; ``seconds``: the training time."""
+    """``history["loss"]``: one value per logged step, ``history["step"]``: its step numbers;
+    ``seconds``: the training time."""
 
     seconds: float = 0.0
 
@@ -59,13 +56,10 @@ def run_steps(update: Callable[[Any, int], tuple[torch.Tensor, Any]],
               parts: tuple = (), identity: Any = None, every: int = 250,
               after: Callable[[int, History], Any] | None = None) -> History:
     """Steps ``0 .. steps - 1`` of ``update(batch_fn(step), step) -> (loss, terms)``, or the rest
-    of the run ``identity`` saved at ``checkpoint``, which is saved there every ``every`` steps
-    and at the last (:func:`training_state` of ``parts``).
-
-    ``terms``: a dict of 0-d tensors or floats, or a function giving one, called only on the
-    steps logged: every ``log_every`` steps and the last (reading a number waits for a GPU).
-    ``after(done, history)`` runs after each step and its save.
-    """
+    of the run ``identity`` saved at ``checkpoint`` (saved there every ``every`` steps and at
+    the last). ``terms``: a dict of floats or 0-d tensors, or a function giving one, called
+    only every ``log_every`` steps (reading a number waits for a GPU). ``after(done, history)``
+    runs after each step and its save."""
     start, history = resume(checkpoint, *parts, config=identity) if parts else (0, History())
     bar = tqdm(range(start, steps), desc=desc, initial=start, total=steps,
                disable=not (progress and distributed.is_main()))
@@ -89,8 +83,8 @@ def run_steps(update: Callable[[Any, int], tuple[torch.Tensor, Any]],
 
 def training_state(done: int, identity: Any, history: History, model: torch.nn.Module,
                    optimizer: torch.optim.Optimizer, scheduler=None, extra=None) -> dict:
-    """What a resumable checkpoint of the run ``identity`` holds after ``done`` steps (``extra``:
-    another object with a state dict, such as a replay buffer)."""
+    """A resumable checkpoint of the run ``identity`` after ``done`` steps (``extra``: another
+    object with a state dict, such as a replay buffer)."""
     return dict(model=model.state_dict(), optimizer=optimizer.state_dict(),
                 scheduler=None if scheduler is None else scheduler.state_dict(),
                 history=dict(history), step=done, config=identity, seconds=history.seconds,
@@ -110,8 +104,8 @@ def _history(state: dict) -> History:
 
 def resume(path: str | Path | None, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
            scheduler: Any = None, extra: Any = None, config: Any = None) -> tuple[int, History]:
-    """Restore the :func:`training_state` of the run ``config`` (its identity) saved at
-    ``path``: ``(step, history)`` to continue from, ``(0, History())`` if there is none."""
+    """Restore the :func:`training_state` of the run ``config`` saved at ``path``: ``(step,
+    history)`` to continue from, ``(0, History())`` if there is none."""
     found = None if path is None else distributed.from_main(
         lambda: find_run(Path(path), config, _device(model)))
     if found is None:
@@ -128,9 +122,8 @@ def resume(path: str | Path | None, model: torch.nn.Module, optimizer: torch.opt
 
 def load_or_train(path: str | Path, model: torch.nn.Module, train: Callable[[], History],
                   config: Any, shipped: str | Path | None = None) -> History:
-    """Load ``model`` from a checkpoint of the run ``config`` (its identity), ``shipped`` first,
-    then ``path``; else ``train()`` it in place and save it to ``path``, then delete the
-    resumable ``<path>.partial``. Returns the history; prints which happened."""
+    """Load ``model`` with the run ``config`` from ``shipped`` or ``path``, else ``train()`` it in
+    place, save it to ``path`` and delete ``<path>.partial``. Returns the history."""
     start, path = time.perf_counter(), Path(path)
     found = distributed.from_main(lambda: find_run(path, config, _device(model), shipped))
     if found is not None:

@@ -1,5 +1,5 @@
 """Notebook 00's joint embedding small enough to watch: 2-D points around ``k`` centres, their
-views (the point plus Gaussian noise: two views of a point are a compatible pair), an MLP."""
+noisy views (two views of a point are a compatible pair), an MLP encoder."""
 
 from __future__ import annotations
 
@@ -57,8 +57,8 @@ def spectrum(z: torch.Tensor) -> torch.Tensor:
 @torch.no_grad()
 def energy_map(encoder: nn.Module, anchor: torch.Tensor, extent: float = 3.5,
                resolution: int = 80) -> tuple[torch.Tensor, torch.Tensor]:
-    """Energy ``E(anchor, y) = ||enc(anchor) - enc(y)||^2`` for ``y`` on a square grid around
-    ``anchor (2,)``: the grid's coordinates ``(R,)`` and the energies ``(R, R)`` (rows: y)."""
+    """``E(anchor, y) = ||enc(anchor) - enc(y)||^2`` for ``y`` on a grid around ``anchor (2,)``:
+    the grid's coordinates ``(R,)`` and the energies ``(R, R)`` (rows: y)."""
     coords = torch.linspace(-extent, extent, resolution)
     grid_y, grid_x = torch.meshgrid(coords, coords, indexing="ij")
     points = torch.stack([grid_x.flatten(), grid_y.flatten()], dim=1)
@@ -82,7 +82,6 @@ def pair_energies(encoder: nn.Module, x: torch.Tensor, noise: float = 0.2,
 
 @torch.no_grad()
 def centroid_energies(z: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
-    """Energy between cluster centres in embedding space, ``||mean(z | i) - mean(z | j)||^2``:
-    ``(N, D), (N,) -> (k, k)``."""
+    """``||mean(z | i) - mean(z | j)||^2`` between cluster centres: ``(N, D), (N,) -> (k, k)``."""
     centres = torch.stack([z[labels == c].mean(dim=0) for c in labels.unique()])
     return torch.cdist(centres, centres).pow(2)

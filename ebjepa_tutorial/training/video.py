@@ -1,13 +1,7 @@
-"""Video JEPA on Moving MNIST (notebook 03): the run's config, its clips, training, load-or-train.
-
-One training step, :func:`video_jepa_step`, takes the K-step loss plus the variance and
-covariance of the projected latents (each location of each frame one sample):
+"""Video JEPA on Moving MNIST (notebook 03). A step, :func:`video_jepa_step`, takes the K-step
+loss plus the variance and covariance of the projected latents (each location a sample):
 
     L = (1/K) sum_k mean ||zhat_k - z||^2 + std v(P(Z)) + cov c(P(Z))
-
-The class run is a curriculum: its first half trains K = 1, its second half K steps with
-orders 2..K on detached latents; the paper trains K steps throughout. Under ``torchrun``,
-``batch_size`` is the global batch of clips (per-process batch x processes).
 """
 
 from __future__ import annotations
@@ -36,16 +30,13 @@ COV_COEFF = 100.0  # cov, the covariance term's weight: likewise
 
 @dataclass(frozen=True)
 class Recipe:
-    """Where the class run trains otherwise than the paper, to learn more per CPU-minute
-    (notebook 03). The defaults are the class run's; :data:`PAPER_RECIPE` is the paper's."""
+    """How the class run departs from the paper to learn more per CPU-minute (notebook 03);
+    :data:`PAPER_RECIPE` is the paper's."""
 
     cosine: bool = True  # decay the rate to 0 by a half cosine (the paper: constant)
-    # convolutions in channels_last: faster on CPUs too (PyTorch's CPU backward in this
-    # layout crashes on some strided 1x1 convolutions at 64x64, the ci encoder's)
-    channels_last: bool = True
+    channels_last: bool = True  # convolutions in channels_last: faster, on CPUs too
     one_step_fraction: float = 0.5  # this share of the steps trains K = 1 (the paper: 0)
-    # orders 2..K unroll from detached latents: the encoder learns from one-step errors only
-    detach_later_orders: bool = True
+    detach_later_orders: bool = True  # orders 2..K unroll from detached latents
 
 
 PAPER_RECIPE = Recipe(cosine=False, channels_last=False, one_step_fraction=0.0,
@@ -59,13 +50,11 @@ class VideoJEPAConfig:
     model: VideoModelConfig = field(default_factory=lambda: VIDEO_MODEL_CONFIGS["class"])
     n_clips: int = 4000  # training clips from the training digits (make_clips; 164 MB)
     n_frames: int = 10  # frames per clip (needs >= context + rollout_steps)
-    batch_size: int = 16  # clips per step (the paper: 64; per clip, small batches run faster here)
+    batch_size: int = 16  # clips per step, the global batch under torchrun (the paper: 64)
     steps: int = 2400  # sized for a class period on a laptop CPU
     lr: float = 3e-3  # Adam's base rate (the paper: 1e-3, constant)
     rollout_steps: int = 4  # K
-    # how the K-step loss unrolls (losses.rollout.UNROLLS): "parallel", the paper's, or
-    # "autoregressive", one true context rolled forward as a planner does (the same at K = 1)
-    unroll: str = "parallel"
+    unroll: str = "parallel"  # the paper's, or "autoregressive" (losses.rollout.UNROLLS)
     recipe: Recipe = field(default_factory=Recipe)  # the class run's; PAPER_RECIPE: the paper's
     seed: int = 0
 
@@ -76,15 +65,16 @@ class VideoJEPAConfig:
 
     @property
     def switch_step(self) -> int:
-        """The steps trained at K = 1 before the rollout begins (0 without a curriculum)."""
+        """The steps trained at K = 1 before the rollout begins."""
         return math.ceil(self.recipe.one_step_fraction * self.steps)
 
     def rollout_steps_at(self, step: int) -> int:
-        """K at optimiser step ``step``: 1 during the recipe's ``one_step_fraction`` of the run."""
+        """K at optimiser step ``step``."""
         return 1 if step < self.switch_step else self.rollout_steps
 
 
 VIDEO_CONFIGS = {
+    # PyTorch's CPU backward crashes in channels_last on the ci encoder's strided 1x1 convolutions
     "ci": VideoJEPAConfig(model=VIDEO_MODEL_CONFIGS["ci"], n_clips=256, batch_size=8, steps=20,
                           recipe=Recipe(channels_last=False)),
     "class": VideoJEPAConfig(),
@@ -95,29 +85,24 @@ VIDEO_CONFIGS = {
 
 
 def make_clips(config: VideoJEPAConfig, train_digits: torch.Tensor) -> torch.Tensor:
-    """The run's training clips: uint8 ``(n_clips, n_frames, 1, 64, 64)`` from ``train_digits``
-    (the first half of ``split_digits``; evaluation clips come from the other half)."""
+    """The run's training clips from ``train_digits``: uint8 ``(n_clips, n_frames, 1, 64, 64)``."""
     return generate_moving_mnist(train_digits, config.n_clips, config.n_frames,
                                  seed=config.seed).clips
 
 
 def check_clips(clips: torch.Tensor, min_frames: int) -> None:
     """Raise unless ``clips`` is uint8 ``(N, T, 1, 64, 64)`` with ``T >= min_frames``."""
-    if not isinstance(clips, torch.Tensor) or clips.ndim != 5 or clips.shape[2:] != (1, 64, 64):
-        got = tuple(clips.shape) if isinstance(clips, torch.Tensor) else type(clips).__name__
-        raise ValueError(f"clips must be (N, T, 1, 64, 64) from generate_moving_mnist, got {got}")
-    if clips.dtype != torch.uint8:
-        raise TypeError(f"clips must be uint8 (as generated), got {clips.dtype}")
-    if clips.shape[1] < min_frames:
-        raise ValueError(f"clips have {clips.shape[1]} frames; this needs at least {min_frames} "
-                         "(context + prediction steps): generate longer clips")
+    if (not isinstance(clips, torch.Tensor) or clips.dtype != torch.uint8 or clips.ndim != 5
+            or clips.shape[2:] != (1, 64, 64) or clips.shape[1] < min_frames):
+        got = (f"{tuple(clips.shape)} {clips.dtype}" if isinstance(clips, torch.Tensor)
+               else type(clips).__name__)
+        raise ValueError(f"clips must be uint8 (N, T, 1, 64, 64) with T at least {min_frames} "
+                         f"(context + prediction steps), from generate_moving_mnist; got {got}")
 
 
 def video_jepa_step(model, optimizer, scheduler, frames, k, config):
-    """One training step, as notebook 03 shows it: the loss of a batch of clips, its gradient,
-    the update. ``frames``: this process's clips, uint8 ``(b, T, 1, 64, 64)``; ``k``: K of this
-    step (:meth:`VideoJEPAConfig.rollout_steps_at`). Returns the detached total and terms.
-    """
+    """One training step (notebook 03) on uint8 clips ``frames (b, T, 1, 64, 64)`` with ``k``
+    prediction steps. Returns the detached total and terms."""
     with mixed_precision(frames.device, cpu=True):  # bf16 networks where fast; statistics in fp32
         z = model.encode(frames)  # Z: (b, T, C, S, S), every frame on its own
         multistep_loss = parallel_rollout_loss if config.unroll == "parallel" else rollout_loss
@@ -137,8 +122,7 @@ def video_jepa_step(model, optimizer, scheduler, frames, k, config):
 
 
 def new_scheduler(optimizer: torch.optim.Optimizer, config: VideoJEPAConfig):
-    """The rate over the run: a half cosine to 0 (``config.recipe.cosine``), else constant (the
-    paper's); a scheduler either way, so that the step always calls ``scheduler.step()``."""
+    """The rate over the run: a half cosine to 0 (``config.recipe.cosine``), else constant."""
     if config.recipe.cosine:
         return warmup_cosine_scheduler(optimizer, config.steps, 0)
     return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: 1.0)
@@ -148,10 +132,9 @@ def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
                      checkpoint: str | Path | None = None, progress: bool = True,
                      device: torch.device | str | None = None, step=None,
                      after=None) -> tuple[VideoJEPA, History]:
-    """Train on uint8 ``clips (N, T, 1, 64, 64)``, resumable from ``checkpoint``, each update a
-    ``step`` (default :func:`video_jepa_step`). ``after(done, (model, optimizer, scheduler),
-    history)`` sees the run after each step. Returns the model (eval mode) and history.
-    """
+    """``(model in eval mode, history)`` trained on uint8 ``clips (N, T, 1, 64, 64)``,
+    resumable from ``checkpoint``. ``after(done, (model, optimizer, scheduler), history)`` runs
+    after each step."""
     step = step or video_jepa_step
     check_clips(clips, config.model.context + config.rollout_steps)
     device = get_device(device)
@@ -177,8 +160,8 @@ def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
 
 def identity(config: VideoJEPAConfig, train_digits: torch.Tensor | None = None,
              step=None) -> dict:
-    """What a checkpoint stores to recognise its run: ``config``, for a finished run a hash of
-    the digits its clips were made from, and an edited ``step``'s code."""
+    """What a checkpoint stores to recognise its run: ``config``, a hash of the digits of a
+    finished run's clips, and an edited ``step``'s code."""
     digits = {} if train_digits is None else {"train_digits": hashlib.sha1(
         train_digits.contiguous().numpy().tobytes()).hexdigest()[:12]}
     return run_identity(config, ("steps", "batch_size", "lr", "rollout_steps", "seed"),
@@ -186,15 +169,14 @@ def identity(config: VideoJEPAConfig, train_digits: torch.Tensor | None = None,
 
 
 def run_name(scale: str, config: VideoJEPAConfig) -> str:
-    """Notebook 03's checkpoint name for ``config``: ``video_jepa_<scale>_K<K>_seed<seed>``."""
+    """``video_jepa_<scale>_K<K>_seed<seed>``, notebook 03's name for the run ``config``."""
     return f"video_jepa_{scale}_K{config.rollout_steps}_seed{config.seed}"
 
 
 def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor,
                   device: torch.device | str | None = None, step=None, **options):
-    """``(model in eval mode, history)`` of ``config``: loaded if this run (config, training
-    digits ``(D, 1, 28, 28)`` and step) was saved as ``name``, else trained on clips of
-    ``train_digits`` and saved. ``options``: of :func:`train_video_jepa`."""
+    """``(model in eval mode, history)`` of ``config``: loaded if saved as ``name``, else trained
+    on clips of ``train_digits (D, 1, 28, 28)`` and saved."""
     torch.manual_seed(config.seed)
     model = VideoJEPA(config.model).to(get_device(device))
     path, shipped = checkpoint_paths(name)
@@ -212,9 +194,8 @@ def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor
 
 def fit_decoder(model: VideoJEPA, clips: torch.Tensor, steps: int = 200, batch_size: int = 32,
                 lr: float = 1e-3, seed: int = 0) -> FrameDecoder:
-    """A :class:`FrameDecoder` from frozen latents back to frames of uint8 ``clips (N, T, 1, 64,
-    64)``, for pictures only (per-pixel cross-entropy). Decode ``z (N, C, S, S)`` with
-    ``torch.sigmoid(decoder(z))``."""
+    """A :class:`FrameDecoder` fitted on frozen latents of uint8 ``clips (N, T, 1, 64, 64)``,
+    for pictures only: frames ``torch.sigmoid(decoder(z))`` of ``z (N, C, S, S)``."""
     check_clips(clips, 1)
     model.eval()
     device = next(model.parameters()).device

@@ -1,6 +1,5 @@
-"""Training the Two Rooms world model (notebook 05; its checkpoint serves 06): offline
-trajectories of the paper's data policy, rendered batch by batch, each update
-:func:`world_model_step`. Under ``torchrun``, ``batch_size`` is the global batch."""
+"""Training the Two Rooms world model (notebook 05) on offline trajectories of the paper's data
+policy, rendered batch by batch, each update a :func:`world_model_step`."""
 
 from __future__ import annotations
 
@@ -36,8 +35,7 @@ LOG_EVERY, CHECKPOINT_EVERY = 10, 250  # steps between logged rows and resumable
 
 @dataclass(frozen=True)
 class Recipe:
-    """How a run departs from the paper's training (notebook 05, section 4; notebook 06,
-    experiment 5). The defaults are the paper's: none of it."""
+    """How a run departs from the paper's training (notebook 05); the defaults are the paper's."""
 
     window: int = 0  # frames per training window at a random offset (0: whole trajectories)
     wall_fraction: float = 0.0  # share of trajectories that start heading into the middle wall
@@ -50,15 +48,14 @@ class Recipe:
 
 @dataclass(frozen=True)
 class WorldTrainConfig:
-    """One training run of the world model. Defaults: the paper's recipe with the class
-    model (:func:`course_recipe` gives the class preset)."""
+    """One training run of the world model. Defaults: the paper's recipe with the class model."""
 
     model: WorldConfig = field(default_factory=lambda: WORLD_CONFIGS["class"])
     coeffs: WorldLossCoeffs = field(default_factory=WorldLossCoeffs)  # the paper's weights
     recipe: Recipe = field(default_factory=Recipe)  # the paper's; course_recipe: the class run's
     n_trajectories: int = 20_000  # offline data set (the paper: ~1.2 million windows)
     walls: int = 1  # 1: Two Rooms (the paper's world); 2: Three Rooms in a row (chapter 07)
-    batch_size: int = 64  # trajectories of 17 frames per step (the paper: 384)
+    batch_size: int = 64  # trajectories per step, global under torchrun (the paper: 384)
     steps: int = 1000
     lr: float = 1e-3  # AdamW, as in the paper
     rollout_steps: int = 8  # K, the prediction horizon of the loss (at most the window - 1)
@@ -66,16 +63,14 @@ class WorldTrainConfig:
 
 
 def course_recipe(config: WorldTrainConfig) -> WorldTrainConfig:
-    """``config`` trained the course's way (the ``class`` and ``ci`` presets), which learns
-    more per CPU-minute than the paper's."""
+    """``config`` trained the course's way (the class preset): more per CPU-minute."""
     recipe = Recipe(window=9, wall_fraction=0.25, stay_probability=0.15, replay_steps=3,
                     channels_last=True)
     return replace(config, recipe=recipe, model=replace(config.model, predictor="mlp"))
 
 
 def paper_recipe(config: WorldTrainConfig) -> WorldTrainConfig:
-    """``config`` trained the paper's way: whole 17-frame trajectories of the data policy, a
-    GRU predictor, no still steps, no replay (chapter 06's longer runs, the ``full`` preset)."""
+    """``config`` trained the paper's way: whole trajectories, a GRU predictor, no replay."""
     return replace(config, recipe=Recipe(),
                    model=replace(config.model, predictor=WorldConfig.predictor))
 
@@ -88,10 +83,8 @@ def make_data(config: WorldTrainConfig) -> Trajectories:
 
 def random_windows(data: Trajectories, index: torch.Tensor, window: int,
                    generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """``window`` consecutive frames of each trajectory ``index``, from a random offset.
-
-    index (B,) -> positions (B, window, 2) and the actions between them (B, window - 1, 2).
-    """
+    """``window`` frames of each trajectory ``index (B,)`` from a random offset: positions
+    ``(B, window, 2)`` and the actions between them ``(B, window - 1, 2)``."""
     offsets = torch.randint(0, data.positions.shape[1] - window + 1, (len(index), 1),
                             generator=generator) + torch.arange(window)  # (B, window)
     rows = index[:, None]
@@ -162,8 +155,8 @@ def new_optimizer(model: WorldModel, config: WorldTrainConfig) -> torch.optim.Ad
 
 
 def decay_factor(config: WorldTrainConfig, step: int) -> float:
-    """The share of the base rate that step ``step`` uses: 1, then linearly down to
-    ``1 / decay_steps`` over the last ``config.recipe.decay_steps`` steps."""
+    """The share of the base rate that step ``step`` uses: 1, then down to ``1 / decay_steps``
+    over the last ``decay_steps``."""
     decay = config.recipe.decay_steps
     return min(1.0, (config.steps - step) / decay) if decay else 1.0
 
@@ -173,9 +166,8 @@ temporal_similarity, inverse_dynamics = temporal_similarity_loss, inverse_dynami
 
 
 def world_model_step(model, optimizer, frames, actions, generator, config, step, replay=None):
-    """One training step, as notebook 05 shows it: the five terms, their weighted total, the
-    update, the replay. ``frames (B, T, 2, 65, 65)``, ``actions (B, T-1, 2)``; ``generator``
-    draws the still steps and SIGReg's directions. Returns ``(total, terms)``, detached."""
+    """One training step (notebook 05) on ``frames (B, T, 2, 65, 65)``, ``actions (B, T-1, 2)``:
+    returns the detached total and terms."""
     z = encode_for_loss(model, frames)
     coeffs, recipe = config.coeffs, config.recipe
     terms = {
@@ -207,8 +199,7 @@ def train_world_model(config: WorldTrainConfig, data: Trajectories | None = None
                       checkpoint: str | Path | None = None, progress: bool = True,
                       device: torch.device | str | None = None,
                       step=world_model_step) -> tuple[WorldModel, History]:
-    """Train a world model on ``data`` (default :func:`make_data`), each update a ``step``
-    (notebook 05 passes its cell's), resumable from ``checkpoint``. Returns it in eval mode."""
+    """``(model in eval mode, history)`` trained on ``data``, resumable from ``checkpoint``."""
     per_process = distributed.per_rank_batch(config.batch_size)  # an uneven split fails here
     data = make_data(config) if data is None else data
     device, run = get_device(device), identity(config, step)
@@ -233,8 +224,8 @@ def train_world_model(config: WorldTrainConfig, data: Trajectories | None = None
 
 
 def _batches(config: WorldTrainConfig, data: Trajectories, buffer: torch.Tensor, device):
-    """``batch(step) -> (frames, actions, generator)``: this process's rows of the global batch
-    of step ``step``, rendered into ``buffer (b, T, 2, 65, 65)``, and the step's generator."""
+    """``batch(step) -> (frames, actions, generator)``: this process's rows of the step's
+    batch, rendered into ``buffer (b, T, 2, 65, 65)``, and the step's generator."""
     window = config.recipe.window
 
     def batch(step: int):
@@ -254,9 +245,8 @@ def _batches(config: WorldTrainConfig, data: Trajectories, buffer: torch.Tensor,
 
 def train_or_load(config: WorldTrainConfig, name: str, device: torch.device | str | None = None,
                   step=world_model_step) -> tuple[WorldModel, History]:
-    """``(model in eval mode on device, history)`` of ``config``: loaded if this run was saved
-    as ``name``, else trained with ``step`` and saved. A ``step`` edited from
-    :func:`world_model_step` is a run of its own (:func:`identity`)."""
+    """``(model in eval mode, history)`` of ``config``: loaded if saved as ``name``, else
+    trained with ``step`` and saved."""
     device = get_device(device)
     model = WorldModel(config.model).to(device)
     path, shipped = checkpoint_paths(name)
@@ -273,9 +263,8 @@ def train_or_load(config: WorldTrainConfig, name: str, device: torch.device | st
 
 def load_world_model(path: str | Path, device: torch.device | str | None = None,
                      made_by: str = "python -m research.train_world --out PATH") -> WorldModel:
-    """The world model saved at ``path`` (``{"model": state_dict}``, read safely), in eval mode
-    on ``device`` (default: the best available). ``made_by``: the command that writes the
-    file, named if it is missing, damaged or holds no world model."""
+    """The world model saved at ``path``, in eval mode on ``device``; a missing, damaged or
+    foreign file's error names the command ``made_by``."""
     weights = load_made_by(path, made_by).get("model")
     if not isinstance(weights, dict) or "_extra_state" not in weights:
         raise ValueError(f"{path} holds no world model (expected a file written by {made_by})")
@@ -293,8 +282,7 @@ def ablation_config(config: WorldTrainConfig, *without: str) -> WorldTrainConfig
 
 
 def identity(config: WorldTrainConfig, step=None) -> dict:
-    """What a checkpoint stores to recognise the run of ``config``: with several walls, the
-    ranges they are drawn from too; with an edited ``step``, a hash of its code."""
+    """What a checkpoint stores to recognise the run ``config`` (and the ranges of its walls)."""
     always = ("steps", "batch_size", "lr", "n_trajectories", "rollout_steps", "seed")
     edited = step_identity(step, world_model_step)
     if config.walls > 1:

@@ -10,7 +10,7 @@ rooms, and the planner's noise all come from the seed); success when the dot
 ends within 4.5 px of the goal at the end of the world's step budget (200 and
 120 steps). The planners are notebook 07's at class scale
 (``course.presets.preset("07", "class")``); the cost heads and the coarse models
-are the shipped ones (``training.fits.load_fit``; ``research.fit_beyond`` makes
+are the shipped ones (notebook 07's ``load_fit``; ``research.fit_beyond`` makes
 them). Each row: the success rate, its Wilson 95% interval and the process CPU
 seconds per episode (all threads counted). Last line, for
 the last world played:
@@ -26,13 +26,11 @@ import argparse
 import torch
 
 from ebjepa_tutorial.course.presets import preset
-from ebjepa_tutorial.models.cost import CostToGo, WithLearnedCost
-from ebjepa_tutorial.models.hierarchy import CoarseModel
-from ebjepa_tutorial.planning import TwoLevel, run_episodes
+from ebjepa_tutorial.planning import run_episodes
 from ebjepa_tutorial.training import train_or_load
-from ebjepa_tutorial.training.fits import load_fit
 from ebjepa_tutorial.training.world import identity
 from research import fit_beyond
+from research.beyond_fits import NOTEBOOK as NB
 from tools import figures
 
 WORLDS = {walls: world for world, walls in fit_beyond.WORLDS.items()}  # 1: "two_rooms", ...
@@ -45,13 +43,13 @@ def planners(walls: int) -> dict:
     cfg, world = preset("07", "class"), WORLDS[walls]
     _, config, name = fit_beyond.world_run(world)
     model, _ = train_or_load(config, name, device="cpu")
-    head = load_fit("cost_head", world, CostToGo(model.latent_dim), identity(config))
-    coarse = load_fit("coarse", world, CoarseModel(model.latent_dim), identity(config))
+    head = NB.load_fit("cost_head", world, NB.CostToGo(model.latent_dim), identity(config))
+    coarse = NB.load_fit("coarse", world, NB.CoarseModel(model.latent_dim), identity(config))
     two = cfg.two_level
     return {"flat": (model, cfg.flat, None), "short": (model, cfg.short, None),
-            "learned_cost": (WithLearnedCost(model, head), cfg.learned, None),
-            "two_level": (model, two.low, TwoLevel(coarse, two.high[walls - 1], two.lookahead,
-                                                   two.reach_px))}
+            "learned_cost": (NB.WithLearnedCost(model, head), cfg.learned, None),
+            "two_level": (model, two.low, NB.TwoLevel(coarse, two.high[walls - 1], two.lookahead,
+                                                      two.reach_px))}
 
 
 def main() -> None:

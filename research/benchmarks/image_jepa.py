@@ -33,12 +33,14 @@ from ebjepa_tutorial.losses.sigreg import sigreg_loss
 from ebjepa_tutorial.losses.vicreg import vicreg
 from ebjepa_tutorial.training.image import (
     INVARIANCE_ONLY,
+    LR,
+    WEIGHT_DECAY,
     AllViews,
     ImageJEPA,
     SIGReg,
-    make_optimizer,
     train_image_jepa,
 )
+from ebjepa_tutorial.training.optim import split_decay_params
 from ebjepa_tutorial.utils import at_least_float32, mixed_precision
 from research.benchmarks import command_line
 from research.benchmarks.timing import (
@@ -62,7 +64,7 @@ def training_loss(config, z_a, z_b, generator) -> torch.Tensor:
 def step_split(config, images: torch.Tensor) -> dict[str, float]:
     """Median seconds of each part of one training step of ``config`` on uint8 ``images``."""
     model = AllViews(ImageJEPA(config))
-    optimizer = make_optimizer(model, config)
+    optimizer = torch.optim.AdamW(split_decay_params(model, WEIGHT_DECAY), lr=LR)
     pipeline = build_augmentation(AugmentConfig(size=config.image_size))
 
     def step(repeat: int):

@@ -1,20 +1,19 @@
-"""Checkers for the notebooks' exercises, one module per chapter (common.py: what they share;
-hints.yaml: each exercise's hints and the words for its typical mistakes; general.yaml: the
-words for mistakes any exercise can make)."""
+"""Checkers for the notebooks' exercises, one module per part of the course (common.py: what
+they share; hints.yaml: each exercise's hints and the words for its typical mistakes;
+general.yaml: the words for mistakes any exercise can make)."""
 
 from .beyond import check_spread_loss, check_step_violation
-from .common import ExerciseError, hint, whose
-from .planning import check_mppi_update
-from .sigreg import check_epps_pulley
-from .two_rooms import check_slab_crossing, check_wall_collision
-from .vicreg import (
+from .collapse import (
     check_covariance_term,
+    check_epps_pulley,
     check_variance_term,
     check_vicreg,
     check_vicreg_paper_to_ebjepa,
 )
+from .common import ExerciseError, hint, whose
+from .two_rooms import check_slab_crossing, check_wall_collision
 from .video import check_parallel_rollout_loss
-from .world_model import check_inverse_dynamics, check_temporal_similarity
+from .world_model import check_inverse_dynamics, check_mppi_update, check_temporal_similarity
 
 __all__ = [
     "ExerciseError", "hint", "whose", "check_variance_term", "check_covariance_term",

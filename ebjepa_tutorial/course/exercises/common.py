@@ -19,6 +19,7 @@ WORDS = yaml.safe_load(Path(__file__).with_name("general.yaml").read_text(encodi
 HINTS = {name: tuple(texts["hints"]) for name, texts in TEXTS.items()}
 LEVELS = ("the idea", "the formula", "an outline of the code")
 _shown: dict[str, int] = {}  # exercise -> the highest hint level shown in this session
+_REFERENCES: list[Callable] = []  # the course's functions, which a check may hand over
 
 
 def say(key: str, **fields) -> str:
@@ -30,8 +31,10 @@ class ExerciseError(AssertionError):
     """The learner's function disagrees with the reference; the message says where."""
 
 
-class NotImplementedYet(ExerciseError):
-    """The learner's function still raises ``NotImplementedError`` (the student stub)."""
+def whose(fn: Callable) -> str:
+    """``"the course's"`` when ``fn`` is an implementation a check handed over in place of an
+    unfinished exercise, else ``"your"``: for a notebook to print whose function it runs."""
+    return "the course's" if any(fn is r for r in _REFERENCES) else "your"
 
 
 def slips(exercise: str, **variants) -> list[Diagnosis]:
@@ -43,12 +46,9 @@ def slips(exercise: str, **variants) -> list[Diagnosis]:
             for f in (fs if isinstance(fs, tuple) else (fs,))]
 
 
-# ------------------------------------------------------------------------------ graded hints
-
 def hint(name, level: int | None = None) -> None:
-    """Print hint ``level`` of the exercise ``name`` (its function's name, or the function):
-    1 the idea, 2 the formula and the shapes, 3 an outline of the code; by default the next
-    level not shown yet."""
+    """Print hint ``level`` (1 the idea, 2 the formula and the shapes, 3 an outline of the code;
+    by default the next not shown yet) of the exercise ``name``, or of that function."""
     name = getattr(name, "__name__", name)
     if name not in HINTS:
         print(say("no_such_exercise", name=name, names=", ".join(sorted(HINTS))))
@@ -61,21 +61,10 @@ def hint(name, level: int | None = None) -> None:
 
 
 def _hint_text(name: str, level: int) -> str:
-    body = HINTS[name][level - 1]  # the outline keeps its lines; the words are wrapped
-    body = body if level == len(LEVELS) else textwrap.fill(body, 88)
-    text = f"Hint {level} of {len(LEVELS)} for {name}, {LEVELS[level - 1]}:\n{body}"
-    if level < len(LEVELS):
-        text += f"\n(exercises.hint({name!r}) again gives {LEVELS[level]}.)"
-    return text
-
-
-def _offer(name: str) -> str:
-    """What a failed check adds: the next hint without code, then how to ask for the outline."""
-    level = _shown.get(name, 0) + 1
-    if level < len(LEVELS):
-        _shown[name] = level
-        return "\n\n" + _hint_text(name, level)
-    return "\n\n" + say("still_stuck", name=name)
+    body, last = HINTS[name][level - 1], level == len(LEVELS)
+    text = f"Hint {level} of {len(LEVELS)} for {name}, {LEVELS[level - 1]}:\n"
+    text += body if last else textwrap.fill(body, 88)  # the outline keeps its lines
+    return text if last else text + f"\n(exercises.hint({name!r}) again gives {LEVELS[level]}.)"
 
 
 @dataclass
@@ -106,8 +95,6 @@ def gradient(fn: Callable, index: int) -> Callable:
 
     return run
 
-
-# ------------------------------------------------------------------- naming what went wrong
 
 def _numbers(value) -> torch.Tensor | None:
     """``value`` as a float64 tensor (a tuple of tensors flattened and joined), else None."""
@@ -142,10 +129,14 @@ def diagnose(got, diagnoses: Sequence[Diagnosis], case: Case, atol: float = 1e-5
     return f" Likely cause: {min(matches)[2]}" if matches else ""
 
 
-def _factor_off(got, expected, sizes: dict, advice: dict) -> tuple[str, str, str] | None:
-    """``(what was found, '', what to look at)`` when ``got`` is ``expected`` times or divided
-    by a named size n, n - 1, n/(n - 1) or its square (an unbiased estimate divided by n, then
-    squared), or 2; ``advice`` by the factor's words replaces the general look. Else None."""
+def _general_cause(got, expected, atol: float, sizes: dict, advice: dict):
+    """``(what was found, ': what it means' or '', what to look at)`` when float64 ``got`` is
+    NaN, minus ``expected``, or it times or divided by a named size n, n - 1, n/(n - 1), its
+    square (an unbiased estimate divided by n, squared) or 2 (``advice``: by factor). Else None."""
+    if torch.isfinite(expected).all() and not torch.isfinite(got).all():
+        return say("nan"), "", say("nan_look")
+    if expected.abs().max() > 10 * atol and torch.allclose(got, -expected, atol=atol, rtol=1e-4):
+        return say("sign"), say("sign_means"), say("sign_look")
     big = expected.abs() > 1e-8
     if not big.any() or not torch.isfinite(got).all():
         return None
@@ -177,33 +168,15 @@ def _disagreement(got, expected, atol: float) -> str:
             f"of {bad.numel()})")
 
 
-def _and(words: Sequence[str]) -> str:
-    return words[0] if len(words) == 1 else ", ".join(words[:-1]) + " and " + words[-1]
-
-
-# ----------------------------------------------------------------------------- the exercises
-
-_REFERENCES: list[Callable] = []
-
-
-def whose(fn: Callable) -> str:
-    """``"the course's"`` when ``fn`` is an implementation a check handed over in place of an
-    unfinished exercise, else ``"your"``: for a notebook to print whose function it runs."""
-    return "the course's" if any(fn is r for r in _REFERENCES) else "your"
-
-
 @dataclass
 class Exercise:
-    """The check of the exercise ``exercise``: ``check(fn)`` returns ``fn`` when it agrees
-    with ``reference`` (the course's, same signature) on ``cases()``, in value and in its
-    gradient with respect to each ``grad`` ``(argument index, label)``; ``reference`` while
-    ``fn`` is the student stub, so that "Run All" reaches the end of the chapter. Else it
-    raises an :class:`ExerciseError` naming the mistake (one of ``mistakes``, else
-    ``explain(case, got, expected, diagnosed)``'s words, else NaN, a sign flip, a factor off
-    by a size of ``dims`` (``{index: "BD"}``, ``_`` skips an axis) or ``case.sizes``, with
-    hints.yaml's advice) and offers the next hint. ``parts``: the outputs' names when a
-    tuple is returned; ``adapt``: turns the reference, the mistakes and ``fn`` into what the
-    cases call."""
+    """``check(fn)`` returns ``fn`` when it agrees with ``reference`` (same signature) on
+    ``cases()``, in value and in its gradient with respect to each ``grad`` ``(argument index,
+    label)``; ``reference`` while ``fn`` is the student stub (so "Run All" goes on). Else it
+    raises an :class:`ExerciseError` naming the mistake (one of ``mistakes``, ``explain(case,
+    got, expected, diagnosed)``'s words, or a general one; ``dims`` names the inputs' axes,
+    ``{index: "BD"}``, ``_`` for none) and offers the next hint. ``parts``: names of a tuple's
+    outputs; ``adapt``: turns a function into what the cases call."""
 
     exercise: str
     reference: Callable
@@ -226,14 +199,27 @@ class Exercise:
         if fn is self.reference:  # this cell ran again after handing the course's one over
             print(say("still_the_course"))
             return fn
-        name = getattr(fn, "__name__", "your function")
+        name, run, cases = getattr(fn, "__name__", "your function"), self.adapt(fn), self.cases()
         try:
-            self._compare(self.adapt(fn), name)
-        except NotImplementedYet:
+            notes = [self._values(run, name, case) for case in cases]
+            for case in cases:
+                for index, label in self.grad:
+                    self._gradient(run, name, case, index, label)
+        except NotImplementedError:  # the student stub
             print(say("not_yet", name=name, exercise=self.exercise))
             return self.reference
         except ExerciseError as error:  # raised from here, it shows the learner's cell only
-            raise ExerciseError(str(error) + _offer(self.exercise)) from None
+            level = _shown.get(self.exercise, 0) + 1  # offer the next hint short of the code
+            if level < len(LEVELS):
+                _shown[self.exercise] = level
+                raise ExerciseError(f"{error}\n\n{_hint_text(self.exercise, level)}") from None
+            raise ExerciseError(f"{error}\n\n{say('still_stuck', name=self.exercise)}") from None
+        *labels, last = [label for _, label in self.grad] or [""]
+        what = f"{', '.join(labels)} and {last}" if labels else last
+        print(say("correct", name=name, n=len(cases),
+                  what=f" (values, and gradients with respect to {what})" if what else ""))
+        for note in dict.fromkeys(n for n in notes if n):
+            print(note)
         return fn
 
     def _run(self, fn: Callable, name: str, case: Case):
@@ -243,28 +229,15 @@ class Exercise:
         try:
             out = fn(*args, **case.kwargs)  # keyword arguments are numbers
         except NotImplementedError:
-            raise NotImplementedYet(f"{name} is not implemented yet") from None
+            raise
         except Exception as err:
             raise ExerciseError(say("raised", name=name, case=case.description,
                                     error=f"{type(err).__name__}: {err}")) from err
         for label, before, after in zip(self._labels, case.args, args):
-            if isinstance(before, torch.Tensor) and (after.shape != before.shape
-                                                     or not torch.equal(after, before)):
+            if isinstance(before, torch.Tensor) and not torch.equal(after, before):
                 raise ExerciseError(say("in_place", name=name, label=label,
                                         case=case.description))
         return out
-
-    def _compare(self, fn: Callable, name: str) -> None:
-        cases = self.cases()
-        notes = [self._values(fn, name, case) for case in cases]
-        for case in cases:
-            for index, label in self.grad:
-                self._gradient(fn, name, case, index, label)
-        labels = [label for _, label in self.grad]
-        what = f" (values, and gradients with respect to {_and(labels)})" if labels else ""
-        print(say("correct", name=name, n=len(cases), what=what))
-        for note in dict.fromkeys(n for n in notes if n):
-            print(note)
 
     def _values(self, fn: Callable, name: str, case: Case) -> str:
         """Raise unless ``fn`` agrees with the reference on ``case``; returns the case's note
@@ -302,23 +275,14 @@ class Exercise:
         why = diagnose(got, self._mistakes, case, atol)
         if self.explain and (words := self.explain(case, g, e, bool(why))):
             return f"{name} {words}{why}"
-        if why or not (general := self._general_cause(g, e, case)):
+        sizes = {k: n for i, axes in self.dims.items()
+                 for k, n in zip(axes, case.args[i].shape) if k != "_"}
+        if why or not (general := _general_cause(g, e, self.atol, {**sizes, **case.sizes},
+                                                 TEXTS[self.exercise].get("factors", {}))):
             return say("wrong_value", name=name, numbers=numbers, case=case.description, why=why)
         found, means, look = general
         return say("general_cause", name=name, found=found, case=case.description, means=means,
                    where=f" (your {label})" if label else "", look=look, numbers=numbers)
-
-    def _general_cause(self, got, expected, case: Case) -> tuple[str, str, str] | None:
-        """``(what was found, ': what it means' or '', what to look at)``, or None."""
-        if torch.isfinite(expected).all() and not torch.isfinite(got).all():
-            return say("nan"), "", say("nan_look")
-        if expected.abs().max() > 10 * self.atol and torch.allclose(got, -expected,
-                                                                     atol=self.atol, rtol=1e-4):
-            return say("sign"), say("sign_means"), say("sign_look")
-        sizes = {k: n for i, axes in self.dims.items()
-                 for k, n in zip(axes, case.args[i].shape) if k != "_"}
-        return _factor_off(got, expected, {**sizes, **case.sizes},
-                           TEXTS[self.exercise].get("factors", {}))
 
     def _gradient(self, fn: Callable, name: str, case: Case, index: int, label: str) -> None:
         """Raise unless ``fn``'s gradient with respect to argument ``index`` is the reference's."""

@@ -4,6 +4,8 @@ moves, layouts)`` -> new positions ``(B, 2)``, whose check says what went wrong 
 
 from __future__ import annotations
 
+from functools import partial
+
 import torch
 
 from ...envs import two_rooms as rooms
@@ -36,10 +38,7 @@ _slab_crossing = _crossing_slip()  # the reference: no mistake
 
 def _crossing_cases(n: int = 64) -> list[Case]:
     g = torch.Generator().manual_seed(1)
-
-    def rand(n):
-        return torch.rand(n, generator=g)
-
+    rand = partial(torch.rand, generator=g)
     wall_x = 14.0 + torch.randint(0, 36, (n,), generator=g).float()
     x_lo, x_hi = wall_x - 2.5, wall_x + 2.5
     left, right = x_lo - 0.5 - 6 * rand(n), x_hi + 0.5 + 6 * rand(n)
@@ -73,10 +72,7 @@ check_slab_crossing = Exercise(
 def _wall_cases(n: int = 512) -> list[Case]:
     """``n`` moves of each kind: positions (n, 2), moves (n, 2), layouts (n, 2)."""
     g = torch.Generator().manual_seed(0)
-
-    def rand(*shape):
-        return torch.rand(*shape, generator=g)
-
+    rand = partial(torch.rand, generator=g)
     layouts = rooms.random_layouts(n, g)
     x_lo, x_hi, y_lo, y_hi = wall_bounds(layouts)
     wall_x, door_y = layouts.float().unbind(-1)
@@ -107,10 +103,9 @@ def _wall_cases(n: int = 512) -> list[Case]:
 
 
 def _first_problem(case: Case, got, expected, diagnosed: bool) -> str | None:
-    """Words for the first wrong new position in ``got`` ``(n, 2)``: the first symptom found,
-    in the order of hints.yaml's ``symptoms``. When a typical wrong rule explains ``got``
-    (``diagnosed``), only the positions: the symptom could mislead (an unclamped target can
-    look like a dot stopped at an open door), and the rule, named after this, says more."""
+    """Words for the first wrong new position in ``got`` ``(n, 2)``: the first of hints.yaml's
+    ``symptoms`` found, or only the positions when a typical wrong rule explains ``got``
+    (``diagnosed``: an unclamped target can look like a dot stopped at an open door)."""
     pos, move, layouts = case.args
     x_lo, x_hi, y_lo, y_hi = wall_bounds(layouts)
     wall_x, tol = layouts[:, 0].float(), 1e-4
@@ -138,36 +133,29 @@ def _first_problem(case: Case, got, expected, diagnosed: bool) -> str | None:
         rule="" if diagnosed else " " + TEXTS["wall_collision"]["symptoms"]["rule"])
 
 
-def _stay_put(positions, moves, layouts):
-    """Cancel the whole move whenever a wall blocks it."""
+def _wall_slip(positions, moves, layouts, rule):
+    """The course's new positions ``(B, 2)`` with one wrong ``rule`` at the wall."""
     target = (positions + moves).clamp(LOW, HIGH)
     expected = wall_collision(positions, moves, layouts)
-    return torch.where(~torch.isclose(expected, target).all(-1, keepdim=True), positions, expected)
-
-
-def _stop_at_contact(positions, moves, layouts):
-    """Stop both coordinates where the path meets the wall's face (no sliding along it)."""
-    target = (positions + moves).clamp(LOW, HIGH)
-    expected = wall_collision(positions, moves, layouts)
-    x0, y0 = positions.unbind(-1)
-    x1, y1 = target.unbind(-1)
+    if rule == "stay_put":  # cancel the whole move whenever a wall blocks it
+        blocked = ~torch.isclose(expected, target).all(-1, keepdim=True)
+        return torch.where(blocked, positions, expected)
+    if rule == "no_door_sides":  # stop at the wall's faces, but y may leave the doorway
+        return torch.stack([expected[:, 0], target[:, 1]], -1)
+    (x0, y0), (x1, y1) = positions.unbind(-1), target.unbind(-1)  # stop y at the face too
     at_face = ~torch.isclose(expected[:, 0], x1)
     t = (expected[:, 0] - x0) / torch.where(at_face, x1 - x0, torch.ones_like(x0))
     y = torch.where(at_face, y0 + t * (y1 - y0), expected[:, 1])
     return torch.stack([expected[:, 0], y], -1)
 
 
-def _no_door_sides(positions, moves, layouts):
-    """Stop at the wall's faces but let y leave the doorway inside the slab."""
-    target = (positions + moves).clamp(LOW, HIGH)
-    return torch.stack([wall_collision(positions, moves, layouts)[:, 0], target[:, 1]], -1)
-
-
 _WALL_SLIPS = slips(  # the wall rules on the unclamped target, clamped at the end or never
     "wall_collision",
     not_clamped_first=(lambda p, m, walls: stop_at_wall(p, p + m, walls).clamp(LOW, HIGH),
                        lambda p, m, walls: stop_at_wall(p, p + m, walls)),
-    stay_put=_stay_put, stop_at_contact=_stop_at_contact, no_door_sides=_no_door_sides)
+    stay_put=partial(_wall_slip, rule="stay_put"),
+    stop_at_contact=partial(_wall_slip, rule="stop_at_contact"),
+    no_door_sides=partial(_wall_slip, rule="no_door_sides"))
 
 
 check_wall_collision = Exercise(

@@ -4,23 +4,21 @@ context=2, steps=4, detach_later=False)`` -> a 0-d tensor, on toy predictors."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 
 import torch
 
-from ...losses.rollout import Predictor, parallel_rollout_loss, rollout_loss
+from ...losses.rollout import parallel_rollout_loss, rollout_loss
 from .common import Case, Exercise, slips
 
-
-def _toy_predictor(kind: str, weight: torch.Tensor) -> Predictor:
-    """Toy predictors ``(N, context, C, H, W) -> (N, C, H, W)`` with unrolls easy to follow."""
-    if kind == "shift":  # the last latent plus 0.5
-        return lambda window: window[:, -1] + 0.5
-    if kind == "velocity":  # constant velocity: exact on latents that move in straight lines
-        return lambda window: 2 * window[:, -1] - window[:, -2]
-    if kind == "mean":  # uses the whole window, however long
-        return lambda window: window.mean(dim=1) + 0.1
-    # a fixed nonlinear map of the whole window, weight (context, C, C)
-    return lambda window: torch.tanh(torch.einsum("nkchw,kcd->ndhw", window, weight))
+# toy predictors (N, context, C, H, W) -> (N, C, H, W) with unrolls easy to follow; weight is
+# the mixer's (context, C, C)
+_PREDICTORS = {
+    "shift": lambda window, weight: window[:, -1] + 0.5,
+    "velocity": lambda window, weight: 2 * window[:, -1] - window[:, -2],  # exact on lines
+    "mean": lambda window, weight: window.mean(dim=1) + 0.1,  # the whole window, however long
+    "mixer": lambda window, weight: torch.tanh(torch.einsum("nkchw,kcd->ndhw", window, weight)),
+}
 
 
 def _case(description: str, kind: str, z: torch.Tensor, context: int, steps: int,
@@ -37,7 +35,7 @@ def _call(loss_fn: Callable) -> Callable:
     """``loss_fn`` on one of the cases above, called positionally as the training step does."""
     def run(kind, weight, z_first, z_last, context, steps, detach_later):
         z = torch.cat([z_first, z_last[:, None]], dim=1)
-        return loss_fn(_toy_predictor(kind, weight), z, context, steps, detach_later)
+        return loss_fn(partial(_PREDICTORS[kind], weight=weight), z, context, steps, detach_later)
 
     return run
 

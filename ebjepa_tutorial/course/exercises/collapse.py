@@ -1,11 +1,14 @@
-"""Checkers of chapters 00-01: the variance and covariance terms on ``z`` ``(B, D)``, the VICReg
-loss, and the conversion of the VICReg paper's coefficients to EB-JEPA's."""
+"""Checkers of chapters 00-02, the terms that keep embeddings from collapsing: the variance and
+covariance terms on ``z`` ``(B, D)``, the VICReg loss, the conversion of the VICReg paper's
+coefficients to EB-JEPA's, and SIGReg's Epps-Pulley statistic on one slice ``x`` ``(N,)`` (the
+course's :func:`~ebjepa_tutorial.losses.sigreg.epps_pulley` with ``sigma = 1``)."""
 
 from __future__ import annotations
 
 import torch
 
 from ... import losses
+from ...losses.sigreg import epps_pulley
 from .common import Case, Exercise, slips
 
 
@@ -22,20 +25,16 @@ def _embedding_cases(seed: int = 0) -> list[Case]:
     ]
 
 
-def _hinge(std: torch.Tensor, gamma: float) -> torch.Tensor:
-    return torch.relu(gamma - std).mean()
-
-
 check_variance_term = Exercise(
     "variance_term", losses.variance_term, slips(
         "variance_term",
-        biased_variance=lambda z, gamma=1.0: _hinge((z.var(0, unbiased=False) + 1e-4).sqrt(),
-                                                    gamma),
-        eps_missing=lambda z, gamma=1.0: _hinge(z.var(0).sqrt(), gamma),
-        eps_outside=lambda z, gamma=1.0: _hinge(z.var(0).sqrt() + 1e-4, gamma),
-        variance_not_std=lambda z, gamma=1.0: _hinge(z.var(0) + 1e-4, gamma),
+        biased_variance=lambda z, gamma=1.0: torch.relu(
+            gamma - (z.var(0, unbiased=False) + 1e-4).sqrt()).mean(),
+        eps_missing=lambda z, gamma=1.0: torch.relu(gamma - z.var(0).sqrt()).mean(),
+        eps_outside=lambda z, gamma=1.0: torch.relu(gamma - (z.var(0).sqrt() + 1e-4)).mean(),
+        variance_not_std=lambda z, gamma=1.0: torch.relu(gamma - (z.var(0) + 1e-4)).mean(),
         no_hinge=lambda z, gamma=1.0: (gamma - (z.var(0) + 1e-4).sqrt()).mean(),
-        gamma_ignored=lambda z, gamma=1.0: _hinge((z.var(0) + 1e-4).sqrt(), 1.0),
+        gamma_ignored=lambda z, gamma=1.0: torch.relu(1.0 - (z.var(0) + 1e-4).sqrt()).mean(),
         per_dimension=lambda z, gamma=1.0: torch.relu(gamma - (z.var(0) + 1e-4).sqrt()),
         wrong_axis=lambda z, gamma=1.0: losses.variance_term(z.T.contiguous(), gamma)),
     lambda: _embedding_cases() + [Case("gamma=2.0", (
@@ -48,23 +47,20 @@ def _covariance(z: torch.Tensor, centre: bool = True) -> torch.Tensor:
     return centred.T @ centred / (len(z) - 1)
 
 
-def _off_diagonal(cov: torch.Tensor) -> torch.Tensor:
-    return cov - torch.diag(torch.diagonal(cov))
-
-
-def _per_pair(total: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-    return total / (z.shape[1] * (z.shape[1] - 1))
+def _pair_mean(cov: torch.Tensor, d: int, f=torch.square) -> torch.Tensor:
+    """``sum_{i != j} f(C_ij) / (d (d - 1))`` of a square matrix ``cov``."""
+    return f(cov - torch.diag(torch.diagonal(cov))).sum() / (d * (d - 1))
 
 
 check_covariance_term = Exercise(
     "covariance_term", losses.covariance_term, slips(
         "covariance_term",
-        not_centred=lambda z: _per_pair(_off_diagonal(_covariance(z, False)).pow(2).sum(), z),
-        diagonal_kept=lambda z: _per_pair(_covariance(z).pow(2).sum(), z),
+        not_centred=lambda z: _pair_mean(_covariance(z, False), z.shape[1]),
+        diagonal_kept=lambda z: _covariance(z).pow(2).sum() / (z.shape[1] * (z.shape[1] - 1)),
         mean_of_all=lambda z: _covariance(z).pow(2).mean(),
-        not_squared=lambda z: _per_pair(_off_diagonal(_covariance(z)).sum(), z),
-        absolute=lambda z: _per_pair(_off_diagonal(_covariance(z)).abs().sum(), z),
-        cov_of_rows=lambda z: _per_pair(_off_diagonal(torch.cov(z)).pow(2).sum(), z),
+        not_squared=lambda z: _pair_mean(_covariance(z), z.shape[1], f=lambda c: c),
+        absolute=lambda z: _pair_mean(_covariance(z), z.shape[1], f=torch.abs),
+        cov_of_rows=lambda z: _pair_mean(torch.cov(z), z.shape[1]),
         wrong_axis=lambda z: losses.covariance_term(z.T.contiguous())),
     lambda: _embedding_cases(seed=2),
     grad=[(0, "z")], dims={0: "BD"})
@@ -122,9 +118,8 @@ check_vicreg = Exercise(
 
 
 def _vicreg_paper_to_ebjepa(inv: float, std: float, cov: float, dim: int) -> tuple:
-    """VICReg-paper coefficients -> EB-JEPA's: the paper divides the covariance sum by ``D``,
-    EB-JEPA by ``D (D - 1)``, so its weight grows by ``D - 1``; all three are then divided by
-    the invariance weight, which leaves the loss's shape unchanged (only its scale)."""
+    """VICReg-paper coefficients -> EB-JEPA's: the covariance sum is divided by ``D (D - 1)``,
+    not ``D``, so its weight grows by ``D - 1``; then all three by the invariance weight."""
     return 1.0, std / inv, cov * (dim - 1) / inv
 
 
@@ -141,3 +136,53 @@ check_vicreg_paper_to_ebjepa = Exercise(
         (25.0, 25.0, 1.0, 2048), (25.0, 25.0, 1.0, 8192), (10.0, 25.0, 1.0, 1024),
         (5.0, 5.0, 1.0, 128), (2.0, 1.0, 0.5, 3)]],
     parts=("invariance weight", "variance weight", "covariance weight"), atol=1e-6)
+
+
+def _epps_pulley_reference(x, knots=17, t_max=3.0, scale_by_n=True):
+    return epps_pulley(x, knots=knots, t_max=t_max, scale_by_n=scale_by_n)
+
+
+def _epps_pulley_cases() -> list[Case]:
+    g = torch.Generator().manual_seed(6)
+    uniform = (torch.rand(256, generator=g) * 2 - 1) * 3**0.5  # mean 0, variance 1
+    return [
+        Case("a Gaussian sample of 256 numbers", (torch.randn(256, generator=g),)),
+        Case("a collapsed sample (64 copies of 0.5)", (torch.full((64,), 0.5),)),
+        Case("a uniform sample with mean 0 and variance 1", (uniform,)),
+        Case("a Gaussian sample with mean 1 and std 3", (1 + 3 * torch.randn(128, generator=g),)),
+        Case("a Gaussian sample of 100 numbers with scale_by_n=False",
+             (torch.randn(100, generator=g),), {"scale_by_n": False}),
+        Case("a collapsed sample (32 zeros) with scale_by_n=False", (torch.zeros(32),),
+             {"scale_by_n": False}),
+        Case("knots=5 and t_max=2.0", (torch.randn(50, generator=g),), {"knots": 5, "t_max": 2.0}),
+        Case("a sample of 2 numbers", (torch.tensor([-0.3, 1.2]),)),
+        Case("a float64 Gaussian sample of 40 numbers",
+             (torch.randn(40, generator=g, dtype=torch.float64),)),
+    ]
+
+
+def _epps_pulley_slip(weight=True, imag=True, square=True, rule="trapezoid", average=True,
+                      symmetric=False):
+    """The notebook's statistic with one mistake (each keyword undoes one step)."""
+    def epps_pulley_1d(x, knots=17, t_max=3.0, scale_by_n=True):
+        t = torch.linspace(-t_max if symmetric else 0.0, t_max, knots)
+        xt = x[:, None] * t
+        real = torch.cos(xt).mean(0) if average else torch.cos(xt).sum(0)
+        im = (torch.sin(xt).mean(0) if average else torch.sin(xt).sum(0)) if imag else 0.0
+        gaussian = torch.exp(-(t**2) / 2)
+        gap = (real - gaussian) ** 2 + im**2
+        y = (gaussian if weight else 1.0) * (gap if square else gap.sqrt())
+        area = torch.trapezoid(y, t) if rule == "trapezoid" else y.sum() * (t[1] - t[0])
+        statistic = area if symmetric else 2 * area
+        return statistic * len(x) if scale_by_n else statistic
+
+    return epps_pulley_1d
+
+
+check_epps_pulley = Exercise(
+    "epps_pulley_1d", _epps_pulley_reference, slips(
+        "epps_pulley_1d", unweighted=_epps_pulley_slip(weight=False),
+        real_only=_epps_pulley_slip(imag=False), unsquared=_epps_pulley_slip(square=False),
+        rectangle_rule=_epps_pulley_slip(rule="sum"), summed=_epps_pulley_slip(average=False),
+        symmetric_knots=_epps_pulley_slip(symmetric=True)),
+    _epps_pulley_cases, atol=1e-4, grad=[(0, "the sample x")], dims={0: "N"})

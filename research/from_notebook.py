@@ -1,0 +1,72 @@
+"""A notebook's definitions, for the research commands and the tests: one source of truth.
+
+A chapter writes its algorithm in its notebook's code cells. :func:`definitions` runs the
+notebook's import statements and the named top-level classes, functions and UPPER_CASE
+constants (with the UPPER_CASE constants they read), and nothing else of the cells, so a
+research fit runs exactly the code the learner reads.
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
+DEFINITIONS = (ast.FunctionDef, ast.ClassDef)
+
+
+def _constant(node: ast.stmt) -> str | None:
+    """The name an ``UPPER_CASE = ...`` statement assigns, else None."""
+    if isinstance(node, ast.Assign) and len(node.targets) == 1:
+        target = node.targets[0]
+        if isinstance(target, ast.Name) and target.id.isupper():
+            return target.id
+    return None
+
+
+def _top_level(path: Path) -> list[tuple[str, ast.stmt]]:
+    """``(where, statement)`` for the top-level statements of the notebook's code cells, in
+    order (IPython's ``%`` and ``!`` lines dropped); ``where`` names the notebook and cell."""
+    nodes = []
+    for index, cell in enumerate(json.loads(path.read_text(encoding="utf-8"))["cells"]):
+        if cell["cell_type"] == "code":
+            lines = "".join(cell["source"]).splitlines()
+            code = "\n".join(line for line in lines if not line.lstrip().startswith(("%", "!")))
+            where = f"{path.name}, cell {index}"
+            nodes += [(where, node) for node in ast.parse(code, filename=where).body]
+    return nodes
+
+
+def definitions(notebook: str | Path, *names: str) -> SimpleNamespace:
+    """The notebook's ``names`` (classes, functions, UPPER_CASE constants), each defined once in
+    its code cells, run with its imports: ``namespace.NAME``. ``notebook``: a path, or a file
+    name in ``notebooks/``."""
+    path = Path(notebook) if Path(notebook).exists() else NOTEBOOKS / notebook
+    located = _top_level(path)
+    nodes = [node for _, node in located]
+    named = {}
+    for node in nodes:
+        name = node.name if isinstance(node, DEFINITIONS) else _constant(node)
+        if name in names:
+            if name in named:
+                raise ValueError(f"{path.name} defines {name} twice at the top of its cells")
+            named[name] = node
+    missing = [name for name in names if name not in named]
+    if missing:
+        raise ValueError(f"{path.name} defines no {', '.join(missing)} at the top of a code cell")
+    constants = {_constant(node): node for node in nodes if _constant(node)}
+    wanted = dict(named)
+    while True:  # the constants the chosen nodes read, and the constants those read
+        read = {n.id for node in wanted.values() for n in ast.walk(node) if isinstance(n, ast.Name)}
+        more = {name: constants[name] for name in read & constants.keys() - wanted.keys()}
+        if not more:
+            break
+        wanted.update(more)
+    space = {"__name__": f"notebook_{path.stem}"}
+    for where, node in located:  # in the notebook's order, as a "Run All" defines them
+        if isinstance(node, ast.Import | ast.ImportFrom) or any(node is n for n in wanted.values()):
+            code = compile(ast.Module([node], type_ignores=[]), where, "exec", dont_inherit=True)
+            exec(code, space)  # noqa: S102 - the notebook's own definitions
+    return SimpleNamespace(**{name: space[name] for name in names})
