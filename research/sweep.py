@@ -164,7 +164,7 @@ def run_sweep(runs: list[Run], train, test, path: str | Path | None = None, devi
 
 def describe_data() -> str:
     """Which copy of CIFAR-10 the loaders read: every accuracy depends on it."""
-    source = find_cifar10(data_dir(), "train")
+    source = find_cifar10(data_dir())
     if source is None:
         return "CIFAR-10 (not found)"
     jpeg = source.kind == "packed"

@@ -178,7 +178,7 @@ def test_download_official_archive_and_read_pixel_layout(tmp_path, official):
     first = official["data_batch_1"]["data"][0]
     assert np.array_equal(images[0, 1].numpy(), first[1024:2048].reshape(32, 32))
     assert labels[:3].tolist() == official["data_batch_1"]["labels"]
-    assert find_cifar10(tmp_path / "data", "test").kind == "official"
+    assert find_cifar10(tmp_path / "data").kind == "official"
     test, _ = load_cifar10("test", root=tmp_path / "data", download=False)  # from disk now
     assert len(test) == 3
 
@@ -249,7 +249,7 @@ def test_packed_tree(tmp_path):
     images, labels = load_cifar10("test", root=tmp_path / "data", download=False)
     assert np.array_equal(images.numpy(), expected)
     assert labels.tolist() == [c for c in range(10) for _ in range(2)]
-    assert find_cifar10(tmp_path / "data", "test").kind == "packed"
+    assert find_cifar10(tmp_path / "data").kind == "packed"
 
 
 def test_packed_tree_with_top_folder(tmp_path):

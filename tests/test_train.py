@@ -304,7 +304,7 @@ def test_stale_temporaries_of_killed_writers_are_removed(tmp_path):
     other = tmp_path / ".notes.ab12.part"
     for file in (stale, fresh, other):
         file.write_bytes(b"x" * 10)
-    old = stale.stat().st_mtime - 2 * checkpoints.STALE_AFTER_S
+    old = stale.stat().st_mtime - 2 * 3600  # older than remove_stale_temporaries' hour
     os.utime(stale, (old, old))
     os.utime(other, (old, old))
     checkpoints.save_checkpoint(path, value=1)

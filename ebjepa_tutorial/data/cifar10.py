@@ -34,7 +34,7 @@ class Source(NamedTuple):
     path: Path
 
 
-def find_cifar10(directory: Path, split: str) -> Source | None:
+def find_cifar10(directory: Path) -> Source | None:
     """The official release in ``directory``, else its first ``cifar10*.tar.gz``, else None."""
     if (directory / datasets.CIFAR10.base_folder).is_dir():
         return Source("official", directory)
@@ -108,7 +108,7 @@ def load_cifar10(split: str = "train", root: str | os.PathLike | None = None,
     ``root``: the data directory; ``download=False``: DataNotFoundError instead of fetching."""
     check_split(split)
     directory = data_dir(root)
-    source = find_cifar10(directory, split)
+    source = find_cifar10(directory)
     if source is None and not download:
         raise DataNotFoundError(_missing_message(directory, split))
     if source is None or source.kind == "official":

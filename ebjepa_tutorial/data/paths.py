@@ -49,7 +49,8 @@ def check_split(split: str) -> None:
 def remove_stale_temporaries(folder: Path, patterns: list[str],
                              older_than_s: float = 3600.0) -> list[Path]:
     """Delete the regular files in ``folder`` matching ``patterns`` and unmodified for
-    ``older_than_s`` (temporaries of writes cut short by a kill); return them. Never raises."""
+    ``older_than_s`` (an hour: temporaries of writes cut short by a kill, not of live ones);
+    return them. Never raises."""
     cutoff, removed = time.time() - older_than_s, []
     for pattern in patterns:
         with contextlib.suppress(OSError):
@@ -91,7 +92,7 @@ def cached_arrays(source: Path, name: str, decode) -> tuple[np.ndarray, np.ndarr
     info, folder = source.stat(), cache_dir()
     key = hashlib.sha1(f"{source.resolve()}|{info.st_size}|{info.st_mtime_ns};".encode())
     files = [folder / f"{name}-{key.hexdigest()[:12]}-{part}.npy" for part in ("images", "labels")]
-    remove_stale_temporaries(folder, [".*.npy.*.part"])
+    remove_stale_temporaries(folder, [".*.npy.*.part"])  # any cache's, older keys' too
     try:
         images, labels = (np.load(path) for path in files)
         if len(images) == len(labels):

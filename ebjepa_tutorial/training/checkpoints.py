@@ -19,7 +19,6 @@ import torch
 
 from ..data.paths import atomic_file, cache_dir, remove_stale_temporaries, temporaries_of
 
-STALE_AFTER_S = 3600.0  # a temp file this old belongs to a killed writer, not a live one
 SHIPPED_DIR = Path(__file__).resolve().parents[2] / "checkpoints"  # beside the package
 
 
@@ -40,7 +39,7 @@ def checkpoint_paths(name: str) -> tuple[Path, Path]:
 def save_checkpoint(path: str | Path, **state: Any) -> Path:
     """Write ``state`` with ``torch.save`` atomically (a crash leaves the previous file whole)."""
     path = Path(path)
-    remove_stale_temporaries(path.parent, [temporaries_of(path)], STALE_AFTER_S)
+    remove_stale_temporaries(path.parent, [temporaries_of(path)])
     with atomic_file(path) as f:
         torch.save(state, f)
     return path

@@ -149,7 +149,7 @@ if (( steps > 0 )) && "$PYTHON" -c "
 import sys
 from ebjepa_tutorial.data.cifar10 import find_cifar10
 from ebjepa_tutorial.data.paths import data_dir
-sys.exit(0 if find_cifar10(data_dir(), 'train') else 'no CIFAR-10 in ' + str(data_dir()))
+sys.exit(0 if find_cifar10(data_dir()) else 'no CIFAR-10 in ' + str(data_dir()))
 "; then
     echo "image run: $steps steps (warm-up $warmup) at ${seconds} s a step fit in ${available} s"
     rm -f "$work/image_run.pt" "$work/image_run.partial"  # a fresh run, not a resumed one
