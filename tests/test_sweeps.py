@@ -37,7 +37,7 @@ def test_class_plan_sweeps_each_coefficient_alone():
     for run in sensitivity + projector:
         assert run.config.steps == steps and run.config.warmup_steps <= steps // 10
     lambdas = [r for r in sensitivity if r.sweep == "sigreg_lambda"]
-    assert [r.config.loss.lam for r in lambdas] == [0.001, 0.01, 0.1, 1.0, 10.0]
+    assert [r.config.loss.lam for r in lambdas] == [0.0005, 0.005, 0.05, 0.5, 5.0]
     assert all(isinstance(r.config.loss, SIGReg) for r in lambdas)
     vicreg = preset("01", "class").config  # each VICReg weight is swept around its default
     covs = [r for r in sensitivity if r.sweep == "cov_coeff"]
