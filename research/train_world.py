@@ -46,13 +46,8 @@ from . import launch
 from .refit import RefitConfig, refit_identity, refit_predictor
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Train a world model at a scale and save it: the documented command for the checkpoint.
-
-    ``--refit TRAINED.pt`` instead refits that model's predictor
-    (:func:`~research.refit.refit_predictor`); ``--steps``, ``--trajectories``, ``--seed``
-    and ``--stay-probability`` then set the refit's, and the training-only options are refused.
-    """
+def _parser() -> argparse.ArgumentParser:
+    """The command line: how a new model trains, or ``--refit`` with the refit's options."""
     parser = argparse.ArgumentParser(description="Train the Two Rooms world model.")
     parser.add_argument("--out", required=True, help="where to write the trained model")
     parser.add_argument("--scale", choices=SCALES,
@@ -106,7 +101,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int,
                         help=f"default {WorldTrainConfig.seed} ({RefitConfig.seed} with --refit)")
     launch.add_flags(parser)
-    args = parser.parse_args(argv)
+    return parser
+
+
+def _options(args) -> tuple[dict, dict]:
+    """The given config fields and recipe fields (only those set on the command line)."""
     given = {name: value for name, value in (("steps", args.steps), ("seed", args.seed),
                                               ("n_trajectories", args.trajectories),
                                               ("walls", args.walls))
@@ -119,42 +118,67 @@ def main(argv: list[str] | None = None) -> None:
                                                ("decay_steps", args.decay_steps),
                                                ("grad_clip", args.grad_clip))
               if value is not None}
+    return given, recipe
+
+
+def _refit(parser, args, given: dict, recipe: dict) -> None:
+    """``--refit``: refuse the options that choose how a new model trains, then refit."""
+    if "stay_probability" in recipe:  # the refit's still steps
+        given["stay_probability"] = recipe.pop("stay_probability")
+    training_only = {"--scale": args.scale, "--paper-recipe": args.paper_recipe,
+                     "--without": args.without,
+                     "--no-inverse-dynamics": args.no_inverse_dynamics,
+                     "--coeff": args.coeff, "--predictor": args.predictor,
+                     "--predictor-hidden": args.predictor_hidden is not None,
+                     "--walls": args.walls is not None,
+                     **{"--" + name.replace("_", "-"): True for name in recipe}}
+    refused = [flag for flag, value in training_only.items() if value]
+    if refused:
+        parser.error(f"--refit keeps the trained model's encoder, so {', '.join(refused)} "
+                     "cannot apply: they choose how a new model trains")
+    if args.ddp or launch.launched_by_torchrun():
+        parser.error("--refit runs in one process (a small MLP on precomputed latents): "
+                     "start it with python -m, without torchrun or --ddp")
+    refit_main(args.refit, args.out, RefitConfig(**given))
+
+
+def _config(args, given: dict, recipe: dict) -> WorldTrainConfig:
+    """The run the options describe: the scale's preset, changed as asked (ValueError if not
+    possible)."""
+    base = preset("05", args.scale or "class").train
+    if args.paper_recipe:
+        base = paper_recipe(base)
+    if args.predictor:
+        base = replace(base, model=replace(base.model, predictor=args.predictor))
+    if args.predictor_hidden is not None:
+        if args.predictor_hidden < 1:
+            raise ValueError(f"--predictor-hidden must be >= 1, got {args.predictor_hidden}")
+        base = replace(base, model=replace(base.model, predictor_hidden=args.predictor_hidden))
+    # one replace: a decay longer than the scale's steps must meet the new step count
+    config = with_coeffs(replace(base, recipe=replace(base.recipe, **recipe), **given),
+                         args.coeff)
+    if config.steps < 1 or config.recipe.grad_clip < 0:
+        raise ValueError("--steps takes an int >= 1, --grad-clip a number >= 0")
+    return config
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Train a world model at a scale and save it: the documented command for the checkpoint.
+
+    ``--refit TRAINED.pt`` instead refits that model's predictor
+    (:func:`~research.refit.refit_predictor`); ``--steps``, ``--trajectories``, ``--seed``
+    and ``--stay-probability`` then set the refit's, and the training-only options are refused.
+    """
+    parser = _parser()
+    args = parser.parse_args(argv)
+    given, recipe = _options(args)
     if args.refit:
-        if "stay_probability" in recipe:  # the refit's still steps
-            given["stay_probability"] = recipe.pop("stay_probability")
-        training_only = {"--scale": args.scale, "--paper-recipe": args.paper_recipe,
-                         "--without": args.without,
-                         "--no-inverse-dynamics": args.no_inverse_dynamics,
-                         "--coeff": args.coeff, "--predictor": args.predictor,
-                         "--predictor-hidden": args.predictor_hidden is not None,
-                         "--walls": args.walls is not None,
-                         **{"--" + name.replace("_", "-"): True for name in recipe}}
-        refused = [flag for flag, value in training_only.items() if value]
-        if refused:
-            parser.error(f"--refit keeps the trained model's encoder, so {', '.join(refused)} "
-                         "cannot apply: they choose how a new model trains")
-        if args.ddp or launch.launched_by_torchrun():
-            parser.error("--refit runs in one process (a small MLP on precomputed latents): "
-                         "start it with python -m, without torchrun or --ddp")
-        return refit_main(args.refit, args.out, RefitConfig(**given))
-    without = args.without + (["inverse_dynamics"] if args.no_inverse_dynamics else [])
+        return _refit(parser, args, given, recipe)
     try:
-        base = preset("05", args.scale or "class").train
-        if args.paper_recipe:
-            base = paper_recipe(base)
-        if args.predictor:
-            base = replace(base, model=replace(base.model, predictor=args.predictor))
-        if args.predictor_hidden is not None:
-            if args.predictor_hidden < 1:
-                raise ValueError(f"--predictor-hidden must be >= 1, got {args.predictor_hidden}")
-            base = replace(base, model=replace(base.model, predictor_hidden=args.predictor_hidden))
-        # one replace: a decay longer than the scale's steps must meet the new step count
-        config = with_coeffs(replace(base, recipe=replace(base.recipe, **recipe), **given),
-                             args.coeff)
-        if config.steps < 1 or config.recipe.grad_clip < 0:
-            raise ValueError("--steps takes an int >= 1, --grad-clip a number >= 0")
+        config = _config(args, given, recipe)
     except ValueError as error:
         parser.error(str(error))  # a usage message, not a traceback
+    without = args.without + (["inverse_dynamics"] if args.no_inverse_dynamics else [])
     config = ablation_config(config, *without)
     device = launch.join(parser, args, config.batch_size, identity(config),
                          "research.train_world")
