@@ -13,7 +13,7 @@ from .collapse import (
 from .common import ExerciseError, hint, whose
 from .two_rooms import check_slab_crossing, check_wall_collision
 from .video import check_parallel_rollout_loss
-from .world_model import check_inverse_dynamics, check_mppi_update, check_temporal_similarity
+from .world_and_planning import check_inverse_dynamics, check_mppi_update, check_temporal_similarity
 
 __all__ = [
     "ExerciseError", "hint", "whose", "check_variance_term", "check_covariance_term",
