@@ -26,16 +26,17 @@ def _constant(node: ast.stmt) -> str | None:
     return None
 
 
-def _top_level(path: Path) -> list[tuple[str, ast.stmt]]:
-    """``(where, statement)`` for the top-level statements of the notebook's code cells, in
-    order (IPython's ``%`` and ``!`` lines dropped); ``where`` names the notebook and cell."""
+def top_level(path: Path) -> list[tuple[str, str, ast.stmt]]:
+    """``(where, code, statement)`` for the top-level statements of the notebook's code cells,
+    in order: ``code`` is the cell's Python (IPython's ``%`` and ``!`` lines dropped), which
+    the statement's positions index; ``where`` names the notebook and cell."""
     nodes = []
     for index, cell in enumerate(json.loads(path.read_text(encoding="utf-8"))["cells"]):
         if cell["cell_type"] == "code":
             lines = "".join(cell["source"]).splitlines()
             code = "\n".join(line for line in lines if not line.lstrip().startswith(("%", "!")))
             where = f"{path.name}, cell {index}"
-            nodes += [(where, node) for node in ast.parse(code, filename=where).body]
+            nodes += [(where, code, node) for node in ast.parse(code, filename=where).body]
     return nodes
 
 
@@ -44,7 +45,7 @@ def definitions(notebook: str | Path, *names: str) -> SimpleNamespace:
     its code cells, run with its imports: ``namespace.NAME``. ``notebook``: a path, or a file
     name in ``notebooks/``."""
     path = Path(notebook) if Path(notebook).exists() else NOTEBOOKS / notebook
-    located = _top_level(path)
+    located = [(where, node) for where, _, node in top_level(path)]
     nodes = [node for _, node in located]
     named = {}
     for node in nodes:

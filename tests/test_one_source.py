@@ -10,7 +10,6 @@ Chapter 00's loop trains no shipped run: only its notebook holds it (:func:`chap
 
 import ast
 import inspect
-import json
 import textwrap
 from pathlib import Path
 
@@ -20,6 +19,7 @@ import torch
 from ebjepa_tutorial.losses import covariance_term, variance_term, vicreg_loss
 from ebjepa_tutorial.training import toy, world
 from ebjepa_tutorial.training.loop import History
+from research.from_notebook import top_level
 
 NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
 
@@ -29,16 +29,8 @@ PAIRS = [("05_world_model.ipynb", "world_model_step", world.world_model_step)]
 
 def notebook_function(notebook: str, name: str) -> str:
     """The source of ``def name`` in the notebook's code cells (exactly one must define it)."""
-    found = []
-    for cell in json.loads((NOTEBOOKS / notebook).read_text())["cells"]:
-        if cell["cell_type"] != "code":
-            continue
-        source = "".join(cell["source"])
-        tree = ast.parse("\n".join(l for l in source.splitlines() if not l.startswith(("%", "!"))))
-        lines = source.splitlines()
-        for node in tree.body:
-            if isinstance(node, ast.FunctionDef) and node.name == name:
-                found.append("\n".join(lines[node.lineno - 1:node.end_lineno]))
+    found = [ast.get_source_segment(code, node) for _, code, node in top_level(NOTEBOOKS / notebook)
+             if isinstance(node, ast.FunctionDef) and node.name == name]
     assert len(found) == 1, f"{notebook} defines {name} {len(found)} times, not once"
     return found[0]
 
