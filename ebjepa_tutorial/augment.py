@@ -20,7 +20,6 @@ class AugmentConfig:
 
     size: int = 32  # output side, pixels
     crop_scale: tuple[float, float] = (0.2, 1.0)  # fraction of the image area kept by the crop
-    jitter: tuple[float, float, float, float] = (0.4, 0.4, 0.2, 0.1)  # bright, contrast, sat, hue
     jitter_p: float = 0.8
     grayscale_p: float = 0.2
     solarize_p: float = 0.1
@@ -28,13 +27,11 @@ class AugmentConfig:
 
 
 def build_augmentation(config: AugmentConfig = AugmentConfig()) -> K.AugmentationSequential:
-    """The pipeline as a kornia module: ``(B, 3, H, W) -> (B, 3, size, size)``, normalised.
-    ``ColorJitter`` has torchvision's formulas, which the SSL literature tuned these for."""
-    brightness, contrast, saturation, hue = config.jitter
+    """The pipeline as a kornia module: ``(B, 3, H, W) -> (B, 3, size, size)``, normalised."""
     return K.AugmentationSequential(
         K.RandomResizedCrop((config.size, config.size), scale=config.crop_scale),
         K.RandomHorizontalFlip(p=config.flip_p),
-        K.ColorJitter(brightness, contrast, saturation, hue, p=config.jitter_p),
+        K.ColorJitter(0.4, 0.4, 0.2, 0.1, p=config.jitter_p),  # brightness, contrast, sat, hue
         K.RandomGrayscale(p=config.grayscale_p),
         K.RandomSolarize(thresholds=0.0, additions=0.0, p=config.solarize_p),  # as in BYOL
         K.Normalize(mean=torch.tensor(CIFAR10_MEAN), std=torch.tensor(CIFAR10_STD)),
@@ -44,9 +41,8 @@ def build_augmentation(config: AugmentConfig = AugmentConfig()) -> K.Augmentatio
 def to_float_images(images: torch.Tensor) -> torch.Tensor:
     """Check ``(B, 3, H, W)`` images (uint8, or float in ``[0, 1]``); return float32 in [0, 1]."""
     if images.ndim != 4 or images.shape[1] != 3:
-        raise ValueError(f"images must be a (batch, 3 colour channels, height, width) tensor, got "
-                         f"{tuple(images.shape)}; add a batch dimension with images.unsqueeze(0), "
-                         "put channels first with .permute(0, 3, 1, 2)")
+        raise ValueError(f"images must be (batch, 3 colour channels, height, width), got "
+                         f"{tuple(images.shape)}: try .unsqueeze(0) or .permute(0, 3, 1, 2)")
     if images.dtype == torch.uint8:
         return images.float().div_(255)
     low, high = images.min().item(), images.max().item()
@@ -57,9 +53,8 @@ def to_float_images(images: torch.Tensor) -> torch.Tensor:
 
 
 def augment(images: torch.Tensor, pipeline: nn.Module, generator: torch.Generator) -> torch.Tensor:
-    """One random view of each image: ``(B, 3, H, W)`` -> ``(B, 3, size, size)`` float32, by
-    :func:`build_augmentation`'s ``pipeline``; the views depend only on ``generator``'s state
-    (kornia draws from the global RNG: it runs seeded from ``generator``, under ``fork_rng``)."""
+    """One random view of each image by ``pipeline``: ``(B, 3, H, W) -> (B, 3, size, size)``
+    float32, drawn from ``generator`` alone (kornia's global RNG is seeded from it, forked)."""
     images = to_float_images(images)
     seed = int(torch.randint(0, 2**62, (1,), generator=generator, device=generator.device))
     device = images.device

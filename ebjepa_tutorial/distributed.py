@@ -1,12 +1,8 @@
-"""Data parallelism under ``torchrun --nproc_per_node=W``: W ranks, each with a copy of the model
-and an equal share of every batch; batch statistics (VICReg, SIGReg) see the global batch through
-collectives whose backward sums ``dL_r/dx_s`` over ranks ``r``, and averaging the gradients
-supplies the 1/W of ``J = (1/W) sum_r L_r``. Everything here is a no-op in one process."""
+"""Data parallelism under ``torchrun --nproc_per_node=W``: each of W ranks holds the model and
+1/W of every batch; batch statistics see the global batch through collectives that autograd goes
+through, and gradients are averaged over ranks. Everything here is a no-op in one process."""
 
 from __future__ import annotations
-
-from collections.abc import Callable
-from typing import Any
 
 import torch
 import torch.distributed as dist
@@ -26,14 +22,9 @@ def world_size() -> int:
     return dist.get_world_size() if running() else 1
 
 
-def rank() -> int:
-    """This process's rank, 0 .. world_size() - 1: 0 outside a process group."""
-    return dist.get_rank() if running() else 0
-
-
 def is_main() -> bool:
     """Whether this is rank 0, the one that prints, shows progress and writes files."""
-    return rank() == 0
+    return not running() or dist.get_rank() == 0
 
 
 def per_rank_batch(global_batch: int) -> int:
@@ -41,8 +32,8 @@ def per_rank_batch(global_batch: int) -> int:
     world = world_size()
     if global_batch % world or global_batch // world < 2:
         raise ValueError(f"the global batch of {global_batch} cannot be split evenly over {world} "
-                         f"processes with at least 2 samples each (batch norm needs 2): choose a "
-                         f"batch_size that is a multiple of the world size {world}")
+                         f"processes with at least 2 samples each: make batch_size a multiple of "
+                         f"the world size {world}")
     return global_batch // world
 
 
@@ -50,8 +41,8 @@ def local_rows(x: torch.Tensor) -> torch.Tensor:
     """This rank's share of a global batch: rows ``r b .. (r+1) b`` of ``(W b, ...)``."""
     if world_size() == 1:
         return x
-    share = per_rank_batch(x.shape[0])
-    return x[rank() * share:(rank() + 1) * share]
+    share, rank = per_rank_batch(x.shape[0]), dist.get_rank()
+    return x[rank * share:(rank + 1) * share]
 
 
 def rand_rows(rows: int, *size: int, generator: torch.Generator | None = None) -> torch.Tensor:
@@ -60,12 +51,12 @@ def rand_rows(rows: int, *size: int, generator: torch.Generator | None = None) -
     return local_rows(torch.rand(rows * world_size(), *size, generator=generator))
 
 
-def from_main(compute: Callable[[], Any]) -> Any:
+def from_main(compute):
     """``compute()`` on rank 0 only (file reads), its result (picklable) sent to every rank.
     An exception on rank 0 is raised on every rank, so none waits for a result."""
     if world_size() == 1:
         return compute()
-    box: list[Any] = [None]
+    box = [None]
     if is_main():
         try:
             box = [("ok", compute())]
@@ -105,17 +96,17 @@ def gather_rows(x: torch.Tensor) -> torch.Tensor:
     return x if world_size() == 1 else torch.cat(collective.all_gather(x))
 
 
-def variance_and_covariance(z: torch.Tensor, gamma: float = 1.0, eps: float = 1e-4):
-    """:func:`ebjepa_tutorial.losses.variance_and_covariance` (two 0-d tensors) of the global
-    batch ``(W b, D)`` from each rank's ``(b, D)``, by all-reducing the mean and scatter."""
+def variance_and_covariance(z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """VICReg's ``v(Z)`` and ``c(Z)`` (0-d tensors) of the global batch ``(W b, D)`` from each
+    rank's ``(b, D)``, by all-reducing the mean and the scatter."""
     if world_size() == 1:
-        return vicreg.variance_and_covariance(z, gamma, eps)
+        return vicreg.variance_term(z), vicreg.covariance_term(z)
     world = world_size()
     mean = collective.all_reduce(z.mean(dim=0)) / world  # (D,): the global mean
     centred = z - mean
     scatter = collective.all_reduce(centred.T @ centred) / world  # (D, D): 1/W of the sum
     cov = scatter * (world / (world * z.shape[0] - 1))  # sample covariance
-    variance = torch.relu(gamma - torch.sqrt(torch.diagonal(cov) + eps)).mean()
+    variance = torch.relu(1.0 - torch.sqrt(torch.diagonal(cov) + 1e-4)).mean()  # gamma, eps
     return variance, vicreg.off_diagonal_term(cov)
 
 

@@ -19,22 +19,18 @@ def get_device(prefer: str | None = None) -> torch.device:
     return torch.device("mps" if torch.backends.mps.is_available() else "cpu")
 
 
-def cpu_has_bf16() -> bool:
-    """Whether this CPU computes bfloat16 natively (AVX-512 BF16 or AMX); else it emulates it."""
-    checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
-    return any(getattr(torch.cpu, name, lambda: False)() for name in checks)
-
-
 def network_dtype(device: torch.device | str, cpu: bool = False) -> torch.dtype:
-    """bfloat16 on a CUDA GPU that has it and, with ``cpu=True``, on a CPU that has it;
-    else float32: what :func:`mixed_precision` computes networks in."""
+    """bfloat16 on a CUDA GPU that has it and, with ``cpu=True``, on a CPU that computes it
+    natively (AVX-512 BF16 or AMX); else float32: what :func:`mixed_precision` computes in."""
     kind = torch.device(device).type
-    gpu_bf16 = kind == "cuda" and torch.cuda.is_bf16_supported()
-    return torch.bfloat16 if gpu_bf16 or kind == "cpu" and cpu and cpu_has_bf16() else torch.float32
+    if kind == "cuda":
+        return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float32
+    checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")  # else bf16 is emulated
+    cpu_bf16 = any(getattr(torch.cpu, name, lambda: False)() for name in checks)
+    return torch.bfloat16 if kind == "cpu" and cpu and cpu_bf16 else torch.float32
 
 
-def mixed_precision(device: torch.device | str, cpu: bool = False
-                    ) -> contextlib.AbstractContextManager:
+def mixed_precision(device: torch.device | str, cpu: bool = False):
     """bfloat16 autocast where :func:`network_dtype` says so; elsewhere, nothing. Compute
     losses after it, on ``.float()`` outputs: batch statistics lose their digits in bf16."""
     dtype = network_dtype(device, cpu)
@@ -55,23 +51,20 @@ def memory_format(device: torch.device | str) -> torch.memory_format:
 
 def seed_everything(seed: int) -> torch.Generator:
     """Seed Python, NumPy and torch; return a CPU ``torch.Generator`` seeded with ``seed``."""
-    generator = make_generator(seed)
+    generator = as_generator(seed)
     random.seed(seed)
     np.random.seed(seed % 2**32)
     torch.manual_seed(seed)
     return generator
 
 
-def make_generator(seed: int) -> torch.Generator:
-    """A fresh CPU ``torch.Generator`` seeded with the int ``seed``."""
+def as_generator(seed: int | torch.Generator) -> torch.Generator:
+    """``seed`` itself if it is a ``torch.Generator``, else a fresh CPU one seeded with the int."""
+    if isinstance(seed, torch.Generator):
+        return seed
     if not isinstance(seed, int) or isinstance(seed, bool):
         raise TypeError(f"seed must be an int (or a torch.Generator), got {type(seed).__name__}")
     return torch.Generator().manual_seed(seed)
-
-
-def as_generator(seed: int | torch.Generator) -> torch.Generator:
-    """``seed`` itself if it is a ``torch.Generator``, else a fresh CPU one seeded with it."""
-    return seed if isinstance(seed, torch.Generator) else make_generator(seed)
 
 
 def is_int_at_least(least: int):

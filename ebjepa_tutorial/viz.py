@@ -8,7 +8,6 @@ import matplotlib.pyplot as plt
 import torch
 from matplotlib.animation import FuncAnimation
 
-from .augment import denormalize, to_float_images
 from .envs.two_rooms import wall_images
 from .losses.sigreg import epps_pulley
 
@@ -23,21 +22,12 @@ def _legend(ax, **props):
     return ax
 
 
-def _side_by_side(ax, series: list[tuple[str, list]]):
+def grouped_bars(ax, series: list[tuple[str, list]]):
     """Grouped bars: bar ``i`` of each ``(label, heights)`` around ``x = i``, side by side."""
     width = 0.8 / len(series)
     for k, (label, heights) in enumerate(series):
         shift = (k - (len(series) - 1) / 2) * width
         ax.bar([i + shift for i in range(len(heights))], heights, width, label=label)
-
-
-def plot_history(history: dict, names: list[str], ax=None):
-    """Curves of the ``names`` logged in a ``training.loop.History`` against step."""
-    ax = _axes(ax)
-    for name in names:
-        ax.plot(history["step"], history[name], label=name)
-    ax.set_yscale("symlog", linthresh=1e-3)
-    return _legend(ax, xlabel="step", ylabel="loss term")
 
 
 def plot_spectrum(eigenvalues: dict[str, torch.Tensor], ax=None, marker: str | None = "o"):
@@ -167,29 +157,6 @@ def plot_ap_curves(curves: dict[str, torch.Tensor], ax=None, spread: dict | None
     return _legend(ax, xlabel="steps ahead k", ylabel="detection AP", ylim=(0, 1))
 
 
-def show_views(images: torch.Tensor, views):
-    """Images ``(N, 3, H, W)`` (uint8 or float) over their standardised ``views``, a list of
-    ``(N, 3, S, S)``: one column per image. Returns the axes ``(1 + len(views), N)``."""
-    n = len(images)
-    rows = [to_float_images(images)] + [denormalize(v.float()) for v in views]
-    fig, axes = plt.subplots(len(rows), n, figsize=(1.2 * n, 1.25 * len(rows)), squeeze=False)
-    for r, (row, batch) in enumerate(zip(axes, rows)):
-        for ax, image in zip(row, batch):
-            ax.imshow(image.detach().cpu().permute(1, 2, 0).numpy(), interpolation="nearest")
-            ax.set(xticks=[], yticks=[])
-        row[0].set_ylabel("original" if r == 0 else f"view {r}\n({batch.shape[-1]} px)", fontsize=8)
-    return axes
-
-
-def plot_dimension_std(stds: dict[str, torch.Tensor], ax=None, target: float | None = None):
-    """Each embedding dimension's std ``(D,)``, sorted, per run; ``target``: the hinge's, dashed."""
-    ax = plot_spectrum({label: v.detach().cpu().sort(descending=True).values
-                        for label, v in stds.items()}, ax, marker=None)
-    if target is not None:
-        ax.axhline(target, color="k", ls="--", lw=0.8, label=f"hinge threshold {target:g}")
-    return _legend(ax, xlabel="dimension (sorted)", ylabel="std over images")
-
-
 def plot_characteristic_functions(samples: dict[str, torch.Tensor]):
     """Three panels for 1-D samples ``(N,)`` tested against N(0, 1): histograms; Re and |phi_N(t)|
     against exp(-t^2/2); ``N w(t) |phi_N(t) - phi(t)|^2`` with ``w(t) = exp(-t^2 / 2)``, whose
@@ -220,38 +187,6 @@ def plot_characteristic_functions(samples: dict[str, torch.Tensor]):
     return axes
 
 
-def _beside_random_init(ax, baseline: float, xlabel: str):
-    ax.axhline(100 * baseline, color="k", ls="--", lw=0.8, label="random init")
-    return _legend(ax, xlabel=xlabel, ylabel="linear probe (%)")
-
-
-def plot_sweep(rows: list[dict], baseline: float, labels: dict[str, str]):
-    """Probe accuracy per sweep against each coefficient's multiple of its default (log x)."""
-    ax = _axes(None)
-    for sweep in dict.fromkeys(row["sweep"] for row in rows):
-        points = sorted((row["factor"], row["probe_acc"]) for row in rows if row["sweep"] == sweep)
-        xs, ys = zip(*points)
-        ax.semilogx(xs, [100 * y for y in ys], marker="o", label=labels.get(sweep, sweep))
-    _beside_random_init(ax, baseline, "coefficient, as a multiple of its default")
-    ax.axvline(1.0, color="0.7", lw=0.8)
-    return ax
-
-
-def plot_projector_ablation(rows: list[dict], baseline: float, labels: dict[str, str]):
-    """Grouped bars: probe accuracy per projector output width (``None``: no projector)."""
-    ax = _axes(None)
-    sweeps = dict.fromkeys(row["sweep"] for row in rows)
-    values = list(dict.fromkeys(row["value"] for row in rows))
-    accuracy = {(row["sweep"], row["value"]): 100 * row["probe_acc"] for row in rows}
-    _side_by_side(ax, [(labels.get(s, s), [accuracy.get((s, v), float("nan")) for v in values])
-                       for s in sweeps])
-    _beside_random_init(ax, baseline, "projector output width")
-    lowest = min([100 * row["probe_acc"] for row in rows] + [100 * baseline])
-    ax.set_ylim(bottom=max(0.0, lowest - 5))  # bars from 0 would hide differences of a point
-    ax.set_xticks(range(len(values)), ["none" if v is None else str(v) for v in values])
-    return ax
-
-
 def plot_success_rates(rows: dict[str, tuple[float, float, float]], ax=None,
                        reference: dict[str, float] | None = None, colors=None):
     """Bars of ``name: (rate, low, high)``; ``reference`` rates as black ticks across their bars."""
@@ -275,7 +210,7 @@ def plot_success_rates(rows: dict[str, tuple[float, float, float]], ax=None,
 def plot_stopped_by_door_distance(by_distance: dict[str, list[dict]], ax=None, title: str = ""):
     """Grouped bars: the wall test's ``stopped`` per distance from the door, per ``name: bins``."""
     ax = _axes(ax)
-    _side_by_side(ax, [(name, [b["stopped"] for b in bins]) for name, bins in by_distance.items()])
+    grouped_bars(ax, [(name, [b["stopped"] for b in bins]) for name, bins in by_distance.items()])
     first = next(iter(by_distance.values()))
     ax.set_xticks(range(len(first)), [f"{b['lo']}-{b['hi']} px\n({b['n']} steps)" for b in first])
     ax.set(xlabel="distance along the wall from the door's centre", ylabel="stopped (wall test)",
@@ -302,19 +237,6 @@ def draw_two_rooms(ax, layout: torch.Tensor, goal, start):
     ax.scatter([goal[0]], [goal[1]], marker="*", s=120, c="green", zorder=3)
     ax.scatter([start[0]], [start[1]], marker="o", s=40, c="black", zorder=3)
     ax.set(xticks=[], yticks=[], xlim=(-0.5, 64.5), ylim=(64.5, -0.5))
-    return ax
-
-
-def plot_imagined_paths(ax, paths: torch.Tensor, costs: torch.Tensor, layout, goal, start,
-                        title: str = ""):
-    """Sampled plans decoded to pixels ``(N, H, 2)``, cheap ones dark: the planner's imagination."""
-    draw_two_rooms(ax, layout, goal, start)
-    order = costs.argsort(descending=True)  # draw the cheapest last, on top
-    shade = (costs[order] - costs.min()) / (costs.max() - costs.min()).clamp_min(1e-9)
-    for path, s in zip(paths[order], shade.tolist()):
-        ax.plot(path[:, 0], path[:, 1], color=plt.cm.viridis(s), lw=0.6,
-                alpha=0.35 + 0.4 * (1 - s))
-    ax.set_title(title)
     return ax
 
 

@@ -167,8 +167,8 @@ def describe_data() -> str:
     source = find_cifar10(data_dir())
     if source is None:
         return "CIFAR-10 (not found)"
-    jpeg = source.kind == "packed"
-    return f"CIFAR-10{' (JPEG copy)' if jpeg else ''}, read from {source.path}"
+    jpeg = source.is_file()  # the packed archive, not the official release's folder
+    return f"CIFAR-10{' (JPEG copy)' if jpeg else ''}, read from {source}"
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -15,18 +15,18 @@ from ebjepa_tutorial.augment import (
     to_float_images,
     two_views,
 )
-from ebjepa_tutorial.utils import make_generator
+from ebjepa_tutorial.utils import as_generator
 
 PIPELINE = build_augmentation()
 
 
 def _images(n=8, seed=0):
-    return torch.randint(0, 256, (n, 3, 32, 32), dtype=torch.uint8, generator=make_generator(seed))
+    return torch.randint(0, 256, (n, 3, 32, 32), dtype=torch.uint8, generator=as_generator(seed))
 
 
 def test_views_differ_per_image_when_the_image_is_repeated():
     image = _images(1)
-    views = augment(image.repeat(64, 1, 1, 1), PIPELINE, make_generator(0))
+    views = augment(image.repeat(64, 1, 1, 1), PIPELINE, as_generator(0))
     flat = views.flatten(1)
     distances = torch.cdist(flat, flat)
     off_diagonal = distances[~torch.eye(64, dtype=torch.bool)]
@@ -49,21 +49,21 @@ def test_parameters_are_drawn_per_image():
 
 
 def test_output_shape_dtype_and_range():
-    views = augment(_images(16), PIPELINE, make_generator(1))
+    views = augment(_images(16), PIPELINE, as_generator(1))
     assert views.shape == (16, 3, 32, 32) and views.dtype == torch.float32
     # Normalised values lie within [(0 - mean) / std, (1 - mean) / std] per channel.
     mean = torch.tensor(CIFAR10_MEAN).view(1, 3, 1, 1)
     std = torch.tensor(CIFAR10_STD).view(1, 3, 1, 1)
     assert (views >= (0 - mean) / std - 1e-4).all() and (views <= (1 - mean) / std + 1e-4).all()
     unnormalised = K.AugmentationSequential(*list(PIPELINE.children())[:-1])  # all but the last
-    raw = augment(_images(16), unnormalised, make_generator(1))
+    raw = augment(_images(16), unnormalised, as_generator(1))
     assert raw.min() >= 0 and raw.max() <= 1
     assert torch.allclose(views, normalize(raw), atol=1e-5)
 
 
 def test_output_size_follows_the_config():
     pipeline = build_augmentation(AugmentConfig(size=16))
-    assert augment(_images(4), pipeline, make_generator(0)).shape == (4, 3, 16, 16)
+    assert augment(_images(4), pipeline, as_generator(0)).shape == (4, 3, 16, 16)
 
 
 def test_normalize_by_hand_and_round_trip():
@@ -78,8 +78,8 @@ def test_normalize_by_hand_and_round_trip():
 
 def test_uint8_and_float_inputs_give_the_same_views():
     images = _images(4)
-    from_uint8 = augment(images, PIPELINE, make_generator(3))
-    from_float = augment(images.float() / 255, PIPELINE, make_generator(3))
+    from_uint8 = augment(images, PIPELINE, as_generator(3))
+    from_float = augment(images.float() / 255, PIPELINE, as_generator(3))
     assert torch.allclose(from_uint8, from_float)
 
 
@@ -88,12 +88,12 @@ def test_same_generator_state_gives_same_views_and_leaves_global_rng_alone():
     torch.manual_seed(123)
     before = torch.rand(1)
     torch.manual_seed(123)
-    a1, b1 = two_views(images, PIPELINE, make_generator(7))
+    a1, b1 = two_views(images, PIPELINE, as_generator(7))
     after = torch.rand(1)
-    a2, b2 = two_views(images, PIPELINE, make_generator(7))
+    a2, b2 = two_views(images, PIPELINE, as_generator(7))
     assert torch.equal(a1, a2) and torch.equal(b1, b2)
     assert not torch.equal(a1, b1)  # the two views of one call differ
-    assert not torch.equal(a1, two_views(images, PIPELINE, make_generator(8))[0])
+    assert not torch.equal(a1, two_views(images, PIPELINE, as_generator(8))[0])
     assert torch.equal(before, after)  # augmenting did not consume the global RNG
 
 
@@ -108,4 +108,4 @@ def test_same_generator_state_gives_same_views_and_leaves_global_rng_alone():
 )
 def test_bad_input_is_named(bad, match):
     with pytest.raises(ValueError, match=match):
-        augment(bad, PIPELINE, make_generator(0))
+        augment(bad, PIPELINE, as_generator(0))

@@ -103,14 +103,6 @@ def test_real_mnist_test_split(real_loads):
     assert torch.equal(images, again) and seconds < 1.0
 
 
-def test_real_mnist_train_missing_names_what_is_there():
-    root = shared_data()
-    if (root / "mnist" / "train-images-idx3-ubyte.gz").exists():
-        pytest.skip("this copy has the train split")
-    with pytest.raises(DataNotFoundError, match="Only the test split is there"):
-        load_mnist("train", root=root, download=False)
-
-
 # --- the official archive, downloaded by torchvision from a local HTTP server ---------------
 
 
@@ -178,7 +170,7 @@ def test_download_official_archive_and_read_pixel_layout(tmp_path, official):
     first = official["data_batch_1"]["data"][0]
     assert np.array_equal(images[0, 1].numpy(), first[1024:2048].reshape(32, 32))
     assert labels[:3].tolist() == official["data_batch_1"]["labels"]
-    assert find_cifar10(tmp_path / "data").kind == "official"
+    assert find_cifar10(tmp_path / "data") == tmp_path / "data" / "cifar-10-batches-py"
     test, _ = load_cifar10("test", root=tmp_path / "data", download=False)  # from disk now
     assert len(test) == 3
 
@@ -249,7 +241,7 @@ def test_packed_tree(tmp_path):
     images, labels = load_cifar10("test", root=tmp_path / "data", download=False)
     assert np.array_equal(images.numpy(), expected)
     assert labels.tolist() == [c for c in range(10) for _ in range(2)]
-    assert find_cifar10(tmp_path / "data").kind == "packed"
+    assert find_cifar10(tmp_path / "data") == tmp_path / "data" / "cifar10-mine.tar.gz"
 
 
 def test_packed_tree_with_top_folder(tmp_path):
@@ -353,7 +345,6 @@ def test_mnist_missing_split_message(tmp_path):
         load_mnist("train", root=tmp_path / "data", download=False)
     message = str(info.value)
     assert "train-images-idx3-ubyte.gz" in message and datasets.MNIST.mirrors[0] in message
-    assert "Only the test split is there" in message
 
 
 # --- paths, splits, cache, helpers ----------------------------------------------------------

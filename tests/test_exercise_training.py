@@ -12,7 +12,7 @@ from ebjepa_tutorial.training import image, toy
 
 def test_the_toy_run_trains_with_the_terms_it_is_given():
     x, _ = toy.make_blobs(64, k=3, seed=0)
-    coeffs = toy.Coefficients(inv=1.0, var=1.0, cov=1.0)
+    coeffs = image.VICReg(inv_coeff=1.0, std_coeff=1.0, cov_coeff=1.0)
     calls = {"variance": 0, "covariance": 0}
 
     def variance_term(z, gamma=1.0, eps=1e-4):  # a learner's own, written differently

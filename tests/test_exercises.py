@@ -329,8 +329,8 @@ def test_checker_rejects_wrong_answers(checker, wrong, message):
 @pytest.mark.slow  # every known mistake of every checker: seconds
 @pytest.mark.parametrize("checker", list(CHECKERS.values()), ids=list(CHECKERS))
 def test_checker_names_each_mistake_it_knows(checker):
-    assert len(checker.mistakes) >= 2
-    for words, wrong in checker.mistakes:  # each known slip is caught, and named as itself
+    assert len(checker.slips) >= 2
+    for words, wrong in checker.slips:  # each known slip is caught, and named as itself
         with pytest.raises(exercises.ExerciseError, match="Likely cause: " + re.escape(words)):
             checker(wrong)
 
@@ -695,7 +695,7 @@ def test_every_exercise_has_three_hints_and_its_checker_names_each_mistake_in_hi
         assert checker.exercise == name
         idea, formula, outline = common.HINTS[name]
         assert len(idea) > 80 and len(formula) > 80 and outline
-        assert {words for words, _ in checker.mistakes} == set(common.TEXTS[name]["slips"].values())
+        assert {words for words, _ in checker.slips} == set(common.TEXTS[name]["slips"].values())
 
 
 # --------------------------------------------------- the student version shows no solution

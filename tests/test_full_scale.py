@@ -169,7 +169,7 @@ def test_full_planner_replans_once_with_a_full_world_model(monkeypatch):
         plans.append(real_plan(*args, **kwargs, record=True))
         return plans[-1]
 
-    monkeypatch.setattr(planning.mpc, "plan", recording_plan)
+    monkeypatch.setattr(planning, "plan", recording_plan)
     result = planning.run_episodes(model, [sizes.first_seed], config, steps=config.execute)
     assert len(plans) == 1  # execute = 1 step, so one re-plan
     made = plans[0]

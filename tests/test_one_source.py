@@ -18,6 +18,7 @@ import torch
 
 from ebjepa_tutorial.losses import covariance_term, variance_term, vicreg_loss
 from ebjepa_tutorial.training import toy, world
+from ebjepa_tutorial.training.image import VICReg
 from ebjepa_tutorial.training.loop import History
 from research.from_notebook import top_level
 
@@ -72,7 +73,7 @@ def test_an_edit_to_chapter_00s_loop_changes_what_trains():
     assert edited != source
 
     x, _ = toy.make_blobs(64, seed=0)
-    coeffs = toy.Coefficients(inv=1.0, var=1.0, cov=1.0)
+    coeffs = VICReg(inv_coeff=1.0, std_coeff=1.0, cov_coeff=1.0)
     as_shown, _ = chapter_00_loop(source)(x, coeffs, steps=3)
     again, _ = chapter_00_loop(source)(x, coeffs, steps=3)
     changed, _ = chapter_00_loop(edited)(x, coeffs, steps=3)

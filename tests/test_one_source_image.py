@@ -32,7 +32,7 @@ def define(source: str, name: str):
     where ``inspect`` finds it (as IPython keeps a cell's)."""
     filename = f"<cell {name} {abs(hash(source))}>"
     linecache.cache[filename] = (len(source), None, source.splitlines(True), filename)
-    space = dict(vars(image))  # embed, vicreg, vicreg_terms, sigreg_loss
+    space = dict(vars(image))  # embed, vicreg, vicreg_loss, sigreg_loss
     exec(compile(source, filename, "exec"), space)
     return space[name]
 

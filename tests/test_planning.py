@@ -466,7 +466,7 @@ def test_an_arrived_agent_stands_still_and_plans_no_more(monkeypatch):
         return planning_plan(imagine, z0, *args, **kwargs)
 
     planning_plan = planning.plan
-    monkeypatch.setattr(planning.mpc, "plan", counting_plan)
+    monkeypatch.setattr(planning, "plan", counting_plan)
     model, seeds = LinearLatentModel(), range(6)
     config = PlannerConfig(horizon=16, samples=64, elites=8, iterations=3, execute=4,
                            habits=Habits(stop_px=2.0))
@@ -496,7 +496,7 @@ def test_warm_replans_refine_the_plan_warm_iterations_times(monkeypatch):
         return planning_plan(imagine, z0, z_goal, config, *args, **kwargs)
 
     planning_plan = planning.plan
-    monkeypatch.setattr(planning.mpc, "plan", recording_plan)
+    monkeypatch.setattr(planning, "plan", recording_plan)
     config = PlannerConfig(horizon=8, samples=16, elites=4, iterations=5,
                            habits=Habits(warm_iterations=2))
     planning.run_episodes(LinearLatentModel(), [3, 4], config, steps=12)

@@ -47,7 +47,7 @@ def generators(seeds):
     (torch.zeros(1, 2), r"z0 \(3, 2\), z_goal \(1, 2\).*expand\(3, -1\)"),
     (torch.zeros(3), r"z_goal \(3,\).*z_goal\[None\]"),
     (torch.zeros(3, 2, 65, 65), r"z_goal \(3, 2, 65, 65\).*encode them first"),
-    (torch.zeros(2, 2), r"one goal per start; got z0 \(3, 2\), z_goal \(2, 2\)$"),
+    (torch.zeros(2, 2), r"one goal per start; got z0 \(3, 2\), z_goal \(2, 2\)"),
 ])
 def test_a_goal_that_is_not_one_latent_per_start_is_refused(goal, words):
     config = dataclasses.replace(TINY, iterations=1)
@@ -170,8 +170,7 @@ def test_a_huge_finite_action_moves_the_dot_by_the_longest_step(action):
 
 def test_a_float64_action_beyond_float32_is_refused_by_name():
     huge = torch.tensor([[1e39, 0.0]], dtype=torch.float64)  # finite, but inf in float32
-    with pytest.raises(ValueError, match=r"action 0 = \[1e\+39, 0.0\] is too large for "
-                                         r"torch.float32"):
+    with pytest.raises(ValueError, match=r"finite also in torch.float32 .* 1e\+39"):
         one_world().step(huge)
     env = one_world()
     env.step(torch.tensor([[1e30, 0.0]], dtype=torch.float64))  # fits in float32: moves

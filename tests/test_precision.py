@@ -29,7 +29,8 @@ def test_on_the_cpu_nothing_is_lowered_or_reordered():
 
 @pytest.mark.parametrize("has_bf16", [True, False])
 def test_a_cpu_lowers_only_when_asked_and_able(monkeypatch, has_bf16):
-    monkeypatch.setattr(utils, "cpu_has_bf16", lambda: has_bf16)
+    for check in ("_is_avx512_bf16_supported", "_is_amx_tile_supported"):  # the CPU's bf16
+        monkeypatch.setattr(torch.cpu, check, lambda: has_bf16, raising=False)
     with utils.mixed_precision("cpu", cpu=True):
         asked = torch.ones(4, 4) @ torch.ones(4, 4)
     with utils.mixed_precision("cpu"):

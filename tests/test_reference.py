@@ -31,10 +31,10 @@ def test_record_keeps_other_figures_and_compare_prints_all_three(tmp_path):
                            "(2 CPU threads, ")
     assert line.endswith("| the paper 90.1% (ResNet-18, 300 epochs on a GPU)")
     assert "smoke test" in reference.compare("vicreg_probe_acc", 0.1, scale="ci", path=path)
-    assert reference.show("world_probe_px", path).startswith(
+    assert reference.compare("world_probe_px", path=path).startswith(
         "position probe error: the course's class run 1.06 px")
     figs.record("world_probe_px", 1.063, "python c.py --record", "probe", 1, path)
-    assert "(1 CPU thread, " in reference.show("world_probe_px", path)
+    assert "(1 CPU thread, " in reference.compare("world_probe_px", path=path)
 
 
 def test_a_missing_figure_names_the_benchmark_that_records_it(tmp_path):

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from ebjepa_tutorial.course import presets
-from ebjepa_tutorial.utils import get_device, make_generator, seed_everything
+from ebjepa_tutorial.utils import as_generator, get_device, seed_everything
 
 
 def test_default_scale_is_class():
@@ -38,7 +38,7 @@ def test_every_preset_has_every_scale():
 def test_same_seed_same_numbers():
     a = torch.randn(5, generator=seed_everything(3))
     b = torch.randn(5, generator=seed_everything(3))
-    c = torch.randn(5, generator=make_generator(4))
+    c = torch.randn(5, generator=as_generator(4))
     assert torch.equal(a, b) and not torch.equal(a, c)
     seed_everything(7)
     x = torch.rand(3)

@@ -13,7 +13,7 @@ from ebjepa_tutorial.losses.sigreg import (
     sigreg,
     sigreg_loss,
 )
-from ebjepa_tutorial.utils import make_generator
+from ebjepa_tutorial.utils import as_generator
 
 
 def test_two_symmetric_points_match_the_closed_form():
@@ -52,13 +52,13 @@ def test_default_quadrature_against_a_fine_numpy_integral(sigma):
 
 def test_hand_written_gradient_matches_finite_differences():
     # epps_pulley's ECF has its own backward pass (the closed-form derivative of cos and sin)
-    x = torch.randn(7, 3, dtype=torch.float64, generator=make_generator(0), requires_grad=True)
+    x = torch.randn(7, 3, dtype=torch.float64, generator=as_generator(0), requires_grad=True)
     assert torch.autograd.gradcheck(lambda x: epps_pulley(x, knots=21, t_max=4.0), (x,))
 
 
 def test_angle_addition_keeps_the_ecf_exact_over_many_knots():
     # cos and sin at each knot are built from the previous knot's: check they do not drift
-    x = 3 * torch.randn(64, 4, generator=make_generator(1))  # float32, arguments up to ~100 rad
+    x = 3 * torch.randn(64, 4, generator=as_generator(1))  # float32, arguments up to ~100 rad
     knots, t_max = 201, 12.0
     real, imag = EmpiricalCF.apply(x, t_max / (knots - 1), knots)  # (4, 201) each
     t = torch.linspace(0.0, t_max, knots, dtype=torch.float64)
@@ -68,13 +68,13 @@ def test_angle_addition_keeps_the_ecf_exact_over_many_knots():
 
 
 def test_columns_are_independent_slices():
-    x = torch.randn(50, 3, generator=make_generator(0))
+    x = torch.randn(50, 3, generator=as_generator(0))
     per_column = torch.stack([epps_pulley(x[:, j]) for j in range(3)])
     assert torch.allclose(epps_pulley(x), per_column)
 
 
 def test_small_on_gaussian_large_on_collapsed_or_uniform():
-    gen = make_generator(0)
+    gen = as_generator(0)
     n, d = 1024, 16
     gaussian = sigreg(torch.randn(n, d, generator=gen), 64, gen).item()
     collapsed = sigreg(torch.full((n, d), 0.3), 64, gen).item()
@@ -87,29 +87,29 @@ def test_small_on_gaussian_large_on_collapsed_or_uniform():
 
 
 def test_unit_variance_uniform_is_detected_with_enough_samples():
-    gen = make_generator(1)
+    gen = as_generator(1)
     x = (torch.rand(4096, generator=gen) - 0.5) * math.sqrt(12)  # mean 0, variance 1
     assert epps_pulley(x).item() > 20 * epps_pulley(torch.randn(4096, generator=gen)).item()
 
 
 def test_directions_are_unit_and_seeded():
-    d1 = random_directions(8, 5, make_generator(3))
+    d1 = random_directions(8, 5, as_generator(3))
     assert d1.shape == (8, 5) and torch.allclose(d1.norm(dim=0), torch.ones(5))
-    assert torch.equal(d1, random_directions(8, 5, make_generator(3)))
+    assert torch.equal(d1, random_directions(8, 5, as_generator(3)))
 
 
 def test_same_generator_same_value_fresh_slices_each_call():
-    z = torch.randn(64, 10, generator=make_generator(0))
-    assert sigreg(z, 16, make_generator(5)) == sigreg(z, 16, make_generator(5))
-    gen = make_generator(5)
+    z = torch.randn(64, 10, generator=as_generator(0))
+    assert sigreg(z, 16, as_generator(5)) == sigreg(z, 16, as_generator(5))
+    gen = as_generator(5)
     assert sigreg(z, 16, gen) != sigreg(z, 16, gen)  # the generator moved on: new directions
 
 
 def test_sigreg_loss_terms_and_gradient():
-    gen = make_generator(0)
+    gen = as_generator(0)
     z_a = torch.randn(32, 8, generator=gen, requires_grad=True)
     z_b = (z_a.detach() + 0.1 * torch.randn(32, 8, generator=gen)).requires_grad_()
-    total, terms = sigreg_loss(z_a, z_b, lam=0.5, num_slices=32, generator=make_generator(1))
+    total, terms = sigreg_loss(z_a, z_b, lam=0.5, num_slices=32, generator=as_generator(1))
     assert set(terms) == {"invariance", "sigreg"}
     assert total.item() == pytest.approx(float(terms["invariance"] + 0.5 * terms["sigreg"]),
                                         rel=1e-5)
@@ -128,7 +128,7 @@ def test_batch_of_one_is_a_clear_error():
 
 
 def test_half_precision_inputs_are_computed_in_float32():
-    z = torch.randn(64, 8, generator=make_generator(0))
-    full = sigreg(z, 16, make_generator(2))
-    half = sigreg(z.bfloat16(), 16, make_generator(2))
+    z = torch.randn(64, 8, generator=as_generator(0))
+    full = sigreg(z, 16, as_generator(2))
+    half = sigreg(z.bfloat16(), 16, as_generator(2))
     assert half.dtype == torch.float32 and half.item() == pytest.approx(full.item(), rel=0.05)

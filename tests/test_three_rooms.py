@@ -23,7 +23,6 @@ from ebjepa_tutorial.envs.episodes import THREE_ROOMS_EPISODE_STEPS
 from ebjepa_tutorial.envs.two_rooms import (
     HIGH,
     LOW,
-    MIN_WALL_GAP,
     WALL_X_RANGES,
     check_world,
     in_wall,
@@ -214,21 +213,11 @@ def test_the_dot_crosses_each_door_and_not_the_walls():
 # ----------------------------------------------------------------- bad input
 
 
-@pytest.mark.parametrize("layout, message", [
-    ([[20, 30, 26, 30]], "walls must go left to right, at least 14 px apart"),
-    ([[40, 30, 20, 30]], "walls must go left to right"),
-    ([[10, 30, 40, 30]], r"\[10, 30, 40, 30\]: each wall_x must be in 14\.\.50"),
-    ([[20, 30, 40, 60]], r"\[20, 30, 40, 60\]: .* each door_y in 10\.\.54"),
-    ([[20, 30, 40]], r"shape \(B, 2W\)"),
-])
-def test_bad_layouts_are_named(layout, message):
-    with pytest.raises(ValueError, match=message):
-        check_world(torch.tensor(layout), torch.tensor([[5.0, 5.0]]))
-
-
 def test_good_layouts_and_other_errors():
-    check_world(torch.tensor([[14, 10, 14 + MIN_WALL_GAP, 54], [25, 54, 50, 10]]),
+    check_world(torch.tensor([[14, 10, 28, 54], [25, 54, 50, 10]]),
                 torch.tensor([[5.0, 5.0], [60.0, 60.0]]))
+    with pytest.raises(ValueError, match=r"shape \(B, 2W\)"):
+        check_world(torch.tensor([[20, 30, 40]]), torch.tensor([[5.0, 5.0]]))
     with pytest.raises(ValueError, match="walls must be 1"):
         random_layouts(3, torch.Generator(), walls=3)
     with pytest.raises(ValueError, match="inside the wall"):

@@ -57,7 +57,7 @@ def test_episode_generators_and_the_arrival_distance_use_the_walls(monkeypatch):
         calls.append(kwargs)
         return 2.0
 
-    monkeypatch.setattr(planning.mpc, "arrival_distance", recording)
+    monkeypatch.setattr(planning, "arrival_distance", recording)
     planning.run_episodes(model, [5], TINY, 4, world="learned", walls=2)
     assert calls == [{"walls": 2}]  # a Three Rooms model is calibrated on Three Rooms frames
 

@@ -137,22 +137,23 @@ def test_load_or_train_trains_once_then_loads(tmp_path, capsys):
 
     def run(model, optimizer, loss_fn, batch):
         calls.append(1)
-        return fit(model, optimizer, loss_fn, batch, steps=20, progress=False)
+        return model, fit(model, optimizer, loss_fn, batch, steps=20, progress=False)
 
     model, optimizer, loss_fn, batch = _problem()
     config = {"steps": 20, "lr": 0.1}
-    first = loop.load_or_train(path, model, lambda: run(model, optimizer, loss_fn, batch), config)
+    _, first = loop.load_or_train(path, model, lambda _: run(model, optimizer, loss_fn, batch),
+                                  config)
     assert "Trained and saved" in capsys.readouterr().out
 
     fresh, optimizer2, loss_fn2, batch2 = _problem(seed=9)
-    again = loop.load_or_train(path, fresh, lambda: run(fresh, optimizer2, loss_fn2, batch2),
-                                config)
+    _, again = loop.load_or_train(path, fresh, lambda _: run(fresh, optimizer2, loss_fn2, batch2),
+                                  config)
     assert "Loaded" in capsys.readouterr().out
     assert len(calls) == 1 and again == first
     assert torch.equal(fresh.weight, model.weight)
 
-    loop.load_or_train(path, fresh, lambda: run(fresh, optimizer2, loss_fn2, batch2),
-                        {"steps": 20, "lr": 0.2})
+    loop.load_or_train(path, fresh, lambda _: run(fresh, optimizer2, loss_fn2, batch2),
+                       {"steps": 20, "lr": 0.2})
     assert "another configuration" in capsys.readouterr().out
     assert len(calls) == 2
 
@@ -163,8 +164,8 @@ def test_load_or_train_prefers_a_matching_shipped_checkpoint(tmp_path, capsys):
     shipped = checkpoints.save_checkpoint(tmp_path / "shipped.pt", model=model.state_dict(),
                                     history=dict(history), config={"steps": 5})
     fresh = _problem(seed=3)[0]
-    loop.load_or_train(tmp_path / "cache.pt", fresh, lambda: 1 / 0, {"steps": 5},
-                        shipped=shipped)
+    loop.load_or_train(tmp_path / "cache.pt", fresh, lambda _: 1 / 0, {"steps": 5},
+                       shipped=shipped)
     assert "Loaded" in capsys.readouterr().out
     assert torch.equal(fresh.weight, model.weight)
     assert not (tmp_path / "cache.pt").exists()
@@ -198,7 +199,7 @@ def test_a_checkpoint_that_would_run_code_is_refused_and_named(tmp_path):
         checkpoints.load_checkpoint(path)
     model, optimizer, loss_fn, batch = _problem()
     with pytest.raises(checkpoints.UnsafeCheckpointError, match="model.pt"):  # as a notebook loads
-        loop.load_or_train(path, model, lambda: 1 / 0, {"steps": 20})
+        loop.load_or_train(path, model, lambda _: 1 / 0, {"steps": 20})
     assert not marker.exists()
 
 
@@ -206,15 +207,15 @@ def test_a_failed_final_save_keeps_the_resumable_run(tmp_path, monkeypatch):
     path, partial = tmp_path / "model.pt", tmp_path / "model.partial"
     model, optimizer, loss_fn, batch = _problem()
 
-    def run():
-        history = fit(model, optimizer, loss_fn, batch, steps=6, checkpoint=partial,
-                       checkpoint_every=3, progress=False)
+    def run(checkpoint):
+        history = fit(model, optimizer, loss_fn, batch, steps=6, checkpoint=checkpoint,
+                      checkpoint_every=3, progress=False)
 
         def disk_full(*args, **kwargs):
             raise OSError(28, "No space left on device")
 
         monkeypatch.setattr(checkpoints, "save_checkpoint", disk_full)
-        return history
+        return model, history
 
     with pytest.warns(UserWarning, match="could not save a checkpoint to .*model.pt"):
         loop.load_or_train(path, model, run, {"steps": 6})
@@ -225,8 +226,8 @@ def test_a_failed_final_save_keeps_the_resumable_run(tmp_path, monkeypatch):
 def test_the_partial_file_goes_only_after_the_final_save(tmp_path):
     path, partial = tmp_path / "model.pt", tmp_path / "model.partial"
     model, optimizer, loss_fn, batch = _problem()
-    loop.load_or_train(path, model, lambda: fit(
-        model, optimizer, loss_fn, batch, steps=4, checkpoint=partial, progress=False),
+    loop.load_or_train(path, model, lambda checkpoint: (model, fit(
+        model, optimizer, loss_fn, batch, steps=4, checkpoint=checkpoint, progress=False)),
         {"steps": 4})
     assert path.is_file() and not partial.exists()
 
@@ -254,7 +255,9 @@ def test_a_damaged_checkpoint_is_named_moved_aside_and_retrained(tmp_path, damag
                       "not a checkpoint": b"hello"}[damage])
     with pytest.raises(checkpoints.CheckpointError, match=f"{path} is damaged"):
         checkpoints.load_checkpoint(path)
-    run = lambda: fit(model, optimizer, loss_fn, batch, steps=3, progress=False)  # noqa: E731
+    def run(_):
+        return model, fit(model, optimizer, loss_fn, batch, steps=3, progress=False)
+
     loop.load_or_train(path, model, run, {"steps": 3})
     out = capsys.readouterr().out
     assert "is damaged; moved it to" in out and "Trained and saved" in out
@@ -266,7 +269,9 @@ def test_a_damaged_shipped_checkpoint_is_reported_and_left_in_place(tmp_path):
     shipped = tmp_path / "shipped.pt"
     shipped.write_bytes(b"version https://git-lfs.github.com/spec/v1\n")  # an LFS pointer
     model, optimizer, loss_fn, batch = _problem()
-    run = lambda: fit(model, optimizer, loss_fn, batch, steps=3, progress=False)  # noqa: E731
+    def run(_):
+        return model, fit(model, optimizer, loss_fn, batch, steps=3, progress=False)
+
     with pytest.warns(UserWarning, match="shipped.pt is damaged"):
         loop.load_or_train(tmp_path / "cache.pt", model, run, {"steps": 3}, shipped=shipped)
     assert shipped.is_file() and (tmp_path / "cache.pt").is_file()
@@ -277,9 +282,9 @@ def test_another_runs_checkpoint_is_kept_and_found_again(tmp_path, capsys):
     calls = []
 
     def run(steps):
-        def train_it():
+        def train_it(_):
             calls.append(steps)
-            return fit(model, optimizer, loss_fn, batch, steps=steps, progress=False)
+            return model, fit(model, optimizer, loss_fn, batch, steps=steps, progress=False)
 
         model, optimizer, loss_fn, batch = _problem()
         return train_it

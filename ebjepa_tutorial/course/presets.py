@@ -1,8 +1,5 @@
-"""The one switch that sizes every notebook, ``EBJEPA_SCALE``: ``ci`` (well under a minute on 2
-CPU cores: it runs, it does not learn), ``class`` (default: about 10 minutes or less on a 2-core
-laptop, a real result) or ``full`` (the paper's configuration, for a GPU): ``preset("00")``."""
-
-from __future__ import annotations
+"""Each notebook's sizes at the scale ``EBJEPA_SCALE`` names: ``ci`` (it runs, in under a minute on
+2 CPU cores), ``class`` (default: a real result in about 10 minutes) or ``full`` (the paper's)."""
 
 import os
 from dataclasses import dataclass, replace
@@ -51,10 +48,10 @@ class ImagePreset:
 
 @dataclass(frozen=True)
 class VideoPreset:
-    """Notebook 03: the video JEPA run on Moving MNIST, its K ablation, and the evaluation sizes."""
+    """Notebook 03: the video JEPA run on Moving MNIST, its K ablation and the evaluation sizes."""
 
     train: VideoJEPAConfig  # the main run (K = 4, seed 0); the ablation changes K and the seed
-    long: VideoJEPAConfig | None = None  # trained longer (shipped at class); None: `train`
+    long_config: VideoJEPAConfig  # trained longer (shipped at class; full: `train`)
     rollout_steps: tuple[int, ...] = (1, 2, 4, 8)  # the K of the ablation (the paper's Figure 4b)
     seeds: tuple[int, ...] = (0, 1, 2)  # training seeds per K: other clips, other initial weights
     n_train_digits: int = 8000  # of the 10,000 MNIST test digits; the other 2,000 are held out
@@ -63,11 +60,6 @@ class VideoPreset:
     horizons: int = 7  # AP 1..7 steps ahead, as in the paper
     probe_steps: int = 400  # Adam steps of the detection probe
     decoder_steps: int = 500  # Adam steps of the decoder that draws pictures of latents
-
-    @property
-    def long_config(self) -> VideoJEPAConfig:
-        """The longer run: ``long``, or the main run where that is already the long one."""
-        return self.train if self.long is None else self.long
 
     def long_runs(self, rollout_steps=None, seeds=None) -> list[VideoJEPAConfig]:
         """The long run at each K and seed (default: K = 1 and the main run's, its seed)."""
@@ -136,24 +128,16 @@ class TwoLevelPreset:
 class BeyondPreset:
     """Notebook 07: the shipped models of two worlds (at every scale), four planners on each."""
 
-    two_rooms: WorldTrainConfig  # chapter 05's class run (three_rooms: the same on Three Rooms)
+    two_rooms: WorldTrainConfig  # chapter 05's class run
+    three_rooms: WorldTrainConfig  # the same recipe on Three Rooms in a row
     flat: PlannerConfig  # chapter 06's planner
-    short: PlannerConfig  # the same at a short horizon, latent distance (learned: its cost)
+    short: PlannerConfig  # the same at a short horizon, latent distance
+    learned: PlannerConfig  # `short` with the learned cost, in px: a temperature of 1
     two_level: TwoLevelPreset
     n_episodes: int = 40  # per planner and world
     first_seed: int = 10_000
     episode_batch: int = 10
     episode_steps: int | None = None  # None: each world's step budget (200 and 120 steps)
-
-    @property
-    def three_rooms(self) -> WorldTrainConfig:
-        """Chapter 05's recipe on Three Rooms in a row."""
-        return replace(self.two_rooms, walls=2)
-
-    @property
-    def learned(self) -> PlannerConfig:
-        """The short planner with the learned cost, whose costs are px: a temperature of 1."""
-        return replace(self.short, cost="learned", temperature=1.0)
 
 
 def image_preset(scale: str, loss: str) -> ImagePreset:
@@ -203,73 +187,62 @@ _PLANNER_CI = PlannerConfig(horizon=8, samples=32, elites=4, iterations=2, execu
 _STRIDE = 4
 _FLAT_07 = PlannerConfig(noise=Noise(std=1.5))
 _SHORT = replace(_FLAT_07, horizon=16, samples=100, elites=10)
+_TINY = PlannerConfig(horizon=4, samples=16, elites=2, iterations=2, execute=4)
 _HIGH = PlannerConfig(horizon=16, samples=50, elites=5, execute=1,
                       noise=Noise(std=_STRIDE * 1.5, period=2, bound=_STRIDE * MAX_STEP),
                       habits=Habits(warm_iterations=2, stop_px=0))
 _BEYOND_CLASS = BeyondPreset(
-    _WORLD_CLASS, flat=_FLAT_07, short=_SHORT,
-    two_level=TwoLevelPreset(
+    _WORLD_CLASS, replace(_WORLD_CLASS, walls=2), flat=_FLAT_07, short=_SHORT,
+    learned=replace(_SHORT, cost="learned", temperature=1.0), two_level=TwoLevelPreset(
         low=replace(_FLAT_07, horizon=8, samples=50, elites=5, execute=_STRIDE,
                     habits=Habits(warm_iterations=2)),
         high=(_HIGH, replace(_HIGH, horizon=24, samples=200, elites=20,
                              habits=replace(_HIGH.habits, warm_iterations=3)))))
-_TINY = PlannerConfig(horizon=4, samples=16, elites=2, iterations=2, execute=4)
 _BEYOND_CI = replace(  # the class models with tiny planners
     _BEYOND_CLASS, flat=_PLANNER_CI, short=_TINY,
+    learned=replace(_TINY, cost="learned", temperature=1.0),
     two_level=TwoLevelPreset(_TINY, (replace(_HIGH, horizon=4, samples=16, elites=2),) * 2),
     n_episodes=2, episode_batch=2, episode_steps=24)
 
 PRESETS: dict[str, dict[str, object]] = {
-    "00": {
-        "ci": CollapsePreset(n_points=256, steps=60),
-        "class": CollapsePreset(),
-        "full": CollapsePreset(n_points=4096, steps=2000),
-    },
+    "00": {"ci": CollapsePreset(n_points=256, steps=60),
+           "class": CollapsePreset(),
+           "full": CollapsePreset(n_points=4096, steps=2000)},
     "01": {scale: image_preset(scale, "vicreg") for scale in SCALES},
     "02": {scale: image_preset(scale, "sigreg") for scale in SCALES},
-    "03": {
-        "ci": VideoPreset(VIDEO_CONFIGS["ci"], long=replace(VIDEO_CONFIGS["ci"], steps=30),
-                          seeds=(0,), n_probe=64, n_eval=64, probe_steps=60, decoder_steps=40),
-        "class": VideoPreset(VIDEO_CONFIGS["class"],
-                             long=replace(VIDEO_CONFIGS["class"], n_clips=24_000, steps=12_000)),
-        "full": VideoPreset(VIDEO_CONFIGS["full"], n_probe=2000, n_eval=2000, probe_steps=2000,
-                            decoder_steps=5000),
-    },
-    "04": {
-        "ci": TwoRoomsWorldPreset(n_trajectories=512, n_episodes=32),
-        "class": TwoRoomsWorldPreset(),
-        "full": TwoRoomsWorldPreset(n_trajectories=100_000, n_episodes=1000),
-    },
-    "05": {
-        "ci": WorldModelPreset(_WORLD_CI, n_probe=100, n_test=32, horizon=16, n_layouts=16,
-                               n_positions=16),
-        "class": WorldModelPreset(_WORLD_CLASS),  # exactly the CLI's run (shipped)
-        "full": WorldModelPreset(_WORLD_FULL, n_probe=5000, n_test=1000, horizon=48),
-    },
-    "06": {
-        "ci": PlanningPreset(_WORLD_CI, _PLANNER_CI, n_episodes=4, n_compare=2, episode_steps=40,
-                             n_wall_test=100, longer=LongerRuns(
-                                 paper=paper_recipe(replace(_WORLD_CI, steps=20)),
+    "03": {"ci": VideoPreset(VIDEO_CONFIGS["ci"], replace(VIDEO_CONFIGS["ci"], steps=30),
+                             seeds=(0,), n_probe=64, n_eval=64, probe_steps=60, decoder_steps=40),
+           "class": VideoPreset(VIDEO_CONFIGS["class"],
+                                replace(VIDEO_CONFIGS["class"], n_clips=24_000, steps=12_000)),
+           "full": VideoPreset(VIDEO_CONFIGS["full"], VIDEO_CONFIGS["full"], n_probe=2000,
+                               n_eval=2000, probe_steps=2000, decoder_steps=5000)},
+    "04": {"ci": TwoRoomsWorldPreset(n_trajectories=512, n_episodes=32),
+           "class": TwoRoomsWorldPreset(),
+           "full": TwoRoomsWorldPreset(n_trajectories=100_000, n_episodes=1000)},
+    "05": {"ci": WorldModelPreset(_WORLD_CI, n_probe=100, n_test=32, horizon=16, n_layouts=16,
+                                  n_positions=16),
+           "class": WorldModelPreset(_WORLD_CLASS),  # exactly the CLI's run (shipped)
+           "full": WorldModelPreset(_WORLD_FULL, n_probe=5000, n_test=1000, horizon=48)},
+    "06": {"ci": PlanningPreset(
+               _WORLD_CI, _PLANNER_CI, n_episodes=4, n_compare=2, episode_steps=40,
+               n_wall_test=100,
+               longer=LongerRuns(paper=paper_recipe(replace(_WORLD_CI, steps=20)),
                                  ablations=ABLATABLE_TERMS, n_ablation=2,
                                  course=course_long(_WORLD_CI, 20, _WORLD_CI.n_trajectories))),
-        # the shipped checkpoints, with episode counts sized to fit a class period
-        "class": PlanningPreset(_WORLD_CLASS, PlannerConfig(), n_episodes=40, n_compare=10,
-                                longer=LongerRuns(
-                                    paper=paper_recipe(replace(_WORLD_CLASS, steps=10_000,
-                                                               n_trajectories=100_000)),
-                                    ablations=ABLATABLE_TERMS,
-                                    course=course_long(_WORLD_CLASS, 10_000, 100_000))),
-        # the reference code's planner on 500 episodes: 100 for the headline rate, 50 in 8 rows
-        "full": PlanningPreset(
-            _WORLD_FULL, PlannerConfig(horizon=90, iterations=20, execute=1, noise=Noise(period=1),
-                                       habits=Habits(0, stop_px=0.0)),
-            n_episodes=100, n_compare=50, episode_batch=100),
-    },
-    "07": {
-        "ci": _BEYOND_CI,
-        "class": _BEYOND_CLASS,  # the world models, heads and coarse models are shipped
-        "full": replace(_BEYOND_CLASS, n_episodes=200, episode_batch=100),
-    },
+           # the shipped checkpoints, with episode counts sized to fit a class period
+           "class": PlanningPreset(
+               _WORLD_CLASS, PlannerConfig(), n_episodes=40, n_compare=10,
+               longer=LongerRuns(paper=paper_recipe(replace(_WORLD_CLASS, steps=10_000,
+                                                            n_trajectories=100_000)),
+                                 ablations=ABLATABLE_TERMS,
+                                 course=course_long(_WORLD_CLASS, 10_000, 100_000))),
+           # the reference code's planner on 500 episodes: 100 for the headline rate, 50 in 8 rows
+           "full": PlanningPreset(_WORLD_FULL, PlannerConfig(
+               horizon=90, iterations=20, execute=1, noise=Noise(period=1),
+               habits=Habits(0, stop_px=0.0)), n_episodes=100, n_compare=50, episode_batch=100)},
+    "07": {"ci": _BEYOND_CI,
+           "class": _BEYOND_CLASS,  # the world models, heads and coarse models are shipped
+           "full": replace(_BEYOND_CLASS, n_episodes=200, episode_batch=100)},
 }
 
 

@@ -1,6 +1,5 @@
-"""CIFAR-10 (Krizhevsky, 2009) as uint8 tensors, read with ``torchvision.datasets``: the
-official release (MD5-checked), else class folders packed as ``cifar10*.tar.gz`` (decoded
-once, then cached), else a download of the official archive (``data/README.md``)."""
+"""CIFAR-10 (Krizhevsky, 2009) as uint8 tensors: the official release (torchvision, MD5-checked),
+else class folders packed as ``cifar10*.tar.gz`` (decoded once, then cached)."""
 
 from __future__ import annotations
 
@@ -10,7 +9,6 @@ import tarfile
 import tempfile
 import zlib
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -18,7 +16,7 @@ from torchvision import datasets
 from torchvision.transforms import v2
 from tqdm.auto import tqdm
 
-from .paths import CorruptDataError, DataNotFoundError, cached_arrays, check_split, data_dir
+from .paths import CorruptDataError, DataNotFoundError, cached_arrays, data_dir
 
 CIFAR10_CLASSES = (
     "airplane", "automobile", "bird", "cat", "deer", "dog", "frog", "horse", "ship", "truck",
@@ -27,19 +25,13 @@ CIFAR10_CLASSES = (
 FIT = v2.Compose([v2.PILToTensor(), v2.Resize(32), v2.CenterCrop(32)])
 
 
-class Source(NamedTuple):
-    """Where CIFAR-10 was found: ``kind`` is "official" or "packed"."""
-
-    kind: str
-    path: Path
-
-
-def find_cifar10(directory: Path) -> Source | None:
-    """The official release in ``directory``, else its first ``cifar10*.tar.gz``, else None."""
+def find_cifar10(directory: Path) -> Path | None:
+    """The official release's folder in ``directory``, else its first ``cifar10*.tar.gz`` (a
+    file: the packed copy), else None."""
     if (directory / datasets.CIFAR10.base_folder).is_dir():
-        return Source("official", directory)
+        return directory / datasets.CIFAR10.base_folder
     packed = sorted(directory.glob("cifar10*.tar.gz"))
-    return Source("packed", packed[0]) if packed else None
+    return packed[0] if packed else None
 
 
 def _missing_message(directory: Path, split: str) -> str:
@@ -106,14 +98,15 @@ def load_cifar10(split: str = "train", root: str | os.PathLike | None = None,
                  download: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """One CIFAR-10 split: images (N, 3, 32, 32) uint8, labels (N,) int64; N = 50,000 or 10,000.
     ``root``: the data directory; ``download=False``: DataNotFoundError instead of fetching."""
-    check_split(split)
+    if split not in ("train", "test"):
+        raise ValueError(f"split must be one of 'train', 'test'; got {split!r}")
     directory = data_dir(root)
     source = find_cifar10(directory)
     if source is None and not download:
         raise DataNotFoundError(_missing_message(directory, split))
-    if source is None or source.kind == "official":
+    if source is None or source.is_dir():  # the official release, or its download
         images, labels = _read_official(directory, split, download=source is None)
-    else:  # decoding the images takes seconds: their arrays are cached
-        images, labels = cached_arrays(source.path, f"cifar10-{split}-packed",
-                                       lambda: _read_packed(source.path, split))
+    else:  # a packed archive: decoding its images takes seconds, so their arrays are cached
+        images, labels = cached_arrays(source, f"cifar10-{split}-packed",
+                                       lambda: _read_packed(source, split))
     return torch.from_numpy(images), torch.from_numpy(labels)

@@ -13,7 +13,7 @@ import torch
 from torchvision import datasets
 from torchvision.datasets.mnist import read_image_file, read_label_file
 
-from .paths import CorruptDataError, DataNotFoundError, check_split, data_dir
+from .paths import CorruptDataError, DataNotFoundError, data_dir
 
 MNIST_FILES = {  # split -> (images, labels), without the .gz
     "train": ("train-images-idx3-ubyte", "train-labels-idx1-ubyte"),
@@ -34,7 +34,7 @@ def find_mnist(directory: Path, split: str) -> tuple[Path, Path] | None:
 
 def _missing_message(directory: Path, split: str) -> str:
     images, labels = (f"{stem}.gz" for stem in MNIST_FILES[split])
-    message = (
+    return (
         f"MNIST ({split} split) was not found. Looked for {images} and {labels}\n"
         f"(or the same files uncompressed) in {directory}/MNIST/raw, {directory}/mnist "
         f"and {directory}.\n"
@@ -42,10 +42,6 @@ def _missing_message(directory: Path, split: str) -> str:
         f"downloads them from {datasets.MNIST.mirrors[0]} and checks their MD5), or set\n"
         "EBJEPA_DATA (or pass root=...) to a folder that holds them."
     )
-    other = "test" if split == "train" else "train"
-    if (found := find_mnist(directory, other)) is not None:
-        message += f"\n(Only the {other} split is there: {found[0].parent}.)"
-    return message
 
 
 def _read_idx(path: Path, read) -> torch.Tensor:
@@ -68,7 +64,8 @@ def load_mnist(split: str = "train", root: str | os.PathLike | None = None,
                download: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """One MNIST split: images (N, 1, 28, 28) uint8, labels (N,) int64; N = 60,000 or 10,000.
     ``root``: the data directory; ``download=False``: DataNotFoundError instead of fetching."""
-    check_split(split)
+    if split not in ("train", "test"):
+        raise ValueError(f"split must be one of 'train', 'test'; got {split!r}")
     directory = data_dir(root)
     files = find_mnist(directory, split)
     if files is not None:

@@ -1,6 +1,5 @@
-"""Moving MNIST (Srivastava et al., 2015), generated in code: digits bouncing in a 64x64 frame,
-from uniform corners in uniform directions at a fixed speed, overlaps combined by maximum; all
-clips at once, with every digit's position known exactly."""
+"""Moving MNIST (Srivastava et al., 2015): digits bouncing in a 64x64 frame at a fixed speed,
+overlaps combined by maximum, every digit's position known exactly."""
 
 from __future__ import annotations
 
@@ -9,7 +8,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..utils import as_generator, make_generator
+from ..utils import as_generator
 
 FRAME_SIZE = 64
 DEFAULT_SPEED = 3.6  # px per frame: 0.1 of the free range 64 - 28 = 36
@@ -29,31 +28,22 @@ class MovingMNISTBatch:
     velocities: torch.Tensor  # float32 (N, T, K, 2): velocity from frame t to t + 1
     digit_ids: torch.Tensor  # int64 (N, K): which row of digits each digit is
 
-    def __len__(self) -> int:
-        return self.clips.shape[0]
-
 
 def split_digits(digits, n_train: int = 8000) -> tuple[torch.Tensor, torch.Tensor]:
     """Digits ``(N, ...)`` -> ``n_train`` training and ``N - n_train`` held-out digits, by a
     permutation seeded with 0 (the MNIST test file's halves come from different writers)."""
-    n = len(digits)
-    if not 0 < n_train < n:
-        raise ValueError(f"n_train must be between 1 and {n - 1} for {n} digits, got {n_train}")
-    order = torch.randperm(n, generator=make_generator(0))
+    order = torch.randperm(len(digits), generator=as_generator(0))
     return digits[order[:n_train]], digits[order[n_train:]]
 
 
 def ink_boxes(digits: torch.Tensor) -> torch.Tensor:
     """Tight box ``(x0, y0, x1, y1)`` around each digit's ink, in its own patch, ends exclusive:
     ``(N, H, W)`` -> int64 ``(N, 4)``. A blank digit gets the whole patch ``(0, 0, W, H)``."""
-    ink = digits > 0
-    n, h, w = ink.shape
-    boxes = []
-    for any_ink, size in ((ink.any(dim=1), w), (ink.any(dim=2), h)):  # columns, then rows
+    ink, boxes = digits > 0, []
+    for any_ink in (ink.any(dim=1), ink.any(dim=2)):  # (N, W) columns, then (N, H) rows
+        # argmax gives the first True, or 0 if there is none: a blank digit spans the patch
         first = any_ink.int().argmax(dim=1)
-        last = size - any_ink.flip(1).int().argmax(dim=1)
-        blank = ~any_ink.any(dim=1)
-        boxes.append((first.masked_fill(blank, 0), last.masked_fill(blank, size)))
+        boxes.append((first, any_ink.shape[1] - any_ink.flip(1).int().argmax(dim=1)))
     (x0, x1), (y0, y1) = boxes
     return torch.stack([x0, y0, x1, y1], dim=1).long()
 
@@ -76,48 +66,22 @@ def bounce_trajectories(start: torch.Tensor, velocity: torch.Tensor, n_frames: i
     return torch.stack(positions), torch.stack(velocities)
 
 
-def paste_digits(frames: torch.Tensor, patches: torch.Tensor, offsets: torch.Tensor) -> None:
-    """Paste uint8 ``patches`` ``(M, K, h, w)`` into uint8 ``frames`` ``(M, S, S)`` in place,
-    top-left corners at ``offsets`` ``(M, K, 2)`` ``(x, y)``, overlaps combined by maximum:
-    one ``scatter_reduce`` writes every pixel at its flat index ``(y + i) * S + (x + j)``."""
-    m, k, h, w = patches.shape
-    size = frames.shape[-1]
-    rows, cols = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
-    pixel = (rows * size + cols).reshape(1, 1, h * w)
-    corner = (offsets[..., 1] * size + offsets[..., 0]).unsqueeze(-1)
-    index = (corner + pixel).reshape(m, k * h * w)
-    flat = frames.view(m, size * size)  # a view, so the scatter writes into frames
-    flat.scatter_reduce_(1, index, patches.reshape(m, k * h * w), reduce="amax")
-
-
-def _check(digits, speed: float, **counts) -> tuple[torch.Tensor, float]:
-    """``digits`` as uint8 ``(N, h, h)`` and the free range ``64 - h``, or a clear error."""
-    digits = digits[:, 0] if digits.ndim == 4 and digits.shape[1] == 1 else digits
-    if digits.ndim != 3 or len(digits) == 0 or not digits.shape[1] == digits.shape[2] <= 64:
-        raise ValueError(f"digits must be square, (N, 1, H, W) or (N, H, W) with N >= 1 and H "
-                         f"<= 64, got {tuple(digits.shape)}; pass the images from load_mnist")
-    if digits.dtype != torch.uint8:
-        raise TypeError(f"digits must be uint8 in 0..255, got {digits.dtype}; convert floats "
-                        "in [0, 1] with (x * 255).round().to(torch.uint8)")
-    limit = float(FRAME_SIZE - digits.shape[1])
-    if not all(isinstance(v, int) and v >= 1 for v in counts.values()) or not 0 <= speed <= limit:
-        raise ValueError(f"{', '.join(counts)} must be positive ints and speed in [0, {limit}] "
-                         f"px/frame (the free range); got {counts}, speed={speed}")
-    return digits, limit
-
-
 def paste_clips(digits: torch.Tensor, digit_ids: torch.Tensor,
                 offsets: torch.Tensor) -> torch.Tensor:
     """uint8 clips ``(N, T, 1, 64, 64)``: digit ``digit_ids[n, k]`` ``(N, K)`` of ``digits``
-    ``(D, h, w)`` pasted at ``offsets[n, t, k]`` ``(N, T, K, 2)``, ``CHUNK`` clips at a time."""
+    ``(D, h, w)`` with its top-left corner at ``offsets[n, t, k]`` ``(N, T, K, 2)`` ``(x, y)``,
+    overlaps combined by maximum (``scatter_reduce`` at flat index ``(y + i) * 64 + x + j``)."""
     (n_clips, n_frames, n_digits, _), (h, w) = offsets.shape, digits.shape[1:]
     clips = torch.zeros(n_clips, n_frames, 1, FRAME_SIZE, FRAME_SIZE, dtype=torch.uint8)
+    rows, cols = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    pixel = (rows * FRAME_SIZE + cols).reshape(1, 1, h * w)
     for lo in range(0, n_clips, CHUNK):
         hi = min(lo + CHUNK, n_clips)
         patches = digits[digit_ids[lo:hi]].unsqueeze(1).expand(-1, n_frames, -1, -1, -1)
-        paste_digits(clips[lo:hi].view(-1, FRAME_SIZE, FRAME_SIZE),
-                     patches.reshape(-1, n_digits, h, w),
-                     offsets[lo:hi].reshape(-1, n_digits, 2))
+        corner = offsets[lo:hi, ..., 1] * FRAME_SIZE + offsets[lo:hi, ..., 0]  # (n, T, K)
+        index = (corner.reshape(-1, n_digits, 1) + pixel).reshape(-1, n_digits * h * w)
+        flat = clips[lo:hi].view(-1, FRAME_SIZE * FRAME_SIZE)  # a view: the scatter writes clips
+        flat.scatter_reduce_(1, index, patches.reshape(-1, n_digits * h * w), reduce="amax")
     return clips
 
 
@@ -127,7 +91,16 @@ def generate_moving_mnist(digits, n_clips: int, n_frames: int = 10, n_digits: in
     """``n_clips`` clips of ``n_frames`` frames, each showing ``n_digits`` of ``digits``
     (uint8 ``(D, 1, h, w)`` or ``(D, h, w)``, drawn with replacement) moving at ``speed``
     px/frame; ``seed``: an int or a ``torch.Generator``."""
-    digits, limit = _check(digits, speed, n_clips=n_clips, n_frames=n_frames, n_digits=n_digits)
+    digits = digits[:, 0] if digits.ndim == 4 and digits.shape[1] == 1 else digits  # (D, h, h)
+    if digits.ndim != 3 or len(digits) == 0 or not digits.shape[1] == digits.shape[2] <= 64:
+        raise ValueError(f"digits must be square, (N, 1, H, W) or (N, H, W) with N >= 1 and H "
+                         f"<= 64, got {tuple(digits.shape)}; pass the images from load_mnist")
+    if digits.dtype != torch.uint8:
+        raise TypeError(f"digits must be uint8 in 0..255, got {digits.dtype}; convert floats "
+                        "in [0, 1] with (x * 255).round().to(torch.uint8)")
+    limit = float(FRAME_SIZE - digits.shape[1])  # the free range of a digit's top-left corner
+    if not 0 <= speed <= limit:  # faster, a step could cross both edges of an axis
+        raise ValueError(f"speed must be in [0, {limit}] px/frame (the free range), got {speed}")
     generator = as_generator(seed)
     digit_ids = torch.randint(len(digits), (n_clips, n_digits), generator=generator)
     start = torch.rand(n_clips, n_digits, 2, generator=generator) * limit  # top-left corners

@@ -1,6 +1,5 @@
 """Where data lives (``root``, else ``$EBJEPA_DATA``, else ``<project>/data``), the cache of
-decoded arrays (``$EBJEPA_CACHE``, else ``<project>/data/cache``, never under a read-only
-``EBJEPA_DATA``), and files written atomically."""
+decoded arrays (``$EBJEPA_CACHE``, else ``<project>/data/cache``), and atomic file writes."""
 
 from __future__ import annotations
 
@@ -41,17 +40,10 @@ def cache_dir() -> Path:
     return Path(os.environ.get("EBJEPA_CACHE") or project_root() / "data" / "cache").expanduser()
 
 
-def check_split(split: str) -> None:
-    if split not in ("train", "test"):
-        raise ValueError(f"split must be one of 'train', 'test'; got {split!r}")
-
-
-def remove_stale_temporaries(folder: Path, patterns: list[str],
-                             older_than_s: float = 3600.0) -> list[Path]:
-    """Delete the regular files in ``folder`` matching ``patterns`` and unmodified for
-    ``older_than_s`` (an hour: temporaries of writes cut short by a kill, not of live ones);
-    return them. Never raises."""
-    cutoff, removed = time.time() - older_than_s, []
+def remove_stale_temporaries(folder: Path, patterns: list[str]) -> list[Path]:
+    """Delete and return the regular files in ``folder`` matching ``patterns`` and unmodified
+    for an hour (left by a killed write, not a live one). Never raises."""
+    cutoff, removed = time.time() - 3600.0, []
     for pattern in patterns:
         with contextlib.suppress(OSError):
             for path in sorted(Path(folder).glob(pattern)):
@@ -63,15 +55,12 @@ def remove_stale_temporaries(folder: Path, patterns: list[str],
     return removed
 
 
-def temporaries_of(path: Path) -> str:
-    """The glob of the temp files that :func:`atomic_file` makes beside ``path``."""
-    return f".{glob.escape(path.name)}.*.part"
-
-
 @contextlib.contextmanager
 def atomic_file(path: Path):
     """A binary file that appears at ``path`` whole, or not at all: a hidden temp file beside
-    it, synced and renamed over ``path`` on leaving the block, deleted on an exception."""
+    it, synced and renamed over ``path`` on leaving the block, deleted on an exception (or, if
+    a kill left it, by a later write to ``path``)."""
+    remove_stale_temporaries(path.parent, [f".{glob.escape(path.name)}.*.part"])
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
     try:
@@ -86,9 +75,8 @@ def atomic_file(path: Path):
 
 
 def cached_arrays(source: Path, name: str, decode) -> tuple[np.ndarray, np.ndarray]:
-    """``decode()``'s ``(images, labels)`` arrays, cached as two ``.npy`` files named after
-    ``name`` and ``source``'s path, size and time, so that a replaced source or a damaged
-    cache file is decoded again; a failure to save only warns."""
+    """``decode()``'s ``(images, labels)`` arrays, cached as two ``.npy`` files keyed by
+    ``source``'s path, size and time (a replaced source is decoded again)."""
     info, folder = source.stat(), cache_dir()
     key = hashlib.sha1(f"{source.resolve()}|{info.st_size}|{info.st_mtime_ns};".encode())
     files = [folder / f"{name}-{key.hexdigest()[:12]}-{part}.npy" for part in ("images", "labels")]

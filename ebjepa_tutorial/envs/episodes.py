@@ -8,15 +8,7 @@ from dataclasses import dataclass
 import torch
 
 from ..utils import as_generator
-from .two_rooms import (
-    check_actions,
-    check_world,
-    random_layouts,
-    render,
-    room_of,
-    sample_positions,
-    transition,
-)
+from .two_rooms import check_world, random_layouts, render, room_of, sample_positions, transition
 
 SUCCESS_RADIUS = 4.5
 # step budgets: a good path takes 30.1 steps at the median and 69.9 at worst in Two Rooms, 42.4
@@ -69,10 +61,9 @@ def step_budget(layouts: torch.Tensor) -> int:
 
 
 class TwoRoomsEnv:
-    """B Two (or Three) Rooms worlds that a planner acts in, all stepped at once: ``reset(n,
-    seed)`` or ``reset(episodes=...)``, then ``step(actions)``, actions (B, 2), each return the
-    images (B, 2, 65, 65). State: ``positions``, ``goals`` (B, 2), ``layouts`` (B, 2W),
-    ``steps_taken``, ``path`` (each step's positions, start first) and ``actions``."""
+    """B worlds stepped at once: ``reset(n, seed)`` or ``reset(episodes=...)``, then ``step(actions
+    (B, 2))``, each returning images (B, 2, 65, 65). State: ``positions``, ``goals`` (B, 2),
+    ``layouts`` (B, 2W), ``steps_taken``, ``path`` (positions, start first) and ``actions``."""
 
     def __init__(self, device: str | torch.device = "cpu"):
         self.device = torch.device(device)
@@ -105,9 +96,13 @@ class TwoRoomsEnv:
     def step(self, actions: torch.Tensor) -> torch.Tensor:
         """Move every world by its action (B, 2) with ``transition``; observe them."""
         self._check_started()
-        check_actions(actions, len(self.layouts), self.positions.dtype)
+        dtype = self.positions.dtype
+        if actions.shape != (len(self.layouts), 2) or not actions.to(dtype).isfinite().all():
+            raise ValueError(f"actions must have shape ({len(self.layouts)}, 2), one (dx, dy) per "
+                             f"world, finite also in {dtype} (not NaN, infinite or too large); "
+                             f"got shape {tuple(actions.shape)}, {actions.abs().max()} at most")
         self.actions.append(actions.clone())  # the caller may reuse its tensor
-        actions = actions.to(device=self.device, dtype=self.positions.dtype)
+        actions = actions.to(device=self.device, dtype=dtype)
         self.positions = transition(self.positions, actions, self.layouts)
         self.steps_taken += 1
         self.path.append(self.positions)

@@ -23,15 +23,10 @@ from .two_rooms import (
     walls_of,
 )
 
-STEP_STD, STEP_RANGE = 0.4, (0.2, 1.8)  # the step length's normal: std and truncation, px
-
 
 def sample_von_mises(kappa: float, shape, generator: torch.Generator) -> torch.Tensor:
     """Angles from a von Mises with mean 0 and concentration ``kappa`` > 0: float32 ``shape``.
-    Best and Fisher's (1979) rejection sampler, vectorised: candidates in bulk, repeated
-    until enough are accepted (about 1.1 rounds at kappa 5)."""
-    if kappa <= 0:
-        raise ValueError(f"kappa must be positive, got {kappa}")
+    Best and Fisher's (1979) rejection sampler, in bulk until enough are accepted."""
     n = math.prod(shape)
     tau = 1 + math.sqrt(1 + 4 * kappa**2)
     rho = (tau - math.sqrt(2 * tau)) / (2 * kappa)
@@ -129,9 +124,10 @@ def generate_trajectories(n: int, steps: int = 16, seed=0, door_fraction: float 
     """``n`` random walks of ``steps`` actions (``steps + 1`` frames), in fresh layouts of
     ``walls`` walls or in ``layouts`` (n, 2W); ``seed``: an int or a torch.Generator.
     ``round(door_fraction * n)`` start at a door, ``round(wall_fraction * n)`` at a wall."""
-    if not (0 <= door_fraction and 0 <= wall_fraction and door_fraction + wall_fraction <= 1):
-        raise ValueError("door_fraction and wall_fraction must be >= 0 with a sum <= 1, got "
-                         f"{door_fraction} and {wall_fraction}")
+    if not (0 <= door_fraction and 0 <= wall_fraction and door_fraction + wall_fraction <= 1
+            and kappa > 0):
+        raise ValueError("door_fraction and wall_fraction must be >= 0 with a sum <= 1, and kappa "
+                         f"> 0; got {door_fraction}, {wall_fraction} and {kappa}")
     generator = as_generator(seed)  # the draws' order made the shipped models' data: keep it
     layouts = random_layouts(n, generator, walls) if layouts is None else layouts
     start, heading, door = random_starts(layouts, door_fraction, wall_fraction, generator)
@@ -159,12 +155,12 @@ def random_starts(layouts: torch.Tensor, door_fraction: float, wall_fraction: fl
 
 def random_walk(heading: torch.Tensor, steps: int, kappa: float, step_mean: float,
                 generator: torch.Generator) -> torch.Tensor:
-    """The policy's actions (n, steps, 2) from first headings (n,): each heading turns
-    by a von Mises(0, ``kappa``) increment, each step length is a truncated normal."""
+    """The policy's actions (n, steps, 2) from first headings (n,): each heading turns by a von
+    Mises(0, ``kappa``) increment; step lengths are normal(step_mean, 0.4) cut to 0.2..1.8 px."""
     n = len(heading)
     turns = sample_von_mises(kappa, (n, steps - 1), generator)
     headings = heading[:, None] + torch.cat([torch.zeros(n, 1), turns.cumsum(dim=1)], dim=1)
-    lengths = sample_truncated_normal(step_mean, STEP_STD, *STEP_RANGE, (n, steps), generator)
+    lengths = sample_truncated_normal(step_mean, 0.4, 0.2, 1.8, (n, steps), generator)
     return lengths[..., None] * torch.stack([headings.cos(), headings.sin()], dim=-1)
 
 

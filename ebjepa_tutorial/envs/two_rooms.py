@@ -1,9 +1,6 @@
-"""The Two Rooms world (after PLDM, Sobal et al., 2025): geometry, the one transition, rendering.
-
-B arenas of 65x65 px, each cut by W walls with a door (W=1: Two Rooms, W=2: Three Rooms); a
-layout is ``(B, 2W)`` long, ``(wall_x, door_y)`` per wall, left to right. A position is
-``(x, y)`` float32 px: ``x`` the column, ``y`` the row (downwards); pixel ``(row i, column j)``
-is centred at ``(x=j, y=i)``."""
+"""The Two Rooms world (after PLDM, Sobal et al., 2025): 65x65-px arenas cut by W walls with a
+door (W=1: Two Rooms, 2: Three Rooms); layouts ``(B, 2W)`` long, ``(wall_x, door_y)`` per wall
+left to right; positions ``(x, y)`` float32 px, pixel (row i, column j) centred at (x=j, y=i)."""
 
 from __future__ import annotations
 
@@ -13,17 +10,12 @@ IMAGE_SIZE = 65
 BORDER = 1  # border wall thickness, px
 WALL_WIDTH = 3  # middle wall thickness, px: columns wall_x-1 .. wall_x+1
 DOOR_HEIGHT = 9  # door opening, px: rows door_y-4 .. door_y+4
-WALL_X_RANGE = (20, 44)  # inclusive range of the wall's centre column
-DOOR_Y_RANGE = (10, 54)  # inclusive range of the door's centre row
 DOT_STD = 1.3
 DOT_MARGIN = 1.0  # gap kept between the dot centre and any wall pixel, px
 MAX_STEP = 1.8  # action bound: the longest step of the data policy, px
 LOW = BORDER - 0.5 + DOT_MARGIN  # 1.5, smallest x or y of the dot centre
 HIGH = IMAGE_SIZE - BORDER - 0.5 - DOT_MARGIN  # 62.5, largest
-# 14 px: a floor >= 9 px between walls, so a step of at most MAX_STEP meets at most one wall
-MIN_WALL_GAP = WALL_WIDTH + 2 * int(DOT_MARGIN) + 9
-WALL_X_RANGES = {1: (WALL_X_RANGE,), 2: ((14, 25), (39, 50))}  # by number of walls, inclusive
-WALLS_X_LIMITS = (14, 50)  # any wall, W >= 2: the outer rooms keep >= 10 px of floor
+WALL_X_RANGES = {1: ((20, 44),), 2: ((14, 25), (39, 50))}  # each wall's centre column, by W
 
 
 def walls_of(layouts: torch.Tensor) -> torch.Tensor:
@@ -47,7 +39,7 @@ def wall_bounds(layouts: torch.Tensor, dtype=torch.float32):
 
 
 def in_wall(positions: torch.Tensor, layouts: torch.Tensor) -> torch.Tensor:
-    """Whether each dot centre is inside any wall (not the border): (B, 2), (B, 2W) -> (B,) bool."""
+    """Whether each dot centre is inside a wall (not the border): (B, 2), (B, 2W) -> (B,) bool."""
     x, y = positions[:, None, 0], positions[:, None, 1]
     x_lo, x_hi, y_lo, y_hi = _all_wall_bounds(layouts.to(positions.device), positions.dtype)
     return ((x > x_lo) & (x < x_hi) & ((y < y_lo) | (y > y_hi))).any(-1)
@@ -112,7 +104,7 @@ def transition(positions: torch.Tensor, actions: torch.Tensor, layouts: torch.Te
 
 def shortest_path_length(starts: torch.Tensor, goals: torch.Tensor,
                          layouts: torch.Tensor) -> torch.Tensor:
-    """Length in px of the dot centre's shortest way: starts, goals (B, 2), layouts (B, 2W) -> (B,).
+    """Length in px of the dot centre's shortest way: starts, goals (B, 2), layouts (B, 2W) -> (B,)
     Rooms and doorways are convex, so the way is straight between gates, one at each face of
     each slab, tried at 29 rows of the doorway (dynamic programming, gate by gate)."""
     flip = goals[:, 0] < starts[:, 0]  # mirror x so that every way runs left to right
@@ -147,7 +139,7 @@ def room_of(positions: torch.Tensor, layouts: torch.Tensor) -> torch.Tensor:
 
 
 def wall_images(layouts: torch.Tensor) -> torch.Tensor:
-    """The wall channel: layouts (B, 2W) -> (B, 65, 65) float32, 1 on walls (border or any wall)."""
+    """The wall channel: layouts (B, 2W) -> (B, 65, 65) float32, 1 on the border and walls."""
     idx = torch.arange(IMAGE_SIZE, device=layouts.device)
     edge = (idx < BORDER) | (idx >= IMAGE_SIZE - BORDER)
     border = edge[:, None] | edge[None, :]  # (H, W)
@@ -182,10 +174,10 @@ def random_layouts(n: int, generator: torch.Generator, walls: int = 1) -> torch.
     uniform over its range, drawn wall by wall."""
     if walls not in WALL_X_RANGES:
         raise ValueError(f"walls must be 1 (Two Rooms) or 2 (Three Rooms), got {walls!r}")
-    columns, (door_lo, door_hi) = [], DOOR_Y_RANGE
+    columns = []
     for lo, hi in WALL_X_RANGES[walls]:
         columns.append(torch.randint(lo, hi + 1, (n,), generator=generator))
-        columns.append(torch.randint(door_lo, door_hi + 1, (n,), generator=generator))
+        columns.append(torch.randint(10, 55, (n,), generator=generator))  # door_y in 10..54
     return torch.stack(columns, dim=-1)
 
 
@@ -201,6 +193,7 @@ def sample_positions(layouts: torch.Tensor, generator: torch.Generator, rooms=No
     """Dot centres uniform over the free floor, never in a doorway: layouts (B, 2W) -> (B, 2);
     ``rooms`` (B,) of 0..W picks each room; None draws over all rooms, by area."""
     left, width = room_floors(layouts.cpu())
+    rows = torch.arange(len(layouts))
     u = torch.rand(len(layouts), generator=generator)
     y = LOW + (HIGH - LOW) * torch.rand(len(layouts), generator=generator)
     if rooms is None:
@@ -208,51 +201,24 @@ def sample_positions(layouts: torch.Tensor, generator: torch.Generator, rooms=No
         u = u * ends[:, -1]
         room = (u[:, None] >= ends[:, :-1]).sum(dim=1)
         before = torch.cat([torch.zeros_like(ends[:, :1]), ends[:, :-1]], dim=1)
-        x = _pick(left, room) + (u - _pick(before, room))
+        x = left[rows, room] + (u - before[rows, room])
     else:
         room = torch.as_tensor(rooms).cpu().long()
-        x = _pick(left, room) + u * _pick(width, room)
+        x = left[rows, room] + u * width[rows, room]
     return torch.stack([x, y], dim=-1).to(layouts.device)
 
 
-def _pick(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """values (B, K), index (B,) -> (B,)."""
-    return values.gather(1, index[:, None]).squeeze(1)
-
-
-def _first(mask: torch.Tensor) -> int | None:
-    """The index of the first True of a (B,) bool mask, or None."""
-    return int(mask.nonzero()[0]) if mask.any() else None
-
-
 def check_world(layouts: torch.Tensor, positions: torch.Tensor) -> None:
-    """Raise a clear error unless ``layouts`` (B, 2W) hold allowed walls and doors, and
-    ``positions`` (B, 2) are dot centres allowed in them."""
-    if layouts.dim() != 2 or layouts.shape[1] not in (2, 4) or positions.shape != (len(layouts), 2):
-        raise ValueError("layouts must have shape (B, 2W), (wall_x, door_y) for each of W = 1 or 2 "
-                         f"walls, and positions (B, 2); got {tuple(layouts.shape)} and "
+    """Raise a clear error unless ``layouts`` are (B, 2W), W = 1 or 2, and ``positions`` (B, 2)
+    are dot centres allowed in them."""
+    if layouts.shape[1:] not in ((2,), (4,)) or positions.shape != (len(layouts), 2):
+        raise ValueError("layouts must have shape (B, 2W), (wall_x, door_y) for each of W = 1 or "
+                         f"2 walls, and positions (B, 2); got {tuple(layouts.shape)} and "
                          f"{tuple(positions.shape)}")
-    wall_x, door_y = walls_of(layouts).unbind(-1)
-    lo, hi = WALL_X_RANGE if wall_x.shape[1] == 1 else WALLS_X_LIMITS
-    door_lo, door_hi = DOOR_Y_RANGE
-    bad = (wall_x < lo) | (wall_x > hi) | (door_y < door_lo) | (door_y > door_hi)
-    bad = bad.any(1) | (wall_x.diff(dim=1) < MIN_WALL_GAP).any(1)  # walls left to right
-    if (i := _first(bad)) is not None:
-        raise ValueError(f"layout {i} = {layouts[i].tolist()}: each wall_x must be in {lo}..{hi}, "
-                         f"each door_y in {door_lo}..{door_hi}; walls must go left to right, at "
-                         f"least {MIN_WALL_GAP} px apart, so that a dot fits between them")
     x, y = positions.unbind(-1)
     outside = ~torch.isfinite(positions).all(-1) | (x < LOW) | (x > HIGH) | (y < LOW) | (y > HIGH)
-    if (i := _first(outside | in_wall(positions, layouts))) is not None:
+    bad = outside | in_wall(positions, layouts)
+    if bad.any():
+        i = int(bad.nonzero()[0])
         raise ValueError(f"position {i} = {positions[i].tolist()} is outside the arena "
                          f"[{LOW}, {HIGH}] or inside the wall")
-
-
-def check_actions(actions, batch: int, dtype: torch.dtype) -> None:
-    """Raise a clear error unless ``actions`` is a finite (batch, 2) tensor, also in ``dtype``."""
-    if actions.shape != (batch, 2):
-        raise ValueError(f"actions must be a tensor of shape ({batch}, 2), one (dx, dy) per "
-                         f"world; got {tuple(actions.shape)}")
-    if (i := _first(~torch.isfinite(actions.to(dtype)).all(-1))) is not None:
-        raise ValueError(f"action {i} = {actions[i].tolist()} is too large for {dtype}, or NaN "
-                         "or infinite; check the planner's output")

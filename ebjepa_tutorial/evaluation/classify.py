@@ -1,12 +1,8 @@
 """Linear-probe and k-nearest-neighbour accuracy of frozen image features (chapters 01-02)."""
 
-from __future__ import annotations
-
 import hashlib
 import json
 import math
-from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 import torch.nn.functional as F
@@ -23,20 +19,23 @@ def accuracy(logits: torch.Tensor, labels: torch.Tensor) -> float:
     return (logits.argmax(dim=1) == labels).float().mean().item()
 
 
-@dataclass
-class ProbeResult:
-    """What :func:`linear_probe` returns; the accuracy is a fraction in [0, 1]."""
+class LinearProbe(nn.Module):
+    """``head((x - mean) / std)``: features ``(N, D)`` standardised by stored train statistics."""
 
-    test_accuracy: float
-    head: nn.Linear  # expects standardised features: (x - mean) / std
-    mean: torch.Tensor  # (D,) train-feature mean used for standardising
-    std: torch.Tensor  # (D,)
+    def __init__(self, mean: torch.Tensor, std: torch.Tensor, head: nn.Linear):
+        super().__init__()
+        self.register_buffer("mean", mean)
+        self.register_buffer("std", std)
+        self.head = head
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        return self.head((features - self.mean) / self.std)
 
 
 def linear_probe(train_features: torch.Tensor, train_labels: torch.Tensor,
-                 test_features: torch.Tensor, test_labels: torch.Tensor) -> ProbeResult:
-    """``nn.Linear(D, C)`` on features ``(N, D)`` standardised by the train split, labels ``(N,)``:
-    seeded Adam at 1e-3 (cosine to 0, weight decay 1e-4), batches of 512, 30 passes."""
+                 test_features: torch.Tensor, test_labels: torch.Tensor):
+    """``(test accuracy, LinearProbe)``: ``nn.Linear(D, C)`` on train-standardised features
+    ``(N, D)``, labels ``(N,)``; seeded Adam at 1e-3 (cosine, decay 1e-4), batch 512, 30 epochs."""
     mean, std = train_features.mean(dim=0), train_features.std(dim=0) + 1e-6
     x_train = (train_features - mean) / std
     num_classes = int(max(train_labels.max(), test_labels.max())) + 1
@@ -56,9 +55,9 @@ def linear_probe(train_features: torch.Tensor, train_labels: torch.Tensor,
             loss.backward()
             optimizer.step()
             scheduler.step()
+    probe = LinearProbe(mean, std, head)
     with torch.no_grad():
-        test_acc = accuracy(head((test_features - mean) / std), test_labels)
-    return ProbeResult(test_acc, head, mean, std)
+        return accuracy(probe(test_features), test_labels), probe
 
 
 @torch.no_grad()
@@ -100,27 +99,25 @@ def probe_encoder(encoder, config: ImageJEPAConfig, train, test, cache: bool = F
     """``{"probe_acc", "knn_acc"}`` on ``test`` of frozen features at ``config.eval_image_size``
     px; ``train``, ``test``: (images, labels). ``cache``: keep the scores in data/cache/probes/
     under a digest of the weights, protocol and data (not of this code)."""
-    path = _scores_path(encoder, config, train, test) if cache else None
-    if path is not None and path.exists():
-        return json.loads(path.read_text())
+    path = None
+    if cache:  # the file's name: a digest of the weights, the protocol and the data
+        protocol = f"probe and kNN (k = {KNN_K}) at {config.eval_image_size} px"
+        digest = hashlib.sha1(protocol.encode())
+        data = zip(("train", "train labels", "test", "test labels"), (*train, *test))
+        for name, tensor in [*encoder.state_dict().items(), *data]:
+            tensor = tensor.detach().cpu().contiguous()
+            digest.update(f"{name} {tensor.dtype} {tuple(tensor.shape)}".encode())
+            digest.update(tensor.reshape(-1).view(torch.uint8).numpy().tobytes())
+        path = cache_dir() / "probes" / f"{digest.hexdigest()[:16]}.json"
+        if path.exists():
+            return json.loads(path.read_text())
     train_features = embed(encoder, train[0], config.eval_image_size)
     test_features = embed(encoder, test[0], config.eval_image_size)
-    probe = linear_probe(train_features, train[1], test_features, test[1])
+    probe_acc, _ = linear_probe(train_features, train[1], test_features, test[1])
     knn = knn_predict(train_features, train[1], test_features) == test[1]
-    scores = {"probe_acc": probe.test_accuracy, "knn_acc": knn.float().mean().item()}
+    scores = {"probe_acc": probe_acc, "knn_acc": knn.float().mean().item()}
     if path is not None:
         with atomic_file(path) as f:  # a killed write leaves no half file under the real name
             f.write(json.dumps(scores).encode())
     return scores
-
-
-def _scores_path(encoder: nn.Module, config: ImageJEPAConfig, train, test) -> Path:
-    """Where :func:`probe_encoder` keeps the scores of this encoder, protocol and data."""
-    digest = hashlib.sha1(f"probe and kNN (k = {KNN_K}) at {config.eval_image_size} px".encode())
-    data = zip(("train", "train labels", "test", "test labels"), (*train, *test))
-    for name, tensor in [*encoder.state_dict().items(), *data]:
-        tensor = tensor.detach().cpu().contiguous()
-        digest.update(f"{name} {tensor.dtype} {tuple(tensor.shape)}".encode())
-        digest.update(tensor.reshape(-1).view(torch.uint8).numpy().tobytes())
-    return cache_dir() / "probes" / f"{digest.hexdigest()[:16]}.json"
 

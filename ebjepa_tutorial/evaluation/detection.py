@@ -1,18 +1,14 @@
 """Notebook 03's evaluation: a probe on frozen video latents marks the cells of an 8x8 grid that
 hold a digit centre, scored by average precision (AP) on latents predicted k steps ahead."""
 
-from __future__ import annotations
-
 import torch
 import torch.nn.functional as F
 
 from ..data.moving_mnist import GRID, centres_to_grid, generate_moving_mnist
 from ..losses.rollout import UNROLLS, parallel_unroll, rollout
-from ..models.video import DetectionHead, VideoJEPA
+from ..models.video import VideoJEPA, detection_head
 from ..training.video import check_clips
 from .metrics import average_precision
-
-PROBE_SEED, EVAL_SEED = 1001, 1002  # seeds of the evaluation clips (training clips use 0, 1, ...)
 
 
 def _pool(z: torch.Tensor) -> torch.Tensor:
@@ -46,12 +42,12 @@ def grid_features(model: VideoJEPA, clips: torch.Tensor, horizons: int = 7,
 
 
 def fit_detection_probe(features: torch.Tensor, targets: torch.Tensor,
-                        steps: int = 400) -> DetectionHead:
-    """Train a :class:`DetectionHead` (seeded; binary cross-entropy, Adam at 3e-3, batches
+                        steps: int = 400) -> torch.nn.Sequential:
+    """Train a ``detection_head`` (seeded; binary cross-entropy, Adam at 3e-3, batches
     of 512) on frozen pooled latents ``(M, C, g, g)`` for 0/1 ``targets`` ``(M, g, g)``."""
     generator = torch.Generator().manual_seed(0)
     torch.manual_seed(0)
-    probe = DetectionHead(features.shape[1], grid=targets.shape[-1])
+    probe = detection_head(features.shape[1], grid=targets.shape[-1])
     optimizer = torch.optim.Adam(probe.parameters(), lr=3e-3)
     for _ in range(steps):
         index = torch.randint(0, len(features), (512,), generator=generator)
@@ -65,10 +61,9 @@ def fit_detection_probe(features: torch.Tensor, targets: torch.Tensor,
 @torch.no_grad()
 def detection_report(model: VideoJEPA, probe_data, eval_data, horizons: int = 7,
                      probe_steps: int = 400, unroll: str = "parallel") -> dict:
-    """Fit the probe on ``probe_data``'s encoded frames; AP per horizon on ``eval_data``'s, as
-    float64 ``(horizons,)`` tensors: ``ap`` (predicted by ``unroll``), ``ap_encoded`` (true
-    latents: a perfect predictor), ``ap_copy`` (the latest true latent: a predictor that never
-    moves); their means ``map...``, and the ``probe``."""
+    """The ``probe`` fitted on ``probe_data``; AP per horizon on ``eval_data``, ``(horizons,)``:
+    ``ap`` (predicted by ``unroll``), ``ap_encoded`` (true latents: a perfect predictor),
+    ``ap_copy`` (the latest true latent: a predictor that never moves); their means ``map...``."""
     context = model.config.context
     fit_features, _ = grid_features(model, probe_data.clips, horizons=1)  # encodings only
     with torch.enable_grad():
@@ -96,7 +91,7 @@ def detection_report(model: VideoJEPA, probe_data, eval_data, horizons: int = 7,
 
 def evaluation_clips(train_digits: torch.Tensor, held_out: torch.Tensor, n_probe: int,
                      n_eval: int, n_frames: int = 10):
-    """The protocol's two sets of clips: fresh clips of the training digits fit the probe,
-    clips of ``held_out`` digits alone are where AP is measured."""
-    return (generate_moving_mnist(train_digits, n_probe, n_frames, seed=PROBE_SEED),
-            generate_moving_mnist(held_out, n_eval, n_frames, seed=EVAL_SEED))
+    """``(probe clips, eval clips)``: fresh clips of the training digits fit the probe, clips of
+    ``held_out`` digits alone are where AP is measured (seeds 1001, 1002; training: 0, 1, ...)."""
+    return (generate_moving_mnist(train_digits, n_probe, n_frames, seed=1001),
+            generate_moving_mnist(held_out, n_eval, n_frames, seed=1002))

@@ -1,7 +1,5 @@
 """Average precision (AP) of a detection probe, and a success rate's interval."""
 
-from __future__ import annotations
-
 import torch
 
 
@@ -10,8 +8,6 @@ def average_precision(scores: torch.Tensor, targets: torch.Tensor) -> float:
     shapes), ranked together: 1 for a perfect ranking, about the fraction of positives for a
     random one. ``k`` runs over the distinct scores, highest first; ``P_k``, ``R_k``: precision
     and recall of "score >= threshold k", ``R_0 = 0`` (sklearn's ``average_precision_score``)."""
-    if not targets.any():
-        raise ValueError("targets hold no positive cell, so recall and AP are undefined")
     scores, order = torch.sort(scores.detach().flatten().cpu(), descending=True, stable=True)
     targets = targets.detach().flatten().double().cpu()[order]
     true_pos = targets.cumsum(0)

@@ -1,30 +1,15 @@
 """Does the latent know where the agent is (a linear position probe, in pixels), and does
 the predictor know the walls (the wall test)? Chapters 05-06."""
 
-from __future__ import annotations
-
 import torch
 from torch import nn
 
 from ..envs import generate_trajectories
 from ..envs.two_rooms import HIGH, LOW, render, walls_of
 from ..models.world import WorldModel, encode_trajectories
+from .classify import LinearProbe
 
 MIN_STOP = 0.8  # px: the wall test's steps, cut short by a wall or free, are at least this long
-RIDGE = 1e-3  # the position probe's L2 penalty per sample
-
-
-class PositionProbe(nn.Module):
-    """Standardise latents with stored statistics, then a head: ``(N, D) -> (N, 2)`` pixels."""
-
-    def __init__(self, mean: torch.Tensor, std: torch.Tensor, head: nn.Module):
-        super().__init__()
-        self.register_buffer("mean", mean)
-        self.register_buffer("std", std)
-        self.head = head
-
-    def forward(self, latents: torch.Tensor) -> torch.Tensor:
-        return self.head((latents - self.mean) / self.std)
 
 
 def _check_pair(latents: torch.Tensor, positions: torch.Tensor) -> None:
@@ -35,9 +20,9 @@ def _check_pair(latents: torch.Tensor, positions: torch.Tensor) -> None:
 
 
 @torch.no_grad()
-def fit_position_probe(latents: torch.Tensor, positions: torch.Tensor) -> PositionProbe:
-    """Fit latents ``(N, D)`` -> positions ``(N, 2)`` by least squares with an L2 penalty of
-    ``RIDGE`` per sample on the standardised latents, solved exactly on their device."""
+def fit_position_probe(latents: torch.Tensor, positions: torch.Tensor) -> LinearProbe:
+    """Latents ``(N, D)`` -> positions ``(N, 2)`` in pixels: least squares on the standardised
+    latents with an L2 penalty of 1e-3 per sample, solved exactly on their device."""
     _check_pair(latents, positions)
     x = latents.detach().float()
     y = positions.detach().float().to(x.device)
@@ -46,10 +31,10 @@ def fit_position_probe(latents: torch.Tensor, positions: torch.Tensor) -> Positi
     head = nn.Linear(x.shape[1], y.shape[1]).to(x.device)
     y_mean = y.mean(dim=0)
     # Normal equations on centred data: (X^T X + N ridge I) W = X^T (Y - mean Y).
-    gram = x.T @ x + len(x) * RIDGE * torch.eye(x.shape[1], device=x.device)
+    gram = x.T @ x + len(x) * 1e-3 * torch.eye(x.shape[1], device=x.device)
     head.weight.copy_(torch.linalg.solve(gram, x.T @ (y - y_mean)).T)  # (2, D)
     head.bias.copy_(y_mean)  # x is centred, so the bias is the mean position
-    return PositionProbe(mean, std, head)
+    return LinearProbe(mean, std, head)
 
 
 @torch.no_grad()
@@ -83,12 +68,12 @@ def _nearer(model, trajectories, steps, max_steps: int | None, through_wall: boo
     """Flags ``(n,)``, and the steps' ``b``, ``t``, for the first ``max_steps`` of the mask
     ``steps``: is ``Pred(z_t, a_t)`` nearer the real ``z_{t+1}`` than the dot moved by the
     action alone, into the wall (without ``through_wall``: than ``z_t``)?"""
-    positions, actions, layouts = trajectories.positions, trajectories.actions, trajectories.layouts
+    positions, actions = trajectories.positions, trajectories.actions
     device = next(model.parameters()).device
     b, t = steps.nonzero()[:max_steps].unbind(1)
 
     def encode(where):  # latents of the dot at where in layout b
-        return model.encode(render(where, layouts[b]).to(device)).cpu()
+        return model.encode(render(where, trajectories.layouts[b]).to(device)).cpu()
 
     now = encode(positions[b, t])
     guess = model.predict(now.to(device), actions[b, t].to(device)).cpu()
@@ -99,10 +84,9 @@ def _nearer(model, trajectories, steps, max_steps: int | None, through_wall: boo
 
 @torch.no_grad()
 def middle_wall_test(model, trajectories) -> dict:
-    """Does the predictor stop the dot at a wall, and move it elsewhere? ``stopped``: on the
-    first 1000 (``n_stopped``) steps a wall cut short, the fraction of predictions nearer the
-    real next latent than the dot moved into the wall. ``moved`` (the control, as a predictor
-    that never moves also scores 1): the same on free steps (``n_moved``), against ``z_t``."""
+    """``stopped``: on the first 1000 (``n_stopped``) steps a wall cut short, the fraction of
+    predictions nearer the real next latent than the dot moved into the wall; ``moved`` (the
+    control: a predictor that never moves scores 1 above): on free steps (``n_moved``), vs z_t."""
     stopped_steps, moved_steps = _wall_steps(trajectories)
     stopped = _nearer(model, trajectories, stopped_steps, 1000, through_wall=True)[0]
     moved = _nearer(model, trajectories, moved_steps, 1000, through_wall=False)[0]

@@ -1,8 +1,6 @@
 """Notebook 02's sweeps (loss weights: the paper's Figure 3; projector widths), as written by
 ``python -m research.sweep --scale class``."""
 
-from __future__ import annotations
-
 import json
 from dataclasses import replace
 from pathlib import Path

@@ -2,14 +2,7 @@
 here), ``sigreg`` (02), ``rollout`` (the video JEPA's K-step loss, 03), ``world`` (05)."""
 
 from . import rollout, sigreg, vicreg, world
-from .vicreg import (
-    covariance_matrix,
-    covariance_term,
-    invariance_term,
-    variance_and_covariance,
-    variance_term,
-    vicreg_loss,
-)
+from .vicreg import covariance_matrix, covariance_term, invariance_term, variance_term, vicreg_loss
 
 __all__ = ["covariance_matrix", "covariance_term", "invariance_term", "rollout", "sigreg",
-           "variance_and_covariance", "variance_term", "vicreg", "vicreg_loss", "world"]
+           "variance_term", "vicreg", "vicreg_loss", "world"]

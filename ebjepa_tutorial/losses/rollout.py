@@ -12,11 +12,10 @@ import torch.nn.functional as F
 Predictor = Callable[[torch.Tensor], torch.Tensor]  # (N, context, C, H, W) -> (N, C, H, W)
 
 
-def check_rollout_args(z: torch.Tensor, context: int, steps: int):
+def _check_args(z: torch.Tensor, context: int, steps: int):
     if z.ndim != 5 or steps < 1 or z.shape[1] < context + steps:
-        raise ValueError(f"latents must be (batch, time, channels, height, width), time >= "
-                         f"context + steps = {context} + {steps}, steps >= 1; got {tuple(z.shape)}"
-                         " (a clip too short: use longer clips or fewer steps)")
+        raise ValueError(f"latents must be (batch, time >= context + steps = {context} + {steps}, "
+                         f"C, H, W), steps >= 1; got {tuple(z.shape)} (a clip too short?)")
 
 
 def rollout(predictor: Predictor, window: torch.Tensor, steps: int):
@@ -32,10 +31,10 @@ def rollout(predictor: Predictor, window: torch.Tensor, steps: int):
 
 def rollout_loss(predictor: Predictor, z: torch.Tensor, context: int = 2, steps: int = 4,
                  detach_later: bool = False) -> torch.Tensor:
-    """The autoregressive K-step loss over latents ``z`` ``(B, T, C, H, W)``, a 0-d tensor: from
-    every start ``s``, ``K = steps`` steps from the true ``z_s .. z_{s+context-1}``, prediction
-    ``k`` against ``z_{s+context-1+k}``; the MSE. ``detach_later``: orders 2..K on detached z."""
-    check_rollout_args(z, context, steps)
+    """The autoregressive K-step MSE over latents ``z (B, T, C, H, W)``, a 0-d tensor: from every
+    start ``s``, K = ``steps`` steps from the true ``z_s .. z_{s+context-1}``, prediction ``k``
+    against ``z_{s+context-1+k}``. ``detach_later``: orders 2..K on ``z.detach()``."""
+    _check_args(z, context, steps)
     if detach_later and steps > 1:
         n = z.shape[1] - context - steps + 1  # the order-1 term of the same n starts
         first = rollout_loss(predictor, z[:, :n + context], context, 1)
@@ -44,8 +43,7 @@ def rollout_loss(predictor: Predictor, z: torch.Tensor, context: int = 2, steps:
     return F.mse_loss(*_rollouts(predictor, z, context, steps))
 
 
-def _rollouts(predictor: Predictor, z: torch.Tensor, context: int,
-              steps: int) -> tuple[torch.Tensor, torch.Tensor]:
+def _rollouts(predictor: Predictor, z: torch.Tensor, context: int, steps: int):
     """Predictions and targets ``(B * n, K, C, H, W)`` of the rollouts from every start."""
     n = z.shape[1] - context - steps + 1  # rollouts per clip, one per start frame
     windows = torch.stack([z[:, j:j + n] for j in range(context)], dim=2)  # (B, n, ctx, C, H, W)
@@ -53,12 +51,11 @@ def _rollouts(predictor: Predictor, z: torch.Tensor, context: int,
     return rollout(predictor, windows.flatten(0, 1), steps), targets.flatten(0, 1)
 
 
-def parallel_unroll(predictor: Predictor, z: torch.Tensor, context: int = 2,
-                    steps: int = 4) -> list[torch.Tensor]:
-    """The paper's parallel unroll of ``z`` ``(B, T, C, H, W)``: ``steps`` tensors ``(B, T -
-    context, C, H, W)``; step k predicts every frame t >= context from frames t - context .. t - 1
-    of step k-1's sequence (the true latents at step 1; the true first ``context`` kept)."""
-    check_rollout_args(z, context, steps)
+def parallel_unroll(predictor: Predictor, z: torch.Tensor, context: int = 2, steps: int = 4):
+    """The paper's parallel unroll of ``z (B, T, C, H, W)``: ``steps`` tensors ``(B, T - context,
+    C, H, W)``; step k predicts each frame t >= context from frames t - context .. t - 1 of step
+    k-1's sequence (the true latents at step 1; the true first ``context`` kept)."""
+    _check_args(z, context, steps)
     sequence, out = z, []
     for _ in range(steps):
         n = sequence.shape[1] - context  # one window per predicted frame

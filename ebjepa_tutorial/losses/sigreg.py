@@ -1,14 +1,6 @@
-"""SIGReg (LeJEPA, Balestriero & LeCun, 2025): push embeddings ``z`` ``(B, D)`` towards N(0, I).
-
-Each step projects ``z`` on ``num_slices`` random unit directions ``a`` (``x = z @ a``, B numbers
-per direction), unstandardised, and scores each projection against N(0, 1) with Epps-Pulley:
-
-    phi_N(t) = (1/N) sum_n exp(i t x_n)        empirical characteristic function
-    EP       = N * integral_{-T}^{T} |phi_N(t) - exp(-t^2 / 2)|^2 w(t) dt
-    w(t)     = exp(-t^2 / (2 sigma^2))         weight (sigma = 1: EB-JEPA's)
-
-By Cramer-Wold, if every 1-D projection is N(0, 1), ``z`` is N(0, I). The factor N (LeJEPA's;
-``scale_by_n=False`` drops it, and ``lam`` must grow N-fold) makes EP about 1.05 for Gaussians."""
+"""SIGReg (LeJEPA, Balestriero & LeCun, 2025): push embeddings ``z (B, D)`` towards N(0, I) by
+scoring random unit projections ``x = z @ a`` against N(0, 1) with the Epps-Pulley statistic (by
+Cramer-Wold, ``z`` is N(0, I) if every 1-D projection is N(0, 1))."""
 
 from __future__ import annotations
 
@@ -17,13 +9,16 @@ import torch
 from ..utils import at_least_float32
 from .vicreg import _check_embeddings, invariance_term
 
-_ANCHOR_EVERY = 8  # knots between exact cos/sin: bounds the angle-addition drift to ~8 ulp
-
 
 def epps_pulley(x: torch.Tensor, knots: int = 17, t_max: float = 3.0, sigma: float = 1.0,
                 scale_by_n: bool = True) -> torch.Tensor:
     """Epps-Pulley statistic of N samples of one projection ``(N,) -> ()``, or of M projections
-    ``(N, M) -> (M,)``. The integrand is even in t: trapezoids on [0, t_max], doubled."""
+    ``(N, M) -> (M,)``; the integrand is even, so trapezoids on [0, T = t_max], doubled:
+
+        EP = N integral_{-T}^{T} |phi_N(t) - exp(-t^2 / 2)|^2 exp(-t^2 / (2 sigma^2)) dt
+
+    with phi_N(t) = (1/N) sum_n exp(i t x_n). The factor N (LeJEPA's) makes EP about 1.05 for
+    Gaussian samples; ``scale_by_n=False`` drops it (and ``lam`` must grow N-fold)."""
     if x.ndim not in (1, 2) or x.shape[0] < 2:
         raise ValueError(f"epps_pulley needs at least 2 samples along dimension 0 of a (N,) or "
                          f"(N, M) tensor, got shape {tuple(x.shape)}")
@@ -33,20 +28,17 @@ def epps_pulley(x: torch.Tensor, knots: int = 17, t_max: float = 3.0, sigma: flo
     gaussian_cf = torch.exp(-(t**2) / 2)  # phi(t) of N(0, 1): real
     weight = torch.exp(-(t**2) / (2 * sigma**2))  # w(t)
     squared_gap = (ecf_real - gaussian_cf) ** 2 + ecf_imag**2  # |phi_N(t) - phi(t)|^2
-    half_integral = torch.trapezoid(weight * squared_gap, t, dim=-1)  # over [0, t_max]
-    statistic = 2 * half_integral  # over [-t_max, t_max], by symmetry
+    statistic = 2 * torch.trapezoid(weight * squared_gap, t, dim=-1)  # twice [0, t_max]'s
     return statistic * x.shape[0] if scale_by_n else statistic
 
 
 def _cos_sin_at_knots(x: torch.Tensor, dt: float, knots: int):
     """Yield ``(cos(k dt x), sin(k dt x))`` for k < knots, shaped like ``x``, by angle addition
-    (e^{i (k+1) dt x} = e^{i k dt x} e^{i dt x}), exact again every ``_ANCHOR_EVERY`` knots."""
+    (e^{i (k+1) dt x} = e^{i k dt x} e^{i dt x}), exact again every 8 knots."""
     cos_step, sin_step = torch.cos(x * dt), torch.sin(x * dt)
     cos_k, sin_k = torch.ones_like(x), torch.zeros_like(x)
     for k in range(knots):
-        if k == 1:
-            cos_k, sin_k = cos_step, sin_step
-        elif k % _ANCHOR_EVERY == 1:  # exact again, so that rounding errors do not pile up
+        if k % 8 == 1:  # k = 1, 9, 17, ...: exact, so that the drift stays within ~8 ulp
             cos_k, sin_k = torch.cos(x * (k * dt)), torch.sin(x * (k * dt))
         elif k:
             cos_k, sin_k = cos_k * cos_step - sin_k * sin_step, sin_k * cos_step + cos_k * sin_step

@@ -29,8 +29,7 @@ def invariance_term(z_a: torch.Tensor, z_b: torch.Tensor) -> torch.Tensor:
 def variance_term(z: torch.Tensor, gamma: float = 1.0, eps: float = 1e-4) -> torch.Tensor:
     """Hinge on each dimension's standard deviation over the batch ``(B, D)``, ``B >= 2``:
 
-        v(Z) = (1/D) sum_d max(0, gamma - sqrt(Var(z_d) + eps))
-    """
+        v(Z) = (1/D) sum_d max(0, gamma - sqrt(Var(z_d) + eps))"""
     _check_embeddings(z)
     std = torch.sqrt(z.var(dim=0) + eps)
     return F.relu(gamma - std).mean()
@@ -44,16 +43,15 @@ def covariance_matrix(z: torch.Tensor) -> torch.Tensor:
 
 
 def covariance_term(z: torch.Tensor) -> torch.Tensor:
-    """Mean squared off-diagonal covariance of ``(B, D)``, ``D >= 2`` (the VICReg paper divides
-    by ``D``; EB-JEPA's average keeps the coefficient independent of ``D``):
+    """Mean squared off-diagonal covariance of ``(B, D)``, ``D >= 2`` (VICReg divides by ``D``;
+    EB-JEPA's mean keeps the coefficient independent of ``D``):
 
-        c(Z) = sum_{i != j} C_ij^2 / (D (D - 1))
-    """
+        c(Z) = sum_{i != j} C_ij^2 / (D (D - 1))"""
     return off_diagonal_term(covariance_matrix(z))
 
 
 def off_diagonal_term(cov: torch.Tensor) -> torch.Tensor:
-    """``sum_{i != j} C_ij^2 / (D (D - 1))`` of a covariance matrix ``(D, D)``: ``()``."""
+    """``c`` of a covariance matrix ``(D, D)``, a 0-d tensor."""
     dim = cov.shape[0]
     if dim < 2:
         raise ValueError("the covariance term needs at least 2 embedding dimensions")
@@ -61,27 +59,14 @@ def off_diagonal_term(cov: torch.Tensor) -> torch.Tensor:
     return off_diagonal.pow(2).sum() / (dim * (dim - 1))
 
 
-def variance_and_covariance(z: torch.Tensor, gamma: float = 1.0,
-                            eps: float = 1e-4) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(variance_term(z, gamma, eps), covariance_term(z))`` of embeddings ``(B, D)``."""
-    return variance_term(z, gamma, eps), covariance_term(z)
-
-
-def vicreg_terms(z_a: torch.Tensor, z_b: torch.Tensor, variance: Term = variance_term,
-                 covariance: Term = covariance_term) -> dict[str, torch.Tensor]:
-    """VICReg's unweighted terms of two views ``(B, D)``: ``{"invariance", "variance",
-    "covariance"}``, 0-d each; the last two computed on each view and averaged."""
-    return {"invariance": invariance_term(z_a, z_b),
-            "variance": (variance(z_a) + variance(z_b)) / 2,
-            "covariance": (covariance(z_a) + covariance(z_b)) / 2}
-
-
 def vicreg_loss(z_a: torch.Tensor, z_b: torch.Tensor, inv_coeff: float = 1.0,
                 std_coeff: float = 1.0, cov_coeff: float = 1.0, variance: Term = variance_term,
-                covariance: Term = covariance_term) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """``(L, terms)`` of two views ``(B, D)``, ``L = inv_coeff s + std_coeff v + cov_coeff c``
-    over :func:`vicreg_terms`; ``terms`` are detached 0-d tensors for logging."""
-    inv, var, cov = vicreg_terms(z_a, z_b, variance, covariance).values()
+                covariance: Term = covariance_term) -> tuple[torch.Tensor, dict]:
+    """``(L, terms)`` of two views ``(B, D)``: ``L = inv_coeff s + std_coeff v + cov_coeff c``,
+    ``v`` and ``c`` computed on each view and averaged; ``terms``: the three, detached, 0-d."""
+    inv = invariance_term(z_a, z_b)
+    var = (variance(z_a) + variance(z_b)) / 2
+    cov = (covariance(z_a) + covariance(z_b)) / 2
     total = inv_coeff * inv + std_coeff * var + cov_coeff * cov
     return total, {"invariance": inv.detach(), "variance": var.detach(),
                    "covariance": cov.detach()}

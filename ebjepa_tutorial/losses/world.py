@@ -1,8 +1,7 @@
 """The world model's loss (notebook 05), one function per term. For latents ``z`` ``(B, T, D)``
 and the actions between frames ``(B, T-1, A)``, each term a mean over its elements:
 
-    L = L_pred + alpha v(Z) + beta c(Z) + delta L_sim + omega L_idm   (paper: 16, 8, 12, 1; K = 8)
-"""
+    L = L_pred + alpha v(Z) + beta c(Z) + delta L_sim + omega L_idm  (paper 16, 8, 12, 1; K = 8)"""
 
 from __future__ import annotations
 
@@ -28,9 +27,10 @@ class WorldLossCoeffs:
     sigreg: float = 0.0  # on every frame's latent, N-scaled
 
 
-def _check_sequence(z: torch.Tensor, actions: torch.Tensor | None = None) -> None:
-    if z.ndim != 3 or z.shape[1] < 2:
-        raise ValueError(f"latents must be (batch, time >= 2, dim), got {tuple(z.shape)}")
+def _check_sequence(z: torch.Tensor, actions: torch.Tensor | None = None, steps: int = 1):
+    if z.ndim != 3 or not 1 <= steps < z.shape[1]:
+        raise ValueError(f"latents must be (batch, time, dim) and steps must be in 1..time - 1; "
+                         f"got {tuple(z.shape)} and {steps} steps")
     if actions is not None and (actions.ndim != 3 or actions.shape[:2] != z[:, 1:].shape[:2]):
         raise ValueError(f"actions must be (batch, time - 1, action_dim) = ({len(z)}, "
                          f"{z.shape[1] - 1}, A), one per step; got {tuple(actions.shape)}")
@@ -48,20 +48,16 @@ def with_still_steps(z: torch.Tensor, actions: torch.Tensor, stay: torch.Tensor)
 
 
 def multistep_prediction_loss(
-    predict: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], z: torch.Tensor,
-    actions: torch.Tensor, steps: int = 8, detach_targets: bool = False,
-    stay_probability: float = 0.0, generator: torch.Generator | None = None,
-    rand: Callable = torch.rand,
-) -> torch.Tensor:
+        predict: Callable, z: torch.Tensor, actions: torch.Tensor, steps: int = 8,
+        detach_targets: bool = False, stay_probability: float = 0.0,
+        generator: torch.Generator | None = None, rand: Callable = torch.rand) -> torch.Tensor:
     """The K-step loss from the first frame, ``zhat_0 = z_0``, ``zhat_k = P(zhat_{k-1}, a_{k-1})``
     with ``predict(z (B, D), a (B, A)) -> (B, D)``, ``z (B, T, D)``, ``actions (B, T-1, A)``:
 
         L_pred = (1/K) sum_{k=1..K} (1/(B D)) sum_b ||zhat_k - z_k||^2,   K = steps <= T - 1
 
     Each step is still (:func:`with_still_steps`) with ``stay_probability``, drawn by ``rand``."""
-    _check_sequence(z, actions)
-    if not 1 <= steps <= z.shape[1] - 1:
-        raise ValueError(f"steps must be in 1..{z.shape[1] - 1} (T - 1), got {steps}")
+    _check_sequence(z, actions, steps)
     if stay_probability:
         z, actions = z[:, : steps + 1], actions[:, :steps]
         stay = rand(len(z), steps, generator=generator) < stay_probability
@@ -85,26 +81,20 @@ def variance_covariance_loss(z: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
 def temporal_similarity_loss(z: torch.Tensor) -> torch.Tensor:
     """Mean squared change between consecutive latents ``(B, T, D)``, a 0-d tensor:
 
-        L_sim = (1/(B (T-1) D)) sum_{b,t} ||z_{t+1} - z_t||^2
-    """
+        L_sim = (1/(B (T-1) D)) sum_{b,t} ||z_{t+1} - z_t||^2"""
     return (z[:, 1:] - z[:, :-1]).pow(2).mean()
 
 
 def inverse_dynamics_loss(predict_actions: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
                           z: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-    """Inverse dynamics, ``g(z_t (..., D), z_{t+1} (..., D)) -> (..., A)``, on ``z`` ``(B, T, D)``
-    and ``actions`` ``(B, T-1, A)``:
+    """Inverse dynamics ``g(z_t (..., D), z_{t+1} (..., D)) -> (..., A)`` against the actions:
 
-        L_idm = (1/(B (T-1) A)) sum_{b,t} ||g(z_t, z_{t+1}) - a_t||^2
-    """
+        L_idm = (1/(B (T-1) A)) sum_{b,t} ||g(z_t, z_{t+1}) - a_t||^2"""
     return F.mse_loss(predict_actions(z[:, :-1], z[:, 1:]), actions)
 
 
 def encode_for_loss(model, frames: torch.Tensor) -> torch.Tensor:
     """Frames ``(B, T, 2, 65, 65)`` -> float32 latents ``(B, T, D)``, encoded in bf16 on a GPU."""
-    if not bool(model.input_stats_fitted):
-        raise RuntimeError("call model.fit_input_stats(frames) on a few hundred training "
-                           "trajectories first: unstandardised, the walls drown the faint dot")
     with mixed_precision(frames.device):
         z = model.encode(frames)
     return at_least_float32(z)

@@ -1,7 +1,5 @@
-"""The image encoder of notebooks 01-02 (the paper's CIFAR ResNet-18; its code pads the stem by 2,
-we by 1), the residual block it shares with the video encoder, and the projector ("expander")."""
-
-from __future__ import annotations
+"""The CIFAR ResNet-18 of notebooks 01-02, the residual block it shares with the video encoder,
+and the projector ("expander")."""
 
 import torch
 import torch.nn.functional as F
@@ -15,7 +13,7 @@ def conv_bn_relu(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
 
 
 class ResidualBlock(nn.Module):
-    """conv3x3-BN-ReLU-conv3x3-BN plus a shortcut: ``(N, c_in, s, s) -> (N, c_out, s/stride, ...)``;
+    """conv3x3-BN-ReLU-conv3x3-BN plus a shortcut: ``(N, c_in, s, s) -> (N, c_out, s', s')``;
     ``relu_out=False`` leaves the sum un-rectified (the video encoder's last block)."""
 
     def __init__(self, c_in: int, c_out: int, stride: int = 1, relu_out: bool = True):
@@ -62,24 +60,15 @@ class ResNet18(nn.Module):
         return self.stages(self.stem(x)).mean(dim=(2, 3))  # (B, widths[-1], H/8, W/8) pooled
 
 
-class Projector(nn.Sequential):
-    """``(B, in_dim) -> (B, out_dim)``: ``depth - 1`` Linear-BN-ReLU layers (Linears without
-    bias: the BN removes it), then a Linear. ``depth=3`` is the VICReg / EB-JEPA projector."""
-
-    def __init__(self, in_dim: int, hidden_dim: int, out_dim: int, depth: int):
-        layers, width = [], in_dim
-        for _ in range(depth - 1):
-            layers += [nn.Linear(width, hidden_dim, bias=False), nn.BatchNorm1d(hidden_dim),
-                       nn.ReLU(inplace=True)]
-            width = hidden_dim
-        super().__init__(*layers, nn.Linear(width, out_dim))
-        self.in_dim, self.out_dim = in_dim, out_dim
-
-
 def build_projector(in_dim: int, hidden_dim: int, out_dim: int, depth: int) -> nn.Module:
-    """A :class:`Projector`, or for ``depth == 0`` an ``nn.Identity()`` with ``in_dim, out_dim``."""
-    if depth:
-        return Projector(in_dim, hidden_dim, out_dim, depth)
-    identity = nn.Identity()
-    identity.in_dim = identity.out_dim = in_dim
-    return identity
+    """``(B, in_dim) -> (B, out_dim)``: ``depth - 1`` Linear-BN-ReLU layers (Linears without bias:
+    the BN removes it), then a Linear. ``depth=3`` is the VICReg / EB-JEPA projector; ``depth=0``
+    the identity (``out_dim = in_dim``)."""
+    layers, width = [], in_dim
+    for _ in range(depth - 1):
+        layers += [nn.Linear(width, hidden_dim, bias=False), nn.BatchNorm1d(hidden_dim),
+                   nn.ReLU(inplace=True)]
+        width = hidden_dim
+    projector = nn.Sequential(*layers, nn.Linear(width, out_dim)) if depth else nn.Identity()
+    projector.in_dim, projector.out_dim = in_dim, (out_dim if depth else in_dim)
+    return projector

@@ -1,13 +1,10 @@
 """The video JEPA of notebook 03 (a frame encoder to a spatial latent ``(C, S, S)``, a ResUNet
 predictor, a per-location projector) and two evaluation heads for frozen latents."""
 
-from __future__ import annotations
-
 import math
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from ..data.moving_mnist import FRAME_SIZE
@@ -27,13 +24,6 @@ class VideoModelConfig:
     context: int = 2  # latent frames the predictor sees
     projector_dim: int = 64  # hidden and output width of the projector (the paper: 4 C)
     residual: bool = True  # predict a change to the last latent (the paper: False)
-
-    def __post_init__(self):
-        object.__setattr__(self, "strides", tuple(int(s) for s in self.strides))
-        down = self.stem_stride * math.prod(self.strides)
-        if down < 1 or FRAME_SIZE % down or (FRAME_SIZE // down) % 2**self.predictor_levels:
-            raise ValueError(f"the latent side 64 / (stem_stride * prod(strides)) = 64 / {down} "
-                             "must be a whole number that 2**predictor_levels divides")
 
     @property
     def latent_side(self) -> int:  # S
@@ -113,11 +103,10 @@ class VideoJEPA(nn.Module):
 
     def encode(self, frames: torch.Tensor) -> torch.Tensor:
         """Frames ``(B, T, 1, 64, 64)`` (uint8, or float in 0..1) -> ``(B, T, C, S, S)``."""
-        if frames.ndim != 5 or frames.shape[2:] != (1, FRAME_SIZE, FRAME_SIZE):
-            raise ValueError(f"frames must be (B, T, 1, 64, 64) clips, got {tuple(frames.shape)}")
-        if frames.dtype != torch.uint8 and frames.numel() and frames.detach().amax() > 1:
-            raise ValueError(f"float frames must be in 0..1, got values up to "
-                             f"{frames.detach().amax().item():g}: pass uint8 clips, or / 255")
+        if frames.ndim != 5 or frames.shape[2:] != (1, FRAME_SIZE, FRAME_SIZE) or (
+                frames.dtype != torch.uint8 and frames.numel() and frames.detach().amax() > 1):
+            raise ValueError(f"frames must be (B, T, 1, 64, 64) clips, uint8 or float in 0..1 "
+                             f"(uint8 / 255); got {tuple(frames.shape)} {frames.dtype}")
         x = frames.float() / 255 if frames.dtype == torch.uint8 else frames
         return self.encoder(x.flatten(0, 1)).unflatten(0, frames.shape[:2])
 
@@ -126,30 +115,18 @@ class VideoJEPA(nn.Module):
         return self.projector(z.movedim(-3, -1).reshape(-1, z.shape[-3]))  # rows (M, C)
 
 
-class DetectionHead(nn.Module):
+def detection_head(channels: int, grid: int = 8) -> nn.Sequential:
     """Digit-centre logits on a ``grid x grid`` map: ``(N, C, S, S) -> (N, grid, grid)``: the
     latent average-pooled to the grid, then conv3x3-ReLU-conv3x3."""
-
-    def __init__(self, channels: int, grid: int = 8):
-        super().__init__()
-        self.grid = grid
-        self.net = nn.Sequential(nn.Conv2d(channels, 32, 3, padding=1), nn.ReLU(inplace=True),
-                                 nn.Conv2d(32, 1, 3, padding=1))
-
-    def forward(self, z: torch.Tensor) -> torch.Tensor:
-        return self.net(F.adaptive_avg_pool2d(z, self.grid)).squeeze(1)
+    return nn.Sequential(nn.AdaptiveAvgPool2d(grid), nn.Conv2d(channels, 32, 3, padding=1),
+                         nn.ReLU(inplace=True), nn.Conv2d(32, 1, 3, padding=1),
+                         nn.Flatten(1, 2))  # (N, 1, grid, grid) -> (N, grid, grid)
 
 
-class FrameDecoder(nn.Module):
+def frame_decoder(channels: int, latent_side: int) -> nn.Sequential:
     """Pictures from latents, for looking only: ``(N, C, S, S) -> logits (N, 1, 64, 64)``: a
     conv, one transposed conv per doubling from ``S`` to 64, a conv to one channel."""
-
-    def __init__(self, channels: int, latent_side: int):
-        super().__init__()
-        layers = [nn.Conv2d(channels, 16, 3, padding=1), nn.ReLU(inplace=True)]
-        for _ in range(int(math.log2(FRAME_SIZE // latent_side))):
-            layers += [nn.ConvTranspose2d(16, 16, 4, stride=2, padding=1), nn.ReLU(inplace=True)]
-        self.net = nn.Sequential(*layers, nn.Conv2d(16, 1, 3, padding=1))
-
-    def forward(self, z: torch.Tensor) -> torch.Tensor:
-        return self.net(z)
+    layers = [nn.Conv2d(channels, 16, 3, padding=1), nn.ReLU(inplace=True)]
+    for _ in range(int(math.log2(FRAME_SIZE // latent_side))):
+        layers += [nn.ConvTranspose2d(16, 16, 4, stride=2, padding=1), nn.ReLU(inplace=True)]
+    return nn.Sequential(*layers, nn.Conv2d(16, 1, 3, padding=1))

@@ -1,7 +1,5 @@
-"""The world model of notebooks 04-05: an IMPALA encoder, a residual predictor ``z' = z + W f(z,
+"""The world model of notebooks 05-07: an IMPALA encoder, a residual predictor ``z' = z + W f(z,
 e(a))`` (``W`` zero at first), an inverse-dynamics head; its config travels in its state_dict."""
-
-from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
@@ -27,9 +25,6 @@ class WorldConfig:
     predictor: str = "gru"  # "gru" or "mlp" (see Predictor)
     predictor_hidden: int = 128  # width of the MLP predictor's two hidden layers
     idm_hidden: int = 128  # hidden width of the inverse-dynamics MLP
-
-    def __post_init__(self):
-        object.__setattr__(self, "widths", tuple(int(w) for w in self.widths))
 
 
 WORLD_CONFIGS = {
@@ -111,10 +106,10 @@ class WorldModel(nn.Module):
                                               nn.Linear(c.idm_hidden, c.action_dim))
 
     @torch.no_grad()
-    def fit_input_stats(self, frames: torch.Tensor) -> WorldModel:
+    def fit_input_stats(self, frames: torch.Tensor) -> "WorldModel":
         """Set the per-channel mean and std from ``frames`` ``(N, [T,] C, 65, 65)`` (a few hundred
         trajectories: then the dot, 0.3% of the pixels, is not drowned by the walls); self."""
-        channels = _check_frames(frames).movedim(-3, 0).reshape(CHANNELS, -1).float()
+        channels = frames.movedim(-3, 0).reshape(CHANNELS, -1).float()
         self.input_mean.copy_(channels.mean(dim=1))
         self.input_std.copy_(channels.std(dim=1).clamp_min(1e-6))
         self.input_stats_fitted.fill_(True)
@@ -128,7 +123,10 @@ class WorldModel(nn.Module):
 
     def encode(self, frames: torch.Tensor) -> torch.Tensor:
         """Frames ``(B, C, 65, 65)`` -> ``(B, D)``, or ``(B, T, C, 65, 65)`` -> ``(B, T, D)``."""
-        frames = _check_frames(frames)
+        framed = frames.ndim in (4, 5) and frames.shape[-3:] == (CHANNELS, IMAGE_SIZE, IMAGE_SIZE)
+        if not framed or not frames.is_floating_point():
+            raise ValueError("each frame must be (2, 65, 65) (dot and walls), float in [0, 1] "
+                             f"(Trajectories.frames); got {tuple(frames.shape)} {frames.dtype}")
         z = self.encoder(self.normalize(frames.flatten(0, frames.ndim - 4)))
         return z.view(*frames.shape[:-3], -1)
 
@@ -163,8 +161,7 @@ class WorldModel(nn.Module):
     def get_extra_state(self) -> dict:
         return {"config": asdict(self.config)}
 
-    def set_extra_state(self, state: dict) -> None:
-        """Raise a clear error if the checkpoint's config differs from this model's."""
+    def set_extra_state(self, state: dict) -> None:  # a clear error for another config
         saved, ours = asdict(_saved_config(state)), asdict(self.config)
         differences = [f"{name}: the checkpoint has {value!r}, this model has {ours[name]!r}"
                        for name, value in saved.items() if value != ours[name]]
@@ -173,7 +170,7 @@ class WorldModel(nn.Module):
                              + "; ".join(differences) + "): use WorldModel.from_state_dict")
 
     @classmethod
-    def from_state_dict(cls, state_dict: dict) -> WorldModel:
+    def from_state_dict(cls, state_dict: dict) -> "WorldModel":
         """A model built with the config saved in ``state_dict``, its weights loaded."""
         model = cls(_saved_config(state_dict["_extra_state"]))
         model.load_state_dict(state_dict)
@@ -184,14 +181,6 @@ def _saved_config(state: dict) -> WorldConfig:
     """The saved config; fields it lacks take their defaults, fields we dropped are left out."""
     names = {f.name for f in fields(WorldConfig)}
     return WorldConfig(**{name: v for name, v in state["config"].items() if name in names})
-
-
-def _check_frames(frames: torch.Tensor) -> torch.Tensor:
-    shape = (CHANNELS, IMAGE_SIZE, IMAGE_SIZE)
-    if frames.ndim not in (4, 5) or frames.shape[-3:] != shape or not frames.is_floating_point():
-        raise ValueError(f"each frame must be {shape} (dot and walls), float in [0, 1], batched as "
-                         f"Trajectories.frames renders; got {tuple(frames.shape)} {frames.dtype}")
-    return frames
 
 
 @torch.no_grad()

@@ -5,10 +5,9 @@ from . import checkpoints, image, loop, optim, toy, video, world
 
 
 def train_or_load(config, name: str, data=None, device=None, **options):
-    """``(model in eval mode, history)`` of the run ``config``, loaded from ``checkpoints/`` or
-    ``data/cache/checkpoints/`` if this run was saved as ``name``, else trained on ``data`` and
-    saved: uint8 images ``(N, 3, 32, 32)`` for an ``ImageJEPAConfig``, training digits ``(D, 1,
-    28, 28)`` for a ``VideoJEPAConfig``, nothing for a ``WorldTrainConfig``."""
+    """``(model in eval mode, history)`` of ``config``: loaded if saved as ``name``, else trained
+    on ``data`` and saved. ``data``: uint8 images ``(N, 3, 32, 32)`` for an ``ImageJEPAConfig``,
+    training digits ``(D, 1, 28, 28)`` for a ``VideoJEPAConfig``, None for a world model."""
     if isinstance(config, world.WorldTrainConfig):
         return world.train_or_load(config, name, device, **options)
     if isinstance(config, video.VideoJEPAConfig):

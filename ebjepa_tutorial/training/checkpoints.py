@@ -1,5 +1,5 @@
-"""Checkpoint files: written atomically, read safely, recognised by their run's identity
-(:func:`run_identity`); another run's file is never loaded in its place, nor overwritten."""
+"""Checkpoint files: written atomically, read with ``weights_only=True``, recognised by their
+run's identity; another run's file is never loaded in its place, nor overwritten."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from typing import Any
 
 import torch
 
-from ..data.paths import atomic_file, cache_dir, remove_stale_temporaries, temporaries_of
+from ..data.paths import atomic_file, cache_dir
 
 SHIPPED_DIR = Path(__file__).resolve().parents[2] / "checkpoints"  # beside the package
 
@@ -31,24 +31,22 @@ class UnsafeCheckpointError(CheckpointError):
 
 
 def checkpoint_paths(name: str) -> tuple[Path, Path]:
-    """Where a notebook's run called ``name`` is saved, ``data/cache/checkpoints/<name>.pt``
-    (git-ignored), and where a shipped copy would be, ``checkpoints/<name>.pt``."""
+    """The run ``name``'s cache file ``data/cache/checkpoints/<name>.pt`` and shipped file
+    ``checkpoints/<name>.pt``."""
     return cache_dir() / "checkpoints" / f"{name}.pt", SHIPPED_DIR / f"{name}.pt"
 
 
 def save_checkpoint(path: str | Path, **state: Any) -> Path:
     """Write ``state`` with ``torch.save`` atomically (a crash leaves the previous file whole)."""
     path = Path(path)
-    remove_stale_temporaries(path.parent, [temporaries_of(path)])
     with atomic_file(path) as f:
         torch.save(state, f)
     return path
 
 
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
-    """The dict :func:`save_checkpoint` wrote, read with ``weights_only=True``. Raises
-    :class:`UnsafeCheckpointError` for a file holding more than tensors and plain data,
-    :class:`CheckpointError` for a damaged one."""
+    """The dict :func:`save_checkpoint` wrote. Raises :class:`UnsafeCheckpointError` for a file
+    holding more than tensors and plain data, :class:`CheckpointError` for a damaged one."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}")
@@ -76,10 +74,9 @@ def load_made_by(path: str | Path, made_by: str) -> dict:
 
 
 def run_identity(config: Any, always: tuple[str, ...] = (), **extra: Any) -> dict:
-    """What a checkpoint stores to recognise its run: the fields of ``config`` (a dataclass)
-    named in ``always``, every other field only where it differs from its default (inside
-    nested dataclasses too), and the ``extra`` fields: a new option with a default leaves every
-    stored identity as it was."""
+    """The fields of the dataclass ``config`` named in ``always``, every other only where it
+    differs from its default (in nested dataclasses too), and ``extra``: so a new option with a
+    default leaves every stored identity as it was."""
     out = {}
     for field in fields(config):
         value, base = getattr(config, field.name), field.default

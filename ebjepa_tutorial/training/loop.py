@@ -56,10 +56,9 @@ def run_steps(update: Callable[[Any, int], tuple[torch.Tensor, Any]],
               parts: tuple = (), identity: Any = None, every: int = 250,
               after: Callable[[int, History], Any] | None = None) -> History:
     """Steps ``0 .. steps - 1`` of ``update(batch_fn(step), step) -> (loss, terms)``, or the rest
-    of the run ``identity`` saved at ``checkpoint`` (saved there every ``every`` steps and at
-    the last). ``terms``: a dict of floats or 0-d tensors, or a function giving one, called
-    only every ``log_every`` steps (reading a number waits for a GPU). ``after(done, history)``
-    runs after each step and its save."""
+    of the run ``identity`` saved at ``checkpoint`` (every ``every`` steps and at the last).
+    ``terms``: a dict of floats or 0-d tensors, or a function giving one, called only every
+    ``log_every`` steps (reading a number waits for a GPU); then ``after(done, history)``."""
     start, history = resume(checkpoint, *parts, config=identity) if parts else (0, History())
     bar = tqdm(range(start, steps), desc=desc, initial=start, total=steps,
                disable=not (progress and distributed.is_main()))
@@ -81,59 +80,55 @@ def run_steps(update: Callable[[Any, int], tuple[torch.Tensor, Any]],
     return history
 
 
-def training_state(done: int, identity: Any, history: History, model: torch.nn.Module,
-                   optimizer: torch.optim.Optimizer, scheduler=None, extra=None) -> dict:
-    """A resumable checkpoint of the run ``identity`` after ``done`` steps (``extra``: another
-    object with a state dict, such as a replay buffer)."""
-    return dict(model=model.state_dict(), optimizer=optimizer.state_dict(),
-                scheduler=None if scheduler is None else scheduler.state_dict(),
-                history=dict(history), step=done, config=identity, seconds=history.seconds,
-                **({} if extra is None else {"extra": extra.state_dict()}))
+PARTS = ("model", "optimizer", "scheduler", "extra")  # the parts of a resumable run, in order
 
 
-def _device(model: torch.nn.Module):
-    """Where files are read to: the CPU in a process group (process 0 sends them on)."""
-    return "cpu" if distributed.world_size() > 1 else next(model.parameters()).device
+def training_state(done: int, identity: Any, history: History, *parts) -> dict:
+    """A resumable checkpoint of the run ``identity`` after ``done`` steps: the state dicts of
+    ``parts``, named as in :data:`PARTS` (``extra``: such as a replay buffer; None: left out)."""
+    states = {key: part.state_dict() for key, part in zip(PARTS, parts) if part is not None}
+    return dict(states, history=dict(history), step=done, config=identity, seconds=history.seconds)
 
 
-def _history(state: dict) -> History:
-    history = History(state["history"])
-    history.seconds = float(state.get("seconds") or 0.0)
-    return history
+def _found(path: Path, config: Any, model: torch.nn.Module, shipped=None):
+    """:func:`find_run` on process 0, read to the CPU in a process group and sent on."""
+    device = "cpu" if distributed.world_size() > 1 else next(model.parameters()).device
+    found = distributed.from_main(lambda: find_run(path, config, device, shipped))
+    if found is None:
+        return None, None
+    history = History(found[0]["history"])
+    history.seconds = float(found[0].get("seconds") or 0.0)
+    return found, history
 
 
-def resume(path: str | Path | None, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
-           scheduler: Any = None, extra: Any = None, config: Any = None) -> tuple[int, History]:
-    """Restore the :func:`training_state` of the run ``config`` saved at ``path``: ``(step,
-    history)`` to continue from, ``(0, History())`` if there is none."""
-    found = None if path is None else distributed.from_main(
-        lambda: find_run(Path(path), config, _device(model)))
+def resume(path: str | Path | None, *parts, config: Any = None) -> tuple[int, History]:
+    """Restore ``parts`` (see :func:`training_state`) from the run ``config`` saved at ``path``:
+    ``(step, history)`` to continue from, ``(0, History())`` if there is none."""
+    found, history = (None, None) if path is None else _found(Path(path), config, parts[0])
     if found is None:
         return 0, History()
-    state = found[0]
-    model.load_state_dict(state["model"])
-    optimizer.load_state_dict(state["optimizer"])
-    if scheduler is not None and state.get("scheduler") is not None:
-        scheduler.load_state_dict(state["scheduler"])
-    if extra is not None:
-        extra.load_state_dict(state["extra"])
-    return state["step"], _history(state)
+    for key, part in zip(PARTS, parts):
+        if part is not None and found[0].get(key) is not None:
+            part.load_state_dict(found[0][key])
+    return found[0]["step"], history
 
 
-def load_or_train(path: str | Path, model: torch.nn.Module, train: Callable[[], History],
-                  config: Any, shipped: str | Path | None = None) -> History:
-    """Load ``model`` with the run ``config`` from ``shipped`` or ``path``, else ``train()`` it in
-    place, save it to ``path`` and delete ``<path>.partial``. Returns the history."""
+def load_or_train(path: str | Path, model: torch.nn.Module, train: Callable, config: Any,
+                  shipped: str | Path | None = None) -> tuple[torch.nn.Module, History]:
+    """``(model in eval mode, history)`` of the run ``config``: loaded from ``shipped`` or
+    ``path``, else given the weights of ``train(partial) -> (trained model, history)`` (a run
+    resumable from the file ``partial``) and saved to ``path``."""
     start, path = time.perf_counter(), Path(path)
-    found = distributed.from_main(lambda: find_run(path, config, _device(model), shipped))
+    found, history = _found(path, config, model, shipped)
     if found is not None:
         model.load_state_dict(found[0]["model"])
         if distributed.is_main():
             print(f"Loaded a trained model from {found[1]} (skip training).")
-        return _history(found[0])
-    history = train()
+        return model.eval(), history
+    trained, history = train(path.with_suffix(".partial"))
+    model.load_state_dict(trained.state_dict())
     if distributed.is_main() and save_or_warn(path, model=model.state_dict(), config=config,
                                               history=dict(history), seconds=history.seconds):
         print(f"Trained and saved to {path} ({time.perf_counter() - start:.0f} s).")
         path.with_suffix(".partial").unlink(missing_ok=True)  # only now: it was all of the run
-    return history
+    return model.eval(), history

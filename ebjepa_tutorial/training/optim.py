@@ -24,8 +24,7 @@ def warmup_cosine(step: int, total_steps: int, warmup_steps: int) -> float:
 
 def warmup_cosine_scheduler(optimizer: torch.optim.Optimizer, total_steps: int,
                             warmup_steps: int) -> LambdaLR:
-    """A scheduler following :func:`warmup_cosine` from each group's ``lr``; call ``.step()``
-    after each update. Past the last step it holds the final rate."""
+    """A scheduler following :func:`warmup_cosine` from each group's ``lr``, held past the end."""
     return LambdaLR(optimizer, lambda step: warmup_cosine(
         min(step, total_steps - 1), total_steps, warmup_steps))
 

@@ -1,11 +1,6 @@
 """Notebook 00's joint embedding small enough to watch: 2-D points around ``k`` centres, their
 noisy views (two views of a point are a compatible pair), an MLP encoder."""
 
-from __future__ import annotations
-
-import math
-from dataclasses import dataclass
-
 import torch
 from torch import nn
 
@@ -14,10 +9,10 @@ from ..losses import covariance_matrix
 
 def make_blobs(n: int, k: int = 6, radius: float = 2.0, spread: float = 0.3,
                seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-    """``n`` points around ``k`` centres on a circle: returns points ``(n, 2)``, labels ``(n,)``."""
+    """``n`` points around ``k`` centres on a circle: points ``(n, 2)`` and labels ``(n,)``."""
     generator = torch.Generator().manual_seed(seed)
     labels = torch.randint(0, k, (n,), generator=generator)
-    angle = 2 * math.pi * labels / k
+    angle = 2 * torch.pi * labels / k
     centres = radius * torch.stack([angle.cos(), angle.sin()], dim=1)
     return centres + spread * torch.randn(n, 2, generator=generator), labels
 
@@ -32,20 +27,9 @@ def two_views(x: torch.Tensor, noise: float,
 
 def mlp_encoder(embed_dim: int = 8, hidden: int = 64, in_dim: int = 2) -> nn.Sequential:
     """A 3-layer MLP ``(N, in_dim) -> (N, embed_dim)``."""
-    return nn.Sequential(
-        nn.Linear(in_dim, hidden), nn.ReLU(),
-        nn.Linear(hidden, hidden), nn.ReLU(),
-        nn.Linear(hidden, embed_dim),
-    )
-
-
-@dataclass(frozen=True)
-class Coefficients:
-    """Weights of the three VICReg terms (notebook 00 turns them on one by one)."""
-
-    inv: float = 1.0  # invariance: pull the two views together
-    var: float = 0.0  # variance: keep every dimension's std above 1
-    cov: float = 0.0  # covariance: decorrelate the dimensions
+    return nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(),
+                         nn.Linear(hidden, hidden), nn.ReLU(),
+                         nn.Linear(hidden, embed_dim))
 
 
 @torch.no_grad()
@@ -65,23 +49,3 @@ def energy_map(encoder: nn.Module, anchor: torch.Tensor, extent: float = 3.5,
     z_anchor = encoder(anchor[None])
     energy = (encoder(points) - z_anchor).pow(2).sum(dim=1)
     return coords, energy.reshape(resolution, resolution)
-
-
-@torch.no_grad()
-def pair_energies(encoder: nn.Module, x: torch.Tensor, noise: float = 0.2,
-                  seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-    """Energies of compatible pairs (two views of one point) and of random pairs: ``(N,)`` each."""
-    generator = torch.Generator().manual_seed(seed)
-    x_a, x_b = two_views(x, noise, generator)
-    z_a, z_b = encoder(x_a), encoder(x_b)
-    shuffled = torch.randperm(len(x), generator=generator)
-    matched = (z_a - z_b).pow(2).sum(dim=1)
-    random = (z_a - z_b[shuffled]).pow(2).sum(dim=1)
-    return matched, random
-
-
-@torch.no_grad()
-def centroid_energies(z: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
-    """``||mean(z | i) - mean(z | j)||^2`` between cluster centres: ``(N, D), (N,) -> (k, k)``."""
-    centres = torch.stack([z[labels == c].mean(dim=0) for c in labels.unique()])
-    return torch.cdist(centres, centres).pow(2)

@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from .. import distributed
 from ..data.moving_mnist import generate_moving_mnist
 from ..losses.rollout import UNROLLS, parallel_rollout_loss, rollout_loss
-from ..models.video import VIDEO_MODEL_CONFIGS, FrameDecoder, VideoJEPA, VideoModelConfig
+from ..models.video import VIDEO_MODEL_CONFIGS, VideoJEPA, VideoModelConfig, frame_decoder
 from ..utils import at_least_float32, get_device, mixed_precision
 from .checkpoints import checkpoint_paths, run_identity, step_identity
 from .loop import History, load_or_train, run_steps, step_generator
@@ -30,8 +30,7 @@ COV_COEFF = 100.0  # cov, the covariance term's weight: likewise
 
 @dataclass(frozen=True)
 class Recipe:
-    """How the class run departs from the paper to learn more per CPU-minute (notebook 03);
-    :data:`PAPER_RECIPE` is the paper's."""
+    """The class run's departures from the paper, to learn more per CPU-minute (notebook 03)."""
 
     cosine: bool = True  # decay the rate to 0 by a half cosine (the paper: constant)
     channels_last: bool = True  # convolutions in channels_last: faster, on CPUs too
@@ -68,10 +67,6 @@ class VideoJEPAConfig:
         """The steps trained at K = 1 before the rollout begins."""
         return math.ceil(self.recipe.one_step_fraction * self.steps)
 
-    def rollout_steps_at(self, step: int) -> int:
-        """K at optimiser step ``step``."""
-        return 1 if step < self.switch_step else self.rollout_steps
-
 
 VIDEO_CONFIGS = {
     # PyTorch's CPU backward crashes in channels_last on the ci encoder's strided 1x1 convolutions
@@ -101,8 +96,8 @@ def check_clips(clips: torch.Tensor, min_frames: int) -> None:
 
 
 def video_jepa_step(model, optimizer, scheduler, frames, k, config):
-    """One training step (notebook 03) on uint8 clips ``frames (b, T, 1, 64, 64)`` with ``k``
-    prediction steps. Returns the detached total and terms."""
+    """One step (notebook 03) on uint8 clips ``frames (b, T, 1, 64, 64)`` with ``k`` prediction
+    steps: returns the detached total and terms."""
     with mixed_precision(frames.device, cpu=True):  # bf16 networks where fast; statistics in fp32
         z = model.encode(frames)  # Z: (b, T, C, S, S), every frame on its own
         multistep_loss = parallel_rollout_loss if config.unroll == "parallel" else rollout_loss
@@ -132,9 +127,8 @@ def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
                      checkpoint: str | Path | None = None, progress: bool = True,
                      device: torch.device | str | None = None, step=None,
                      after=None) -> tuple[VideoJEPA, History]:
-    """``(model in eval mode, history)`` trained on uint8 ``clips (N, T, 1, 64, 64)``,
-    resumable from ``checkpoint``. ``after(done, (model, optimizer, scheduler), history)`` runs
-    after each step."""
+    """``(model in eval mode, history)`` trained on uint8 ``clips (N, T, 1, 64, 64)``, resumable
+    from ``checkpoint``; ``after(done, (model, optimizer, scheduler), history)`` after each step."""
     step = step or video_jepa_step
     check_clips(clips, config.model.context + config.rollout_steps)
     device = get_device(device)
@@ -147,7 +141,8 @@ def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
     def batch(n: int) -> tuple[torch.Tensor, int]:  # this process's clips of step n, and K
         index = torch.randint(0, len(clips), (config.batch_size,),
                               generator=step_generator(config.seed, n))
-        return clips[distributed.local_rows(index)].to(device), config.rollout_steps_at(n)
+        k = 1 if n < config.switch_step else config.rollout_steps
+        return clips[distributed.local_rows(index)].to(device), k
 
     model.train()
     history = run_steps(
@@ -160,8 +155,7 @@ def train_video_jepa(config: VideoJEPAConfig, clips: torch.Tensor,
 
 def identity(config: VideoJEPAConfig, train_digits: torch.Tensor | None = None,
              step=None) -> dict:
-    """What a checkpoint stores to recognise its run: ``config``, a hash of the digits of a
-    finished run's clips, and an edited ``step``'s code."""
+    """The run's :func:`run_identity`, a hash of the digits of its clips, an edited ``step``'s."""
     digits = {} if train_digits is None else {"train_digits": hashlib.sha1(
         train_digits.contiguous().numpy().tobytes()).hexdigest()[:12]}
     return run_identity(config, ("steps", "batch_size", "lr", "rollout_steps", "seed"),
@@ -180,28 +174,21 @@ def train_or_load(config: VideoJEPAConfig, name: str, train_digits: torch.Tensor
     torch.manual_seed(config.seed)
     model = VideoJEPA(config.model).to(get_device(device))
     path, shipped = checkpoint_paths(name)
-
-    def train() -> History:
-        trained, history = train_video_jepa(config, make_clips(config, train_digits),
-                                            path.with_suffix(".partial"), device=device,
-                                            step=step, **options)
-        model.load_state_dict(trained.state_dict())
-        return history
-
-    history = load_or_train(path, model, train, identity(config, train_digits, step), shipped)
-    return model.eval(), history
+    return load_or_train(path, model, lambda partial: train_video_jepa(
+        config, make_clips(config, train_digits), partial, device=device, step=step, **options),
+        identity(config, train_digits, step), shipped)
 
 
 def fit_decoder(model: VideoJEPA, clips: torch.Tensor, steps: int = 200, batch_size: int = 32,
-                lr: float = 1e-3, seed: int = 0) -> FrameDecoder:
-    """A :class:`FrameDecoder` fitted on frozen latents of uint8 ``clips (N, T, 1, 64, 64)``,
+                lr: float = 1e-3, seed: int = 0) -> torch.nn.Sequential:
+    """A ``frame_decoder`` fitted on frozen latents of uint8 ``clips (N, T, 1, 64, 64)``,
     for pictures only: frames ``torch.sigmoid(decoder(z))`` of ``z (N, C, S, S)``."""
     check_clips(clips, 1)
     model.eval()
     device = next(model.parameters()).device
     generator = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
-    decoder = FrameDecoder(model.config.latent_channels, model.config.latent_side).to(device)
+    decoder = frame_decoder(model.config.latent_channels, model.config.latent_side).to(device)
     optimizer = torch.optim.Adam(decoder.parameters(), lr=lr)
     frames = clips.flatten(0, 1)  # (N*T, 1, 64, 64)
     for _ in range(steps):

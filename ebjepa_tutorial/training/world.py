@@ -92,9 +92,8 @@ def random_windows(data: Trajectories, index: torch.Tensor, window: int,
 
 
 class LatentReplay:
-    """Cheap predictor-only updates on the detached latents of recent batches: :meth:`add`
-    stores latents ``(B, T, D)`` and actions ``(B, T-1, A)``; ``replay(step)`` makes
-    ``recipe.replay_steps`` updates."""
+    """Predictor-only updates on the detached latents ``(B, T, D)`` and actions ``(B, T-1, A)``
+    of recent batches (:meth:`add`); ``replay(step)`` makes ``recipe.replay_steps`` of them."""
 
     STREAM = 2**40  # the replay's generators: seeded apart from the batches' (step_generator)
 
@@ -144,7 +143,7 @@ class LatentReplay:
 
 
 def new_model(config: WorldTrainConfig, data: Trajectories) -> WorldModel:
-    """A fresh model whose input standardisation is fitted on 256 of the trajectories."""
+    """A fresh model, its input standardisation fitted on 256 of the trajectories."""
     torch.manual_seed(config.seed)
     return WorldModel(config.model).fit_input_stats(data.frames(slice(0, 256)))
 
@@ -155,8 +154,7 @@ def new_optimizer(model: WorldModel, config: WorldTrainConfig) -> torch.optim.Ad
 
 
 def decay_factor(config: WorldTrainConfig, step: int) -> float:
-    """The share of the base rate that step ``step`` uses: 1, then down to ``1 / decay_steps``
-    over the last ``decay_steps``."""
+    """Step ``step``'s share of the base rate: 1, then down to ``1 / decay_steps`` linearly."""
     decay = config.recipe.decay_steps
     return min(1.0, (config.steps - step) / decay) if decay else 1.0
 
@@ -202,45 +200,36 @@ def train_world_model(config: WorldTrainConfig, data: Trajectories | None = None
     """``(model in eval mode, history)`` trained on ``data``, resumable from ``checkpoint``."""
     per_process = distributed.per_rank_batch(config.batch_size)  # an uneven split fails here
     data = make_data(config) if data is None else data
-    device, run = get_device(device), identity(config, step)
+    device, run, window = get_device(device), identity(config, step), config.recipe.window
     layout = torch.channels_last if config.recipe.channels_last else torch.contiguous_format
     model = new_model(config, data).to(device, memory_format=layout)
     optimizer = new_optimizer(model, config)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda n: decay_factor(config, n))
-    frames = config.recipe.window or data.positions.shape[1]
-    replay = LatentReplay(model, config, frames, device) if config.recipe.replay_steps else None
-    buffer = torch.empty(per_process, frames, 2, 65, 65)
+    n_frames = window or data.positions.shape[1]
+    replay = LatentReplay(model, config, n_frames, device) if config.recipe.replay_steps else None
+    buffer = torch.empty(per_process, n_frames, 2, 65, 65)  # this process's rows, rendered
 
-    def update(batch, n: int):
-        total, terms = step(model, optimizer, *batch, config, n, replay)
-        scheduler.step()  # the rate of the next step: a constant without decay_steps
-        return total, terms
-
-    history = run_steps(
-        update, _batches(config, data, buffer, device), config.steps, log_every=LOG_EVERY,
-        desc="world model", progress=progress, checkpoint=checkpoint,
-        parts=(model, optimizer, scheduler, replay), identity=run, every=CHECKPOINT_EVERY)
-    return model.eval(), history
-
-
-def _batches(config: WorldTrainConfig, data: Trajectories, buffer: torch.Tensor, device):
-    """``batch(step) -> (frames, actions, generator)``: this process's rows of the step's
-    batch, rendered into ``buffer (b, T, 2, 65, 65)``, and the step's generator."""
-    window = config.recipe.window
-
-    def batch(step: int):
-        generator = step_generator(config.seed, step)  # then draws still steps and SIGReg's
+    def batch(n: int):  # this process's frames and actions of step n, and its generator
+        generator = step_generator(config.seed, n)  # then draws still steps and SIGReg's
         index = torch.randint(0, len(data), (config.batch_size,), generator=generator)
-        if not window:
+        if not window:  # whole trajectories
             index = distributed.local_rows(index)
-            frames = data.frames(index, out=buffer)
-            return frames.to(device), data.actions[index].to(device), generator
+            frames = data.frames(index, out=buffer).to(device)
+            return frames, data.actions[index].to(device), generator
         # the global batch's windows (positions only: cheap), then this process's rows rendered
         windows = (*random_windows(data, index, window, generator), data.layouts[index])
         positions, actions, layouts = (distributed.local_rows(x) for x in windows)
         return render(positions, layouts, out=buffer).to(device), actions.to(device), generator
 
-    return batch
+    def update(inputs, n: int):  # inputs: batch(n)
+        total, terms = step(model, optimizer, *inputs, config, n, replay)
+        scheduler.step()  # the rate of the next step: a constant without decay_steps
+        return total, terms
+
+    history = run_steps(update, batch, config.steps, log_every=LOG_EVERY, desc="world model",
+                        progress=progress, checkpoint=checkpoint, every=CHECKPOINT_EVERY,
+                        parts=(model, optimizer, scheduler, replay), identity=run)
+    return model.eval(), history
 
 
 def train_or_load(config: WorldTrainConfig, name: str, device: torch.device | str | None = None,
@@ -250,21 +239,14 @@ def train_or_load(config: WorldTrainConfig, name: str, device: torch.device | st
     device = get_device(device)
     model = WorldModel(config.model).to(device)
     path, shipped = checkpoint_paths(name)
-
-    def train() -> History:
-        trained, history = train_world_model(config, make_data(config), path.with_suffix(
-            ".partial"), device=device, step=step)
-        model.load_state_dict(trained.state_dict())
-        return history
-
-    history = load_or_train(path, model, train, identity(config, step), shipped)
-    return model.eval(), history
+    return load_or_train(path, model, lambda partial: train_world_model(
+        config, make_data(config), partial, device=device, step=step), identity(config, step),
+        shipped)
 
 
 def load_world_model(path: str | Path, device: torch.device | str | None = None,
                      made_by: str = "python -m research.train_world --out PATH") -> WorldModel:
-    """The world model saved at ``path``, in eval mode on ``device``; a missing, damaged or
-    foreign file's error names the command ``made_by``."""
+    """The world model at ``path``, in eval mode; a bad file's error names ``made_by``."""
     weights = load_made_by(path, made_by).get("model")
     if not isinstance(weights, dict) or "_extra_state" not in weights:
         raise ValueError(f"{path} holds no world model (expected a file written by {made_by})")

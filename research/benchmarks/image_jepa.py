@@ -32,12 +32,12 @@ from ebjepa_tutorial.evaluation.sweeps import shorten
 from ebjepa_tutorial.losses.sigreg import sigreg_loss
 from ebjepa_tutorial.losses.vicreg import vicreg
 from ebjepa_tutorial.training.image import (
-    INVARIANCE_ONLY,
     LR,
     WEIGHT_DECAY,
     AllViews,
     ImageJEPA,
     SIGReg,
+    VICReg,
     train_image_jepa,
 )
 from ebjepa_tutorial.training.optim import split_decay_params
@@ -55,7 +55,7 @@ from tools import figures
 
 def training_loss(config, z_a, z_b, generator) -> torch.Tensor:
     """The loss of two embedded views that ``config``'s training step computes."""
-    weights = INVARIANCE_ONLY if config.loss is None else config.loss
+    weights = VICReg(1.0, 0.0, 0.0) if config.loss is None else config.loss
     if isinstance(weights, SIGReg):
         return sigreg_loss(z_a, z_b, weights.lam, weights.slices, generator, weights.scale_by_n)[0]
     return vicreg(z_a, z_b, weights.inv_coeff, weights.std_coeff, weights.cov_coeff)

@@ -32,8 +32,8 @@ from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.data.mnist import load_mnist
 from ebjepa_tutorial.data.moving_mnist import generate_moving_mnist, split_digits
 from ebjepa_tutorial.data.paths import DataNotFoundError
+from ebjepa_tutorial.distributed import variance_and_covariance
 from ebjepa_tutorial.evaluation.detection import detection_report, evaluation_clips
-from ebjepa_tutorial.losses import variance_and_covariance
 from ebjepa_tutorial.losses.rollout import UNROLLS
 from ebjepa_tutorial.models.video import VideoJEPA
 from ebjepa_tutorial.training.video import (

@@ -1,6 +1,5 @@
-"""Checkers for the notebooks' exercises, one module per part of the course (common.py: what
-they share; hints.yaml: each exercise's hints and the words for its typical mistakes;
-general.yaml: the words for mistakes any exercise can make)."""
+"""The notebooks' exercise checkers, one module per part of the course; their words are in
+hints.yaml (each exercise's hints and typical mistakes) and general.yaml (any exercise's)."""
 
 from .beyond import check_spread_loss, check_step_violation
 from .collapse import (
@@ -13,7 +12,11 @@ from .collapse import (
 from .common import ExerciseError, hint, whose
 from .two_rooms import check_slab_crossing, check_wall_collision
 from .video import check_parallel_rollout_loss
-from .world_and_planning import check_inverse_dynamics, check_mppi_update, check_temporal_similarity
+from .world_and_planning import (
+    check_inverse_dynamics,
+    check_mppi_update,
+    check_temporal_similarity,
+)
 
 __all__ = [
     "ExerciseError", "hint", "whose", "check_variance_term", "check_covariance_term",

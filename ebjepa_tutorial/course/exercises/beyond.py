@@ -1,11 +1,9 @@
 """Checkers of chapter 07: the two terms that fit the cost-to-go head, on ``(B,)`` distances."""
 
-from __future__ import annotations
-
 import torch
 import torch.nn.functional as F
 
-from .common import Case, Exercise, slips
+from .common import Case, Exercise
 
 
 def step_violation(step_distance, step_length):
@@ -35,15 +33,13 @@ def _violation(hinge=F.relu, power=2, reduce=torch.mean, swapped=False):
     def step_violation(step_distance, step_length):
         over = step_length - step_distance if swapped else step_distance - step_length
         return reduce(hinge(over).abs().pow(power))
-
     return step_violation
 
 
 check_step_violation = Exercise(
-    "step_violation", step_violation, slips(
-        "step_violation", no_hinge=_violation(hinge=lambda x: x),
-        swapped=_violation(swapped=True), unsquared=_violation(power=1),
-        summed=_violation(reduce=torch.sum)),
+    "step_violation", step_violation, dict(
+        no_hinge=_violation(hinge=lambda x: x), swapped=_violation(swapped=True),
+        unsquared=_violation(power=1), summed=_violation(reduce=torch.sum)),
     _violation_cases, grad=[(0, "the step distances")], dims={0: "B"})
 
 
@@ -61,12 +57,11 @@ def _spread_cases() -> list[Case]:
 def _spread(sign=1.0, hinge=F.softplus, reduce=torch.mean, cap=True):
     def spread_loss(distance, cap_):
         return reduce(hinge(sign * ((cap_ if cap else 0.0) - distance)))
-
     return spread_loss
 
 
 check_spread_loss = Exercise(
-    "spread_loss", spread_loss, slips(
-        "spread_loss", sign_flipped=_spread(sign=-1.0), relu=_spread(hinge=F.relu),
-        no_cap=_spread(cap=False), summed=_spread(reduce=torch.sum)),
+    "spread_loss", spread_loss, dict(
+        sign_flipped=_spread(sign=-1.0), relu=_spread(hinge=F.relu), no_cap=_spread(cap=False),
+        summed=_spread(reduce=torch.sum)),
     _spread_cases, grad=[(0, "the distances")], dims={0: "B"})

@@ -1,15 +1,14 @@
-"""Checkers of chapters 00-02, the terms that keep embeddings from collapsing: the variance and
-covariance terms on ``z`` ``(B, D)``, the VICReg loss, the conversion of the VICReg paper's
-coefficients to EB-JEPA's, and SIGReg's Epps-Pulley statistic on one slice ``x`` ``(N,)`` (the
-course's :func:`~ebjepa_tutorial.losses.sigreg.epps_pulley` with ``sigma = 1``)."""
+"""Checkers of chapters 00-02, the terms that keep embeddings ``z`` ``(B, D)`` from collapsing:
+VICReg's variance and covariance terms, its loss and the paper's coefficients in EB-JEPA's, and
+SIGReg's Epps-Pulley statistic of one slice ``x`` ``(N,)``."""
 
-from __future__ import annotations
+from functools import partial
 
 import torch
 
 from ... import losses
 from ...losses.sigreg import epps_pulley
-from .common import Case, Exercise, slips
+from .common import Case, Exercise
 
 
 def _embedding_cases(seed: int = 0) -> list[Case]:
@@ -26,8 +25,7 @@ def _embedding_cases(seed: int = 0) -> list[Case]:
 
 
 check_variance_term = Exercise(
-    "variance_term", losses.variance_term, slips(
-        "variance_term",
+    "variance_term", losses.variance_term, dict(
         biased_variance=lambda z, gamma=1.0: torch.relu(
             gamma - (z.var(0, unbiased=False) + 1e-4).sqrt()).mean(),
         eps_missing=lambda z, gamma=1.0: torch.relu(gamma - z.var(0).sqrt()).mean(),
@@ -53,8 +51,7 @@ def _pair_mean(cov: torch.Tensor, d: int, f=torch.square) -> torch.Tensor:
 
 
 check_covariance_term = Exercise(
-    "covariance_term", losses.covariance_term, slips(
-        "covariance_term",
+    "covariance_term", losses.covariance_term, dict(
         not_centred=lambda z: _pair_mean(_covariance(z, False), z.shape[1]),
         diagonal_kept=lambda z: _covariance(z).pow(2).sum() / (z.shape[1] * (z.shape[1] - 1)),
         mean_of_all=lambda z: _covariance(z).pow(2).mean(),
@@ -68,45 +65,41 @@ check_covariance_term = Exercise(
 
 def _vicreg_slip(views=lambda term, a, b: (term(a) + term(b)) / 2,
                  invariance=losses.invariance_term, swap=False):
-    """A VICReg loss with one mistake: another rule ``views(term, z_a, z_b)`` for applying
-    the variance and covariance terms, another ``invariance``, or ``swap``ped weights."""
+    """A VICReg loss with one mistake: another rule ``views(term, z_a, z_b)`` for the variance
+    and covariance terms, another ``invariance``, or ``swap``ped weights."""
     def vicreg(z_a, z_b, inv_coeff, std_coeff, cov_coeff):
         std_coeff, cov_coeff = (cov_coeff, std_coeff) if swap else (std_coeff, cov_coeff)
         return (inv_coeff * invariance(z_a, z_b)
                 + std_coeff * views(losses.variance_term, z_a, z_b)
                 + cov_coeff * views(losses.covariance_term, z_a, z_b))
-
     return vicreg
 
 
 def _vicreg_cases() -> list[Case]:
     g = torch.Generator().manual_seed(5)
-    z = torch.randn(32, 8, generator=g)
-    mixed = torch.randn(48, 1, generator=g) * torch.tensor([[1.0, -0.5, 2.0, 0.1]])
+    randn = partial(torch.randn, generator=g)
+    z = randn(32, 8)
+    mixed = randn(48, 1) * torch.tensor([[1.0, -0.5, 2.0, 0.1]])
     return [
         Case("two random views (32, 8), coefficients 1, 1, 80",
-             (z, z + 0.3 * torch.randn(32, 8, generator=g), 1.0, 1.0, 80.0)),
+             (z, z + 0.3 * randn(32, 8), 1.0, 1.0, 80.0)),
         Case("views with different spreads (std 0.5 and 3), coefficients 25, 25, 1",
-             (0.5 * torch.randn(64, 6, generator=g), 3 * torch.randn(64, 6, generator=g),
-              25.0, 25.0, 1.0)),
+             (0.5 * randn(64, 6), 3 * randn(64, 6), 25.0, 25.0, 1.0)),
         Case("only the variance weight set (0, 1, 0), views of std 0.2 and 0.8",
-             (0.2 * torch.randn(16, 5, generator=g), 0.8 * torch.randn(16, 5, generator=g),
-              0.0, 1.0, 0.0)),
+             (0.2 * randn(16, 5), 0.8 * randn(16, 5), 0.0, 1.0, 0.0)),
         Case("only the covariance weight set (0, 0, 1), one view correlated",
-             (mixed + 0.1 * torch.randn(48, 4, generator=g), torch.randn(48, 4, generator=g),
-              0.0, 0.0, 1.0)),
+             (mixed + 0.1 * randn(48, 4), randn(48, 4), 0.0, 0.0, 1.0)),
         Case("two identical collapsed views (every row the same), coefficients 2, 3, 4",
              (torch.ones(8, 3), torch.ones(8, 3), 2.0, 3.0, 4.0)),
         Case("two float64 views (16, 4), coefficients 1, 2, 3",
-             (torch.randn(16, 4, generator=g, dtype=torch.float64),
-              torch.randn(16, 4, generator=g, dtype=torch.float64), 1.0, 2.0, 3.0)),
+             (randn(16, 4, dtype=torch.float64), randn(16, 4, dtype=torch.float64),
+              1.0, 2.0, 3.0)),
     ]
 
 
-# the weighted sum alone: what the learner writes, and what notebook 01's training step calls
 check_vicreg = Exercise(
-    "vicreg", losses.vicreg.vicreg, slips(
-        "vicreg", views_added=_vicreg_slip(lambda term, a, b: term(a) + term(b)),
+    "vicreg", losses.vicreg.vicreg, dict(
+        views_added=_vicreg_slip(lambda term, a, b: term(a) + term(b)),
         one_view=(_vicreg_slip(lambda term, a, b: term(a)),
                   _vicreg_slip(lambda term, a, b: term(b))),
         views_stacked=_vicreg_slip(lambda term, a, b: term(torch.cat([a, b]))),
@@ -124,8 +117,7 @@ def _vicreg_paper_to_ebjepa(inv: float, std: float, cov: float, dim: int) -> tup
 
 
 check_vicreg_paper_to_ebjepa = Exercise(
-    "vicreg_paper_to_ebjepa", _vicreg_paper_to_ebjepa, slips(
-        "vicreg_paper_to_ebjepa",
+    "vicreg_paper_to_ebjepa", _vicreg_paper_to_ebjepa, dict(
         factor_missing=lambda inv, std, cov, dim: (1.0, std / inv, cov / inv),
         times_d=lambda inv, std, cov, dim: (1.0, std / inv, cov * dim / inv),
         divided_by_factor=lambda inv, std, cov, dim: (1.0, std / inv, cov / (dim - 1) / inv),
@@ -136,10 +128,6 @@ check_vicreg_paper_to_ebjepa = Exercise(
         (25.0, 25.0, 1.0, 2048), (25.0, 25.0, 1.0, 8192), (10.0, 25.0, 1.0, 1024),
         (5.0, 5.0, 1.0, 128), (2.0, 1.0, 0.5, 3)]],
     parts=("invariance weight", "variance weight", "covariance weight"), atol=1e-6)
-
-
-def _epps_pulley_reference(x, knots=17, t_max=3.0, scale_by_n=True):
-    return epps_pulley(x, knots=knots, t_max=t_max, scale_by_n=scale_by_n)
 
 
 def _epps_pulley_cases() -> list[Case]:
@@ -175,14 +163,13 @@ def _epps_pulley_slip(weight=True, imag=True, square=True, rule="trapezoid", ave
         area = torch.trapezoid(y, t) if rule == "trapezoid" else y.sum() * (t[1] - t[0])
         statistic = area if symmetric else 2 * area
         return statistic * len(x) if scale_by_n else statistic
-
     return epps_pulley_1d
 
 
 check_epps_pulley = Exercise(
-    "epps_pulley_1d", _epps_pulley_reference, slips(
-        "epps_pulley_1d", unweighted=_epps_pulley_slip(weight=False),
-        real_only=_epps_pulley_slip(imag=False), unsquared=_epps_pulley_slip(square=False),
-        rectangle_rule=_epps_pulley_slip(rule="sum"), summed=_epps_pulley_slip(average=False),
+    "epps_pulley_1d", epps_pulley, dict(  # sigma = 1: the cases pass the rest by keyword
+        unweighted=_epps_pulley_slip(weight=False), real_only=_epps_pulley_slip(imag=False),
+        unsquared=_epps_pulley_slip(square=False), rectangle_rule=_epps_pulley_slip(rule="sum"),
+        summed=_epps_pulley_slip(average=False),
         symmetric_knots=_epps_pulley_slip(symmetric=True)),
     _epps_pulley_cases, atol=1e-4, grad=[(0, "the sample x")], dims={0: "N"})

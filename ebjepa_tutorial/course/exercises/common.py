@@ -1,8 +1,5 @@
 """What every checker shares: the graded hints (:func:`hint`) and :class:`Exercise`, which
-compares a learner's function with the course's, names a wrong answer in words, and lets a
-notebook run on past an exercise not yet done."""
-
-from __future__ import annotations
+compares a learner's function with the course's and names a wrong answer in words."""
 
 import inspect
 import textwrap
@@ -13,7 +10,6 @@ from pathlib import Path
 import torch
 import yaml
 
-Diagnosis = tuple[str, Callable]  # (the mistake in plain words, a function that makes it)
 TEXTS = yaml.safe_load(Path(__file__).with_name("hints.yaml").read_text(encoding="utf-8"))
 WORDS = yaml.safe_load(Path(__file__).with_name("general.yaml").read_text(encoding="utf-8"))
 HINTS = {name: tuple(texts["hints"]) for name, texts in TEXTS.items()}
@@ -32,18 +28,8 @@ class ExerciseError(AssertionError):
 
 
 def whose(fn: Callable) -> str:
-    """``"the course's"`` when ``fn`` is an implementation a check handed over in place of an
-    unfinished exercise, else ``"your"``: for a notebook to print whose function it runs."""
+    """``"the course's"`` if a check handed ``fn`` over for an unfinished one, else ``"your"``."""
     return "the course's" if any(fn is r for r in _REFERENCES) else "your"
-
-
-def slips(exercise: str, **variants) -> list[Diagnosis]:
-    """``(words, variant)`` for each typical mistake of ``exercise``, in the order given (on a
-    tie the first wins). A variant has the exercise's signature and makes the mistake (a
-    tuple: several ways to make it); its words are hints.yaml's under the same key."""
-    words = TEXTS[exercise]["slips"]
-    return [(words[key], f) for key, fs in variants.items()
-            for f in (fs if isinstance(fs, tuple) else (fs,))]
 
 
 def hint(name, level: int | None = None) -> None:
@@ -69,22 +55,19 @@ def _hint_text(name: str, level: int) -> str:
 
 @dataclass
 class Case:
-    """One test input. ``sizes``: named sizes (``{"K": 3}``) a factor may be off by; ``atol``:
-    a looser tolerance where float32 cannot do better, and ``why_loose`` the note printed when
-    an answer needed it (``{diff}``: the largest gap)."""
+    """One test input. ``sizes``: named sizes (``{"K": 3}``) a factor may be off by; ``atol``: a
+    looser tolerance where float32 cannot do better (the exercise's ``float32`` words say why)."""
 
     description: str
     args: tuple
     kwargs: dict = field(default_factory=dict)
     sizes: dict = field(default_factory=dict)
     atol: float | None = None
-    why_loose: str = ""
 
 
 def gradient(fn: Callable, index: int) -> Callable:
-    """``fn`` returning the gradient of its output's sum with respect to positional argument
-    ``index`` instead (zeros where none reaches it; None when the output is not connected to
-    the autograd graph at all)."""
+    """``fn`` returning the gradient of its output's sum with respect to argument ``index``
+    (zeros where none reaches it; None when the output is not connected to autograd at all)."""
     def run(*args, **kwargs):
         x = args[index].detach().clone().requires_grad_()
         out = fn(*args[:index], x.clone(), *args[index + 1:], **kwargs)  # clone: in place is ok
@@ -114,11 +97,11 @@ def _describe(value) -> str:
     return f"a {type(value).__module__.replace('builtins', 'Python')} {type(value).__name__}"
 
 
-def diagnose(got, diagnoses: Sequence[Diagnosis], case: Case, atol: float = 1e-5) -> str:
-    """`` Likely cause: <words>`` of the variant closest to ``got`` on ``case`` (within a
-    tolerance ten times tighter than the check's; a tie goes to the first), else ``''``."""
+def diagnose(got, variants: Sequence[tuple[str, Callable]], case: Case, atol: float) -> str:
+    """`` Likely cause: <words>`` of the variant closest to ``got`` on ``case`` (within a tenth
+    of ``atol``; a tie goes to the first), else ``''``."""
     got, matches = _numbers(got), []
-    for order, (words, variant) in enumerate(diagnoses if got is not None else ()):
+    for order, (words, variant) in enumerate(variants if got is not None else ()):
         try:
             wrong = _numbers(variant(*case.args, **case.kwargs))
         except Exception:  # a variant may fail where its mistake makes no sense
@@ -130,9 +113,9 @@ def diagnose(got, diagnoses: Sequence[Diagnosis], case: Case, atol: float = 1e-5
 
 
 def _general_cause(got, expected, atol: float, sizes: dict, advice: dict):
-    """``(what was found, ': what it means' or '', what to look at)`` when float64 ``got`` is
-    NaN, minus ``expected``, or it times or divided by a named size n, n - 1, n/(n - 1), its
-    square (an unbiased estimate divided by n, squared) or 2 (``advice``: by factor). Else None."""
+    """``(what was found, what it means, what to look at)`` when float64 ``got`` is NaN, minus
+    ``expected``, or off by a factor: a named size n, n - 1, n/(n - 1), its square, or 2 (what to
+    look at: ``advice[factor]``). Else None."""
     if torch.isfinite(expected).all() and not torch.isfinite(got).all():
         return say("nan"), "", say("nan_look")
     if expected.abs().max() > 10 * atol and torch.allclose(got, -expected, atol=atol, rtol=1e-4):
@@ -170,29 +153,31 @@ def _disagreement(got, expected, atol: float) -> str:
 
 @dataclass
 class Exercise:
-    """``check(fn)`` returns ``fn`` when it agrees with ``reference`` (same signature) on
-    ``cases()``, in value and in its gradient with respect to each ``grad`` ``(argument index,
-    label)``; ``reference`` while ``fn`` is the student stub (so "Run All" goes on). Else it
-    raises an :class:`ExerciseError` naming the mistake (one of ``mistakes``, ``explain(case,
-    got, expected, diagnosed)``'s words, or a general one; ``dims`` names the inputs' axes,
-    ``{index: "BD"}``, ``_`` for none) and offers the next hint. ``parts``: names of a tuple's
-    outputs; ``adapt``: turns a function into what the cases call."""
+    """``check(fn)`` returns ``fn`` when it agrees with ``reference`` on ``cases()``, in value and
+    in the gradient with respect to each ``grad`` ``(argument index, label)``, or ``reference``
+    while ``fn`` is the student stub (so "Run All" goes on). Else it raises an
+    :class:`ExerciseError` naming the mistake (a typical one, ``explain``'s words or a general
+    one; ``dims``: the inputs' axes, ``{index: "BD"}``, ``_`` for none) with the next hint.
+    ``parts``: a tuple's outputs; ``adapt``: turns a function into what the cases call."""
 
     exercise: str
     reference: Callable
-    mistakes: Sequence[Diagnosis]
+    mistakes: dict  # hints.yaml's key -> a function making that slip (a tuple: several ways)
     cases: Callable[[], list[Case]]
     atol: float = 1e-5
     parts: Sequence[str] | None = None
     grad: Sequence[tuple[int, str]] = ()
     dims: dict = field(default_factory=dict)
-    explain: Callable | None = None
+    explain: Callable | None = None  # (case, got, expected, diagnosed) -> words or None
     adapt: Callable = lambda f: f
 
     def __post_init__(self):
         _REFERENCES.append(self.reference)
+        words = TEXTS[self.exercise]["slips"]  # in order: on a tie the first is named
+        self.slips = [(words[key], f) for key, fs in self.mistakes.items()
+                      for f in (fs if isinstance(fs, tuple) else (fs,))]
         self._reference = self.adapt(self.reference)
-        self._mistakes = [(words, self.adapt(v)) for words, v in self.mistakes]
+        self._mistakes = [(words, self.adapt(v)) for words, v in self.slips]
         self._labels = list(inspect.signature(self._reference).parameters)
 
     def __call__(self, fn: Callable) -> Callable:
@@ -201,7 +186,7 @@ class Exercise:
             return fn
         name, run, cases = getattr(fn, "__name__", "your function"), self.adapt(fn), self.cases()
         try:
-            notes = [self._values(run, name, case) for case in cases]
+            gap = max(self._values(run, name, case) for case in cases)
             for case in cases:
                 for index, label in self.grad:
                     self._gradient(run, name, case, index, label)
@@ -218,13 +203,12 @@ class Exercise:
         what = f"{', '.join(labels)} and {last}" if labels else last
         print(say("correct", name=name, n=len(cases),
                   what=f" (values, and gradients with respect to {what})" if what else ""))
-        for note in dict.fromkeys(n for n in notes if n):
-            print(note)
+        if gap:  # a right answer that needed a case's looser tolerance
+            print(TEXTS[self.exercise]["float32"].format(diff=gap))
         return fn
 
     def _run(self, fn: Callable, name: str, case: Case):
-        """``fn``'s output on its own copy of ``case``'s inputs; raises :class:`ExerciseError`
-        if it crashes or changes an input in place."""
+        """``fn``'s output on a copy of ``case``'s inputs; raise if it crashes or edits one."""
         args = [v.clone() if isinstance(v, torch.Tensor) else v for v in case.args]
         try:
             out = fn(*args, **case.kwargs)  # keyword arguments are numbers
@@ -239,12 +223,12 @@ class Exercise:
                                         case=case.description))
         return out
 
-    def _values(self, fn: Callable, name: str, case: Case) -> str:
-        """Raise unless ``fn`` agrees with the reference on ``case``; returns the case's note
-        when it agreed only within the case's looser tolerance."""
+    def _values(self, fn: Callable, name: str, case: Case) -> float:
+        """Raise unless ``fn`` agrees with the reference on ``case``; return the gap if only the
+        case's looser ``atol`` holds, else 0."""
         expected = self._reference(*case.args, **case.kwargs)
         got = self._run(fn, name, case)
-        atol, parts, note = self.atol if case.atol is None else case.atol, self.parts, ""
+        atol, parts, gap = self.atol if case.atol is None else case.atol, self.parts, 0.0
         if parts and (not isinstance(got, (tuple, list)) or len(got) != len(parts)):
             raise ExerciseError(say("not_a_tuple", name=name, n=len(parts), case=case.description,
                                     parts=", ".join(parts), kind=_describe(got)))
@@ -265,8 +249,8 @@ class Exercise:
             if not torch.allclose(g, e, atol=atol, rtol=1e-4):
                 raise ExerciseError(self._value_problem(name, got, g, e, case, label, atol))
             if not torch.allclose(g, e, atol=self.atol, rtol=1e-4):
-                note = case.why_loose.format(diff=float((g - e).abs().max()))
-        return note
+                gap = float((g - e).abs().max())
+        return gap
 
     def _value_problem(self, name, got, g, e, case: Case, label: str, atol: float) -> str:
         """Words for a wrong output ``g`` (a part of ``got``; ``e`` the answer): one of the
@@ -287,7 +271,7 @@ class Exercise:
     def _gradient(self, fn: Callable, name: str, case: Case, index: int, label: str) -> None:
         """Raise unless ``fn``'s gradient with respect to argument ``index`` is the reference's."""
         atol = self.atol if case.atol is None else case.atol
-        zeros = torch.zeros_like(case.args[index], dtype=torch.float64)
+        zeros = torch.zeros_like(case.args[index], dtype=torch.float64)  # for an unused input
         expected = gradient(self._reference, index)(*case.args, **case.kwargs)
         expected = zeros if expected is None else expected.double()
         try:

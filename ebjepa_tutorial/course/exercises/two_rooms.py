@@ -1,8 +1,5 @@
-"""Checkers of chapter 04: ``slab_crossing(x0, x1, x_lo, x_hi) -> (t_in, t_out)``, all
-``(B,)``, the fractions of a move spent inside the wall's slab; then ``wall_collision(positions,
-moves, layouts)`` -> new positions ``(B, 2)``, whose check says what went wrong first."""
-
-from __future__ import annotations
+"""Checkers of chapter 04: ``slab_crossing(x0, x1, x_lo, x_hi) -> (t_in, t_out)``, all ``(B,)``,
+and ``wall_collision(positions, moves, layouts)`` -> new positions ``(B, 2)``."""
 
 from functools import partial
 
@@ -10,13 +7,12 @@ import torch
 
 from ...envs import two_rooms as rooms
 from ...envs.two_rooms import HIGH, LOW, stop_at_wall, wall_bounds, wall_collision
-from .common import TEXTS, Case, Exercise, slips
+from .common import TEXTS, Case, Exercise
 
 
 def _crossing_slip(order=True, clamp=True, still=True, strict=True):
-    """The fractions ``t_in <= t_out`` of the move ``x0 -> x1`` (all ``(B,)``) spent inside the
-    slab ``x_lo < x < x_hi``, equal when the move never enters it; each keyword, set False,
-    makes one mistake."""
+    """The fractions ``t_in <= t_out`` (B,) of the move ``x0 -> x1`` spent inside the slab
+    ``x_lo < x < x_hi``, equal when it never enters; each keyword, False, makes one mistake."""
     def slab_crossing(x0, x1, x_lo, x_hi):
         moving = x1 != x0
         dx = torch.where(moving, x1 - x0, torch.ones_like(x0)) if still else x1 - x0
@@ -29,11 +25,7 @@ def _crossing_slip(order=True, clamp=True, still=True, strict=True):
             t_in = torch.where(moving, t_in, 0.0)
             t_out = torch.where(moving, t_out, inside.to(x0.dtype))
         return t_in, t_out
-
     return slab_crossing
-
-
-_slab_crossing = _crossing_slip()  # the reference: no mistake
 
 
 def _crossing_cases(n: int = 64) -> list[Case]:
@@ -62,10 +54,9 @@ def _crossing_cases(n: int = 64) -> list[Case]:
 
 
 check_slab_crossing = Exercise(
-    "slab_crossing", _slab_crossing, slips(
-        "slab_crossing", unordered=_crossing_slip(order=False),
-        unclamped=_crossing_slip(clamp=False), division_by_zero=_crossing_slip(still=False),
-        closed_slab=_crossing_slip(strict=False)),
+    "slab_crossing", _crossing_slip(), dict(  # the reference: no mistake
+        unordered=_crossing_slip(order=False), unclamped=_crossing_slip(clamp=False),
+        division_by_zero=_crossing_slip(still=False), closed_slab=_crossing_slip(strict=False)),
     _crossing_cases, parts=("t_in", "t_out"))
 
 
@@ -103,9 +94,8 @@ def _wall_cases(n: int = 512) -> list[Case]:
 
 
 def _first_problem(case: Case, got, expected, diagnosed: bool) -> str | None:
-    """Words for the first wrong new position in ``got`` ``(n, 2)``: the first of hints.yaml's
-    ``symptoms`` found, or only the positions when a typical wrong rule explains ``got``
-    (``diagnosed``: an unclamped target can look like a dot stopped at an open door)."""
+    """Words for the first wrong new position in ``got`` ``(n, 2)``: the first of the ``symptoms``
+    found, or ``other`` when a typical mistake explains ``got`` (it may look like another)."""
     pos, move, layouts = case.args
     x_lo, x_hi, y_lo, y_hi = wall_bounds(layouts)
     wall_x, tol = layouts[:, 0].float(), 1e-4
@@ -149,14 +139,12 @@ def _wall_slip(positions, moves, layouts, rule):
     return torch.stack([expected[:, 0], y], -1)
 
 
-_WALL_SLIPS = slips(  # the wall rules on the unclamped target, clamped at the end or never
-    "wall_collision",
-    not_clamped_first=(lambda p, m, walls: stop_at_wall(p, p + m, walls).clamp(LOW, HIGH),
-                       lambda p, m, walls: stop_at_wall(p, p + m, walls)),
-    stay_put=partial(_wall_slip, rule="stay_put"),
-    stop_at_contact=partial(_wall_slip, rule="stop_at_contact"),
-    no_door_sides=partial(_wall_slip, rule="no_door_sides"))
-
-
 check_wall_collision = Exercise(
-    "wall_collision", wall_collision, _WALL_SLIPS, _wall_cases, atol=1e-4, explain=_first_problem)
+    "wall_collision", wall_collision, dict(
+        not_clamped_first=(  # the wall rules on the unclamped target, clamped last or never
+            lambda p, m, walls: stop_at_wall(p, p + m, walls).clamp(LOW, HIGH),
+            lambda p, m, walls: stop_at_wall(p, p + m, walls)),
+        stay_put=partial(_wall_slip, rule="stay_put"),
+        stop_at_contact=partial(_wall_slip, rule="stop_at_contact"),
+        no_door_sides=partial(_wall_slip, rule="no_door_sides")),
+    _wall_cases, atol=1e-4, explain=_first_problem)
