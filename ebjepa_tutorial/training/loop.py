@@ -108,7 +108,7 @@ def resume(path: str | Path | None, *parts, config: Any = None) -> tuple[int, Hi
     if found is None:
         return 0, History()
     for key, part in zip(PARTS, parts):
-        if part is not None and found[0].get(key) is not None:
+        if part is not None:  # a part the run has must be in its file: never resume without it
             part.load_state_dict(found[0][key])
     return found[0]["step"], history
 
