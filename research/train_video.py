@@ -39,10 +39,11 @@ from ebjepa_tutorial.training.video import (
     ablation_configs,
     identity,
     run_name,
-    train_or_load,
+    video_jepa_step,
 )
 
 from . import launch
+from .from_notebook import definitions
 from .shipping import float16_state
 
 
@@ -94,6 +95,11 @@ def main(argv: list[str] | None = None) -> None:
         _train_and_report(args, cfg, configs, device)
     finally:
         launch.shutdown()
+
+
+def notebook():
+    """Notebook 03's loop, ``train_video_jepa``, and its ``train_or_load``, read from its cells."""
+    return definitions("03_video_jepa.ipynb", "train_video_jepa", "train_or_load")
 
 
 def shares_start_with(config: VideoJEPAConfig, other: VideoJEPAConfig) -> bool:
@@ -149,13 +155,14 @@ def _train_and_report(args, cfg, configs, device) -> None:
     scale = f"{args.scale}_long" if args.long else args.scale  # names the checkpoints
     if configs[0].unroll != cfg.train.unroll:  # --unroll: another way than the preset's
         scale += f"_{configs[0].unroll}"
+    train_or_load = notebook().train_or_load
     for config in configs:
         start, name = time.perf_counter(), run_name(scale, config)
         # runs of this seed with another K start as this one: they resume from its switch
         waiting = not_started([(c, run_name(scale, c)) for c in configs
                                if shares_start_with(config, c)])
-        model, history = train_or_load(config, name, train_digits, device=device,
-                                       after=handover(config, waiting))
+        model, history = train_or_load(config, name, train_digits, video_jepa_step, device,
+                                       handover(config, waiting))
         if args.ship and distributed.is_main():
             shipped = checkpoint_paths(name)[1]
             save_checkpoint(shipped, model=float16_state(model), history=dict(history),

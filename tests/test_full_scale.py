@@ -25,6 +25,7 @@ from ebjepa_tutorial.models.video import VIDEO_MODEL_CONFIGS, VideoJEPA
 from ebjepa_tutorial.models.world import WORLD_CONFIGS
 from ebjepa_tutorial.training import image, video, world
 from ebjepa_tutorial.training.video import VIDEO_CONFIGS
+from research.train_video import notebook
 
 # `make test` runs these; `make test-fast` (its 30 s budget) leaves them out
 pytestmark = pytest.mark.slow
@@ -112,7 +113,8 @@ def test_full_video_jepa_takes_a_step():
                            generator=torch.Generator().manual_seed(0))
     clips = generate_moving_mnist(digits, 2, config.n_frames).clips  # (2, 10, 1, 64, 64)
     before = _initial(lambda: VideoJEPA(config.model), config.seed)
-    model, history = video.train_video_jepa(config, clips, progress=False, device="cpu")
+    model, history = notebook().train_video_jepa(config, clips, video.video_jepa_step,
+                                                 device="cpu")
     assert _unchanged(before, model) == []  # Adam: every parameter with a gradient moves
     _check_total(history, {"prediction": 1.0, "variance": video.STD_COEFF,
                            "covariance": video.COV_COEFF})

@@ -3,7 +3,7 @@
 The notebook defines ``video_jepa_step`` (one whole step: encode, the multistep loss,
 projector, variance and covariance, weighted total, backward, the gradients' mean over
 ranks, the optimiser's and the scheduler's steps) in a cell the learner edits, and its
-training cells pass it to the package's loop. The package's
+training cells pass it to the notebook's loop. The package's
 ``training.video.video_jepa_step`` trained the shipped checkpoints. These tests fail when
 the two differ in code, show that the unedited cell reproduces the package's run bit for bit
 while an edit to it changes what trains at ``ci``, and that an edited step is a run of its
@@ -16,7 +16,9 @@ import linecache
 import torch
 from test_one_source import code_of, notebook_function
 
+from ebjepa_tutorial.data.moving_mnist import generate_moving_mnist
 from ebjepa_tutorial.training import video
+from research.train_video import notebook
 
 NOTEBOOK = "03_video_jepa.ipynb"
 # 2 steps of K = 1, 2 of K = 4
@@ -41,7 +43,7 @@ _CELLS: list[str] = []
 def _clips() -> torch.Tensor:
     digits = torch.randint(0, 256, (20, 1, 28, 28), generator=torch.Generator().manual_seed(0),
                            dtype=torch.uint8)
-    return video.make_clips(CONFIG, digits)
+    return generate_moving_mnist(digits, CONFIG.n_clips, CONFIG.n_frames, seed=CONFIG.seed).clips
 
 
 def test_the_notebook_shows_the_step_the_package_trains_with():
@@ -54,11 +56,10 @@ def test_an_edit_to_the_step_changes_what_trains_and_the_cell_as_shown_does_not(
     source = notebook_function(NOTEBOOK, "video_jepa_step")
     edited = source.replace("COV_COEFF * covariance", "0.0 * covariance")
     assert edited != source
-    clips = _clips()
-    package, package_history = video.train_video_jepa(CONFIG, clips, progress=False)
-    as_shown, history = video.train_video_jepa(CONFIG, clips, progress=False,
-                                               step=_define(source))
-    _, changed = video.train_video_jepa(CONFIG, clips, progress=False, step=_define(edited))
+    clips, loop = _clips(), notebook().train_video_jepa
+    package, package_history = loop(CONFIG, clips, video.video_jepa_step)
+    as_shown, history = loop(CONFIG, clips, _define(source))
+    _, changed = loop(CONFIG, clips, _define(edited))
     assert history == package_history  # every logged term, bit for bit
     for name, value in package.state_dict().items():
         assert torch.equal(as_shown.state_dict()[name], value), name
@@ -76,13 +77,14 @@ def test_an_edited_step_is_a_run_of_its_own(tmp_path, monkeypatch, capsys):
     assert "step" not in course  # the default step adds nothing: the shipped files still load
     assert video.identity(CONFIG, digits, _define(source)) == course  # the cell as shown
     assert video.identity(CONFIG, digits, edited) == {**course, "step": course_hash(edited)}
-    video.train_or_load(CONFIG, "run", digits, progress=False)
+    train_or_load = notebook().train_or_load
+    train_or_load(CONFIG, "run", digits, video.video_jepa_step)
     assert "Trained and saved" in capsys.readouterr().out
-    video.train_or_load(CONFIG, "run", digits, progress=False, step=edited)
+    train_or_load(CONFIG, "run", digits, edited)
     assert "Trained and saved" in capsys.readouterr().out  # never the unedited run's file
-    video.train_or_load(CONFIG, "run", digits, progress=False, step=edited)
+    train_or_load(CONFIG, "run", digits, edited)
     assert "Loaded a trained model" in capsys.readouterr().out  # cached as itself
-    video.train_or_load(CONFIG, "run", digits, progress=False)
+    train_or_load(CONFIG, "run", digits, video.video_jepa_step)
     assert "moved it back" in capsys.readouterr().out  # the unedited run was kept aside
 
 

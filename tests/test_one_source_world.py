@@ -48,7 +48,9 @@ def test_the_cell_as_shown_trains_the_packages_run_and_an_edit_changes_it():
     shown_model, shown = train(notebook_step())
     assert shown == package  # every logged term, bit for bit
     assert all(torch.equal(a, b) for a, b in zip(weights(shown_model), weights(package_model)))
-    edited = notebook_step(lambda s: s.replace("total.backward()", "(2 * total).backward()"))
+    # twice the prediction term's gradient (Adam ignores a scale of the whole gradient)
+    edited = notebook_step(lambda s: s.replace(
+        "total.backward()", "(total + terms['prediction']).backward()"))
     _, changed = train(edited)
     assert changed["loss"][0] == package["loss"][0]  # the same first batch and weights ...
     assert changed["loss"][-1] != package["loss"][-1]  # ... then another update
@@ -92,7 +94,9 @@ def test_an_edited_step_is_a_run_of_its_own(tmp_path, monkeypatch, capsys):
     assert "Trained and saved" in capsys.readouterr().out
     world.train_or_load(run, "world", device="cpu", step=notebook_step())  # the same code
     assert "Loaded a trained model" in capsys.readouterr().out
-    edited = notebook_step(lambda s: s.replace("total.backward()", "(2 * total).backward()"))
+    # twice the prediction term's gradient (Adam ignores a scale of the whole gradient)
+    edited = notebook_step(lambda s: s.replace(
+        "total.backward()", "(total + terms['prediction']).backward()"))
     assert world.identity(run, edited)["step"] and "step" not in world.identity(run)
     _, history = world.train_or_load(run, "world", device="cpu", step=edited)
     assert "Trained and saved" in capsys.readouterr().out and len(history["loss"]) == 2

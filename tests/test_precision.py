@@ -14,8 +14,10 @@ import torch
 
 from ebjepa_tutorial import distributed, utils
 from ebjepa_tutorial.data.moving_mnist import generate_moving_mnist
+from ebjepa_tutorial.models.video import VideoJEPA
 from ebjepa_tutorial.training import image, video
 from ebjepa_tutorial.training.video import VIDEO_CONFIGS
+from research.train_video import notebook
 
 
 def test_on_the_cpu_nothing_is_lowered_or_reordered():
@@ -61,7 +63,7 @@ def test_video_training_asks_for_bf16_on_the_cpu(monkeypatch):
     config = replace(VIDEO_CONFIGS["ci"], steps=2, batch_size=4)
     digits = torch.randint(0, 256, (20, 1, 28, 28), dtype=torch.uint8)
     clips = generate_moving_mnist(digits, 8, config.n_frames, seed=0).clips
-    video.train_video_jepa(config, clips, progress=False, device="cpu")
+    notebook().train_video_jepa(config, clips, video.video_jepa_step, device="cpu")
     assert len(calls) == 2 and all(k == {"cpu": True} for k in calls)
 
 def cpu_bf16(device, **_):
@@ -104,15 +106,16 @@ def test_video_training_keeps_variance_and_covariance_in_float32(monkeypatch):
     config = replace(VIDEO_CONFIGS["ci"], steps=2, batch_size=4)
     digits = torch.randint(0, 256, (20, 1, 28, 28), dtype=torch.uint8)
     clips = generate_moving_mnist(digits, 8, config.n_frames, seed=0).clips
-    model = video.VideoJEPA(config.model).train()
+    model = VideoJEPA(config.model).train()
     encoded = []
     model.encoder.register_forward_hook(lambda module, args, out: encoded.append(out.dtype))
     optimizer = torch.optim.Adam(model.parameters())
-    loss, terms = video.video_jepa_step(model, optimizer, video.new_scheduler(optimizer, config),
-                                        clips[:4], config.rollout_steps, config)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda n: 1.0)
+    loss, terms = video.video_jepa_step(model, optimizer, scheduler, clips[:4],
+                                        config.rollout_steps, config)
     assert encoded == [torch.bfloat16] and received == [torch.float32]
     assert loss.dtype == torch.float32 and torch.isfinite(loss)
-    _, history = video.train_video_jepa(config, clips, progress=False, device="cpu")
+    _, history = notebook().train_video_jepa(config, clips, video.video_jepa_step, device="cpu")
     assert received == [torch.float32] * 3  # the step above, then training's two
     assert all(map(torch.isfinite, map(torch.tensor, history["loss"])))
 

@@ -14,6 +14,7 @@ from ebjepa_tutorial.evaluation.detection import (
     detection_report,
     evaluation_clips,
     fit_detection_probe,
+    grid_features,
 )
 from ebjepa_tutorial.evaluation.metrics import average_precision
 from ebjepa_tutorial.losses.rollout import (
@@ -35,12 +36,22 @@ from ebjepa_tutorial.training.video import (
     PAPER_RECIPE,
     VIDEO_CONFIGS,
     ablation_configs,
-    fit_decoder,
     run_name,
-    train_or_load,
-    train_video_jepa,
+    video_jepa_step,
 )
 from research import train_video
+from research.from_notebook import definitions
+
+NOTEBOOK = definitions("03_video_jepa.ipynb", "train_video_jepa", "train_or_load", "fit_decoder")
+
+
+def train_video_jepa(config, clips, **options):
+    """Notebook 03's loop with the course's step (the package's copy of the cell's)."""
+    return NOTEBOOK.train_video_jepa(config, clips, video_jepa_step, **options)
+
+
+def train_or_load(config, name, train_digits, device=None):
+    return NOTEBOOK.train_or_load(config, name, train_digits, video_jepa_step, device)
 
 CI = VIDEO_CONFIGS["ci"]
 
@@ -241,20 +252,20 @@ def test_bad_inputs_raise_clear_errors():
         model.predictor(torch.randn(2, 3, 8, 8, 8))
     short = torch.zeros(4, 5, 1, 64, 64, dtype=torch.uint8)
     with pytest.raises(ValueError, match="at least 6"):
-        train_video_jepa(CI, short, progress=False)
+        grid_features(model, short, horizons=4)
     with pytest.raises(ValueError, match="uint8"):
-        train_video_jepa(CI, torch.zeros(4, 8, 1, 64, 64), progress=False)
+        grid_features(model, torch.zeros(4, 8, 1, 64, 64), horizons=4)
 
 
 @pytest.mark.slow  # trains, resumes, probes and decodes: seconds
 def test_training_resumes_and_evaluation_runs(digits, tmp_path):
     clips = generate_moving_mnist(digits, 32, 10, seed=1).clips
     config = replace(CI, steps=4, batch_size=4)
-    model, history = train_video_jepa(config, clips, progress=False)
+    model, history = train_video_jepa(config, clips)
     assert {"prediction", "variance", "covariance"} <= set(history)
     path = tmp_path / "video.pt"
-    train_video_jepa(config, clips, checkpoint=path, progress=False)
-    again, _ = train_video_jepa(config, clips, checkpoint=path, progress=False)  # restored, done
+    train_video_jepa(config, clips, checkpoint=path)
+    again, _ = train_video_jepa(config, clips, checkpoint=path)  # restored, done
     for a, b in zip(model.state_dict().values(), again.state_dict().values()):
         assert torch.equal(a, b)
 
@@ -268,11 +279,11 @@ def test_training_resumes_and_evaluation_runs(digits, tmp_path):
         assert report["map"] == pytest.approx(float(report["ap"].mean()))
     cosine = tmp_path / "cosine.pt"  # the rate falls to 0 at the last step
     train_video_jepa(replace(config, recipe=replace(CI.recipe, cosine=True)), clips,
-                     checkpoint=cosine, progress=False)
+                     checkpoint=cosine)
     state = load_checkpoint(cosine)
     assert state["scheduler"]["last_epoch"] == config.steps
     assert state["optimizer"]["param_groups"][0]["lr"] == pytest.approx(0.0, abs=1e-12)
-    decoder = fit_decoder(model, clips, steps=2, batch_size=4)
+    decoder = NOTEBOOK.fit_decoder(model, clips, steps=2, batch_size=4)
     with torch.no_grad():
         z = model.encode(clips[:2])[:, 0]
         assert torch.sigmoid(decoder(z)).shape == (2, 1, 64, 64)
@@ -283,7 +294,7 @@ def test_the_papers_constant_rate_is_a_scheduler_that_keeps_it(digits, tmp_path)
     # the paper's constant 1e-3 way
     config = replace(CI, steps=2, batch_size=2, recipe=replace(CI.recipe, cosine=False))
     path = tmp_path / "constant.pt"
-    train_video_jepa(config, clips, checkpoint=path, progress=False)
+    train_video_jepa(config, clips, checkpoint=path)
     state = load_checkpoint(path)  # the step calls scheduler.step() whatever the config
     assert state["scheduler"]["last_epoch"] == config.steps
     assert state["optimizer"]["param_groups"][0]["lr"] == config.lr
@@ -303,7 +314,7 @@ def test_the_curriculum_trains_one_step_first_then_k_steps(digits, monkeypatch):
     clips = generate_moving_mnist(digits, 8, 10, seed=1).clips
     config = replace(CI, steps=5, batch_size=2, rollout_steps=3,
                      recipe=replace(CI.recipe, one_step_fraction=0.4))
-    train_video_jepa(config, clips, progress=False)
+    train_video_jepa(config, clips)
     assert seen == [1, 1, 3, 3, 3]
 
 
@@ -316,12 +327,12 @@ def test_a_run_hands_its_one_step_half_to_the_same_run_with_another_k(digits, tm
     no_curriculum = replace(CI.recipe, one_step_fraction=0.0)
     assert not train_video.shares_start_with(replace(one, recipe=no_curriculum),
                                              replace(three, recipe=no_curriculum))
-    scratch, scratch_history = train_video_jepa(three, clips, progress=False)
+    scratch, scratch_history = train_video_jepa(three, clips)
     handed = tmp_path / "three.partial"
-    train_video_jepa(one, clips, progress=False,
+    train_video_jepa(one, clips,
                      after=train_video.handover(one, [(three, handed)]))
     assert load_checkpoint(handed)["step"] == 3
-    resumed, history = train_video_jepa(three, clips, checkpoint=handed, progress=False)
+    resumed, history = train_video_jepa(three, clips, checkpoint=handed)
     assert history == scratch_history
     for a, b in zip(scratch.state_dict().values(), resumed.state_dict().values()):
         assert torch.equal(a, b)
@@ -339,7 +350,7 @@ def test_after_sees_the_training_model_after_every_step(digits):
         calls.append((done, next(model.parameters()).detach().clone(), model.training,
                       len(history["step"])))
 
-    model, _ = train_video_jepa(config, clips, progress=False, after=hook)
+    model, _ = train_video_jepa(config, clips, after=hook)
     assert [done for done, *_ in calls] == [1, 2, 3] and all(c[2] for c in calls)
     assert [c[3] for c in calls] == [1, 1, 2]  # steps 0 and 2 (the last) are logged
     assert not torch.equal(calls[0][1], calls[1][1])  # each call sees the step just taken
@@ -349,17 +360,17 @@ def test_after_sees_the_training_model_after_every_step(digits):
 def test_train_or_load_trains_once_then_loads(digits, tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))  # checkpoints go to tmp_path/checkpoints
     config = replace(CI, n_clips=16, steps=2, batch_size=2)
-    model, history = train_or_load(config, "video_test", digits, device="cpu", progress=False)
+    model, history = train_or_load(config, "video_test", digits, device="cpu")
     assert "Trained and saved" in capsys.readouterr().out
     assert (tmp_path / "checkpoints" / "video_test.pt").is_file()
     assert not (tmp_path / "checkpoints" / "video_test.partial").exists()
-    again, history_again = train_or_load(config, "video_test", digits, progress=False)
+    again, history_again = train_or_load(config, "video_test", digits)
     assert "Loaded a trained model" in capsys.readouterr().out
     assert history_again == history and not again.training
     for a, b in zip(model.state_dict().values(), again.state_dict().values()):
         assert torch.equal(a, b)
     # other training digits (or another config) must not reuse the saved run
-    train_or_load(config, "video_test", 255 - digits, progress=False)
+    train_or_load(config, "video_test", 255 - digits)
     assert "another configuration" in capsys.readouterr().out
 
 

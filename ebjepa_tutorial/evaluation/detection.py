@@ -7,13 +7,22 @@ import torch.nn.functional as F
 from ..data.moving_mnist import GRID, centres_to_grid, generate_moving_mnist
 from ..losses.rollout import UNROLLS, parallel_unroll, rollout
 from ..models.video import VideoJEPA, detection_head
-from ..training.video import check_clips
 from .metrics import average_precision
 
 
 def _pool(z: torch.Tensor) -> torch.Tensor:
     """``(B, T, C, S, S) -> (B, T, C, 8, 8)`` by average pooling (the probe's first step)."""
     return F.adaptive_avg_pool2d(z.flatten(0, 1), GRID).unflatten(0, z.shape[:2])
+
+
+def check_clips(clips: torch.Tensor, min_frames: int) -> None:
+    """Raise unless ``clips`` is uint8 ``(N, T, 1, 64, 64)`` with ``T >= min_frames``."""
+    if (not isinstance(clips, torch.Tensor) or clips.dtype != torch.uint8 or clips.ndim != 5
+            or clips.shape[2:] != (1, 64, 64) or clips.shape[1] < min_frames):
+        got = (f"{tuple(clips.shape)} {clips.dtype}" if isinstance(clips, torch.Tensor)
+               else type(clips).__name__)
+        raise ValueError(f"clips must be uint8 (N, T, 1, 64, 64) with T at least {min_frames} "
+                         f"(context + prediction steps), from generate_moving_mnist; got {got}")
 
 
 @torch.no_grad()

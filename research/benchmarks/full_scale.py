@@ -50,6 +50,7 @@ from ebjepa_tutorial.envs import generate_trajectories
 from ebjepa_tutorial.training import image, video, world
 from ebjepa_tutorial.utils import get_device
 from research import launch
+from research.train_video import notebook
 
 CHAPTERS = ("image", "sigreg", "video", "world")
 CPU_BATCH_SCALE = 1 / 32  # the default on a CPU: full batches there are for patient people
@@ -104,8 +105,8 @@ def video_chapter() -> Chapter:
 
     def train(steps, batch, device):
         run = replace(config, n_clips=batch, batch_size=batch, steps=steps)
-        return video.train_video_jepa(run, random_clips(batch, config.n_frames),
-                                      progress=False, device=device)
+        return notebook().train_video_jepa(run, random_clips(batch, config.n_frames),
+                                           video.video_jepa_step, device=device)
 
     return Chapter("video JEPA (03)", config.batch_size, config.steps, config.n_clips, "clips",
                    train)

@@ -20,10 +20,11 @@ from dataclasses import replace
 
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.data.mnist import load_mnist
-from ebjepa_tutorial.data.moving_mnist import split_digits
+from ebjepa_tutorial.data.moving_mnist import generate_moving_mnist, split_digits
 from ebjepa_tutorial.evaluation.detection import detection_report, evaluation_clips
-from ebjepa_tutorial.training.video import make_clips, train_video_jepa
+from ebjepa_tutorial.training.video import video_jepa_step
 from ebjepa_tutorial.utils import get_device
+from research.train_video import notebook
 
 
 class _OutOfTime(Exception):
@@ -74,14 +75,15 @@ def main() -> None:
                                           n_train=cfg.n_train_digits)
     probe_data, eval_data = evaluation_clips(train_digits, held_out, cfg.n_probe, cfg.n_eval,
                                              config.n_frames)
-    clips = make_clips(config, train_digits)
+    clips = generate_moving_mnist(train_digits, config.n_clips, config.n_frames,
+                                  seed=config.seed).clips
     print(f"{args.scale} preset on {device}: {len(clips)} clips, batch {config.batch_size}, "
           f"{steps_per_epoch} steps an epoch, at most {args.epochs} epochs; probe "
           f"{cfg.n_probe} clips ({cfg.probe_steps} steps), AP on {cfg.n_eval} clips of "
           f"{len(held_out)} held-out digits", flush=True)
     report = EpochReport(steps_per_epoch, cfg, probe_data, eval_data, args.budget)
     try:
-        train_video_jepa(config, clips, progress=False, device=device, after=report)
+        notebook().train_video_jepa(config, clips, video_jepa_step, device=device, after=report)
     except _OutOfTime:
         pass
     epoch, clips_per_s, mean_ap, ap3 = report.last or (0, float("nan"), float("nan"),

@@ -40,8 +40,7 @@ from ebjepa_tutorial.training.video import (
     COV_COEFF,
     STD_COEFF,
     VIDEO_CONFIGS,
-    make_clips,
-    train_video_jepa,
+    video_jepa_step,
 )
 from ebjepa_tutorial.utils import at_least_float32, mixed_precision
 from research.benchmarks import command_line
@@ -51,6 +50,7 @@ from research.benchmarks.timing import (
     print_parts,
     time_parts,
 )
+from research.train_video import notebook
 from tools import figures
 
 
@@ -106,9 +106,10 @@ def model_benchmark(cfg, train_digits, held_out, rollout_steps: int, seed: int,
     ``precision``: what the networks train in here, for the log."""
     config = replace(cfg.train, rollout_steps=rollout_steps, seed=seed,
                      steps=steps or cfg.train.steps)
-    clips = make_clips(config, train_digits)
+    clips = generate_moving_mnist(train_digits, config.n_clips, config.n_frames,
+                                  seed=config.seed).clips
     start = time.perf_counter()
-    model, history = train_video_jepa(config, clips, progress=False)
+    model, history = notebook().train_video_jepa(config, clips, video_jepa_step)
     seconds = time.perf_counter() - start
     probe_data, eval_data = evaluation_clips(train_digits, held_out, cfg.n_probe, cfg.n_eval,
                                              config.n_frames)
