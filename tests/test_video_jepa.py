@@ -51,7 +51,9 @@ def train_video_jepa(config, clips, **options):
 
 
 def train_or_load(config, name, train_digits, device=None):
+    """Notebook 03's train_or_load with the course's step."""
     return NOTEBOOK.train_or_load(config, name, train_digits, video_jepa_step, device)
+
 
 CI = VIDEO_CONFIGS["ci"]
 
