@@ -16,7 +16,6 @@ import linecache
 import torch
 from test_one_source import code_of, notebook_function
 
-from ebjepa_tutorial.data.moving_mnist import generate_moving_mnist
 from ebjepa_tutorial.training import video
 from research.train_video import notebook
 
@@ -43,7 +42,7 @@ _CELLS: list[str] = []
 def _clips() -> torch.Tensor:
     digits = torch.randint(0, 256, (20, 1, 28, 28), generator=torch.Generator().manual_seed(0),
                            dtype=torch.uint8)
-    return generate_moving_mnist(digits, CONFIG.n_clips, CONFIG.n_frames, seed=CONFIG.seed).clips
+    return video.make_clips(CONFIG, digits)
 
 
 def test_the_notebook_shows_the_step_the_package_trains_with():

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, replace
 import torch
 
 from .. import distributed
+from ..data.moving_mnist import generate_moving_mnist
 from ..losses.rollout import UNROLLS, parallel_rollout_loss, rollout_loss
 from ..models.video import VIDEO_MODEL_CONFIGS, VideoModelConfig
 from ..utils import at_least_float32, mixed_precision
@@ -43,7 +44,7 @@ class VideoJEPAConfig:
     """One training run. Defaults: the class scale (~10 minutes on 2 CPU cores)."""
 
     model: VideoModelConfig = field(default_factory=lambda: VIDEO_MODEL_CONFIGS["class"])
-    n_clips: int = 4000  # training clips from the training digits (164 MB)
+    n_clips: int = 4000  # training clips from the training digits (make_clips; 164 MB)
     n_frames: int = 10  # frames per clip (needs >= context + rollout_steps)
     batch_size: int = 16  # clips per step, the global batch under torchrun (the paper: 64)
     steps: int = 2400  # sized for a class period on a laptop CPU
@@ -73,6 +74,12 @@ VIDEO_CONFIGS = {
     "full": VideoJEPAConfig(model=VIDEO_MODEL_CONFIGS["full"], n_clips=18_000, batch_size=64,
                             steps=50 * 18_000 // 64, lr=1e-3, recipe=PAPER_RECIPE),
 }
+
+
+def make_clips(config: VideoJEPAConfig, train_digits: torch.Tensor) -> torch.Tensor:
+    """The run's training clips from ``train_digits``: uint8 ``(n_clips, n_frames, 1, 64, 64)``."""
+    return generate_moving_mnist(train_digits, config.n_clips, config.n_frames,
+                                 seed=config.seed).clips
 
 
 def video_jepa_step(model, optimizer, scheduler, frames, k, config):

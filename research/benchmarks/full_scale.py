@@ -101,12 +101,12 @@ def image_chapter(config: image.ImageJEPAConfig, title: str) -> Chapter:
 
 
 def video_chapter() -> Chapter:
-    config = preset("03", "full").train
+    config, loop = preset("03", "full").train, notebook().train_video_jepa  # read once
 
     def train(steps, batch, device):
         run = replace(config, n_clips=batch, batch_size=batch, steps=steps)
-        return notebook().train_video_jepa(run, random_clips(batch, config.n_frames),
-                                           video.video_jepa_step, device=device)
+        return loop(run, random_clips(batch, config.n_frames), video.video_jepa_step,
+                    device=device)
 
     return Chapter("video JEPA (03)", config.batch_size, config.steps, config.n_clips, "clips",
                    train)

@@ -20,9 +20,9 @@ from dataclasses import replace
 
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.data.mnist import load_mnist
-from ebjepa_tutorial.data.moving_mnist import generate_moving_mnist, split_digits
+from ebjepa_tutorial.data.moving_mnist import split_digits
 from ebjepa_tutorial.evaluation.detection import detection_report, evaluation_clips
-from ebjepa_tutorial.training.video import video_jepa_step
+from ebjepa_tutorial.training.video import make_clips, video_jepa_step
 from ebjepa_tutorial.utils import get_device
 from research.train_video import notebook
 
@@ -75,8 +75,7 @@ def main() -> None:
                                           n_train=cfg.n_train_digits)
     probe_data, eval_data = evaluation_clips(train_digits, held_out, cfg.n_probe, cfg.n_eval,
                                              config.n_frames)
-    clips = generate_moving_mnist(train_digits, config.n_clips, config.n_frames,
-                                  seed=config.seed).clips
+    clips = make_clips(config, train_digits)
     print(f"{args.scale} preset on {device}: {len(clips)} clips, batch {config.batch_size}, "
           f"{steps_per_epoch} steps an epoch, at most {args.epochs} epochs; probe "
           f"{cfg.n_probe} clips ({cfg.probe_steps} steps), AP on {cfg.n_eval} clips of "

@@ -40,6 +40,7 @@ from ebjepa_tutorial.training.video import (
     COV_COEFF,
     STD_COEFF,
     VIDEO_CONFIGS,
+    make_clips,
     video_jepa_step,
 )
 from ebjepa_tutorial.utils import at_least_float32, mixed_precision
@@ -106,8 +107,7 @@ def model_benchmark(cfg, train_digits, held_out, rollout_steps: int, seed: int,
     ``precision``: what the networks train in here, for the log."""
     config = replace(cfg.train, rollout_steps=rollout_steps, seed=seed,
                      steps=steps or cfg.train.steps)
-    clips = generate_moving_mnist(train_digits, config.n_clips, config.n_frames,
-                                  seed=config.seed).clips
+    clips = make_clips(config, train_digits)
     start = time.perf_counter()
     model, history = notebook().train_video_jepa(config, clips, video_jepa_step)
     seconds = time.perf_counter() - start
