@@ -33,7 +33,7 @@ def per_rank_batch(global_batch: int) -> int:
     if global_batch % world or global_batch // world < 2:
         raise ValueError(f"the global batch of {global_batch} cannot be split evenly over {world} "
                          f"processes with at least 2 samples each: make batch_size a multiple of "
-                         f"the world size {world}")
+                         f"the world size {world}, at least {2 * world}")
     return global_batch // world
 
 

@@ -27,7 +27,7 @@ MIN_STD = 0.05  # the smallest spread after an update, px: agreeing elites still
 @dataclass(frozen=True)
 class Noise:
     """How a re-plan samples around its mean: a spread of ``std`` px at first, a fresh draw
-    every ``period`` steps joined by straight lines, each step clipped to ``bound`` px."""
+    about every ``period`` steps joined by straight lines, each step clipped to ``bound`` px."""
 
     std: float = 2.0  # wide enough for samples pressed on the wall to slide along it to the door
     period: int = 8  # 1: i.i.d. noise per step (Algorithm 1); white noise explores too little
@@ -155,8 +155,9 @@ def cem_update(actions: torch.Tensor, costs: torch.Tensor, elites: int):
 
 def smooth_noise(samples: int, horizon: int, dims: int, period: int,
                  generator: torch.Generator) -> torch.Tensor:
-    """Standard normal noise ``(samples, horizon, dims)``: independent draws at steps ``0,
-    period, 2 period, ...`` joined by straight lines (``period=1``: i.i.d.)."""
+    """Standard normal noise ``(samples, horizon, dims)``: independent draws a little over
+    ``period`` steps apart (evenly over ``period * (horizon // period + 2)`` steps, cut to
+    ``horizon``), joined by straight lines (``period=1``: i.i.d.)."""
     knots = torch.randn(samples, dims, horizon // period + 2, generator=generator)
     if period == 1:
         return knots[..., :horizon].transpose(1, 2)

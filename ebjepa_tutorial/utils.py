@@ -24,7 +24,8 @@ def network_dtype(device: torch.device | str, cpu: bool = False) -> torch.dtype:
     natively (AVX-512 BF16 or AMX); else float32: what :func:`mixed_precision` computes in."""
     kind = torch.device(device).type
     if kind == "cuda":
-        return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float32
+        native = torch.cuda.get_device_capability(device)[0] >= 8  # Ampere on; older: emulated
+        return torch.bfloat16 if native else torch.float32
     checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")  # else bf16 is emulated
     cpu_bf16 = any(getattr(torch.cpu, name, lambda: False)() for name in checks)
     return torch.bfloat16 if kind == "cpu" and cpu and cpu_bf16 else torch.float32

@@ -244,9 +244,10 @@ def test_packed_tree(tmp_path):
     assert find_cifar10(tmp_path / "data") == tmp_path / "data" / "cifar10-mine.tar.gz"
 
 
-def test_packed_tree_with_top_folder(tmp_path):
+@pytest.mark.parametrize("top", ["mine", "./mine"])  # `tar czf x.tar.gz ./mine` writes "./"
+def test_packed_tree_with_top_folder(tmp_path, top):
     expected = write_tree(tmp_path / "src")
-    pack(tmp_path / "src", tmp_path / "data", top="mine")
+    pack(tmp_path / "src", tmp_path / "data", top=top)
     images, labels = load_cifar10("test", root=tmp_path / "data", download=False)
     assert np.array_equal(images.numpy(), expected) and labels[-1] == 9
     with pytest.raises(DataNotFoundError, match="holds no train/<class>/ folders"):

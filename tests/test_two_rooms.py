@@ -361,8 +361,9 @@ def test_environment_steps_and_scores():
     assert not env.success().any()  # goals are in the other room, far away
     env.positions = env.goals.clone()
     assert env.success().all() and torch.equal(env.distance_to_goal(), torch.zeros(8))
-    with pytest.raises(ValueError, match=r"shape \(8, 2\)"):
-        env.step(torch.zeros(4, 2))
+    for wrong in (torch.zeros(4, 2), torch.zeros(0, 2)):  # an empty batch too: a clear error
+        with pytest.raises(ValueError, match=r"shape \(8, 2\)"):
+            env.step(wrong)
     with pytest.raises(RuntimeError, match="reset"):
         TwoRoomsEnv().observe()
 
@@ -450,6 +451,9 @@ def test_trajectories_can_share_given_layouts():
     assert torch.equal(data.layouts, layouts)
     assert not in_wall(data.positions.flatten(0, 1),
                        layouts.repeat_interleave(17, dim=0)).any()
+    assert torch.equal(data.frames(4), data.frames(slice(4, 5)))  # one trajectory: (1, T + 1, ...)
+    with pytest.raises(ValueError, match="one layout per trajectory, n = 5; got 6"):
+        generate_trajectories(5, seed=1, layouts=layouts)
 
 
 def test_the_environment_asks_for_reset_before_anything_else():

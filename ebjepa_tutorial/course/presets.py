@@ -177,7 +177,7 @@ _IMAGE = {  # chapter 01's run at each scale, and chapter 02's changes to it
 
 _WORLD_CI = course_recipe(WorldTrainConfig(model=WORLD_CONFIGS["ci"], n_trajectories=500,
                                            batch_size=16, steps=10))
-_WORLD_CLASS = course_recipe(WorldTrainConfig(steps=2800))  # under 10 min on 2 cores; shipped
+_WORLD_CLASS = course_recipe(WorldTrainConfig(steps=2800))  # 9-15 min on 2 cores; shipped
 _WORLD_FULL = WorldTrainConfig(  # the paper: batch 384, 12 epochs of 100,000 trajectories
     model=WORLD_CONFIGS["full"], n_trajectories=100_000, batch_size=384, steps=12 * 100_000 // 384)
 _PLANNER_CI = PlannerConfig(horizon=8, samples=32, elites=4, iterations=2, execute=4)

@@ -8,7 +8,7 @@ import os
 import tarfile
 import tempfile
 import zlib
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 import torch
@@ -82,7 +82,8 @@ def _read_packed(path: Path, split: str) -> tuple[np.ndarray, np.ndarray]:
     with tempfile.TemporaryDirectory() as unpacked:
         try:
             with tarfile.open(path) as archive:  # only this split's files
-                archive.extractall(unpacked, [m for m in archive if split in m.name.split("/")[:2]])
+                archive.extractall(unpacked, [m for m in archive
+                                              if split in PurePosixPath(m.name).parts[:2]])
         except (EOFError, tarfile.TarError, zlib.error, gzip.BadGzipFile) as err:
             raise CorruptDataError(
                 f"cannot read CIFAR-10 from {path}: {type(err).__name__}: {err}. The archive is "

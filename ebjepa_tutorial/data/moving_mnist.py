@@ -25,7 +25,7 @@ class MovingMNISTBatch:
     centres: torch.Tensor  # float32 (N, T, K, 2): (x, y) centre of the ink box
     boxes: torch.Tensor  # int64 (N, T, K, 4): tight box (x0, y0, x1, y1) of the ink, ends excluded
     offsets: torch.Tensor  # int64 (N, T, K, 2): (x, y) top-left corner of the pasted patch
-    velocities: torch.Tensor  # float32 (N, T, K, 2): velocity from frame t to t + 1
+    velocities: torch.Tensor  # float32 (N, T, K, 2): velocity leaving frame t, before a bounce
     digit_ids: torch.Tensor  # int64 (N, K): which row of digits each digit is
 
 
@@ -123,6 +123,6 @@ def centres_to_grid(centres: torch.Tensor) -> torch.Tensor:
     GRID)`` of 0/1, indexed ``[y cell, x cell]``."""
     cell = torch.div(centres, FRAME_SIZE / GRID, rounding_mode="floor").long().clamp(0, GRID - 1)
     flat = cell[..., 1] * GRID + cell[..., 0]  # (..., K)
-    target = torch.zeros(*flat.shape[:-1], GRID * GRID)
+    target = torch.zeros(*flat.shape[:-1], GRID * GRID, device=centres.device)
     target.scatter_(-1, flat, 1.0)
     return target.view(*flat.shape[:-1], GRID, GRID)

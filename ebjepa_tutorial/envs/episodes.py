@@ -98,9 +98,10 @@ class TwoRoomsEnv:
         self._check_started()
         dtype = self.positions.dtype
         if actions.shape != (len(self.layouts), 2) or not actions.to(dtype).isfinite().all():
+            largest = f", {actions.abs().max()} at most" if actions.numel() else ""
             raise ValueError(f"actions must have shape ({len(self.layouts)}, 2), one (dx, dy) per "
                              f"world, finite also in {dtype} (not NaN, infinite or too large); "
-                             f"got shape {tuple(actions.shape)}, {actions.abs().max()} at most")
+                             f"got shape {tuple(actions.shape)}{largest}")
         self.actions.append(actions.clone())  # the caller may reuse its tensor
         actions = actions.to(device=self.device, dtype=dtype)
         self.positions = transition(self.positions, actions, self.layouts)

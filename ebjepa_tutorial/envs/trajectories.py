@@ -106,6 +106,7 @@ class Trajectories:
 
     def frames(self, index=slice(None), out: torch.Tensor | None = None) -> torch.Tensor:
         """Render the selected trajectories: (n, T+1, 2, 65, 65) float32; ``out``: a buffer."""
+        index = [index] if isinstance(index, int) else index  # one trajectory: n = 1
         return render(self.positions[index], self.layouts[index], out=out)
 
     def changes_room(self) -> torch.Tensor:
@@ -128,6 +129,9 @@ def generate_trajectories(n: int, steps: int = 16, seed=0, door_fraction: float 
             and kappa > 0):
         raise ValueError("door_fraction and wall_fraction must be >= 0 with a sum <= 1, and kappa "
                          f"> 0; got {door_fraction}, {wall_fraction} and {kappa}")
+    if layouts is not None and len(layouts) != n:
+        raise ValueError(f"layouts must hold one layout per trajectory, n = {n}; "
+                         f"got {len(layouts)}")
     generator = as_generator(seed)  # the draws' order made the shipped models' data: keep it
     layouts = random_layouts(n, generator, walls) if layouts is None else layouts
     start, heading, door = random_starts(layouts, door_fraction, wall_fraction, generator)

@@ -70,10 +70,10 @@ def parallel_rollout_loss(predictor: Predictor, z: torch.Tensor, context: int = 
                           steps: int = 4, detach_later: bool = False) -> torch.Tensor:
     """The paper's K-step loss (its Eqs. 8 to 10) over latents ``z`` ``(B, T, C, H, W)``:
 
-        L_pred = (1/K) sum_k mean_{b, t >= context} ||z~^(k)_{b,t} - z_{b,t}||^2   (a 0-d tensor)
+        L_pred = (1/K) sum_k 1/(B (T-c) C H W) sum_{b, t >= c} ||z~^(k)_{b,t} - z_{b,t}||^2
 
-    with ``z~^(k)`` step k of :func:`parallel_unroll`. ``detach_later`` (the course's, not the
-    paper's): steps 2..K unroll from, and aim at, ``z.detach()``."""
+    with ``c`` the context and ``z~^(k)`` step k of :func:`parallel_unroll`. ``detach_later``
+    (the course's, not the paper's): steps 2..K unroll from, and aim at, ``z.detach()``."""
     errors = []
     if detach_later and steps > 1:  # step 1 on the latents, steps 2..K on detached ones
         errors.append(parallel_rollout_loss(predictor, z, context, 1))

@@ -51,7 +51,8 @@ def multistep_prediction_loss(
         predict: Callable, z: torch.Tensor, actions: torch.Tensor, steps: int = 8,
         detach_targets: bool = False, stay_probability: float = 0.0,
         generator: torch.Generator | None = None, rand: Callable = torch.rand) -> torch.Tensor:
-    """The K-step loss from the first frame, ``zhat_0 = z_0``, ``zhat_k = P(zhat_{k-1}, a_{k-1})``
+    """The K-step loss from the first frame (the reference code's choice; the paper's Eq. 8 sums
+    over every start frame), ``zhat_0 = z_0``, ``zhat_k = P(zhat_{k-1}, a_{k-1})``
     with ``predict(z (B, D), a (B, A)) -> (B, D)``, ``z (B, T, D)``, ``actions (B, T-1, A)``:
 
         L_pred = (1/K) sum_{k=1..K} (1/(B D)) sum_b ||zhat_k - z_k||^2,   K = steps <= T - 1

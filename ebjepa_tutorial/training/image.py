@@ -192,6 +192,9 @@ def train_or_load(config: ImageJEPAConfig, name: str, images: torch.Tensor, devi
     module = (model.encoder if encoder_only else model).to(device)
 
     def train(partial: Path):
+        if images is None:
+            raise ValueError(f"no saved run {name!r} of this configuration, and no images to "
+                             "train it on: pass load_cifar10('train')[0] as the data")
         trained, history = train_image_jepa(config, images, partial, device, step=step)
         return (trained.encoder if encoder_only else trained), history
 

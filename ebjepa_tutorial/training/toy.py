@@ -41,8 +41,9 @@ def spectrum(z: torch.Tensor) -> torch.Tensor:
 @torch.no_grad()
 def energy_map(encoder: nn.Module, anchor: torch.Tensor, extent: float = 3.5,
                resolution: int = 80) -> tuple[torch.Tensor, torch.Tensor]:
-    """``E(anchor, y) = ||enc(anchor) - enc(y)||^2`` for ``y`` on a grid around ``anchor (2,)``:
-    the grid's coordinates ``(R,)`` and the energies ``(R, R)`` (rows: y)."""
+    """``E(anchor, y) = ||enc(anchor) - enc(y)||^2`` for ``anchor (2,)`` and ``y`` on a grid
+    over ``[-extent, extent]^2``: the grid's coordinates ``(R,)`` and the energies ``(R, R)``
+    (rows: y)."""
     coords = torch.linspace(-extent, extent, resolution)
     grid_y, grid_x = torch.meshgrid(coords, coords, indexing="ij")
     points = torch.stack([grid_x.flatten(), grid_y.flatten()], dim=1)

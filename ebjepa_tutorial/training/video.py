@@ -3,7 +3,7 @@ identity; the loop that repeats the step is written in the notebook. A step,
 :func:`video_jepa_step`, takes the K-step loss plus the variance and covariance of the
 projected latents (each location a sample):
 
-    L = (1/K) sum_k mean ||zhat_k - z||^2 + std v(P(Z)) + cov c(P(Z))
+    L = (1/K) sum_k mean over elements (zhat_k - z)^2 + std v(P(Z)) + cov c(P(Z))
 """
 
 from __future__ import annotations

@@ -70,7 +70,8 @@ def course_recipe(config: WorldTrainConfig) -> WorldTrainConfig:
 
 
 def paper_recipe(config: WorldTrainConfig) -> WorldTrainConfig:
-    """``config`` trained the paper's way: whole trajectories, a GRU predictor, no replay."""
+    """``config`` trained the paper's way: whole trajectories, a GRU predictor, no replay (its
+    loss unrolled from the first frame, as the reference code does: ``losses.world``)."""
     return replace(config, recipe=Recipe(),
                    model=replace(config.model, predictor=WorldConfig.predictor))
 

@@ -15,7 +15,7 @@ WORDS = yaml.safe_load(Path(__file__).with_name("general.yaml").read_text(encodi
 HINTS = {name: tuple(texts["hints"]) for name, texts in TEXTS.items()}
 LEVELS = ("the idea", "the formula", "an outline of the code")
 _shown: dict[str, int] = {}  # exercise -> the highest hint level shown in this session
-_REFERENCES: list[Callable] = []  # the course's functions, which a check may hand over
+_REFERENCES: dict[Callable, str] = {}  # the course's functions a check may hand over -> exercise
 
 
 def say(key: str, **fields) -> str:
@@ -35,7 +35,9 @@ def whose(fn: Callable) -> str:
 def hint(name, level: int | None = None) -> None:
     """Print hint ``level`` (1 the idea, 2 the formula and the shapes, 3 an outline of the code;
     by default the next not shown yet) of the exercise ``name``, or of that function."""
-    name = getattr(name, "__name__", name)
+    # an Exercise, the course's function a check handed over (its name may differ), or a name
+    name = (getattr(name, "exercise", None) or _REFERENCES.get(name)
+            or getattr(name, "__name__", name))
     if name not in HINTS:
         print(say("no_such_exercise", name=name, names=", ".join(sorted(HINTS))))
         return
@@ -172,7 +174,7 @@ class Exercise:
     adapt: Callable = lambda f: f
 
     def __post_init__(self):
-        _REFERENCES.append(self.reference)
+        _REFERENCES[self.reference] = self.exercise
         words = TEXTS[self.exercise]["slips"]  # in order: on a tie the first is named
         self.slips = [(words[key], f) for key, fs in self.mistakes.items()
                       for f in (fs if isinstance(fs, tuple) else (fs,))]
