@@ -13,6 +13,8 @@ import json
 from pathlib import Path
 from types import SimpleNamespace
 
+from IPython.core.inputtransformer2 import TransformerManager
+
 NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
 DEFINITIONS = (ast.FunctionDef, ast.ClassDef)
 
@@ -26,15 +28,24 @@ def _constant(node: ast.stmt) -> str | None:
     return None
 
 
+def _free_names(node: ast.stmt) -> set[str]:
+    """The names ``node`` reads that it neither binds nor takes as arguments (its globals)."""
+    names = [n for n in ast.walk(node) if isinstance(n, ast.Name)]
+    bound = {n.id for n in names if not isinstance(n.ctx, ast.Load)}
+    bound |= {a.arg for n in ast.walk(node) if isinstance(n, ast.arguments)
+              for a in (*n.posonlyargs, *n.args, *n.kwonlyargs, n.vararg, n.kwarg) if a}
+    return {n.id for n in names if isinstance(n.ctx, ast.Load)} - bound
+
+
 def top_level(path: Path) -> list[tuple[str, str, ast.stmt]]:
     """``(where, code, statement)`` for the top-level statements of the notebook's code cells,
-    in order: ``code`` is the cell's Python (IPython's ``%`` and ``!`` lines dropped), which
-    the statement's positions index; ``where`` names the notebook and cell."""
-    nodes = []
+    in order: ``code`` is the cell's Python (IPython's magics, ``!`` and ``?`` as the calls
+    IPython makes of them), which the statement's positions index; ``where`` names the
+    notebook and cell."""
+    nodes, ipython = [], TransformerManager()
     for index, cell in enumerate(json.loads(path.read_text(encoding="utf-8"))["cells"]):
         if cell["cell_type"] == "code":
-            lines = "".join(cell["source"]).splitlines()
-            code = "\n".join(line for line in lines if not line.lstrip().startswith(("%", "!")))
+            code = ipython.transform_cell("".join(cell["source"]))
             where = f"{path.name}, cell {index}"
             nodes += [(where, code, node) for node in ast.parse(code, filename=where).body]
     return nodes
@@ -60,7 +71,7 @@ def definitions(notebook: str | Path, *names: str) -> SimpleNamespace:
     constants = {_constant(node): node for node in nodes if _constant(node)}
     wanted = dict(named)
     while True:  # the constants the chosen nodes read, and the constants those read
-        read = {n.id for node in wanted.values() for n in ast.walk(node) if isinstance(n, ast.Name)}
+        read = set().union(*(_free_names(node) for node in wanted.values()))
         more = {name: constants[name] for name in read & constants.keys() - wanted.keys()}
         if not more:
             break

@@ -224,13 +224,16 @@ def refit_main(trained: str, out: str, config: RefitConfig) -> None:
     """Refit the predictor of the model saved at ``trained``; save it to ``out`` with the
     trained model's stored config (``"base"``), and print the wall test before and after.
     Both models are on the best available device (cuda, mps, cpu)."""
+    base = load_checkpoint(trained)
+    if base.get("config", {}).get("walls", 1) != 1:  # the refit's data and wall test: Two Rooms
+        raise ValueError(f"{trained} was trained in a world of {base['config']['walls']} walls; "
+                         "the refit fits and tests Two Rooms data only")
     device = get_device()
     model = load_world_model(trained, device=device)  # it encodes every refit trajectory
     new, history = refit_predictor(model, config, device=device)
     walls = generate_trajectories(400, seed=778)  # notebook 06's wall test
     with torch.no_grad():
         before, after = middle_wall_test(model, walls), middle_wall_test(new, walls)
-    base = load_checkpoint(trained)
     save_checkpoint(out, model=new.state_dict(), history=dict(history),
                     config=refit_identity(config, base["config"]),
                     probe_px=base.get("probe_px"))

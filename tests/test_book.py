@@ -135,6 +135,24 @@ LONG_CALLS = re.compile(r"(?<!def )train_or_load\(|probe_encoder\(|run_episodes\
                         r"probe_report\(")
 
 
+def test_a_cached_run_is_reused_only_while_what_it_shows_is_unchanged(tmp_path, monkeypatch):
+    reference = tmp_path / "reference.json"
+    reference.write_text("{}")
+    monkeypatch.setattr(bk, "REFERENCE_FILE", reference)
+    path = tmp_path / "00_x.ipynb"
+
+    def key(markdown="Some prose.", code="x = 1"):
+        cells = [nbformat.v4.new_markdown_cell(markdown), nbformat.v4.new_code_cell(code)]
+        nbformat.write(nbformat.v4.new_notebook(cells=cells), path)
+        return bk.notebook_key(path, "ci")
+
+    first = key()
+    assert key() == first and key(code="x = 2") != first
+    assert key(markdown="Other prose.") != first  # the cached copy holds the prose too
+    reference.write_text('{"a": 1}')  # a new recorded figure, printed beside the learner's
+    assert key() != first
+
+
 def test_cells_that_train_or_play_are_tagged_long_running():
     """Training, probes and episodes take minutes at class scale, several times that on busy
     cores: the book gives them execute.long_timeout instead of the per-cell timeout."""

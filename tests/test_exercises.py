@@ -649,7 +649,7 @@ def test_a_wrong_answer_is_reported_without_the_checkers_insides():
     with pytest.raises(exercises.ExerciseError) as caught:
         exercises.check_covariance_term(covariance_term)
     frames = [frame.name for frame in caught.traceback]
-    assert "compare" not in frames and "_call" not in frames  # nor the reference's name
+    assert frames[1:] == ["__call__"]  # the learner's cell, then the check: none of its insides
 
 
 def test_checker_reports_a_crash_in_plain_words():
@@ -778,6 +778,15 @@ def test_the_exercise_cells_do_not_name_the_answer(path):
             for name in re.findall(r"^def (\w+)\(", _source(cell), flags=re.M):
                 for answer in ANSWERS[name]:
                     assert answer not in shown, f"{path.name} cell {index} names {answer}"
+
+
+def test_a_markdown_solution_goes_and_the_list_after_it_stays_a_list():
+    source = ("Exercises 1 and 2 are above. <!-- BEGIN SOLUTION -->Solutions are here."
+              "<!-- END SOLUTION --> Each takes minutes.\n\n3. **Next.** Do it.")
+    assert MARKDOWN_SOLUTION.sub("", source) == (
+        "Exercises 1 and 2 are above. Each takes minutes.\n\n3. **Next.** Do it.")
+    ended = source.replace(" Each takes minutes.", "")  # the marker closes the paragraph
+    assert MARKDOWN_SOLUTION.sub("", ended).endswith("above. \n\n3. **Next.** Do it.")
 
 
 def test_strip_solutions_leaves_a_stub_that_asks_for_a_hint():

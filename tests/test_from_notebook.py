@@ -33,6 +33,16 @@ def test_the_named_definitions_run_with_the_imports_and_the_constants_they_read(
     assert definitions(path, "BASE").BASE == 3.0
 
 
+def test_ipython_syntax_and_a_functions_own_names_do_not_get_in_the_way(tmp_path):
+    path = notebook(tmp_path / "nb.ipynb",
+                    "%%capture\nprint('hidden')", "files = !ls\nlen?",
+                    "K = config.rollout_steps  # a cell's constant, from the cell above",
+                    "text = ('%d of %d'\n        % (1, 2))",
+                    "def horizons(K):  # an argument, not the cell's K\n"
+                    "    H = K + 1  # a local, not a constant\n    return list(range(1, H))\n")
+    assert definitions(path, "horizons").horizons(3) == [1, 2, 3]
+
+
 def test_a_name_defined_nowhere_or_twice_is_refused(tmp_path):
     path = notebook(tmp_path / "nb.ipynb", "def f():\n    pass\n", "def f():\n    return 1\n")
     with pytest.raises(ValueError, match="defines f twice"):

@@ -66,6 +66,8 @@ def test_each_loss_logs_its_terms(loss, terms):
     _, history = image.train_image_jepa(config, _images(), progress=False)
     assert set(history) == {"step", "loss"} | terms
     assert all(math.isfinite(value) for value in history["loss"])
+    if loss is None:  # the regularisers are only watched: the loss is the invariance alone
+        assert history["loss"] == pytest.approx(history["invariance"], rel=1e-6)
 
 
 def test_one_block_per_stage_makes_a_resnet_10_and_resnet_18_runs_keep_their_identity():

@@ -19,6 +19,8 @@ from ebjepa_tutorial.data.moving_mnist import (
     split_digits,
 )
 
+REPO = Path(__file__).resolve().parents[1]
+
 
 def synthetic_digits(n: int = 40, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """``n`` 28x28 "digits", each a random rectangle of ink (1..255); returns digits, boxes."""
@@ -35,7 +37,8 @@ def synthetic_digits(n: int = 40, seed: int = 0) -> tuple[torch.Tensor, torch.Te
 
 def real_mnist_digits() -> torch.Tensor | None:
     """The official test digits from the IDX file, if one is on this machine."""
-    folders = [os.environ.get("EBJEPA_DATA", ""), "data", "/work/shared/data"]
+    # EBJEPA_DATA, else the development copy beside the repository (../shared/data)
+    folders = [os.environ.get("EBJEPA_DATA", ""), str(REPO.parent / "shared" / "data")]
     for folder in folders:
         path = Path(folder) / "mnist" / "t10k-images-idx3-ubyte.gz"
         if folder and path.is_file():

@@ -209,6 +209,20 @@ def test_success_and_first_arrival_agree_with_the_paths():
     assert "episodes" in result.summary()
 
 
+def test_success_is_where_an_episode_ends_not_whether_it_passed_the_goal():
+    def visit_then_leave(model, env, config, generators, steps, arrived=None, aim=None):
+        env.positions = env.goals.clone()  # at the goal: the first step records it
+        away = torch.where(env.goals[:, 1:] < 32, 1.8, -1.8)  # (B, 1): up or down the room
+        env.step(torch.zeros(len(env.goals), 2))
+        for _ in range(steps - 1):  # then 1.8 px a step away from it, along its room
+            env.step(torch.cat([torch.zeros_like(away), away], dim=1))
+
+    result = planning.run_episodes(LinearLatentModel(), range(4), PlannerConfig(), steps=5,
+                                   loop=visit_then_leave)
+    assert result.first_arrival.tolist() == [1, 1, 1, 1]  # each was at its goal after step 1
+    assert not result.success.any()  # and ended 7.2 px from it
+
+
 def test_wilson_interval_by_hand():
     low, high = wilson_interval(0, 10)
     assert low == 0 and high == pytest.approx(1.96**2 / (10 + 1.96**2))

@@ -95,8 +95,10 @@ def test_a_planted_mismatch_is_caught_and_render_repairs_it(tmp_path):
     assert figs.mismatches(planted, figures) == [
         "vicreg_probe_acc: written '63.6%', recorded '62.6%'"]
     assert figs.render(planted, figures) == text
-    unknown = "<!--fig:made_up-->1<!--/fig-->"
-    assert "no recorded figure 'made_up'" in figs.mismatches(unknown, figures)[0]
+    unknown = "<!--fig:made_up-->1<!--/fig-->"  # a misspelt marker: fix it, no run records it
+    assert "unknown figure key 'made_up': fix the marker" in figs.mismatches(unknown, figures)[0]
+    unrecorded = {k: v for k, v in figures.items() if k != "vicreg_probe_acc"}
+    assert "record it first" in figs.mismatches(text, unrecorded)[0]
     no_spread = "<!--fig:vicreg_probe_acc:spread-->60-63%<!--/fig-->"
     assert "has no recorded spread" in figs.mismatches(no_spread, figures)[0]
 

@@ -114,8 +114,12 @@ def test_sigreg_loss_terms_and_gradient():
     assert total.item() == pytest.approx(float(terms["invariance"] + 0.5 * terms["sigreg"]),
                                         rel=1e-5)
     assert float(terms["invariance"]) == pytest.approx(((z_a - z_b) ** 2).mean().item(), rel=1e-6)
+    directions = random_directions(8, 32, as_generator(1))  # the draw sigreg_loss made
+    both = (sigreg(z_a, directions=directions) + sigreg(z_b, directions=directions)) / 2
+    assert float(terms["sigreg"]) == pytest.approx(both.item(), rel=1e-6)  # both views, alike
     total.backward()
-    assert torch.isfinite(z_a.grad).all() and z_a.grad.abs().sum() > 0
+    for z in (z_a, z_b):  # each view is pushed by its own regulariser and the invariance
+        assert torch.isfinite(z.grad).all() and z.grad.abs().sum() > 0
 
 
 def test_batch_of_one_is_a_clear_error():

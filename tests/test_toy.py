@@ -55,3 +55,7 @@ def test_energy_map_is_zero_at_the_anchor(data):
     coords, energy = toy.energy_map(encoder, torch.zeros(2), extent=1.0, resolution=3)
     assert coords.tolist() == [-1.0, 0.0, 1.0]
     assert energy.shape == (3, 3) and energy[1, 1].item() == pytest.approx(0.0, abs=1e-10)
+    # with the identity for an encoder, E is the squared distance: rows y, columns x
+    coords, energy = toy.energy_map(torch.nn.Identity(), torch.tensor([0.5, 0.0]), 1.0, 3)
+    x, y = coords[None, :], coords[:, None]
+    assert torch.allclose(energy, (x - 0.5) ** 2 + y**2)

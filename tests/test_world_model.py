@@ -891,6 +891,24 @@ def test_a_clipped_step_moves_the_weights_by_at_most_the_clip(data):
     assert moved.norm().item() == pytest.approx(0.5)  # the whole gradient's norm was far above
 
 
+def test_a_clipped_replay_update_steps_with_at_most_the_clipped_gradient(small_replay):
+    recipe = world.Recipe(replay_steps=2, grad_clip=1e-3)  # far below the raw gradient's norm
+    config = world.WorldTrainConfig(model=TINY, batch_size=4, rollout_steps=2, recipe=recipe)
+    replay = world.LatentReplay(tiny_model(), config, frames=3, device="cpu")
+    torch.manual_seed(0)
+    replay.add(torch.randn(8, 3, 8), 3 * torch.randn(8, 2, 2))
+    norms, step = [], replay.optimizer.step
+
+    def watched(*args, **kwargs):  # the gradient each replayed update steps with
+        grads = [p.grad.flatten() for p in replay.parameters if p.grad is not None]
+        norms.append(torch.cat(grads).norm().item())
+        return step(*args, **kwargs)
+
+    replay.optimizer.step = watched
+    replay(0)
+    assert len(norms) == 2 and max(norms) == pytest.approx(1e-3, rel=1e-4)
+
+
 def test_a_clipped_replay_run_trains(small_replay):
     config = world.course_recipe(world.WorldTrainConfig(
         model=WORLD_CONFIGS["ci"], n_trajectories=16, batch_size=4, steps=2))

@@ -38,6 +38,7 @@ from nbclient import NotebookClient
 from nbclient.exceptions import CellExecutionError, CellTimeoutError, DeadKernelError
 
 from ebjepa_tutorial.course.presets import SCALES
+from ebjepa_tutorial.course.reference import REFERENCE_FILE
 
 ROOT = Path(__file__).resolve().parents[1]  # the repository
 PACKAGE_DIR = ROOT / "ebjepa_tutorial"
@@ -239,11 +240,13 @@ def is_noise(line: str) -> bool:
 
 
 def notebook_key(path: Path, scale: str) -> str:
-    """What an executed notebook depends on: its code, the scale and the package's code."""
+    """What an executed notebook shows: its cells (the prose too, which the cached copy holds),
+    the scale, the package's code and the recorded figures its cells print beside yours."""
     digest = hashlib.sha256(f"{scale} {package_fingerprint()}".encode())
     for cell in nbformat.read(path, as_version=4).cells:
-        if cell.cell_type == "code":
-            digest.update(cell.source.encode() + b"\0")
+        digest.update(f"{cell.cell_type}\0{cell.source}\0".encode())
+    if REFERENCE_FILE.is_file():
+        digest.update(REFERENCE_FILE.read_bytes())
     return f"{path.stem}-{digest.hexdigest()[:12]}"
 
 

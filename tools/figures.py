@@ -62,8 +62,12 @@ PAGES = ("README.md", "RESULTS.md", "TEACHING.md", "docs/*.md", "notebooks/*.ipy
 def figure_text(key: str, spread: bool = False, figures: dict | None = None) -> str:
     """How the recorded figure ``key`` reads in prose: its value, or its range as low-high."""
     figures = load() if figures is None else figures
-    if key not in FORMATS or key not in figures:
-        raise KeyError(f"no recorded figure {key!r} in {REFERENCE_FILE.name}")
+    if key not in FORMATS:  # a misspelt marker, or a figure the course has no format for
+        raise KeyError(f"unknown figure key {key!r}: fix the marker, or add the key to FORMATS "
+                       "in tools/figures.py (or reference.METRICS)")
+    if key not in figures:
+        raise KeyError(f"no recorded figure {key!r} in {REFERENCE_FILE.name}; record it first "
+                       "(its benchmark's --record)")
     fmt, entry = FORMATS[key], figures[key]
     if not spread:
         return fmt.format(entry["value"])
@@ -162,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             changed = render_pages()
         except KeyError as error:  # a page marks a figure nobody has recorded yet
-            print(f"error: {error.args[0]}; record it first (its benchmark's --record)")
+            print(f"error: {error.args[0]}")
             return 1
         for path in changed:
             print(f"rewrote the figures of {path}")

@@ -31,7 +31,7 @@ BEGIN = re.compile(r"^(\s*)### BEGIN SOLUTION\s*$")
 END = re.compile(r"^\s*### END SOLUTION\s*$")
 HINT = re.compile(r"^\s*# HINT:")
 DEF = re.compile(r"^(\s*)def (\w+)\(")
-MARKDOWN_SOLUTION = re.compile(r"<!-- BEGIN SOLUTION -->.*?<!-- END SOLUTION -->\s*", re.S)
+MARKDOWN_SOLUTION = re.compile(r"<!-- BEGIN SOLUTION -->.*?<!-- END SOLUTION -->[ \t]*", re.S)
 
 
 def _exercise_name(lines: list[str], indent: str) -> str | None:
