@@ -153,6 +153,16 @@ def test_a_cached_run_is_reused_only_while_what_it_shows_is_unchanged(tmp_path, 
     assert key() != first
 
 
+def test_a_link_to_a_file_the_book_does_not_hold_names_the_file():
+    book = bk.load_book(bk.DEFAULT_CONFIG)
+    text = ("the [notes](../research/notes/log.md#one), [results](../RESULTS.md), "
+            "[a site](https://example.org/x.md), [above](#top) and ![a picture](p.png)")
+    assert bk.outside_links(text, "notebooks/01_vicreg.ipynb", book) == (
+        "the notes (`research/notes/log.md` in the course's repository), "
+        "[results](../RESULTS.md), [a site](https://example.org/x.md), [above](#top) and "
+        "![a picture](p.png)")
+
+
 def test_cells_that_train_or_play_are_tagged_long_running():
     """Training, probes and episodes take minutes at class scale, several times that on busy
     cores: the book gives them execute.long_timeout instead of the per-cell timeout."""
@@ -223,6 +233,14 @@ def site(tmp_path_factory):
     threading.Thread(target=server.serve_forever, daemon=True).start()
     yield bk.load_book(bk.DEFAULT_CONFIG), html, f"http://127.0.0.1:{server.server_port}/", work
     server.shutdown()
+
+
+@pytest.mark.slow
+def test_no_link_in_the_book_points_at_a_page_it_does_not_hold(site):
+    _, html, _, _ = site
+    dead = [(page.name, href) for page in html.rglob("*.html")
+            for href in re.findall(r'href="(#[^"]*[./][^"]*)"', page.read_text())]
+    assert not dead, f"links to nowhere (a file outside the book?): {dead[:5]}"
 
 
 @pytest.mark.slow

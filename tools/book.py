@@ -198,6 +198,25 @@ def index_md(book: Book, scale: str | None) -> str:
     return "\n".join(parts)
 
 
+LINK = re.compile(r"(?<!!)\[([^\]]+)\]\(([^)\s]+)\)")  # [text](target), not an image
+
+
+def outside_links(text: str, page: str, book: Book) -> str:
+    """``text`` of the book page ``page`` (its path in the repository) with each link to a
+    repository file that is not a page of the book (a maintainers' note, a README beside
+    the code) written as its text and the file's path: the book does not hold that file."""
+    def rewrite(match: re.Match) -> str:
+        words, target = match.groups()
+        if re.match(r"[a-z]+:|#", target):  # a web address or an anchor on this page
+            return match.group(0)
+        path = os.path.normpath((Path(page).parent / target.split("#")[0]).as_posix())
+        if Path(path).as_posix() in book.chapters:
+            return match.group(0)
+        return f"{words} (`{Path(path).as_posix()}` in the course's repository)"
+
+    return LINK.sub(rewrite, text)
+
+
 def write_sphinx_project(book: Book, scale: str | None, src: Path,
                          executed: dict[str, Path]) -> None:
     """Fill ``src`` with conf.py, index.md, the chapters' folders (``executed`` maps a
@@ -218,6 +237,17 @@ def write_sphinx_project(book: Book, scale: str | None, src: Path,
         copy(source, src / top)  # pages are copied: Sphinx resolves links from where a file is
     for chapter, notebook in executed.items():
         shutil.copy2(notebook, src / chapter)
+    for chapter in book.chapters:  # links to files the book does not hold name the file
+        page = src / chapter
+        if page.suffix == ".md":
+            page.write_text(outside_links(page.read_text(encoding="utf-8"), chapter, book),
+                            encoding="utf-8")
+        else:
+            notebook = nbformat.read(page, as_version=4)
+            for cell in notebook.cells:
+                if cell.cell_type == "markdown":
+                    cell.source = outside_links(cell.source, chapter, book)
+            nbformat.write(notebook, page)
     copy_mathjax(src / "_static" / MATHJAX_DIR)
 
 
