@@ -5,6 +5,7 @@ student versions hold no line of a solution and hand over the course's implement
 import functools
 import json
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -853,3 +854,19 @@ def test_make_student_keeps_a_learners_work(tmp_path):
     assert "# mine" in mine.read_text()
     assert mine in student.write_student_versions(NOTEBOOKS[0].parent, tmp_path, overwrite=True)
     assert "# mine" not in mine.read_text()
+
+
+def test_a_student_notebook_cut_off_while_written_is_not_kept_as_work(tmp_path, monkeypatch):
+    import nbformat
+
+    from tools import student
+
+    source = tmp_path / "src"
+    source.mkdir()
+    shutil.copy(NOTEBOOKS[0], source)
+    monkeypatch.setattr(nbformat, "writes", lambda notebook: 1 / 0)  # the write dies
+    with pytest.raises(ZeroDivisionError):
+        student.write_student_versions(source, tmp_path / "student")
+    assert list((tmp_path / "student").iterdir()) == []  # nothing half-written to keep
+    monkeypatch.undo()
+    assert student.write_student_versions(source, tmp_path / "student")  # written, not kept

@@ -27,6 +27,8 @@ import argparse
 import re
 from pathlib import Path
 
+from ebjepa_tutorial.data.paths import atomic_file
+
 BEGIN = re.compile(r"^(\s*)### BEGIN SOLUTION\s*$")
 END = re.compile(r"^\s*### END SOLUTION\s*$")
 HINT = re.compile(r"^\s*# HINT:")
@@ -111,7 +113,8 @@ def write_student_versions(src: str | Path, dst: str | Path, overwrite: bool = F
         except ValueError as err:
             raise ValueError(f"{path}: {err}") from None
         nbformat.validate(notebook)
-        nbformat.write(notebook, dst / path.name)
+        with atomic_file(dst / path.name) as f:  # whole or absent: a cut-off write is never kept
+            f.write((nbformat.writes(notebook).rstrip("\n") + "\n").encode("utf-8"))
         written.append(dst / path.name)
     return written
 
