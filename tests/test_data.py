@@ -56,11 +56,16 @@ def leftovers(folder: Path) -> list[str]:
 # --- the real data (../shared/data), when this machine has it -------------------------------
 
 
-def shared_data() -> Path:
+def shared_data(holds=lambda folder: (folder / "cifar10-jpeg.tar.gz").is_file(),
+                what: str = "the CIFAR-10 copy cifar10-jpeg.tar.gz") -> Path:
+    """EBJEPA_DATA, else the development copy beside the repository (../shared/data),
+    whichever ``holds(folder)`` the files ``what`` names; the test is skipped if neither does.
+    Other test files call it too."""
     for candidate in (SHARED_DATA, REPO.parent / "shared" / "data"):
-        if candidate and (Path(candidate) / "cifar10-jpeg.tar.gz").is_file():
+        if candidate and holds(Path(candidate)):
             return Path(candidate)
-    pytest.skip("no shared data (set EBJEPA_DATA or provide ../shared/data)")
+    pytest.skip(f"{what} is not on this machine: set EBJEPA_DATA to a folder holding it "
+                "(or provide ../shared/data)")
 
 
 @pytest.fixture(scope="module")

@@ -19,6 +19,7 @@ import pytest
 import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
+from test_data import shared_data
 from torch import nn
 
 from ebjepa_tutorial import distributed
@@ -443,14 +444,6 @@ def test_load_or_train_saves_on_rank_0_and_loads_on_every_rank(tmp_path):
 # --- the commands under torchrun -------------------------------------------------------------
 
 
-def shared_data() -> Path:
-    for candidate in (os.environ.get("EBJEPA_DATA"), REPO.parent / "shared" / "data"):
-        if candidate and (Path(candidate) / "cifar10-jpeg.tar.gz").is_file():
-            return Path(candidate)
-    pytest.skip("CIFAR-10 is not on this machine (set EBJEPA_DATA to a folder holding "
-                "cifar10-jpeg.tar.gz): the command trains on the real images")
-
-
 def torchrun(command: str, *args: str, **env: str) -> subprocess.CompletedProcess:
     """``python -m research.<command> args`` on two processes under torchrun."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OMP_WAIT_POLICY": "PASSIVE", **env}
@@ -477,12 +470,9 @@ def test_torchrun_trains_the_image_command_on_two_processes(tmp_path):
 
 
 def mnist_data() -> Path:
-    for candidate in (os.environ.get("EBJEPA_DATA"), REPO.parent / "shared" / "data"):
-        if candidate and find_mnist(Path(candidate), "test") is not None:
-            return Path(candidate)
-    pytest.skip("the MNIST test digits are not on this machine (set EBJEPA_DATA to a folder "
-                "holding t10k-images-idx3-ubyte.gz and t10k-labels-idx1-ubyte.gz): the video "
-                "command makes its clips from them")
+    """The folder of the MNIST test digits, which the video command makes its clips from."""
+    return shared_data(lambda folder: find_mnist(folder, "test") is not None,
+                       "the MNIST test digits (t10k-images-idx3-ubyte.gz and its labels)")
 
 
 @pytest.mark.slow  # two processes train 20 steps, then rank 0 fits and scores two probes

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from test_data import shared_data
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -32,9 +33,7 @@ def test_record_refuses_a_run_that_is_not_the_class_recipe(monkeypatch, capsys):
 
 @pytest.mark.slow  # trains 3 steps at ci scale and probes twice on real CIFAR-10: seconds
 def test_a_short_run_trains_the_seed_asked_for_and_ends_with_a_parseable_line():
-    data = Path(os.environ.get("EBJEPA_DATA", ROOT.parent / "shared" / "data"))
-    if not (data / "cifar10-jpeg.tar.gz").is_file():
-        pytest.skip("no CIFAR-10 copy (set EBJEPA_DATA or provide ../shared/data)")
+    shared_data()  # the benchmark reads CIFAR-10: skip without a copy
     done = _benchmark("--scale", "ci", "--loss", "sigreg", "--steps", "3", "--seed", "1",
                       "--threads", "1")
     assert done.returncode == 0, done.stderr[-2000:]

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import gzip
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from test_data import shared_data
 
 from ebjepa_tutorial.data.moving_mnist import (
     bounce_trajectories,
@@ -18,8 +18,6 @@ from ebjepa_tutorial.data.moving_mnist import (
     paste_clips,
     split_digits,
 )
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 def synthetic_digits(n: int = 40, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -35,17 +33,13 @@ def synthetic_digits(n: int = 40, seed: int = 0) -> tuple[torch.Tensor, torch.Te
     return torch.from_numpy(digits), torch.from_numpy(boxes)
 
 
-def real_mnist_digits() -> torch.Tensor | None:
-    """The official test digits from the IDX file, if one is on this machine."""
-    # EBJEPA_DATA, else the development copy beside the repository (../shared/data)
-    folders = [os.environ.get("EBJEPA_DATA", ""), str(REPO.parent / "shared" / "data")]
-    for folder in folders:
-        path = Path(folder) / "mnist" / "t10k-images-idx3-ubyte.gz"
-        if folder and path.is_file():
-            with gzip.open(path) as f:
-                raw = np.frombuffer(f.read(), np.uint8, offset=16)
-            return torch.from_numpy(raw.reshape(-1, 1, 28, 28).copy())
-    return None
+def real_mnist_digits() -> torch.Tensor:
+    """The official test digits, read from the IDX file here (skips the test without one)."""
+    path = Path("mnist") / "t10k-images-idx3-ubyte.gz"
+    folder = shared_data(lambda folder: (folder / path).is_file(), f"the MNIST file {path}")
+    with gzip.open(folder / path) as f:
+        raw = np.frombuffer(f.read(), np.uint8, offset=16)
+    return torch.from_numpy(raw.reshape(-1, 1, 28, 28).copy())
 
 
 def naive_clip(digits: torch.Tensor, offsets: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
@@ -220,8 +214,6 @@ def test_bad_input_gives_a_clear_error(kwargs, error, match):
 
 def test_real_mnist_digits_are_pasted_exactly():
     digits = real_mnist_digits()
-    if digits is None:
-        pytest.skip("no MNIST test IDX file on this machine")
     batch = generate_moving_mnist(digits[:500], n_clips=32, seed=0)
     for n in range(4):
         expected = naive_clip(digits[:500], batch.offsets[n], batch.digit_ids[n])
