@@ -1,6 +1,8 @@
 """Chapters 00 and 01 train with the learner's own functions once they pass their checks:
 chapter 00 its variance and covariance terms, chapter 01 its VICReg loss."""
 
+from dataclasses import replace
+
 import torch
 from test_one_source import chapter_00_loop, notebook_function
 
@@ -8,6 +10,8 @@ from ebjepa_tutorial import losses
 from ebjepa_tutorial.course import exercises
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.training import image, toy
+
+CONFIG = replace(preset("01", "ci").config, steps=4, warmup_steps=1)  # chapter 01's ci run, cut
 
 
 def test_the_toy_run_trains_with_the_terms_it_is_given():
@@ -67,8 +71,7 @@ def test_chapter_01_trains_with_the_learner_s_vicreg_once_it_passes(capsys):
     checked = exercises.check_vicreg(vicreg)
     assert checked is vicreg and exercises.whose(checked) == "your"
     calls.clear()
-    config, images = preset("01", "ci").config, torch.randint(0, 256, (64, 3, 32, 32),
-                                                              dtype=torch.uint8)
+    config, images = CONFIG, torch.randint(0, 256, (64, 3, 32, 32), dtype=torch.uint8)
     _, history = image.train_image_jepa(config, images, progress=False,
                                         step=_chapter_01_step(checked))
     assert len(calls) == config.steps  # the learner's function, at every step
@@ -82,7 +85,7 @@ def test_chapter_01_trains_with_the_course_s_vicreg_while_the_learner_s_is_unwri
 
     checked = exercises.check_vicreg(vicreg)
     assert checked is losses.vicreg.vicreg and exercises.whose(checked) == "the course's"
-    config = preset("01", "ci").config
+    config = CONFIG
     images = torch.randint(0, 256, (64, 3, 32, 32), dtype=torch.uint8)
     _, history = image.train_image_jepa(config, images, progress=False,
                                         step=_chapter_01_step(checked))

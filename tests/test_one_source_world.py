@@ -19,7 +19,7 @@ from ebjepa_tutorial.training import world
 NOTEBOOK = "05_world_model.ipynb"
 # the ci preset: the class recipe's window, wall starts, still steps, replay and channels_last
 CI = preset("05", "ci").train
-SHORT = replace(CI, steps=3)  # logs steps 0 and 2
+SHORT = replace(CI, steps=3, n_trajectories=64, batch_size=8)  # logs steps 0 and 2
 
 
 def notebook_step(edit=lambda source: source, **names):
