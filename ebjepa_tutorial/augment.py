@@ -46,7 +46,7 @@ def to_float_images(images: torch.Tensor) -> torch.Tensor:
     if images.dtype == torch.uint8:
         return images.float().div_(255)
     low, high = images.min().item(), images.max().item()
-    if not images.is_floating_point() or low < -1e-6 or high > 1 + 1e-6:
+    if not images.is_floating_point() or not -1e-6 <= low <= high <= 1 + 1e-6:  # NaN fails
         raise ValueError(f"images must be uint8, or float in [0, 1], got {images.dtype} in "
                          f"[{low:.3g}, {high:.3g}]; augment raw images, not normalised ones")
     return images.float()

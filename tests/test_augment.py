@@ -104,6 +104,7 @@ def test_same_generator_state_gives_same_views_and_leaves_global_rng_alone():
         (torch.rand(2, 1, 32, 32), "3 colour channels"),
         (torch.rand(2, 32, 32, 3), "3 colour channels"),
         (torch.rand(2, 3, 32, 32) * 4 - 2, r"\[0, 1\]"),
+        (torch.rand(2, 3, 32, 32).index_fill_(2, torch.tensor([5]), float("nan")), "nan"),
     ],
 )
 def test_bad_input_is_named(bad, match):

@@ -259,6 +259,8 @@ def test_training_windows_are_consecutive_frames_of_one_trajectory_at_any_offset
     offsets = (data.positions[index, :9] != positions).any(-1).any(-1)
     assert offsets.any() and not offsets.all()
     assert (positions[:, -1] == data.positions[index, -1]).all(-1).any()
+    with pytest.raises(ValueError, match="window=18 does not fit trajectories of 17 frames"):
+        random_windows(data, index, 18, torch.Generator())
 
 
 def test_a_windowed_channels_last_run_trains():

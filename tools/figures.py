@@ -150,10 +150,11 @@ def render_pages(root: Path = ROOT) -> list[Path]:
             if (new := render(text, figures)) != text:
                 cell["source"] = new.splitlines(keepends=True)
                 changed += [path] if path not in changed else []
-        if path in changed:
-            path.write_text("".join(cells[0]["source"]) if notebook is None else
-                            json.dumps(notebook, indent=1, ensure_ascii=False) + "\n",
-                            encoding="utf-8")
+        if path in changed:  # whole or not at all: a cut-off write would lose a page
+            text = ("".join(cells[0]["source"]) if notebook is None else
+                    json.dumps(notebook, indent=1, ensure_ascii=False) + "\n")
+            with atomic_file(path) as f:
+                f.write(text.encode("utf-8"))
     return changed
 
 

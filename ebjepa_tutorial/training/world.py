@@ -86,6 +86,10 @@ def random_windows(data: Trajectories, index: torch.Tensor, window: int,
                    generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """``window`` frames of each trajectory ``index (B,)`` from a random offset: positions
     ``(B, window, 2)`` and the actions between them ``(B, window - 1, 2)``."""
+    if not 2 <= window <= data.positions.shape[1]:
+        raise ValueError(f"Recipe.window={window} does not fit trajectories of "
+                         f"{data.positions.shape[1]} frames: use 2..{data.positions.shape[1]} "
+                         "frames, or 0 for whole trajectories")
     offsets = torch.randint(0, data.positions.shape[1] - window + 1, (len(index), 1),
                             generator=generator) + torch.arange(window)  # (B, window)
     rows = index[:, None]
