@@ -8,7 +8,9 @@ the one its preset computes (``training.checkpoints.run_identity``: the fields t
 define the run). When the way identities are formed changes, or a default of a config
 changes, run this once and commit the files. It never relabels another run: every field
 that both the stored and today's identity record must agree, or the file is left alone
-and named. Fields only one side records are listed for the maintainer to read.
+and named. A field only the stored identity records (an edited step's ``step``, say) also
+leaves the file alone, unless ``--drop FIELD`` says that field left the identity on purpose;
+fields only today's records are listed for the maintainer to read.
 
 ``shipped_runs`` is the one list of which preset each shipped file is the run of;
 tests/test_shipped.py checks the files against it.
@@ -95,6 +97,8 @@ def compare(stored: dict, today: dict) -> tuple[list[str], list[str], list[str]]
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--check", action="store_true", help="only report; write nothing")
+    parser.add_argument("--drop", action="append", default=[], metavar="FIELD",
+                        help="a dotted field the identity no longer records (repeatable)")
     args = parser.parse_args(argv)
     refused = 0
     for name, today in shipped_runs().items():
@@ -104,9 +108,11 @@ def main(argv=None) -> int:
             continue
         disagree, only_stored, only_today = compare(state.get("config") or {}, today)
         print(f"{name}: only stored {only_stored}; only today {only_today}")
-        if disagree:
+        unexplained = [field for field in only_stored if field not in args.drop]
+        if disagree or unexplained:
             refused += 1
-            print(f"  REFUSED, another run: {disagree}")
+            print(f"  REFUSED, another run: {disagree}" if disagree else f"  REFUSED: the file "
+                  f"records {unexplained}, which today's identity does not (--drop FIELD)")
         elif not args.check:
             save_checkpoint(path, **{**state, "config": today})
             print(f"  re-saved {Path(path).name}")

@@ -16,7 +16,7 @@ import torch
 
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.data import DataNotFoundError, load_mnist
-from ebjepa_tutorial.training.checkpoints import load_checkpoint
+from ebjepa_tutorial.training.checkpoints import load_checkpoint, save_checkpoint
 from research import refit, resave_checkpoints, sweep
 
 SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints"
@@ -62,6 +62,19 @@ def test_resave_refuses_to_relabel_another_run():
         stored, {"steps": 5600, "model": {"predictor": "mlp"}, "seed": 0})
     assert disagree == ["steps"] and only_stored == ["lr"] and only_today == ["seed"]
     assert resave_checkpoints.compare({"widths": [1, 2]}, {"widths": (1, 2)})[0] == []
+
+
+def test_resave_keeps_a_file_whose_identity_records_more_unless_told(tmp_path, monkeypatch,
+                                                                     capsys):
+    edited = {"steps": 2800, "step": "9f2c"}  # e.g. a run of an edited training step
+    save_checkpoint(tmp_path / "run.pt", model={}, config=edited)
+    monkeypatch.setattr(resave_checkpoints, "SHIPPED_DIR", tmp_path)
+    monkeypatch.setattr(resave_checkpoints, "shipped_runs", lambda: {"run": {"steps": 2800}})
+    assert resave_checkpoints.main([]) == 1
+    assert "REFUSED: the file records ['step']" in capsys.readouterr().out
+    assert load_checkpoint(tmp_path / "run.pt")["config"] == edited
+    assert resave_checkpoints.main(["--drop", "step"]) == 0
+    assert load_checkpoint(tmp_path / "run.pt")["config"] == {"steps": 2800}
 
 
 def test_the_sweep_file_holds_every_run_of_notebook_02():
