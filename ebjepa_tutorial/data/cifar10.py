@@ -12,8 +12,6 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 import torch
-from torchvision import datasets
-from torchvision.transforms import v2
 from tqdm.auto import tqdm
 
 from .paths import CorruptDataError, DataNotFoundError, cached_arrays, data_dir
@@ -21,23 +19,24 @@ from .paths import CorruptDataError, DataNotFoundError, cached_arrays, data_dir
 CIFAR10_CLASSES = (
     "airplane", "automobile", "bird", "cat", "deer", "dog", "frog", "horse", "ship", "truck",
 )  # fmt: skip
-# Your own images of another size: the largest centred square, resized to 32x32.
-FIT = v2.Compose([v2.PILToTensor(), v2.Resize(32), v2.CenterCrop(32)])
+OFFICIAL_FOLDER = "cifar-10-batches-py"  # torchvision's CIFAR10.base_folder
 
 
 def find_cifar10(directory: Path) -> Path | None:
     """The official release's folder in ``directory``, else its first ``cifar10*.tar.gz`` (a
     file: the packed copy), else None."""
-    if (directory / datasets.CIFAR10.base_folder).is_dir():
-        return directory / datasets.CIFAR10.base_folder
+    if (directory / OFFICIAL_FOLDER).is_dir():
+        return directory / OFFICIAL_FOLDER
     packed = sorted(directory.glob("cifar10*.tar.gz"))
     return packed[0] if packed else None
 
 
 def _missing_message(directory: Path, split: str) -> str:
+    from torchvision import datasets
+
     return (
         f"CIFAR-10 ({split} split) was not found. Looked in {directory} for, in this order:\n"
-        f"  {directory / datasets.CIFAR10.base_folder}/      the official release, extracted\n"
+        f"  {directory / OFFICIAL_FOLDER}/      the official release, extracted\n"
         f"  {directory / 'cifar10*.tar.gz'}      folders {split}/<class>/ of images, packed\n"
         "To get it: call load_cifar10(download=True) on a machine with internet (torchvision\n"
         f"downloads {datasets.CIFAR10.url} and checks its MD5), or set EBJEPA_DATA\n"
@@ -46,11 +45,13 @@ def _missing_message(directory: Path, split: str) -> str:
 
 
 def _read_official(directory: Path, split: str, download: bool) -> tuple[np.ndarray, np.ndarray]:
+    from torchvision import datasets  # here: importing torchvision takes over a second
+
     try:
         dataset = datasets.CIFAR10(str(directory), train=split == "train", download=download)
     except RuntimeError as err:  # torchvision's words for a wrong MD5 or a missing batch file
         raise CorruptDataError(
-            f"cannot read CIFAR-10 from {directory / datasets.CIFAR10.base_folder}: {err}. A file "
+            f"cannot read CIFAR-10 from {directory / OFFICIAL_FOLDER}: {err}. A file "
             "there is damaged or incomplete; delete the folder and load again (data/README.md)."
         ) from err
     except (OSError, ValueError) as err:  # no network, an HTTP error, a bad download
@@ -63,7 +64,12 @@ def _read_official(directory: Path, split: str, download: bool) -> tuple[np.ndar
 def _read_tree(split_dir: Path) -> tuple[np.ndarray, np.ndarray]:
     """``<split>/<class>/*`` -> images (N, 3, 32, 32) uint8, labels (N,) int64, in sorted
     order (CIFAR-10's class names sort into its own order)."""
-    folder = datasets.ImageFolder(str(split_dir), transform=FIT, allow_empty=True)
+    from torchvision import datasets
+    from torchvision.transforms import v2
+
+    # an image of another size: its largest centred square, resized to 32x32
+    fit = v2.Compose([v2.PILToTensor(), v2.Resize(32), v2.CenterCrop(32)])
+    folder = datasets.ImageFolder(str(split_dir), transform=fit, allow_empty=True)
     present = {folder.classes[label] for label in folder.targets}
     if tuple(folder.classes) != CIFAR10_CLASSES or len(present) < len(CIFAR10_CLASSES):
         raise DataNotFoundError(f"{split_dir} must hold images in a folder per class, "

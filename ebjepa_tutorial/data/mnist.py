@@ -10,8 +10,6 @@ import zlib
 from pathlib import Path
 
 import torch
-from torchvision import datasets
-from torchvision.datasets.mnist import read_image_file, read_label_file
 
 from .paths import CorruptDataError, DataNotFoundError, data_dir
 
@@ -33,6 +31,8 @@ def find_mnist(directory: Path, split: str) -> tuple[Path, Path] | None:
 
 
 def _missing_message(directory: Path, split: str) -> str:
+    from torchvision import datasets  # here: importing torchvision takes over a second
+
     images, labels = (f"{stem}.gz" for stem in MNIST_FILES[split])
     return (
         f"MNIST ({split} split) was not found. Looked for {images} and {labels}\n"
@@ -66,6 +66,9 @@ def load_mnist(split: str = "train", root: str | os.PathLike | None = None,
     ``root``: the data directory; ``download=False``: DataNotFoundError instead of fetching."""
     if split not in ("train", "test"):
         raise ValueError(f"split must be one of 'train', 'test'; got {split!r}")
+    from torchvision import datasets
+    from torchvision.datasets.mnist import read_image_file, read_label_file
+
     directory = data_dir(root)
     files = find_mnist(directory, split)
     if files is not None:
