@@ -211,7 +211,7 @@ PRESETS: dict[str, dict[str, object]] = {
     "01": {scale: image_preset(scale, "vicreg") for scale in SCALES},
     "02": {scale: image_preset(scale, "sigreg") for scale in SCALES},
     "03": {"ci": VideoPreset(VIDEO_CONFIGS["ci"], replace(VIDEO_CONFIGS["ci"], steps=30),
-                             seeds=(0,), n_probe=64, n_eval=64, probe_steps=60, decoder_steps=40),
+                             seeds=(0,), n_probe=32, n_eval=32, probe_steps=20, decoder_steps=40),
            "class": VideoPreset(VIDEO_CONFIGS["class"],
                                 replace(VIDEO_CONFIGS["class"], n_clips=24_000, steps=12_000)),
            "full": VideoPreset(VIDEO_CONFIGS["full"], VIDEO_CONFIGS["full"], n_probe=2000,
@@ -226,9 +226,9 @@ PRESETS: dict[str, dict[str, object]] = {
     "06": {"ci": PlanningPreset(
                _WORLD_CI, _PLANNER_CI, n_episodes=4, n_compare=2, episode_steps=40,
                n_wall_test=100,
-               longer=LongerRuns(paper=paper_recipe(replace(_WORLD_CI, steps=20)),
+               longer=LongerRuns(paper=paper_recipe(replace(_WORLD_CI, steps=12)),
                                  ablations=ABLATABLE_TERMS, n_ablation=2,
-                                 course=course_long(_WORLD_CI, 20, _WORLD_CI.n_trajectories))),
+                                 course=course_long(_WORLD_CI, 12, _WORLD_CI.n_trajectories))),
            # the shipped checkpoints, with episode counts sized to fit a class period
            "class": PlanningPreset(
                _WORLD_CLASS, PlannerConfig(), n_episodes=40, n_compare=10,
