@@ -127,9 +127,11 @@ def served(tmp_path):
     folder.mkdir()
     handler = functools.partial(QuietHandler, directory=str(folder))
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)  # a free port
-    threading.Thread(target=server.serve_forever, daemon=True).start()
+    # poll often: shutdown() waits up to one poll interval (0.5 s by default) per test
+    threading.Thread(target=server.serve_forever, args=(0.01,), daemon=True).start()
     yield folder, f"http://127.0.0.1:{server.server_port}/"
     server.shutdown()
+    server.server_close()
 
 
 def fake_batch(n: int, seed: int) -> dict:
