@@ -20,9 +20,8 @@ from dataclasses import fields, replace
 from pathlib import Path
 
 from ebjepa_tutorial.course.presets import preset
-from ebjepa_tutorial.training import train_or_load
 from ebjepa_tutorial.training.checkpoints import run_identity, save_checkpoint
-from ebjepa_tutorial.training.world import identity
+from ebjepa_tutorial.training.world import identity, load_run
 
 from .beyond_fits import (
     CoarseConfig,
@@ -85,7 +84,7 @@ def main(argv: list[str] | None = None) -> None:
     if unknown:
         parser.error(f"--set {unknown}: not FIELD=VALUE of CostConfig or CoarseConfig")
     _, config, name = world_run(args.world)
-    model, _ = train_or_load(config, name, device="cpu")
+    model = load_run(config, name, device="cpu")
     cost, coarse = fit_configs(args.world, args.tiny)
     cost, coarse = changed(cost, args.set), replace(coarse, coarse=changed(coarse.coarse, args.set))
     jobs = {"cost_head": (fit_cost_head, cost),

@@ -37,12 +37,14 @@ from ebjepa_tutorial.training.world import (
     ablation_config,
     identity,
     load_world_model,
+    make_data,
     paper_recipe,
-    train_world_model,
+    world_model_step,
 )
 from ebjepa_tutorial.utils import get_device
 
 from . import launch
+from .from_notebook import definitions
 from .refit import RefitConfig, refit_identity, refit_predictor
 
 
@@ -218,6 +220,19 @@ def _train_and_save(out: str, config: WorldTrainConfig, device) -> None:
     partial.unlink(missing_ok=True)  # gone if its folder could not be written
     print(f"saved {out}: probe error {report['probe_px']:.2f} px (mean-position baseline "
           f"{report['baseline_px']:.2f} px) on {distributed.world_size()} process(es)")
+
+
+def notebook():
+    """Notebook 05's loop, ``train_world_model``, and its ``train_or_load``, read from its cells."""
+    return definitions("05_world_model.ipynb", "train_world_model", "train_or_load")
+
+
+def train_world_model(config: WorldTrainConfig, checkpoint=None, device=None,
+                      step=world_model_step, progress: bool = True):
+    """``config`` trained on its trajectories by notebook 05's loop (every shipped world model's)
+    with ``step``: ``(model in eval mode, history)``, resumable from ``checkpoint``."""
+    return notebook().train_world_model(config, make_data(config), step, checkpoint, device,
+                                        progress)
 
 
 def refit_main(trained: str, out: str, config: RefitConfig) -> None:

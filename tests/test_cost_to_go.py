@@ -239,7 +239,7 @@ def test_calibration_sets_the_straight_distance_against_the_way_round_the_walls(
 
 @pytest.mark.slow  # tiny fits on the shipped Three Rooms world model: seconds
 def test_the_fit_command_writes_files_that_the_notebook_then_loads(tmp_path, capsys):
-    from ebjepa_tutorial.training import train_or_load
+    from ebjepa_tutorial.training.world import load_run
     from research import fit_beyond
 
     out = tmp_path / "fits"
@@ -247,7 +247,7 @@ def test_the_fit_command_writes_files_that_the_notebook_then_loads(tmp_path, cap
                      "--set", "consistency=0", "seed=3"])
     walls, config, name = fit_beyond.world_run("three_rooms")
     assert walls == 2 and name == "world_model_three_rooms_class"
-    model, _ = train_or_load(config, name, device="cpu")
+    model = load_run(config, name, device="cpu")
     assert "Loaded a trained model" in capsys.readouterr().out  # the shipped world model
     head = load_fit("cost_head", "three_rooms", CostToGo(model.latent_dim, 32, 8),
                     identity(config), folder=out)

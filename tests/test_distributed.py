@@ -374,7 +374,8 @@ def _refuse_bad_setups(rank):
             replace(VIDEO_TINY, batch_size=9), torch.zeros(4, 4, 1, 64, 64, dtype=torch.uint8),
             video.video_jepa_step)
     with pytest.raises(ValueError, match="multiple of the world size 2"):  # before any data
-        world.train_world_model(world.WorldTrainConfig(batch_size=9), progress=False)
+        train_world.notebook().train_world_model(world.WorldTrainConfig(batch_size=9), None,
+                                                 world.world_model_step, progress=False)
 
     def fails_on_rank_0():
         raise OSError("disk gone")

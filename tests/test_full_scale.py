@@ -25,6 +25,7 @@ from ebjepa_tutorial.models.video import VIDEO_MODEL_CONFIGS, VideoJEPA
 from ebjepa_tutorial.models.world import WORLD_CONFIGS
 from ebjepa_tutorial.training import image, video, world
 from ebjepa_tutorial.training.video import VIDEO_CONFIGS
+from research import train_world
 from research.train_video import notebook
 
 # `make test` runs these; `make test-fast` (its 30 s budget) leaves them out
@@ -139,7 +140,8 @@ def test_full_world_model_takes_two_steps():
     config = replace(full, n_trajectories=4, batch_size=4, steps=2)
     data = _trajectories()
     before = _initial(lambda: world.WorldModel(config.model), config.seed)
-    model, history = world.train_world_model(config, data, progress=False, device="cpu")
+    loop = train_world.notebook().train_world_model  # notebook 05's
+    model, history = loop(config, data, world.world_model_step, device="cpu", progress=False)
     assert _unchanged(before, model) == []
     weights = {name: getattr(config.coeffs, name) for name in history if name not in (
         "step", "loss")}

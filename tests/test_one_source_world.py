@@ -2,8 +2,9 @@
 is a run of its own, which never loads or replaces the unedited run's checkpoint.
 
 tests/test_one_source.py compares the cell's code with ``training.world.world_model_step``;
-here the cell itself trains: unedited it gives the package's history bit for bit, edited it
-gives another, and it calls the learner's two exercise functions on every step.
+here the cell itself trains, in notebook 05's loop: unedited it gives the package step's history
+bit for bit, edited it gives another, and it calls the learner's two exercise functions on every
+step.
 """
 
 import linecache
@@ -15,6 +16,7 @@ from test_one_source import notebook_function
 
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.training import world
+from research.train_world import notebook, train_world_model
 
 NOTEBOOK = "05_world_model.ipynb"
 # the ci preset: the class recipe's window, wall starts, still steps, replay and channels_last
@@ -36,7 +38,7 @@ def notebook_step(edit=lambda source: source, **names):
 
 
 def train(step, config=SHORT):
-    return world.train_world_model(config, progress=False, device="cpu", step=step)
+    return train_world_model(config, progress=False, device="cpu", step=step)
 
 
 def weights(model) -> list[torch.Tensor]:
@@ -89,18 +91,18 @@ def test_the_step_calls_the_learners_functions_on_every_step():
 
 def test_an_edited_step_is_a_run_of_its_own(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
-    run = replace(SHORT, steps=2)
-    world.train_or_load(run, "world", device="cpu", step=notebook_step())
+    run, train_or_load = replace(SHORT, steps=2), notebook().train_or_load
+    train_or_load(run, "world", notebook_step(), "cpu")
     assert "Trained and saved" in capsys.readouterr().out
-    world.train_or_load(run, "world", device="cpu", step=notebook_step())  # the same code
+    train_or_load(run, "world", notebook_step(), "cpu")  # the same code
     assert "Loaded a trained model" in capsys.readouterr().out
     # twice the prediction term's gradient (Adam ignores a scale of the whole gradient)
     edited = notebook_step(lambda s: s.replace(
         "total.backward()", "(total + terms['prediction']).backward()"))
     assert world.identity(run, edited)["step"] and "step" not in world.identity(run)
-    _, history = world.train_or_load(run, "world", device="cpu", step=edited)
+    _, history = train_or_load(run, "world", edited, "cpu")
     assert "Trained and saved" in capsys.readouterr().out and len(history["loss"]) == 2
-    world.train_or_load(run, "world", device="cpu", step=edited)
+    train_or_load(run, "world", edited, "cpu")
     assert "Loaded a trained model" in capsys.readouterr().out  # cached as a run of its own
-    world.train_or_load(run, "world", device="cpu", step=notebook_step())
+    train_or_load(run, "world", notebook_step(), "cpu")
     assert "moved it back" in capsys.readouterr().out  # the unedited run was kept, not lost

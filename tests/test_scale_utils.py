@@ -1,5 +1,7 @@
 """The presets switch, seeding and device choice."""
 
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -73,9 +75,15 @@ def test_video_preset_fits_its_clips_and_budget():
 
 @pytest.mark.parametrize("name", presets.SCALES)
 def test_planning_uses_the_world_model_of_notebook_05(name):
-    # Notebook 06 loads chapter 05's checkpoint by name: the configs must be the same run.
-    planning_preset, world_preset = presets.preset("06", name), presets.preset("05", name)
-    assert planning_preset.world == world_preset.train
+    # Notebook 06 loads chapter 05's saved run by name, and trains none: the shipped class run
+    # (and the shipped class runs of sections 7-9) at ci and class, notebook 05's own at full
+    planning_preset = presets.preset("06", name)
+    trained = "full" if name == "full" else "class"
+    assert planning_preset.world == presets.preset("05", trained).train
+    assert planning_preset.run == f"world_model_{trained}"
+    if name == "ci":
+        assert planning_preset.longer == replace(presets.preset("06", "class").longer,
+                                                 n_ablation=planning_preset.longer.n_ablation)
     assert planning_preset.n_compare <= planning_preset.n_episodes
     assert planning_preset.longer.n_ablation <= planning_preset.n_episodes
     assert planning_preset.planner.horizon >= planning_preset.planner.execute

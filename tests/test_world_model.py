@@ -20,6 +20,8 @@ from ebjepa_tutorial.losses import world as wl
 from ebjepa_tutorial.models.world import WORLD_CONFIGS, WorldConfig, WorldModel, encode_trajectories
 from ebjepa_tutorial.training import world
 from ebjepa_tutorial.training.checkpoints import CheckpointError
+from ebjepa_tutorial.training.loop import History
+from research.train_world import notebook, train_world_model
 
 TINY = WorldConfig(widths=(4, 8), blocks=1, input_size=17, latent_dim=8,
                    action_embed_dim=8, idm_hidden=16)
@@ -236,7 +238,7 @@ def test_sigreg_joins_the_world_model_loss_when_weighted(data):
 
 
 def test_a_sigreg_world_model_trains():
-    from ebjepa_tutorial.training.world import WorldTrainConfig, train_world_model
+    from ebjepa_tutorial.training.world import WorldTrainConfig
 
     config = WorldTrainConfig(model=tiny_model().config, n_trajectories=16, batch_size=4,
                               steps=2, coeffs=wl.WorldLossCoeffs(sigreg=0.05))
@@ -245,26 +247,32 @@ def test_a_sigreg_world_model_trains():
 
 
 def test_training_windows_are_consecutive_frames_of_one_trajectory_at_any_offset():
-    from ebjepa_tutorial.envs import transition
-    from ebjepa_tutorial.training.world import random_windows
+    config = world.WorldTrainConfig(model=TINY, n_trajectories=8, batch_size=64, steps=3,
+                                    recipe=world.Recipe(window=9))
+    data, seen = world.make_data(config), []
 
-    data = generate_trajectories(40, seed=1)
-    index = torch.arange(40).repeat(5)
-    positions, actions = random_windows(data, index, 9, torch.Generator().manual_seed(0))
-    assert positions.shape == (200, 9, 2) and actions.shape == (200, 8, 2)
-    for t in range(8):  # each window replays through the one transition function
-        assert torch.equal(transition(positions[:, t], actions[:, t], data.layouts[index]),
-                           positions[:, t + 1])
-    # every window is a slice of its own trajectory, and the offsets reach both ends
-    offsets = (data.positions[index, :9] != positions).any(-1).any(-1)
-    assert offsets.any() and not offsets.all()
-    assert (positions[:, -1] == data.positions[index, -1]).all(-1).any()
+    def record(model, optimizer, frames, actions, *rest):  # the batches notebook 05's loop makes
+        seen.append((frames.clone(), actions))  # a copy: the loop renders into one buffer
+        optimizer.step()  # no gradients: nothing moves
+        return torch.zeros(()), {}
+
+    train_world_model(config, progress=False, device="cpu", step=record)
+    whole, offsets = data.frames(), set()  # (8, 17, 2, 65, 65)
+    for frames, actions in zip(*(torch.cat(parts) for parts in zip(*seen))):  # 192 windows
+        assert frames.shape == (9, 2, 65, 65) and actions.shape == (8, 2)
+        found = [(i, o) for i in range(8) for o in range(9)
+                 if torch.equal(data.actions[i, o:o + 8], actions)]
+        assert len(found) == 1  # the actions of one trajectory, consecutive...
+        (i, o), = found
+        assert torch.equal(whole[i, o:o + 9], frames)  # ...and the frames between them
+        offsets.add(o)
+    assert offsets == set(range(9))  # every offset, both ends included
     with pytest.raises(ValueError, match="window=18 does not fit trajectories of 17 frames"):
-        random_windows(data, index, 18, torch.Generator())
+        world.Recipe(window=18)
 
 
 def test_a_windowed_channels_last_run_trains():
-    from ebjepa_tutorial.training.world import WorldTrainConfig, train_world_model
+    from ebjepa_tutorial.training.world import WorldTrainConfig
 
     config = WorldTrainConfig(model=tiny_model().config, n_trajectories=16, batch_size=4,
                               steps=2, recipe=world.Recipe(window=9, channels_last=True,
@@ -275,12 +283,7 @@ def test_a_windowed_channels_last_run_trains():
 
 def test_a_three_rooms_run_trains_on_three_rooms_data_and_is_another_run():
     from ebjepa_tutorial.envs import room_of
-    from ebjepa_tutorial.training.world import (
-        WorldTrainConfig,
-        identity,
-        make_data,
-        train_world_model,
-    )
+    from ebjepa_tutorial.training.world import WorldTrainConfig, identity, make_data
 
     config = WorldTrainConfig(model=tiny_model().config, n_trajectories=16, batch_size=4,
                               steps=2, recipe=world.Recipe(window=9, wall_fraction=0.25),
@@ -358,7 +361,7 @@ def test_a_replay_run_trains(small_replay):
     recipe = world.Recipe(window=9, replay_steps=2, stay_probability=0.2)
     config = world.WorldTrainConfig(model=replace(TINY, predictor="mlp"), n_trajectories=16,
                                     batch_size=4, steps=2, recipe=recipe)
-    _, history = world.train_world_model(config, progress=False, device="cpu")
+    _, history = train_world_model(config, progress=False, device="cpu")
     assert len(history["loss"]) == 2 and all(math.isfinite(v) for v in history["loss"])
 
 
@@ -551,7 +554,7 @@ def test_learning_rate_decays_linearly_over_the_last_steps(monkeypatch):
         optimizer.step()  # no gradients: nothing moves
         return torch.zeros(()), {}
 
-    world.train_world_model(config, progress=False, device="cpu", step=record)
+    train_world_model(config, progress=False, device="cpu", step=record)
     assert rates == pytest.approx([0.5, 0.5, 0.5, 0.375, 0.25, 0.125])  # (6 - s) / 4, capped
     assert world.decay_factor(WorldTrainConfig(), 999) == 1  # the class run: constant
 
@@ -571,7 +574,7 @@ def test_the_replay_follows_the_joint_steps_schedule(small_replay, monkeypatch):
 
 def test_a_decayed_run_trains_and_saves_its_schedule(tmp_path):
     from ebjepa_tutorial.models.world import WORLD_CONFIGS
-    from ebjepa_tutorial.training.world import WorldTrainConfig, train_world_model
+    from ebjepa_tutorial.training.world import WorldTrainConfig
 
     config = WorldTrainConfig(model=WORLD_CONFIGS["ci"], n_trajectories=32, batch_size=4,
                               steps=3, recipe=world.Recipe(decay_steps=2), rollout_steps=2)
@@ -798,7 +801,7 @@ def steps_that_record(seen: list):
 
     def run_steps(update, batch_fn, steps, **options):
         seen.append({t.device.type for t in batch_fn(0) if isinstance(t, torch.Tensor)})
-        return world.History(loss=[0.0])
+        return History(loss=[0.0])
     return run_steps
 
 
@@ -807,17 +810,24 @@ WORLD_RUN = world.WorldTrainConfig(model=WORLD_CONFIGS["ci"], n_trajectories=16,
 
 
 def test_train_or_load_returns_the_model_on_the_device_asked_for(tmp_path, monkeypatch):
-    from ebjepa_tutorial import training
-
     monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
-    trained, _ = world.train_or_load(WORLD_RUN, "run", device="cpu")  # two real steps
+    nb = notebook()  # notebook 05's train_or_load, and its loop
+    trained, _ = nb.train_or_load(WORLD_RUN, "run", world.world_model_step, "cpu")  # 2 steps
     assert devices_of(trained) == {"cpu"}
-    loaded, _ = training.train_or_load(WORLD_RUN, "run", device="meta")  # the notebooks' entry
+    loaded = world.load_run(WORLD_RUN, "run", device="meta")  # notebooks 06 and 07's entry
     assert devices_of(loaded) == {"meta"}  # read from the cache straight onto the device
     seen = []
-    monkeypatch.setattr(world, "run_steps", steps_that_record(seen))
-    on_meta, _ = training.train_or_load(WORLD_RUN, "another_run", device="meta")
+    monkeypatch.setitem(nb.train_world_model.__globals__, "run_steps", steps_that_record(seen))
+    on_meta, _ = nb.train_or_load(WORLD_RUN, "another_run", world.world_model_step, "meta")
     assert seen == [{"meta"}] and devices_of(on_meta) == {"meta"}  # every batch and the model
+
+
+def test_a_run_that_is_only_loaded_names_what_makes_it(tmp_path, monkeypatch):
+    monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
+    with pytest.raises(FileNotFoundError, match="no saved run of this configuration at .*"
+                       "never_trained.pt.*notebook 05.*checkpoints/README.md"):
+        world.load_run(WORLD_RUN, "never_trained", device="cpu")
+    assert not list(tmp_path.rglob("*.pt*"))  # nothing trained, nothing written
 
 
 @pytest.mark.filterwarnings("ignore:for .*copying from a non-meta parameter")  # a no-op copy
@@ -915,5 +925,5 @@ def test_a_clipped_replay_run_trains(small_replay):
     config = world.course_recipe(world.WorldTrainConfig(
         model=WORLD_CONFIGS["ci"], n_trajectories=16, batch_size=4, steps=2))
     config = replace(config, recipe=replace(config.recipe, grad_clip=0.1))
-    _, history = world.train_world_model(config, progress=False, device="cpu")
+    _, history = train_world_model(config, progress=False, device="cpu")
     assert len(history["loss"]) == 2

@@ -101,9 +101,10 @@ class LongerRuns:
 
 @dataclass(frozen=True)
 class PlanningPreset:
-    """Notebook 06: which world model plans, with which planner, on how many episodes."""
+    """Notebook 06: which saved world models plan, with which planner, on how many episodes."""
 
     world: WorldTrainConfig  # notebook 05's run; the ablations change only its coefficients
+    run: str  # its file name (shipped at class: every scale but full plans with those models)
     planner: PlannerConfig  # MPPI with the summed cost; CEM and "last" change one field
     n_episodes: int = 100  # seeds first_seed.. for the main success rate
     n_compare: int = 20  # episodes (the first seeds of the same list) per other planner / model
@@ -204,6 +205,13 @@ _BEYOND_CI = replace(  # the class models with tiny planners
     two_level=TwoLevelPreset(_TINY, (replace(_HIGH, horizon=4, samples=16, elites=2),) * 2),
     n_episodes=2, episode_batch=2, episode_steps=24)
 
+# the shipped checkpoints, with episode counts sized to fit a class period
+_PLANNING_CLASS = PlanningPreset(
+    _WORLD_CLASS, "world_model_class", PlannerConfig(), n_episodes=40, n_compare=10,
+    longer=LongerRuns(paper=paper_recipe(replace(_WORLD_CLASS, steps=10_000,
+                                                 n_trajectories=100_000)),
+                      ablations=ABLATABLE_TERMS, course=course_long(_WORLD_CLASS, 10_000, 100_000)))
+
 PRESETS: dict[str, dict[str, object]] = {
     "00": {"ci": CollapsePreset(n_points=256, steps=60),
            "class": CollapsePreset(),
@@ -223,21 +231,12 @@ PRESETS: dict[str, dict[str, object]] = {
                                   n_positions=16),
            "class": WorldModelPreset(_WORLD_CLASS),  # exactly the CLI's run (shipped)
            "full": WorldModelPreset(_WORLD_FULL, n_probe=5000, n_test=1000, horizon=48)},
-    "06": {"ci": PlanningPreset(
-               _WORLD_CI, _PLANNER_CI, n_episodes=4, n_compare=2, episode_steps=40,
-               n_wall_test=100,
-               longer=LongerRuns(paper=paper_recipe(replace(_WORLD_CI, steps=12)),
-                                 ablations=ABLATABLE_TERMS, n_ablation=2,
-                                 course=course_long(_WORLD_CI, 12, _WORLD_CI.n_trajectories))),
-           # the shipped checkpoints, with episode counts sized to fit a class period
-           "class": PlanningPreset(
-               _WORLD_CLASS, PlannerConfig(), n_episodes=40, n_compare=10,
-               longer=LongerRuns(paper=paper_recipe(replace(_WORLD_CLASS, steps=10_000,
-                                                            n_trajectories=100_000)),
-                                 ablations=ABLATABLE_TERMS,
-                                 course=course_long(_WORLD_CLASS, 10_000, 100_000))),
+    "06": {"ci": replace(_PLANNING_CLASS, planner=_PLANNER_CI, n_episodes=4, n_compare=2,
+                         episode_steps=40, n_wall_test=100,
+                         longer=replace(_PLANNING_CLASS.longer, n_ablation=2)),
+           "class": _PLANNING_CLASS,
            # the reference code's planner on 500 episodes: 100 for the headline rate, 50 in 8 rows
-           "full": PlanningPreset(_WORLD_FULL, PlannerConfig(
+           "full": PlanningPreset(_WORLD_FULL, "world_model_full", PlannerConfig(
                horizon=90, iterations=20, execute=1, noise=Noise(period=1),
                habits=Habits(0, stop_px=0.0)), n_episodes=100, n_compare=50, episode_batch=100)},
     "07": {"ci": _BEYOND_CI,

@@ -117,7 +117,7 @@ def load_or_train(path: str | Path, model: torch.nn.Module, train: Callable, con
                   shipped: str | Path | None = None) -> tuple[torch.nn.Module, History]:
     """``(model in eval mode, history)`` of the run ``config``: loaded from ``shipped`` or
     ``path``, else given the weights of ``train(partial) -> (trained model, history)`` (a run
-    resumable from the file ``partial``) and saved to ``path``."""
+    resumable from the file ``partial``) and saved to ``path``; ``train`` None: only loaded."""
     start, path = time.perf_counter(), Path(path)
     found, history = _found(path, config, model, shipped)
     if found is not None:
@@ -125,6 +125,8 @@ def load_or_train(path: str | Path, model: torch.nn.Module, train: Callable, con
         if distributed.is_main():
             print(f"Loaded a trained model from {found[1]} (skip training).")
         return model.eval(), history
+    if train is None:  # a run that is only loaded
+        raise FileNotFoundError(f"no saved run of this configuration at {shipped} or {path}")
     trained, history = train(path.with_suffix(".partial"))
     model.load_state_dict(trained.state_dict())
     if distributed.is_main() and save_or_warn(path, model=model.state_dict(), config=config,

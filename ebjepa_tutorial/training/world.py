@@ -1,5 +1,5 @@
-"""Training the Two Rooms world model (notebook 05) on offline trajectories of the paper's data
-policy, rendered batch by batch, each update a :func:`world_model_step`."""
+"""The Two Rooms world model's training run (notebook 05 writes its loop): configs, recipes, the
+step, latent replay, identities, and loading a saved run (notebooks 06 and 07 train none)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 import torch
 
 from .. import distributed
-from ..envs import generate_trajectories, render
+from ..envs import generate_trajectories
 from ..envs.trajectories import Trajectories
 from ..envs.two_rooms import WALL_X_RANGES
 from ..losses.sigreg import sigreg
@@ -24,7 +24,7 @@ from ..losses.world import (
 from ..models.world import WORLD_CONFIGS, WorldConfig, WorldModel
 from ..utils import get_device
 from .checkpoints import checkpoint_paths, load_made_by, run_identity, step_identity
-from .loop import History, load_or_train, run_steps, step_generator
+from .loop import load_or_train
 
 TRAJECTORY_ACTIONS = 16  # per training trajectory (17 frames, the paper's clips)
 WEIGHT_DECAY = 1e-5  # AdamW's, as in the paper
@@ -44,6 +44,12 @@ class Recipe:
     channels_last: bool = False  # faster convolutions, but another order of float sums
     decay_steps: int = 0  # the last decay_steps lower the rate linearly towards 0 (0: constant)
     grad_clip: float = 0.0  # every update's gradient scaled to at most this norm (0: none)
+
+    def __post_init__(self):
+        if self.window and not 2 <= self.window <= TRAJECTORY_ACTIONS + 1:
+            raise ValueError(f"Recipe.window={self.window} does not fit trajectories of "
+                             f"{TRAJECTORY_ACTIONS + 1} frames: use 2..{TRAJECTORY_ACTIONS + 1} "
+                             "frames, or 0 for whole trajectories")
 
 
 @dataclass(frozen=True)
@@ -80,20 +86,6 @@ def make_data(config: WorldTrainConfig) -> Trajectories:
     """The offline training trajectories of ``config`` (seeded by ``config.seed``)."""
     return generate_trajectories(config.n_trajectories, TRAJECTORY_ACTIONS, seed=config.seed,
                                  wall_fraction=config.recipe.wall_fraction, walls=config.walls)
-
-
-def random_windows(data: Trajectories, index: torch.Tensor, window: int,
-                   generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """``window`` frames of each trajectory ``index (B,)`` from a random offset: positions
-    ``(B, window, 2)`` and the actions between them ``(B, window - 1, 2)``."""
-    if not 2 <= window <= data.positions.shape[1]:
-        raise ValueError(f"Recipe.window={window} does not fit trajectories of "
-                         f"{data.positions.shape[1]} frames: use 2..{data.positions.shape[1]} "
-                         "frames, or 0 for whole trajectories")
-    offsets = torch.randint(0, data.positions.shape[1] - window + 1, (len(index), 1),
-                            generator=generator) + torch.arange(window)  # (B, window)
-    rows = index[:, None]
-    return data.positions[rows, offsets], data.actions[rows, offsets[:, :-1]]
 
 
 class LatentReplay:
@@ -198,55 +190,17 @@ def world_model_step(model, optimizer, frames, actions, generator, config, step,
     return total.detach(), {name: value.detach() for name, value in terms.items()}
 
 
-def train_world_model(config: WorldTrainConfig, data: Trajectories | None = None,
-                      checkpoint: str | Path | None = None, progress: bool = True,
-                      device: torch.device | str | None = None,
-                      step=world_model_step) -> tuple[WorldModel, History]:
-    """``(model in eval mode, history)`` trained on ``data``, resumable from ``checkpoint``."""
-    per_process = distributed.per_rank_batch(config.batch_size)  # an uneven split fails here
-    data = make_data(config) if data is None else data
-    device, run, window = get_device(device), identity(config, step), config.recipe.window
-    layout = torch.channels_last if config.recipe.channels_last else torch.contiguous_format
-    model = new_model(config, data).to(device, memory_format=layout)
-    optimizer = new_optimizer(model, config)
-    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda n: decay_factor(config, n))
-    n_frames = window or data.positions.shape[1]
-    replay = LatentReplay(model, config, n_frames, device) if config.recipe.replay_steps else None
-    buffer = torch.empty(per_process, n_frames, 2, 65, 65)  # this process's rows, rendered
-
-    def batch(n: int):  # this process's frames and actions of step n, and its generator
-        generator = step_generator(config.seed, n)  # then draws still steps and SIGReg's
-        index = torch.randint(0, len(data), (config.batch_size,), generator=generator)
-        if not window:  # whole trajectories
-            index = distributed.local_rows(index)
-            frames = data.frames(index, out=buffer).to(device)
-            return frames, data.actions[index].to(device), generator
-        # the global batch's windows (positions only: cheap), then this process's rows rendered
-        windows = (*random_windows(data, index, window, generator), data.layouts[index])
-        positions, actions, layouts = (distributed.local_rows(x) for x in windows)
-        return render(positions, layouts, out=buffer).to(device), actions.to(device), generator
-
-    def update(inputs, n: int):  # inputs: batch(n)
-        total, terms = step(model, optimizer, *inputs, config, n, replay)
-        scheduler.step()  # the rate of the next step: a constant without decay_steps
-        return total, terms
-
-    history = run_steps(update, batch, config.steps, log_every=LOG_EVERY, desc="world model",
-                        progress=progress, checkpoint=checkpoint, every=CHECKPOINT_EVERY,
-                        parts=(model, optimizer, scheduler, replay), identity=run)
-    return model.eval(), history
-
-
-def train_or_load(config: WorldTrainConfig, name: str, device: torch.device | str | None = None,
-                  step=world_model_step) -> tuple[WorldModel, History]:
-    """``(model in eval mode, history)`` of ``config``: loaded if saved as ``name``, else
-    trained with ``step`` and saved."""
-    device = get_device(device)
-    model = WorldModel(config.model).to(device)
+def load_run(config: WorldTrainConfig, name: str, device: torch.device | str | None = None,
+             made_by: str = "notebook 05 at its scale") -> WorldModel:
+    """The saved run ``config`` (shipped in ``checkpoints/`` or cached as ``name``), in eval mode:
+    notebooks 06 and 07 plan with trained models and train none; a missing one names ``made_by``."""
+    model = WorldModel(config.model).to(get_device(device))
     path, shipped = checkpoint_paths(name)
-    return load_or_train(path, model, lambda partial: train_world_model(
-        config, make_data(config), partial, device=device, step=step), identity(config, step),
-        shipped)
+    try:
+        return load_or_train(path, model, None, identity(config), shipped)[0]
+    except FileNotFoundError as error:
+        raise FileNotFoundError(f"{error}. It is made by {made_by}; checkpoints/README.md names "
+                                "the command of every shipped file.") from None
 
 
 def load_world_model(path: str | Path, device: torch.device | str | None = None,

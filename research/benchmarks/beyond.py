@@ -27,8 +27,7 @@ import torch
 
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.planning import run_episodes
-from ebjepa_tutorial.training import train_or_load
-from ebjepa_tutorial.training.world import identity
+from ebjepa_tutorial.training.world import identity, load_run
 from research import fit_beyond
 from research.beyond_fits import NOTEBOOK as NB
 from tools import figures
@@ -42,7 +41,7 @@ def planners(walls: int) -> dict:
     """Each planner of the comparison: ``name: (model to plan with, PlannerConfig, two_level)``."""
     cfg, world = preset("07", "class"), WORLDS[walls]
     _, config, name = fit_beyond.world_run(world)
-    model, _ = train_or_load(config, name, device="cpu")
+    model = load_run(config, name, device="cpu")
     head = NB.load_fit("cost_head", world, NB.CostToGo(model.latent_dim), identity(config))
     coarse = NB.load_fit("coarse", world, NB.CoarseModel(model.latent_dim), identity(config))
     two = cfg.two_level

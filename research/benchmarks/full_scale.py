@@ -49,7 +49,7 @@ from ebjepa_tutorial.data.moving_mnist import generate_moving_mnist
 from ebjepa_tutorial.envs import generate_trajectories
 from ebjepa_tutorial.training import image, video, world
 from ebjepa_tutorial.utils import get_device
-from research import launch
+from research import launch, train_world
 from research.train_video import notebook
 
 CHAPTERS = ("image", "sigreg", "video", "world")
@@ -113,11 +113,12 @@ def video_chapter() -> Chapter:
 
 
 def world_chapter() -> Chapter:
-    config = preset("05", "full").train
+    config, loop = preset("05", "full").train, train_world.notebook().train_world_model
 
     def train(steps, batch, device):
         run = replace(config, n_trajectories=batch, batch_size=batch, steps=steps)
-        return world.train_world_model(run, trajectories(batch), progress=False, device=device)
+        return loop(run, trajectories(batch), world.world_model_step, device=device,
+                    progress=False)
 
     return Chapter("world model (05)", config.batch_size, config.steps, config.n_trajectories,
                    "trajectories", train)

@@ -29,8 +29,9 @@ from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.envs import generate_trajectories
 from ebjepa_tutorial.evaluation.position import middle_wall_test, probe_report
 from ebjepa_tutorial.training.checkpoints import save_checkpoint
-from ebjepa_tutorial.training.world import identity, train_world_model
+from ebjepa_tutorial.training.world import identity
 from research.benchmarks import command_line
+from research.train_world import train_world_model
 from tools import figures
 
 CLASS_RUN = preset("05", "class")  # notebook 05's run, and its probe: fit seed 101, test 102
