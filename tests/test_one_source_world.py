@@ -24,6 +24,12 @@ CI = preset("05", "ci").train
 SHORT = replace(CI, steps=3, n_trajectories=64, batch_size=8)  # logs steps 0 and 2
 
 
+@pytest.fixture
+def small_replay(monkeypatch):
+    """SHORT's replayed updates on 64 windows, not 1,024: what they test is the same."""
+    monkeypatch.setattr(world, "REPLAY_BATCH", 64)
+
+
 def notebook_step(edit=lambda source: source, **names):
     """The notebook's ``world_model_step``, defined among the package's names (those the
     notebook imports before the cell) and ``names`` (e.g. the learner's functions)."""
@@ -45,7 +51,7 @@ def weights(model) -> list[torch.Tensor]:
     return [t for t in model.state_dict().values() if isinstance(t, torch.Tensor)]
 
 
-def test_the_cell_as_shown_trains_the_packages_run_and_an_edit_changes_it():
+def test_the_cell_as_shown_trains_the_packages_run_and_an_edit_changes_it(small_replay):
     package_model, package = train(world.world_model_step)
     shown_model, shown = train(notebook_step())
     assert shown == package  # every logged term, bit for bit
@@ -58,6 +64,7 @@ def test_the_cell_as_shown_trains_the_packages_run_and_an_edit_changes_it():
     assert changed["loss"][-1] != package["loss"][-1]  # ... then another update
 
 
+@pytest.mark.slow  # ten steps of the ci run: a pin of its numbers, for CI
 def test_the_ci_run_keeps_the_terms_it_had_before_the_step_moved_into_the_notebook():
     # recorded from train_world_model before world_model_step existed (the ci preset, 10 steps,
     # on 1 thread); bit-identical on the machine that recorded it
@@ -73,7 +80,7 @@ def test_the_ci_run_keeps_the_terms_it_had_before_the_step_moved_into_the_notebo
         assert history[name] == pytest.approx(values, rel=1e-5), name
 
 
-def test_the_step_calls_the_learners_functions_on_every_step():
+def test_the_step_calls_the_learners_functions_on_every_step(small_replay):
     calls = []
 
     def temporal_similarity(z):  # the learner's exercise 1, counted
@@ -89,7 +96,7 @@ def test_the_step_calls_the_learners_functions_on_every_step():
     assert calls == ["temporal", "inverse"] * SHORT.steps
 
 
-def test_an_edited_step_is_a_run_of_its_own(tmp_path, monkeypatch, capsys):
+def test_an_edited_step_is_a_run_of_its_own(tmp_path, monkeypatch, capsys, small_replay):
     monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
     run, train_or_load = replace(SHORT, steps=2), notebook().train_or_load
     train_or_load(run, "world", notebook_step(), "cpu")
