@@ -714,6 +714,9 @@ def test_command_line_trains_the_run_of_a_scale(tmp_path, monkeypatch):
                         lambda model, walls=1: {"probe_px": 1.5, "baseline_px": 20.0})
     train_world.main(["--scale", "ci", "--out", str(tmp_path / "ci.pt")])
     assert seen["config"] == preset("05", "ci").train
+    # notebook 06's full-scale ablations, trained as docs/running.md says
+    train_world.main(["--scale", "full", "--without", "variance", "--out", str(tmp_path / "v.pt")])
+    assert seen["config"] == world.ablation_config(preset("06", "full").world, "variance")
     train_world.main(["--scale", "ci", "--out", str(tmp_path / "ci.pt"), "--paper-recipe",
                       "--window", "9", "--wall-fraction", "0.25"])
     assert seen["config"] == replace(world.paper_recipe(preset("05", "ci").train),
