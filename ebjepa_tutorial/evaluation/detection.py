@@ -55,8 +55,9 @@ def fit_detection_probe(features: torch.Tensor, targets: torch.Tensor,
     """Train a ``detection_head`` (seeded; binary cross-entropy, Adam at 3e-3, batches
     of 512) on frozen pooled latents ``(M, C, g, g)`` for 0/1 ``targets`` ``(M, g, g)``."""
     generator = torch.Generator().manual_seed(0)
-    torch.manual_seed(0)
-    probe = detection_head(features.shape[1], grid=targets.shape[-1])
+    with torch.random.fork_rng(devices=[]):  # seeded initial weights; the caller's draws go on
+        torch.manual_seed(0)
+        probe = detection_head(features.shape[1], grid=targets.shape[-1])
     optimizer = torch.optim.Adam(probe.parameters(), lr=3e-3)
     for _ in range(steps):
         index = torch.randint(0, len(features), (512,), generator=generator)
