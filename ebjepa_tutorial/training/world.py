@@ -30,7 +30,6 @@ TRAJECTORY_ACTIONS = 16  # per training trajectory (17 frames, the paper's clips
 WEIGHT_DECAY = 1e-5  # AdamW's, as in the paper
 # each replayed update draws REPLAY_BATCH windows of the last REPLAY_CAPACITY, with its Adam
 REPLAY_BATCH, REPLAY_CAPACITY, REPLAY_LR = 1024, 6400, 1e-3
-LOG_EVERY, CHECKPOINT_EVERY = 10, 250  # steps between logged rows and resumable saves
 
 
 @dataclass(frozen=True)
