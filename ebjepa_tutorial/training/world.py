@@ -189,17 +189,18 @@ def world_model_step(model, optimizer, frames, actions, generator, config, step,
     return total.detach(), {name: value.detach() for name, value in terms.items()}
 
 
-def load_run(config: WorldTrainConfig, name: str, device: torch.device | str | None = None,
-             made_by: str = "notebook 05 at its scale") -> WorldModel:
+def load_run(config: WorldTrainConfig, name: str,
+             device: torch.device | str | None = None) -> WorldModel:
     """The saved run ``config`` (shipped in ``checkpoints/`` or cached as ``name``), in eval mode:
-    notebooks 06 and 07 plan with trained models and train none; a missing one names ``made_by``."""
+    notebooks 06 and 07 plan with trained models and train none."""
     model = WorldModel(config.model).to(get_device(device))
     path, shipped = checkpoint_paths(name)
     try:
         return load_or_train(path, model, None, identity(config), shipped)[0]
     except FileNotFoundError as error:
-        raise FileNotFoundError(f"{error}. It is made by {made_by}; checkpoints/README.md names "
-                                "the command of every shipped file.") from None
+        raise FileNotFoundError(f"{error}. Notebook 05 trains chapter 05's run at its scale; "
+                                "checkpoints/README.md names the command of every shipped file, "
+                                "docs/running.md those of full scale.") from None
 
 
 def load_world_model(path: str | Path, device: torch.device | str | None = None,
