@@ -43,11 +43,14 @@ lab-student: student
 # renders them without running them again); the student versions run to the end; the book
 # read in a browser. pytest-xdist spreads the files over one single-threaded worker per core
 # (at most 4): at ci scale a test waits on Python and kernels far more than on arithmetic.
+# conftest.py keeps files whole but makes each notebook's student rerun a unit of its own,
+# and hands the longest units out first.
 # -v names every item, so the log shows each notebook cell that nbval ran.
 NBVAL := --nbval-lax --nbval-current-env --nbval-cell-timeout=900
 test: setup fetch-data
 	EBJEPA_SCALE=ci MPLBACKEND=agg OMP_WAIT_POLICY=PASSIVE OMP_NUM_THREADS=1 $(BIN)/python -m pytest \
-		-p no:cacheprovider -v -n auto --maxprocesses 4 --dist loadfile --durations=15 \
+		-p no:cacheprovider -v -n auto --maxprocesses 4 --dist loadfile --no-loadscope-reorder \
+		--durations=15 \
 		tests notebooks $(NBVAL)
 
 # The datasets, downloaded (or decoded from EBJEPA_DATA's copy) once, before the tests'
