@@ -20,7 +20,6 @@ import numpy as np
 import pytest
 import torch
 from PIL import Image
-from torchvision import datasets
 
 from ebjepa_tutorial.data import (
     CIFAR10_CLASSES,
@@ -38,6 +37,15 @@ from ebjepa_tutorial.data.mnist import find_mnist
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = os.environ.get("EBJEPA_DATA")  # read before the fixture below clears it
+
+
+@pytest.fixture
+def datasets():
+    """``torchvision.datasets``, imported by the tests that patch it: importing torchvision takes
+    over a second, which every pytest worker would otherwise pay while collecting this file."""
+    from torchvision import datasets
+
+    return datasets
 
 
 @pytest.fixture(autouse=True)
@@ -147,7 +155,7 @@ def md5(raw: bytes) -> str:
 
 
 @pytest.fixture
-def official(served, monkeypatch):
+def official(served, monkeypatch, datasets):
     """A small cifar-10-python.tar.gz on the local server, its MD5s set as torchvision's.
 
     Returns the batches by name. torchvision checks the archive and every file in it.
@@ -202,7 +210,7 @@ class Exploit:
         return (os.system, ("touch pwned",))
 
 
-def test_missing_data_without_network(tmp_path, served, monkeypatch):
+def test_missing_data_without_network(tmp_path, served, monkeypatch, datasets):
     data = tmp_path / "data"
     with pytest.raises(DataNotFoundError) as raised:
         load_cifar10("test", root=data, download=False)
@@ -324,7 +332,7 @@ def test_mnist_from_folder(tmp_path, compress, folder):
     assert got_labels.tolist() == labels.tolist() and got_labels.dtype == torch.int64
 
 
-def test_mnist_download_through_torchvision_with_md5(tmp_path, served, monkeypatch):
+def test_mnist_download_through_torchvision_with_md5(tmp_path, served, monkeypatch, datasets):
     server, url = served
     images, _ = write_mnist(server, split="train")
     write_mnist(server, split="test")
@@ -351,7 +359,7 @@ def test_mnist_damaged_files_are_named(tmp_path, damage, compress):
         load_mnist("test", root=tmp_path / "data", download=False)
 
 
-def test_mnist_missing_split_message(tmp_path):
+def test_mnist_missing_split_message(tmp_path, datasets):
     write_mnist(tmp_path / "data" / "mnist", split="test")
     with pytest.raises(DataNotFoundError) as info:
         load_mnist("train", root=tmp_path / "data", download=False)
