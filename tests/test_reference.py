@@ -146,7 +146,7 @@ CONSTANTS = {
            "35%",  # the data policy's door starts
            "97%"},  # the paper
     "05": {"1%", "61%", "89%", "97%",  # the paper's Tables
-           "1.8 px", "5%", "15%",  # the data's largest step, the recipe's still steps
+           "1.8 px", "15%",  # the data's largest step, the recipe's still steps
            "8%"},  # a class run's share of the paper's frames
     "06": {"0%", "100%",  # the wall test's ends
            "0.005",  # an exercise's temperature
