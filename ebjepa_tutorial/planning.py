@@ -307,13 +307,15 @@ def mpc_loop(model, env, config, generators, steps, arrived=None, aim=None):
             moving = goal_distance(model, z, z_goal) >= arrived
         mean[~moving] = 0  # the arrived stand still
         target = z_goal if aim is None else aim(z, z_goal, moving)  # (B, D)
-        rows = moving.nonzero()[:, 0]
+        rows = moving.nonzero()[:, 0]  # (R,): the episodes that plan
         if len(rows):  # plan H steps ahead, from the previous plan (J iterations the first time)
             mine = [generators[i] for i in rows.tolist()]
             mean[rows] = plan(model, z[rows], target[rows], config, mine, mean[rows],
                               iteration=mppi_iteration).mean
+        # execute the first m actions in the world, each (B, 2); the slice keeps the last
+        # re-plan from running past the step budget
         for action in mean[:, : config.execute].unbind(1)[: steps - env.steps_taken]:
-            env.step(action)  # execute the first m actions in the world
+            env.step(action)
         mean = shift_plan(mean, config.execute)  # warm start: the rest of the plan, then zeros
         config = config.warm()  # later re-plans refine habits.warm_iterations times
 

@@ -150,11 +150,12 @@ CONSTANTS = {
            "8%"},  # a class run's share of the paper's frames
     "06": {"0%", "100%",  # the wall test's ends
            "0.005",  # an exercise's temperature
+           "0.05 px",  # MIN_STD, the spread's floor
            "1.8 px", "2 px", "2 s", "3.5 px", "4.5 px", "40 px",  # the world, the budget
-           "11%", "30%", "60%",  # 3 of 10 and its interval, worked in the text
+           "11%", "60%",  # the interval of 3 in 10, worked in the text
            "15%", "40%",  # the refit's still steps, the long run's decay
            "95%", "97%"},  # the interval's level, the paper
-    "07": {"0.1 px", "150 px",  # the head's tolerance and cap
+    "07": {"0.1 px", "150 px", "10 px",  # the head's tolerance, cap and COST_SCALE
            "1.5 px", "1.8 px", "2 px", "4.5 px", "7.2 px", "29 px",  # steps, reach, spreads
            "95%"},  # the interval's level
 }

@@ -30,9 +30,7 @@ FORMATS = {key: metric.fmt for key, metric in METRICS.items()} | {
     "sigreg_shipped_probe_acc": "{:.1%}", "vicreg_train_min": "{:.1f} min",
     "sigreg_train_min": "{:.1f} min", "video_map_class_K1": "{:.3f}",
     "video_map_long_K1": "{:.3f}", "video_map_long_K4": "{:.3f}",
-} | {f"planning_success_{term}": "{:.0%}"  # the paper's Table 4: the class run less one term
-     for term in ("no_variance", "no_covariance", "no_temporal", "no_idm")
-     } | {f"notebook_{nb:02d}_{scale}": "{:.0f} s" for nb in range(8) for scale in ("ci", "class")}
+} | {f"notebook_{nb:02d}_{scale}": "{:.0f} s" for nb in range(8) for scale in ("ci", "class")}
 
 
 def record(key: str, value: float, command: str, protocol: str, threads: int,

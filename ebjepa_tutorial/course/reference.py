@@ -42,6 +42,11 @@ METRICS = {  # the figures the notebooks print (the pages' others: tools/figures
     "planning_success_class": Metric(*_PLANNING),
     "planning_success_shipped": Metric(*_PLANNING, "the course's shipped model"),
     "planning_success_refit": Metric(*_PLANNING, "the course's refitted model"),
+} | {f"planning_success_no_{suffix}": Metric(  # the paper's Table 4: the loss less one term
+    "planning success", "{:.0%}", paper, f"Table 4, without {term}", _PLANNING[4],
+    "the course's ablated class model (100 episodes)") for suffix, term, paper in (
+        ("variance", "variance", 0.47), ("covariance", "covariance", 0.46),
+        ("temporal", "temporal similarity", 0.61), ("idm", "inverse dynamics", 0.01))
 } | {f"beyond_{world}_{planner}": Metric("planning success", "{:.1%}",
                                          benchmark="python -m research.benchmarks.beyond")
      for world in ("two_rooms", "three_rooms") for planner in BEYOND_PLANNERS}
