@@ -40,8 +40,8 @@ def chapter_00_loop(source: str | None = None):
     """Notebook 00's ``train_toy``, defined from ``source`` (default: the cell's) with the names
     the cell imports."""
     space = dict(torch=torch, History=History, mlp_encoder=toy.mlp_encoder,
-                 two_views=toy.two_views, vicreg_loss=vicreg_loss, variance_term=variance_term,
-                 covariance_term=covariance_term)
+                 two_views=toy.two_views, vicreg_loss=vicreg_loss,
+                 course_variance_term=variance_term, course_covariance_term=covariance_term)
     exec(source or notebook_function("00_energy_and_collapse.ipynb", "train_toy"), space)
     return space["train_toy"]
 

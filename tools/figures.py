@@ -23,7 +23,7 @@ from ebjepa_tutorial.data.paths import atomic_file
 ROOT = REFERENCE_FILE.parents[1]  # the repository
 # Every recorded figure's format: the notebooks' (reference.METRICS) and those only pages state.
 FORMATS = {key: metric.fmt for key, metric in METRICS.items()} | {
-    "video_map": "{:.3f}", "video_ap3_lead": "{:.2f}", "random_walk_success": "{:.1%}",
+    "video_map": "{:.3f}", "video_ap3_lead": "{:.2f}",
     "planning_success_live": "{:.0%}", "planning_success_shipped_fresh": "{:.1%}",
     "planning_cpu_s_shipped": "{:.1f} s", "video_train_min": "{:.1f} min",
     "world_train_min": "{:.1f} min", "vicreg_shipped_probe_acc": "{:.1%}",

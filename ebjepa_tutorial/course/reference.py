@@ -42,6 +42,7 @@ METRICS = {  # the figures the notebooks print (the pages' others: tools/figures
     "planning_success_class": Metric(*_PLANNING),
     "planning_success_shipped": Metric(*_PLANNING, "the course's shipped model"),
     "planning_success_refit": Metric(*_PLANNING, "the course's refitted model"),
+    "random_walk_success": Metric("within 4.5 px at some step", "{:.1%}", ours="the course's run"),
 } | {f"planning_success_no_{suffix}": Metric(  # the paper's Table 4: the loss less one term
     "planning success", "{:.0%}", paper, f"Table 4, without {term}", _PLANNING[4],
     "the course's ablated class model (100 episodes)") for suffix, term, paper in (
