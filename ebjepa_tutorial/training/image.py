@@ -27,7 +27,7 @@ LR = 2e-3  # AdamW's peak rate (warm-up, then cosine to 0), the same at every sc
 @dataclass(frozen=True)
 class VICReg:
     """VICReg's weights. The two views' regularisers are averaged (losses.vicreg_loss) where
-    the paper adds them, so the paper's 1 / 1 / 80 reads 1 / 2 / 160 here."""
+    the reference code adds them, so its 1 / 1 / 80 reads 1 / 2 / 160 here."""
 
     inv_coeff: float = 1.0
     std_coeff: float = 2.0
