@@ -23,13 +23,12 @@ from ebjepa_tutorial.data.paths import atomic_file
 ROOT = REFERENCE_FILE.parents[1]  # the repository
 # Every recorded figure's format: the notebooks' (reference.METRICS) and those only pages state.
 FORMATS = {key: metric.fmt for key, metric in METRICS.items()} | {
-    "video_map": "{:.3f}", "video_ap3_lead": "{:.2f}",
+    "video_map": "{:.3f}",
     "planning_success_live": "{:.0%}", "planning_success_shipped_fresh": "{:.1%}",
     "planning_cpu_s_shipped": "{:.1f} s", "video_train_min": "{:.1f} min",
     "world_train_min": "{:.1f} min", "vicreg_shipped_probe_acc": "{:.1%}",
     "sigreg_shipped_probe_acc": "{:.1%}", "vicreg_train_min": "{:.1f} min",
-    "sigreg_train_min": "{:.1f} min", "video_map_class_K1": "{:.3f}",
-    "video_map_long_K1": "{:.3f}", "video_map_long_K4": "{:.3f}",
+    "sigreg_train_min": "{:.1f} min",
 } | {f"notebook_{nb:02d}_{scale}": "{:.0f} s" for nb in range(8) for scale in ("ci", "class")}
 
 
