@@ -29,7 +29,8 @@ def test_record_keeps_other_figures_and_compare_prints_all_three(tmp_path):
     line = reference.compare("vicreg_probe_acc", 0.5512, scale="class", path=path)
     assert line.startswith("linear probe accuracy: yours 55.1% | the course's class run 55.4% "
                            "(2 CPU threads, ")
-    assert line.endswith("| the paper 90.1% (ResNet-18, 300 epochs on a GPU)")
+    assert line.endswith("| the paper 90.1% (ResNet-18, 300 epochs on a GPU, its probe trained "
+                         "online on augmented views)")
     assert "smoke test" in reference.compare("vicreg_probe_acc", 0.1, scale="ci", path=path)
     assert reference.compare("world_probe_px", path=path).startswith(
         "position probe error: the course's class run 1.06 px")

@@ -24,7 +24,7 @@ class Metric:
 
 
 _IMAGE = "python -m research.benchmarks.image_jepa"
-_CIFAR = "ResNet-18, 300 epochs on a GPU"
+_CIFAR = "ResNet-18, 300 epochs on a GPU, its probe trained online on augmented views"
 _PROBE = "linear probe accuracy"
 _PLANNING = ("planning success", "{:.0%}", 0.97, "MPPI, a model trained on a GPU",
              "python -m research.benchmarks.planning")  # label, format, the paper, its setting
