@@ -76,8 +76,9 @@ student: setup
 
 bench: setup
 	for script in research/benchmarks/[a-z]*.py; do \
-		name=$$(basename $$script .py); [ $$name = video_full ] && continue; \
-		$(BIN)/python -m research.benchmarks.$$name || exit 1; done  # video_full: for a GPU
+		name=$$(basename $$script .py); \
+		case $$name in video_full|timing) continue;; esac; \
+		$(BIN)/python -m research.benchmarks.$$name || exit 1; done  # video_full: for a GPU; timing: a helper
 
 lint: setup
 	$(BIN)/ruff check ebjepa_tutorial research tools tests notebooks
