@@ -787,7 +787,8 @@ def test_a_markdown_solution_goes_and_the_list_after_it_stays_a_list():
     assert MARKDOWN_SOLUTION.sub("", source) == (
         "Exercises 1 and 2 are above. Each takes minutes.\n\n3. **Next.** Do it.")
     ended = source.replace(" Each takes minutes.", "")  # the marker closes the paragraph
-    assert MARKDOWN_SOLUTION.sub("", ended).endswith("above. \n\n3. **Next.** Do it.")
+    # no stray space where the marker was
+    assert MARKDOWN_SOLUTION.sub("", ended).endswith("above.\n\n3. **Next.** Do it.")
 
 
 def test_strip_solutions_leaves_a_stub_that_asks_for_a_hint():
@@ -802,8 +803,8 @@ def test_strip_solutions_leaves_a_stub_that_asks_for_a_hint():
         "def f(x):\n"
         "    y = 1\n"
         '    # Your code here. Stuck? exercises.hint("f") gives a hint, one level at a time.\n'
-        "    raise NotImplementedError('Exercise: write f; exercises.hint(\"f\") gives a hint.')"
-    )
+        "    raise NotImplementedError('Exercise: write f; exercises.hint(\"f\") gives a hint.')\n"
+    )  # the source's final newline stays
 
 
 @pytest.mark.parametrize("source", [

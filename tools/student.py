@@ -33,7 +33,7 @@ BEGIN = re.compile(r"^(\s*)### BEGIN SOLUTION\s*$")
 END = re.compile(r"^\s*### END SOLUTION\s*$")
 HINT = re.compile(r"^\s*# HINT:")
 DEF = re.compile(r"^(\s*)def (\w+)\(")
-MARKDOWN_SOLUTION = re.compile(r"<!-- BEGIN SOLUTION -->.*?<!-- END SOLUTION -->[ \t]*", re.S)
+MARKDOWN_SOLUTION = re.compile(r"[ \t]*<!-- BEGIN SOLUTION -->.*?<!-- END SOLUTION -->", re.S)
 
 
 def _exercise_name(lines: list[str], indent: str) -> str | None:
@@ -75,7 +75,7 @@ def strip_solutions(source: str) -> str:
             out.append(line)
     if indent is not None:
         raise ValueError("BEGIN SOLUTION without END SOLUTION")
-    return "\n".join(out)
+    return "\n".join(out) + ("\n" if source.endswith("\n") else "")
 
 
 def student_notebook(notebook):
