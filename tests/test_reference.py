@@ -191,7 +191,8 @@ PAGE_CONSTANTS = {
     "RESULTS.md": _PAPER - {"89%"} | {
         "0.383", "0.20",  # the paper's K = 1 mAP, and its lead read from its figure
         "10 minutes", "60%", "70%",  # a class period, and the thresholds the runs pass
-        "0.05", "1.8 px", "2 px", "4.5 px", "21 px", "35%",  # the settings and the world
+        "0.05", "1.5 px", "1.8 px", "2 px", "4.5 px", "21 px", "35%",  # the settings and the world
+        "15%",  # the course recipe's still steps
         "95%"},
     "TEACHING.md": _PAPER - {"46%", "47%", "61%"} | {
         "5 min", "10 min", "15 min", "20 min", "25 min", "10 minutes", "45 minutes",
