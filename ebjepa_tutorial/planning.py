@@ -332,6 +332,8 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig, steps: int 
     if world not in WORLDS:
         raise ValueError(f"world must be one of {WORLDS}, got {world!r}")
     seeds, batch = list(seeds), batch or len(seeds)
+    if not seeds:
+        raise ValueError("run_episodes needs at least one seed (one episode per seed)")
     model.eval()
     cpu, wall = time.process_time(), time.perf_counter()
     arrived = None  # the energy below which the agent stands still: pixels for "true_xy"

@@ -345,6 +345,8 @@ def test_with_true_motion_and_the_euclidean_energy_the_planner_crosses_the_door(
     assert result.success.all()  # each start and goal lie in opposite rooms
     with pytest.raises(ValueError, match="world must be one of"):
         planning.run_episodes(LinearLatentModel(), [0], config, world="perfect")
+    with pytest.raises(ValueError, match="at least one seed"):  # not range()'s zero step
+        planning.run_episodes(LinearLatentModel(), [], config)
 
 
 def test_energy_by_distance_of_a_position_latent_is_the_ring_distance():

@@ -193,6 +193,13 @@ def first_step(model, frames, actions, coeffs=None, steps=3, seed=0):
                                   torch.Generator().manual_seed(seed), config, step=0)
 
 
+def test_the_loss_weights_are_the_papers():
+    # alpha, beta, delta, omega of the paper's Eq. 11-12 (SIGReg off): every world run uses them
+    weights = wl.WorldLossCoeffs()
+    assert (weights.prediction, weights.variance, weights.covariance, weights.temporal,
+            weights.inverse_dynamics, weights.sigreg) == (1.0, 16.0, 8.0, 12.0, 1.0, 0.0)
+
+
 def test_the_training_step_weighs_the_five_terms(data):
     trajectories, frames = data
     model = tiny_model(frames)

@@ -68,7 +68,8 @@ def parallel_unroll(predictor: Predictor, z: torch.Tensor, context: int = 2, ste
 
 def parallel_rollout_loss(predictor: Predictor, z: torch.Tensor, context: int = 2,
                           steps: int = 4, detach_later: bool = False) -> torch.Tensor:
-    """The paper's K-step loss (its Eqs. 8 to 10) over latents ``z`` ``(B, T, C, H, W)``:
+    """The K-step loss of the paper's parallel unroll (its Eqs. 8 to 10), averaged over the
+    predicted frames as the course does, over latents ``z`` ``(B, T, C, H, W)``:
 
         L_pred = (1/K) sum_k 1/(B (T-c) C H W) sum_{b, t >= c} ||z~^(k)_{b,t} - z_{b,t}||^2
 
