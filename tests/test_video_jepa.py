@@ -285,6 +285,18 @@ def test_training_resumes_and_evaluation_runs(digits, tmp_path):
         for name in ("ap", "ap_encoded", "ap_copy"):
             assert report[name].shape == (7,) and ((report[name] >= 0) & (report[name] <= 1)).all()
         assert report["map"] == pytest.approx(float(report["ap"].mean()))
+        # the baselines' frames, one frame at a time: horizon k scores each frame t from
+        # context - 1 + k on against the true latent of t (encoded) and of t - k (copy)
+        encoded, _ = grid_features(model, eval_data.clips, horizons=7, unroll=unroll)
+        cells, context = centres_to_grid(eval_data.centres), model.config.context
+        for k in range(1, 8):
+            frames = range(context - 1 + k, cells.shape[1] if unroll == "parallel" else context + k)
+            truth = torch.stack([cells[:, t] for t in frames], 1).flatten(0, 1)
+            for name, shift in (("ap_encoded", 0), ("ap_copy", k)):
+                latents = torch.stack([encoded[:, t - shift] for t in frames], 1).flatten(0, 1)
+                with torch.no_grad():
+                    scores = report["probe"](latents)
+                assert report[name][k - 1] == pytest.approx(average_precision(scores, truth))
     cosine = tmp_path / "cosine.pt"  # the rate falls to 0 at the last step
     train_video_jepa(replace(config, recipe=replace(CI.recipe, cosine=True)), clips,
                      checkpoint=cosine)
