@@ -501,8 +501,10 @@ def test_bad_inputs_give_clear_errors(data):
         model.rollout(z[:, :4], trajectories.actions)
     with pytest.raises(ValueError, match=r"time - 1"):
         first_step(model, frames, trajectories.actions[:, :3])
-    with pytest.raises(ValueError, match="steps must be in"):  # K = 5 > T - 1 = 4
+    with pytest.raises(ValueError, match="time > 5"):  # K = 5 > T - 1 = 4
         first_step(model, frames, trajectories.actions, steps=5)
+    with pytest.raises(ValueError, match="time > 1"):  # one frame has no change to measure
+        wl.temporal_similarity_loss(torch.zeros(2, 1, 4))
     with pytest.raises(ValueError, match="same N"):
         fit_position_probe(torch.zeros(5, 3), torch.zeros(4, 2))
 

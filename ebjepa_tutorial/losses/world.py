@@ -29,8 +29,8 @@ class WorldLossCoeffs:
 
 def _check_sequence(z: torch.Tensor, actions: torch.Tensor | None = None, steps: int = 1):
     if z.ndim != 3 or not 1 <= steps < z.shape[1]:
-        raise ValueError(f"latents must be (batch, time, dim) and steps must be in 1..time - 1; "
-                         f"got {tuple(z.shape)} and {steps} steps")
+        raise ValueError(f"latents must be (batch, time, dim) with time > {steps} (the steps, "
+                         f"at least 1); got {tuple(z.shape)} and {steps} steps")
     if actions is not None and (actions.ndim != 3 or actions.shape[:2] != z[:, 1:].shape[:2]):
         raise ValueError(f"actions must be (batch, time - 1, action_dim) = ({len(z)}, "
                          f"{z.shape[1] - 1}, A), one per step; got {tuple(actions.shape)}")
@@ -83,6 +83,7 @@ def temporal_similarity_loss(z: torch.Tensor) -> torch.Tensor:
     """Mean squared change between consecutive latents ``(B, T, D)``, a 0-d tensor:
 
         L_sim = (1/(B (T-1) D)) sum_{b,t} ||z_{t+1} - z_t||^2"""
+    _check_sequence(z)  # at least two frames: one frame has no change, and its mean is NaN
     return (z[:, 1:] - z[:, :-1]).pow(2).mean()
 
 
