@@ -62,6 +62,11 @@ def test_bool_targets_and_any_shape():
     assert average_precision(scores, targets) == pytest.approx(0.5 * 1 + 0.5 * 2 / 4)
 
 
+def test_no_positive_cell_is_an_error_not_nan():
+    with pytest.raises(ValueError, match="without a positive cell"):
+        average_precision(torch.rand(5), torch.zeros(5))
+
+
 def test_whole_set_ap_is_not_the_mean_of_batch_aps():
     # Batch A ranks well on its own scale, batch B on a lower one; pooled, B's positive
     # falls below A's negative, which per-batch averaging would hide.

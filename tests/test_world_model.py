@@ -505,6 +505,8 @@ def test_bad_inputs_give_clear_errors(data):
         first_step(model, frames, trajectories.actions, steps=5)
     with pytest.raises(ValueError, match="time > 1"):  # one frame has no change to measure
         wl.temporal_similarity_loss(torch.zeros(2, 1, 4))
+    with pytest.raises(ValueError, match="at least two samples"):  # no spread to divide by
+        fit_position_probe(torch.zeros(1, 3), torch.zeros(1, 2))
     with pytest.raises(ValueError, match="same N"):
         fit_position_probe(torch.zeros(5, 3), torch.zeros(4, 2))
 

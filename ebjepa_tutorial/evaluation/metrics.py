@@ -10,6 +10,8 @@ def average_precision(scores: torch.Tensor, targets: torch.Tensor) -> float:
     and recall of "score >= threshold k", ``R_0 = 0`` (sklearn's ``average_precision_score``)."""
     scores, order = torch.sort(scores.detach().flatten().cpu(), descending=True, stable=True)
     targets = targets.detach().flatten().double().cpu()[order]
+    if not targets.any():
+        raise ValueError("AP is undefined without a positive cell: every target is 0")
     true_pos = targets.cumsum(0)
     seen = torch.arange(1, len(scores) + 1, dtype=torch.float64)
     # The last cell of each run of tied scores closes a threshold: all ties count together.

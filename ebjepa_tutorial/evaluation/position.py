@@ -24,6 +24,8 @@ def fit_position_probe(latents: torch.Tensor, positions: torch.Tensor) -> Linear
     """Latents ``(N, D)`` -> positions ``(N, 2)`` in pixels: least squares on the standardised
     latents with an L2 penalty of 1e-3 per sample, solved exactly on their device."""
     _check_pair(latents, positions)
+    if len(latents) < 2:
+        raise ValueError("a probe needs at least two samples to standardise the latents")
     x = latents.detach().float()
     y = positions.detach().float().to(x.device)
     mean, std = x.mean(dim=0), x.std(dim=0).clamp_min(1e-6)
