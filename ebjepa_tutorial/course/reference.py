@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..training.checkpoints import SHIPPED_DIR
+from ..training.world import ABLATION_SUFFIXES
 from .presets import current_scale
 
 REFERENCE_FILE = SHIPPED_DIR / "reference.json"
@@ -28,6 +29,7 @@ _CIFAR = "ResNet-18, 300 epochs on a GPU, its probe trained online on augmented 
 _PROBE = "linear probe accuracy"
 _PLANNING = ("planning success", "{:.0%}", 0.97, "MPPI, a model trained on a GPU",
              "python -m research.benchmarks.planning")  # label, format, the paper, its setting
+_TABLE_4 = {"variance": 0.47, "covariance": 0.46, "temporal": 0.61, "inverse_dynamics": 0.01}
 BEYOND_PLANNERS = ("flat", "short", "learned_cost", "two_level")  # notebook 07's comparison
 METRICS = {  # the figures the notebooks print (the pages' others: tools/figures.py)
     "vicreg_probe_acc": Metric(_PROBE, "{:.1%}", 0.901, _CIFAR, _IMAGE),
@@ -50,11 +52,10 @@ METRICS = {  # the figures the notebooks print (the pages' others: tools/figures
     "planning_success_shipped": Metric(*_PLANNING, "the course's shipped model"),
     "planning_success_refit": Metric(*_PLANNING, "the course's refitted model"),
     "random_walk_success": Metric("within 4.5 px at some step", "{:.1%}", ours="the course's run"),
-} | {f"planning_success_no_{suffix}": Metric(  # the paper's Table 4: the loss less one term
-    "planning success", "{:.0%}", paper, f"Table 4, without {term}", _PLANNING[4],
-    "the course's ablated class model (100 episodes)") for suffix, term, paper in (
-        ("variance", "variance", 0.47), ("covariance", "covariance", 0.46),
-        ("temporal", "temporal similarity", 0.61), ("idm", "inverse dynamics", 0.01))
+} | {f"planning_success_{suffix}": Metric(  # the paper's Table 4: the loss less one term
+    "planning success", "{:.0%}", _TABLE_4[term], f"Table 4, without {term.replace('_', ' ')}",
+    _PLANNING[4], "the course's ablated class model (100 episodes)")
+     for term, suffix in ABLATION_SUFFIXES.items()  # the shipped files' suffixes, as notebook 06
 } | {f"beyond_{world}_{planner}": Metric("planning success", "{:.1%}",
                                          benchmark="python -m research.benchmarks.beyond")
      for world in ("two_rooms", "three_rooms") for planner in BEYOND_PLANNERS}
