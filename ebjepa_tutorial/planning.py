@@ -73,8 +73,10 @@ class PlannerConfig:
             raise ValueError(f"method must be one of {METHODS} and cost one of {COSTS}, "
                              f"got method={self.method!r}, cost={self.cost!r}")
         rules = {name: (is_int_at_least(1), "an int >= 1")
-                 for name in ("horizon", "samples", "elites", "iterations", "execute")}
-        check_fields(self, {**rules, "temperature": (is_positive, "a finite number > 0")})
+                 for name in ("horizon", "elites", "iterations", "execute")}
+        check_fields(self, {**rules, "temperature": (is_positive, "a finite number > 0"),
+                            "samples": (is_int_at_least(2), "an int >= 2",
+                                        "plans per iteration: sample 0 is the mean")})
         if self.elites > self.samples or self.execute > self.horizon:
             raise ValueError(f"need elites <= samples and execute <= horizon, got elites "
                              f"(Q={self.elites}), samples (N={self.samples}), execute "
@@ -299,7 +301,7 @@ def mpc_loop(model, env, config, generators, steps, arrived=None, aim=None):
     aim(z, z_goal, moving): nearer targets (B, D) to plan towards (notebook 07's two levels).
     """
     z_goal = model.encode(env.goal_images())  # (B, D): each goal image, encoded once
-    mean = z_goal.new_zeros(len(generators), config.horizon, 2)  # (B, H, A): stand still
+    mean = z_goal.new_zeros(len(generators), config.horizon, model.config.action_dim)  # (B, H, A)
     while env.steps_taken < steps:
         z = model.encode(env.observe())  # (B, D): where each dot is, as the model sees it
         moving = torch.ones(len(z), dtype=torch.bool, device=z.device)  # (B,) still under way

@@ -234,6 +234,9 @@ def test_wilson_interval_by_hand():
 
 @pytest.mark.parametrize("kwargs, words", [
     (dict(horizon=0), "horizon"), (dict(samples=0), "samples"), (dict(elites=300), "elites"),
+    # one sample is the mean alone: nothing explores, and its noise would be normalised by
+    # the spread of a single number (NaN)
+    (dict(samples=1, elites=1, horizon=1, execute=1), "samples .*>= 2"),
     (dict(method="adam"), "method"), (dict(execute=100), "execute"),
     (dict(temperature=0.0), "temperature"),
 ])

@@ -276,6 +276,11 @@ def test_training_windows_are_consecutive_frames_of_one_trajectory_at_any_offset
     assert offsets == set(range(9))  # every offset, both ends included
     with pytest.raises(ValueError, match="window=18 does not fit trajectories of 17 frames"):
         world.Recipe(window=18)
+    # K = 8 needs 9 frames: a shorter window is refused when the run is configured
+    with pytest.raises(ValueError, match=r"rollout_steps \(K\) must be 1..7 for windows of 8"):
+        world.WorldTrainConfig(recipe=world.Recipe(window=8))
+    with pytest.raises(ValueError, match="1..16 for windows of 17 frames"):
+        world.WorldTrainConfig(rollout_steps=17)
 
 
 def test_a_windowed_channels_last_run_trains():

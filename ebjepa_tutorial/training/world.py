@@ -66,6 +66,12 @@ class WorldTrainConfig:
     rollout_steps: int = 8  # K, the prediction horizon of the loss (at most the window - 1)
     seed: int = 0
 
+    def __post_init__(self):  # here, not at the first step after minutes of data generation
+        frames = self.recipe.window or TRAJECTORY_ACTIONS + 1
+        if not 1 <= self.rollout_steps < frames:
+            raise ValueError(f"rollout_steps (K) must be 1..{frames - 1} for windows of {frames} "
+                             f"frames (Recipe.window), got {self.rollout_steps}")
+
 
 def course_recipe(config: WorldTrainConfig) -> WorldTrainConfig:
     """``config`` trained the course's way (the class preset): more per CPU-minute."""
