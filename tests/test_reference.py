@@ -141,7 +141,6 @@ CONSTANTS = {
            "90%", "90.1%", "91.0%"},  # the paper
     "02": {"0.01",  # the sweep's smallest multiplier
            "16 px", "32 px", "90.1%", "91.0%"},
-    "03": {"4%"},  # a class run's share of the paper's clip samples
     "04": {"0%", "100%",  # where the textbook interval breaks down
            "0.5 px", "1 px", "1.3 px", "1.5 px", "1.8 px", "2 px", "4 px", "4.5 px",  # the world
            "35%",  # the data policy's door starts
