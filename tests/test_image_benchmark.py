@@ -43,3 +43,29 @@ def test_a_short_run_trains_the_seed_asked_for_and_ends_with_a_parseable_line():
     assert set(fields) == {"images_per_s", "minutes", "probe_acc", "knn_acc"}
     assert float(fields["images_per_s"]) > 0
     assert 0.0 <= float(fields["probe_acc"]) <= 1.0 and 0.0 <= float(fields["knn_acc"]) <= 1.0
+
+
+def test_split_times_float32_against_bf16_and_records_the_median_ratio(monkeypatch, capsys):
+    from argparse import Namespace
+
+    from ebjepa_tutorial.course.presets import image_preset
+    from research.benchmarks import image_jepa
+
+    # step_split's parts per call: bf16 steps take 1 s, float32 steps 1.5, 2 and 4 s in turn
+    float32_seconds = iter([1.5, 2.0, 4.0])
+    monkeypatch.setattr(image_jepa, "step_split", lambda config, images, bf16=True: {
+        "forward": 0.25, "backward": 0.75} if bf16 else {"all": next(float32_seconds)})
+    monkeypatch.setattr(image_jepa, "precision_name", lambda device, cpu=False: "bf16 autocast")
+    recorded = {}
+    monkeypatch.setattr(image_jepa.figures, "record",
+                        lambda key, value, *where, spread: recorded.update({key: (value, spread)}))
+    args = Namespace(record=True, loss="vicreg", threads=2)
+    config = image_preset("ci", "vicreg").config
+    image_jepa.split_and_precision(config, None, args, rounds=3)
+    assert "float32 step / bf16 step: 2.00 (pairs: 1.50, 2.00, 4.00)" in capsys.readouterr().out
+    assert recorded == {"image_float32_step_ratio": (2.0, (1.5, 4.0))}
+    # a CPU without bf16 has nothing to compare: it says so and records nothing
+    monkeypatch.setattr(image_jepa, "precision_name", lambda device, cpu=False: "float32")
+    recorded.clear()
+    image_jepa.split_and_precision(config, None, args)
+    assert "computes the networks in float32 only" in capsys.readouterr().out and not recorded

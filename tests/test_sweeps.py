@@ -9,8 +9,9 @@ import pytest
 import torch
 from torch import nn
 
+from ebjepa_tutorial.course import reference
 from ebjepa_tutorial.course.presets import preset
-from ebjepa_tutorial.evaluation.sweeps import load_sweeps
+from ebjepa_tutorial.evaluation.sweeps import load_sweeps, tenfold_costs
 from ebjepa_tutorial.training.checkpoints import SHIPPED_DIR
 from ebjepa_tutorial.training.image import ImageJEPAConfig, SIGReg, VICReg
 from research import sweep
@@ -174,3 +175,23 @@ def test_the_shipped_file_holds_every_run_of_notebook_02():
 def test_bad_scale_is_refused():
     with pytest.raises(SystemExit):
         sweep.main(["--scale", "huge", "--out", "x.json"])
+
+
+def test_tenfold_costs_take_the_points_lost_at_a_tenth_and_ten_times_each_default():
+    rows = [{"sweep": sweep_name, "factor": factor, "probe_acc": acc}
+            for sweep_name, accs in (("sigreg_lambda", (0.1, 0.40, 0.50, 0.45, 0.2)),
+                                     ("std_coeff", (0.1, 0.30, 0.60, 0.58, 0.1)),
+                                     ("cov_coeff", (0.1, 0.59, 0.60, 0.50, 0.1)))
+            for factor, acc in zip((0.01, 0.1, 1.0, 10.0, 100.0), accs)]
+    costs = tenfold_costs(rows)  # a hundredfold either side is not counted
+    assert costs["SIGReg"] == pytest.approx((5.0, 10.0))
+    assert costs["VICReg"] == pytest.approx((1.0, 30.0))  # over both of VICReg's weights
+
+
+def test_the_recorded_tenfold_costs_are_those_of_the_shipped_sweep():
+    _, rows = load_sweeps(SHIPPED_DIR / "sweeps_class.json")
+    recorded = reference.load()
+    for method, (low, high) in tenfold_costs(rows["sensitivity"]).items():
+        entry = recorded[f"sweep_{method.lower()}_tenfold_points"]  # what the pages print
+        assert entry["spread"] == pytest.approx([low, high])
+        assert entry["value"] == pytest.approx(high)

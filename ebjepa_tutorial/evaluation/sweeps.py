@@ -24,3 +24,15 @@ def load_sweeps(path: str | Path) -> tuple[dict, dict[str, list[dict]]]:
     rows = meta.pop("runs")
     return meta, {"sensitivity": [row for row in rows if row["factor"] is not None],
                   "projector": [row for row in rows if row["factor"] is None]}
+
+
+def tenfold_costs(sensitivity: list[dict]) -> dict[str, tuple[float, float]]:
+    """The fewest and most points of probe accuracy that a tenth or ten times a default costs,
+    over each method's coefficients: ``{"SIGReg": (low, high), "VICReg": (low, high)}``."""
+    default = {row["sweep"]: row["probe_acc"] for row in sensitivity if row["factor"] == 1.0}
+    costs: dict[str, list[float]] = {}
+    for row in sensitivity:
+        if row["factor"] in (0.1, 10.0):
+            method = SWEEP_LABELS[row["sweep"]].split(":")[0]
+            costs.setdefault(method, []).append(100 * (default[row["sweep"]] - row["probe_acc"]))
+    return {method: (min(points), max(points)) for method, points in costs.items()}

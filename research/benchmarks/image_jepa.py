@@ -13,12 +13,15 @@ scored the same way for comparison. Last line:
 scale, no overrides) stores the probe accuracies in ``checkpoints/reference.json``,
 which notebooks 01 and 02 print beside the learner's. ``--split`` prints where
 one training step's time goes (augmentation, forward, loss, backward,
-optimiser) and stops.
+optimiser) and, on a CPU with bf16, how much longer the step takes in float32
+(``--split --record`` stores that ratio), and stops.
 """
 
 from __future__ import annotations
 
 import argparse
+import platform
+import statistics
 import time
 from dataclasses import replace
 
@@ -61,8 +64,9 @@ def training_loss(config, z_a, z_b, generator) -> torch.Tensor:
     return vicreg(z_a, z_b, weights.inv_coeff, weights.std_coeff, weights.cov_coeff)
 
 
-def step_split(config, images: torch.Tensor) -> dict[str, float]:
-    """Median seconds of each part of one training step of ``config`` on uint8 ``images``."""
+def step_split(config, images: torch.Tensor, bf16: bool = True) -> dict[str, float]:
+    """Median seconds of each part of one training step of ``config`` on uint8 ``images``,
+    the networks in bf16 where the CPU computes it (``bf16=False``: float32)."""
     model = AllViews(ImageJEPA(config))
     optimizer = torch.optim.AdamW(split_decay_params(model, WEIGHT_DECAY), lr=LR)
     pipeline = build_augmentation(AugmentConfig(size=config.image_size))
@@ -72,7 +76,7 @@ def step_split(config, images: torch.Tensor) -> dict[str, float]:
         index = torch.randint(0, len(images), (config.batch_size,), generator=generator)
         views = two_views(images[index], pipeline, generator)
         yield "augmentation"
-        with mixed_precision("cpu", cpu=True):  # as train_image_jepa computes it
+        with mixed_precision("cpu", cpu=bf16):  # bf16=True: as train_image_jepa computes it
             z_a, z_b = map(at_least_float32, model(*views))
         yield "forward"
         loss = training_loss(config, z_a, z_b, generator)
@@ -80,6 +84,35 @@ def step_split(config, images: torch.Tensor) -> dict[str, float]:
         yield from backward_and_step(optimizer, loss)
 
     return time_parts(step)
+
+
+def cpu_name() -> str:
+    """The CPU's model name (Linux), for a timing's protocol: speeds differ between hosts."""
+    try:
+        with open("/proc/cpuinfo") as info:
+            return next(line.split(":", 1)[1].strip() for line in info
+                        if line.startswith("model name"))
+    except (OSError, StopIteration):
+        return platform.processor() or "an unnamed CPU"
+
+
+def split_and_precision(config, images: torch.Tensor, args, rounds: int = 7) -> None:
+    """Print where one step's time goes and, where the CPU has bf16, the float32 step's time
+    over the bf16 step's (median of ``rounds`` interleaved pairs); ``args.record`` stores it."""
+    title = f"one step of {config.batch_size} images x 2 views of {config.image_size} px"
+    print_parts(title, step_split(config, images))
+    if precision_name("cpu", cpu=True) == "float32":
+        return print("this CPU computes the networks in float32 only: no ratio to measure")
+    ratios = [sum(step_split(config, images, bf16=False).values())
+              / sum(step_split(config, images).values()) for _ in range(rounds)]
+    ratio = statistics.median(ratios)
+    print(f"float32 step / bf16 step: {ratio:.2f} (pairs: {', '.join(f'{r:.2f}' for r in ratios)})")
+    if args.record:
+        figures.record("image_float32_step_ratio", ratio, command_line(__spec__.name),
+                       f"one class-recipe {args.loss} training step (augmentation, forward, loss, "
+                       f"backward, AdamW), float32 over bf16 autocast, median of {rounds} "
+                       f"interleaved pairs of 5-step medians, on {cpu_name()}", args.threads,
+                       spread=(min(ratios), max(ratios)))
 
 
 def main() -> None:
@@ -115,8 +148,7 @@ def main() -> None:
     test = random_subset(*load_cifar10("test"), preset.test_images)
     print(f"{args.scale} scale, {config}")
     if args.split:
-        print_parts(f"one step of {config.batch_size} images x 2 views of {config.image_size} "
-                    "px", step_split(config, train[0]))
+        split_and_precision(config, train[0], args)
         return
     precision = precision_name("cpu", cpu=True)  # what train_image_jepa does
     print(f"evaluation: {protocol(config)}; training networks in {precision}")
