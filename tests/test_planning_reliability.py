@@ -65,7 +65,7 @@ def test_a_start_that_is_not_a_batch_of_latents_is_refused():
 # -- 7: planner settings that cannot work --------------------------------------------------
 @pytest.mark.parametrize("kwargs, words", [
     (dict(temperature=math.nan), "temperature"),
-    (dict(samples=True), "samples must be an int >= 1"),
+    (dict(samples=True), r"samples \(plans per iteration.*\) must be an int >= 2"),
     (dict(horizon=8.0), "horizon must be an int >= 1"),
     (dict(iterations=0), "iterations"),
     (dict(elites=201), r"elites <= samples.*elites \(Q=201\), samples \(N=200\)"),
