@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import http.server
+import json
 import re
 import shutil
 import subprocess
@@ -17,7 +18,6 @@ from html.parser import HTMLParser
 from pathlib import Path
 from urllib.parse import urljoin, urlparse
 
-import nbformat
 import pytest
 from PIL import Image, ImageStat
 
@@ -86,6 +86,8 @@ def test_generated_project_is_offline_and_lists_chapters(tmp_path):
 
 def tiny_notebook(tmp_path: Path, *cells: tuple[str, list[str]]) -> Path:
     """A notebook of code cells (source, tags) in ``tmp_path``; return its path."""
+    import nbformat  # here: its validator takes seconds to import, and only slow tests run it
+
     notebook = nbformat.v4.new_notebook()
     notebook.cells = [nbformat.v4.new_code_cell(source, metadata={"tags": tags})
                       for source, tags in cells]
@@ -123,8 +125,9 @@ def test_long_running_cells_get_their_own_time_limit(tmp_path, monkeypatch):
     path = tiny_notebook(tmp_path, ("import os, time\ntime.sleep(3)\n"
                                     "print(os.environ['OMP_WAIT_POLICY'])", [bk.LONG_TAG]))
     bk.execute_notebook(path, tmp_path / "out.ipynb", book, "ci")
-    executed = nbformat.read(tmp_path / "out.ipynb", as_version=4)
-    assert executed.cells[0].outputs[0]["text"] == "PASSIVE\n"  # waiting threads sleep
+    executed = json.loads((tmp_path / "out.ipynb").read_text())
+    output = "".join(executed["cells"][0]["outputs"][0]["text"])
+    assert output == "PASSIVE\n"  # waiting threads sleep
 
     path = tiny_notebook(tmp_path, ("import time\ntime.sleep(3)", []))
     with pytest.raises(bk.BookError, match="past its limit of 1 s.*tag the cell 'long-running'"):
@@ -142,8 +145,11 @@ def test_a_cached_run_is_reused_only_while_what_it_shows_is_unchanged(tmp_path, 
     path = tmp_path / "00_x.ipynb"
 
     def key(markdown="Some prose.", code="x = 1"):
-        cells = [nbformat.v4.new_markdown_cell(markdown), nbformat.v4.new_code_cell(code)]
-        nbformat.write(nbformat.v4.new_notebook(cells=cells), path)
+        cells = [{"cell_type": "markdown", "metadata": {}, "source": markdown},
+                 {"cell_type": "code", "metadata": {}, "outputs": [], "source": code.splitlines(
+                     keepends=True)}]  # a notebook may store a source as its lines
+        path.write_text(json.dumps({"cells": cells, "metadata": {}, "nbformat": 4,
+                                    "nbformat_minor": 5}))
         return bk.notebook_key(path, "ci")
 
     first = key()
@@ -168,9 +174,9 @@ def test_cells_that_train_or_play_are_tagged_long_running():
     cores: the book gives them execute.long_timeout instead of the per-cell timeout."""
     untagged = []
     for path in sorted((bk.DEFAULT_CONFIG.parent / "notebooks").glob("*.ipynb")):
-        for index, cell in enumerate(nbformat.read(path, as_version=4).cells):
-            if (cell.cell_type == "code" and LONG_CALLS.search(cell.source)
-                    and bk.LONG_TAG not in cell.metadata.get("tags", ())):
+        for index, cell in enumerate(json.loads(path.read_text(encoding="utf-8"))["cells"]):
+            if (cell["cell_type"] == "code" and LONG_CALLS.search("".join(cell["source"]))
+                    and bk.LONG_TAG not in cell["metadata"].get("tags", ())):
                 untagged.append(f"{path.name} cell {index}")
     assert not untagged, f"tag these cells {bk.LONG_TAG!r}: {untagged}"
 

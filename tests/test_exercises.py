@@ -857,6 +857,7 @@ def test_make_student_keeps_a_learners_work(tmp_path):
     assert "# mine" not in mine.read_text()
 
 
+@pytest.mark.slow  # nbformat's validator takes seconds to import
 def test_a_student_notebook_cut_off_while_written_is_not_kept_as_work(tmp_path, monkeypatch):
     import nbformat
 

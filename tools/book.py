@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import json
 import os
 import re
 import shutil
@@ -32,10 +33,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import nbformat
 import yaml
-from nbclient import NotebookClient
-from nbclient.exceptions import CellExecutionError, CellTimeoutError, DeadKernelError
 
 from ebjepa_tutorial.course.presets import SCALES
 from ebjepa_tutorial.course.reference import REFERENCE_FILE
@@ -243,6 +241,8 @@ def write_sphinx_project(book: Book, scale: str | None, src: Path,
             page.write_text(outside_links(page.read_text(encoding="utf-8"), chapter, book),
                             encoding="utf-8")
         else:
+            import nbformat  # here: its validator takes seconds to import; only a build needs it
+
             notebook = nbformat.read(page, as_version=4)
             for cell in notebook.cells:
                 if cell.cell_type == "markdown":
@@ -273,8 +273,9 @@ def notebook_key(path: Path, scale: str) -> str:
     """What an executed notebook shows: its cells (the prose too, which the cached copy holds),
     the scale, the package's code and the recorded figures its cells print beside yours."""
     digest = hashlib.sha256(f"{scale} {package_fingerprint()}".encode())
-    for cell in nbformat.read(path, as_version=4).cells:
-        digest.update(f"{cell.cell_type}\0{cell.source}\0".encode())
+    for cell in json.loads(path.read_text(encoding="utf-8"))["cells"]:
+        source = "".join(cell["source"])  # stored as one string or as its lines
+        digest.update(f"{cell['cell_type']}\0{source}\0".encode())
     if REFERENCE_FILE.is_file():
         digest.update(REFERENCE_FILE.read_bytes())
     return f"{path.stem}-{digest.hexdigest()[:12]}"
@@ -284,6 +285,10 @@ def execute_notebook(path: Path, target: Path, book: Book, scale: str) -> None:
     """Run the notebook at ``path`` in its own folder at ``scale``; write it, with its outputs,
     to ``target``. Raise BookError naming the notebook and the cell if a cell fails, runs
     out of time or its kernel dies."""
+    import nbformat
+    from nbclient import NotebookClient
+    from nbclient.exceptions import CellExecutionError, CellTimeoutError, DeadKernelError
+
     notebook = nbformat.read(path, as_version=4)
     running = {}
 
@@ -310,6 +315,8 @@ def execute_notebook(path: Path, target: Path, book: Book, scale: str) -> None:
 
 def describe_failure(name: str, running: dict, error: Exception, scale: str, book: Book) -> str:
     """One message for a notebook that did not run: which notebook, which cell, what error."""
+    from nbclient.exceptions import CellTimeoutError, DeadKernelError
+
     message = f"notebook {name} failed while executing at scale {scale}"
     cell = running.get("cell")
     if cell is not None:
