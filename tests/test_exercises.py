@@ -13,7 +13,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from ebjepa_tutorial import losses
+from ebjepa_tutorial import losses, planning
 from ebjepa_tutorial.course import exercises
 from ebjepa_tutorial.course.exercises import check_wall_collision, common
 from tools.student import MARKDOWN_SOLUTION, strip_solutions
@@ -598,6 +598,16 @@ def test_softmax_without_the_minimum_is_accepted_and_told_about_float32(capsys):
     assert "Correct" in out
     assert re.search(r"costs near 10,000 your mean and std differ .* by up to \d\.\de-0\d, "
                      r"which float32 explains.*about three decimals", out, re.S), out
+
+
+def test_the_float32_note_reports_the_largest_gap_over_the_parts(capsys):
+    def mppi_update(actions, costs, elites, temperature):  # the mean off by more than the std
+        mean, std = planning.mppi_update(actions, costs, elites, temperature)
+        near = costs.min() > 1000  # only the case of costs near 10,000 takes a looser tolerance
+        return (mean + 4e-5, std + 2e-5) if near else (mean, std)
+
+    assert exercises.check_mppi_update(mppi_update) is mppi_update
+    assert "by up to 4.0e-05" in capsys.readouterr().out  # the mean's gap, not the last part's
 
 
 def test_chapter_07_checkers_accept_a_learner_s_own_right_answers(capsys):
