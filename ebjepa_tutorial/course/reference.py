@@ -27,6 +27,7 @@ class Metric:
 _IMAGE = "python -m research.benchmarks.image_jepa"
 _CIFAR = "ResNet-18, 300 epochs on a GPU, its probe trained online on augmented views"
 _PROBE = "linear probe accuracy"
+_SEEDS = "the course's class runs, mean of 3 seeds"
 _PLANNING = ("planning success", "{:.0%}", 0.97, "MPPI, a model trained on a GPU",
              "python -m research.benchmarks.planning")  # label, format, the paper, its setting
 _TABLE_4 = {"variance": 0.47, "covariance": 0.46, "temporal": 0.61, "inverse_dynamics": 0.01}
@@ -36,16 +37,11 @@ METRICS = {  # the figures the notebooks print (the pages' others: tools/figures
     "sigreg_probe_acc": Metric(_PROBE, "{:.1%}", 0.910, _CIFAR, _IMAGE),
     **dict.fromkeys(["vicreg_random_init_probe_acc", "sigreg_random_init_probe_acc"],
                     Metric("random-init probe accuracy", "{:.1%}", benchmark=_IMAGE)),
-    "video_map_class_K4": Metric("detection mAP, K = 4", "{:.3f}", 0.607,
-                                 "K = 4, trained on a GPU",
-                                 ours="the course's class runs, mean of 3 seeds"),
-    "video_map_class_K1": Metric("detection mAP, K = 1", "{:.3f}",
-                                 ours="the course's class runs, mean of 3 seeds"),
-    "video_ap3_lead": Metric("AP three steps ahead, K = 4 minus K = 1", "{:.2f}",
-                             ours="the course's class runs, mean of 3 seeds"),
-    **{f"video_map_long_K{k}": Metric(f"detection mAP, K = {k}", "{:.3f}", paper, setting,
-                                      ours="the course's shipped long run")
+    **{f"video_map_{run}_K{k}": Metric(f"detection mAP, K = {k}", "{:.3f}", paper, setting,
+                                       ours=ours)
+       for run, ours in (("class", _SEEDS), ("long", "the course's shipped long run"))
        for k, paper, setting in ((1, None, ""), (4, 0.607, "K = 4, trained on a GPU"))},
+    "video_ap3_lead": Metric("AP three steps ahead, K = 4 minus K = 1", "{:.2f}", ours=_SEEDS),
     "world_probe_px": Metric("position probe error", "{:.2f} px",
                              benchmark="python -m research.benchmarks.two_rooms"),
     "planning_success_class": Metric(*_PLANNING),

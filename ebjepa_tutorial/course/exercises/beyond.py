@@ -29,17 +29,12 @@ def _violation_cases() -> list[Case]:
     ]
 
 
-def _violation(hinge=F.relu, power=2, reduce=torch.mean, swapped=False):
-    def step_violation(step_distance, step_length):
-        over = step_length - step_distance if swapped else step_distance - step_length
-        return reduce(hinge(over).abs().pow(power))
-    return step_violation
-
-
-check_step_violation = Exercise(
+check_step_violation = Exercise(  # each slip: the answer with one mistake
     "step_violation", step_violation, dict(
-        no_hinge=_violation(hinge=lambda x: x), swapped=_violation(swapped=True),
-        unsquared=_violation(power=1), summed=_violation(reduce=torch.sum)),
+        no_hinge=lambda d, length: (d - length).square().mean(),
+        swapped=lambda d, length: F.relu(length - d).square().mean(),
+        unsquared=lambda d, length: F.relu(d - length).mean(),
+        summed=lambda d, length: F.relu(d - length).square().sum()),
     _violation_cases, grad=[(0, "the step distances")], dims={0: "B"})
 
 
@@ -54,14 +49,9 @@ def _spread_cases() -> list[Case]:
     ]
 
 
-def _spread(sign=1.0, hinge=F.softplus, reduce=torch.mean, cap=True):
-    def spread_loss(distance, cap_):
-        return reduce(hinge(sign * ((cap_ if cap else 0.0) - distance)))
-    return spread_loss
-
-
 check_spread_loss = Exercise(
     "spread_loss", spread_loss, dict(
-        sign_flipped=_spread(sign=-1.0), relu=_spread(hinge=F.relu), no_cap=_spread(cap=False),
-        summed=_spread(reduce=torch.sum)),
+        sign_flipped=lambda d, cap: F.softplus(d - cap).mean(),
+        relu=lambda d, cap: F.relu(cap - d).mean(), no_cap=lambda d, cap: F.softplus(-d).mean(),
+        summed=lambda d, cap: F.softplus(cap - d).sum()),
     _spread_cases, grad=[(0, "the distances")], dims={0: "B"})

@@ -40,24 +40,20 @@ check_variance_term = Exercise(
     grad=[(0, "z")], dims={0: "BD"})
 
 
-def _covariance(z: torch.Tensor, centre: bool = True) -> torch.Tensor:
-    centred = z - z.mean(dim=0) if centre else z
-    return centred.T @ centred / (len(z) - 1)
-
-
-def _pair_mean(cov: torch.Tensor, d: int, f=torch.square) -> torch.Tensor:
-    """``sum_{i != j} f(C_ij) / (d (d - 1))`` of a square matrix ``cov``."""
-    return f(cov - torch.diag(torch.diagonal(cov))).sum() / (d * (d - 1))
+def _pair_mean(z, cov=losses.covariance_matrix, f=torch.square, diagonal=False):
+    """``sum_{i != j} f(C_ij) / (D (D - 1))`` of ``C = cov(z)`` (``diagonal``: all i, j)."""
+    c, d = cov(z), z.shape[1]
+    return f(c if diagonal else c - torch.diag(torch.diagonal(c))).sum() / (d * (d - 1))
 
 
 check_covariance_term = Exercise(
     "covariance_term", losses.covariance_term, dict(
-        not_centred=lambda z: _pair_mean(_covariance(z, False), z.shape[1]),
-        diagonal_kept=lambda z: _covariance(z).pow(2).sum() / (z.shape[1] * (z.shape[1] - 1)),
-        mean_of_all=lambda z: _covariance(z).pow(2).mean(),
-        not_squared=lambda z: _pair_mean(_covariance(z), z.shape[1], f=lambda c: c),
-        absolute=lambda z: _pair_mean(_covariance(z), z.shape[1], f=torch.abs),
-        cov_of_rows=lambda z: _pair_mean(torch.cov(z), z.shape[1]),
+        not_centred=lambda z: _pair_mean(z, cov=lambda z: z.T @ z / (len(z) - 1)),
+        diagonal_kept=lambda z: _pair_mean(z, diagonal=True),
+        mean_of_all=lambda z: losses.covariance_matrix(z).pow(2).mean(),
+        not_squared=lambda z: _pair_mean(z, f=lambda c: c),
+        absolute=lambda z: _pair_mean(z, f=torch.abs),
+        cov_of_rows=lambda z: _pair_mean(z, cov=torch.cov),
         wrong_axis=lambda z: losses.covariance_term(z.T.contiguous())),
     lambda: _embedding_cases(seed=2),
     grad=[(0, "z")], dims={0: "BD"})
