@@ -13,6 +13,7 @@ import io
 import os
 import pickle
 import tarfile
+import tempfile
 import threading
 from pathlib import Path
 
@@ -284,6 +285,20 @@ def test_truncated_packed_tree_is_a_clear_error(tmp_path):
         load_cifar10("test", root=tmp_path / "data", download=False)
 
 
+def test_a_packed_member_that_would_land_outside_the_unpacked_folder_is_refused(tmp_path):
+    write_tree(tmp_path / "src")
+    packed = tmp_path / "data" / "cifar10-evil.tar.gz"
+    packed.parent.mkdir()
+    with tarfile.open(packed, "w:gz") as archive:
+        archive.add(tmp_path / "src" / "test", arcname="test")
+        # "test" by its first part, so in the split; unpacked, it would land beside the folder
+        escaped = f"escaped-{tmp_path.name}.txt"
+        archive.addfile(tarfile.TarInfo(f"test/../../{escaped}"), io.BytesIO())
+    with pytest.raises(CorruptDataError, match="cifar10-evil.tar.gz"):
+        load_cifar10("test", root=tmp_path / "data", download=False)
+    assert not (Path(tempfile.gettempdir()) / escaped).exists()
+
+
 def test_other_sizes_missing_class_and_cache_invalidation(tmp_path):
     tree, data = tmp_path / "src", tmp_path / "data"
     write_tree(tree)
@@ -349,7 +364,8 @@ def test_mnist_download_through_torchvision_with_md5(tmp_path, served, monkeypat
     (lambda raw: raw[:-10], False),  # cut short: fewer values than the header announces
     (lambda raw: b"\x08\x08" + raw[2:], False),  # not an IDX file
     (lambda raw: raw[:-20], True),  # a gzip stream cut short
-], ids=["truncated", "magic", "truncated-gzip"])
+    (lambda raw: raw[:2] + b"\x0d" + raw[3:], True),  # float32 values, not unsigned bytes
+], ids=["truncated", "magic", "truncated-gzip", "floats"])
 def test_mnist_damaged_files_are_named(tmp_path, damage, compress):
     folder = tmp_path / "data" / "mnist"
     write_mnist(folder, compress=compress)

@@ -87,9 +87,10 @@ def _read_packed(path: Path, split: str) -> tuple[np.ndarray, np.ndarray]:
     """A tree stored as ``[<top>/]<split>/<class>/<file>`` in a tar.gz, split unpacked in /tmp."""
     with tempfile.TemporaryDirectory() as unpacked:
         try:
-            with tarfile.open(path) as archive:  # only this split's files
+            with tarfile.open(path) as archive:  # only this split's files, only inside unpacked
+                safe = {"filter": "data"} if hasattr(tarfile, "data_filter") else {}  # 3.10.12+
                 archive.extractall(unpacked, [m for m in archive
-                                              if split in PurePosixPath(m.name).parts[:2]])
+                                              if split in PurePosixPath(m.name).parts[:2]], **safe)
         except (EOFError, tarfile.TarError, zlib.error, gzip.BadGzipFile) as err:
             raise CorruptDataError(
                 f"cannot read CIFAR-10 from {path}: {type(err).__name__}: {err}. The archive is "
