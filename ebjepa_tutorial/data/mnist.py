@@ -1,14 +1,14 @@
-"""MNIST digits (LeCun et al., 1998) as uint8 tensors, read with ``torchvision.datasets``; one
-split's two IDX files are enough (``datasets.MNIST``, which downloads them, wants all four)."""
+"""MNIST digits (LeCun et al., 1998) as uint8 tensors, read from their IDX files; one split's
+two files are enough (``torchvision.datasets.MNIST``, which downloads them, wants all four)."""
 
 from __future__ import annotations
 
 import gzip
 import os
-import tempfile
 import zlib
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from .paths import CorruptDataError, DataNotFoundError, data_dir
@@ -44,20 +44,23 @@ def _missing_message(directory: Path, split: str) -> str:
     )
 
 
-def _read_idx(path: Path, read) -> torch.Tensor:
-    """torchvision's IDX ``read`` on ``path``, decompressed first when it is a ``.gz``."""
+def _read_idx(path: Path, ndim: int) -> torch.Tensor:
+    """An IDX file of unsigned bytes with ``ndim`` axes (``.gz`` or not) as a uint8 tensor: a
+    header ``0 0 8 ndim``, ``ndim`` big-endian sizes, then the values."""
     try:
-        if path.suffix != ".gz":
-            return read(str(path))
-        with tempfile.TemporaryDirectory() as folder:  # torchvision reads plain files only
-            plain = Path(folder) / path.stem
-            plain.write_bytes(gzip.decompress(path.read_bytes()))
-            return read(str(plain))
-    except (OSError, EOFError, zlib.error, AssertionError, RuntimeError, ValueError) as err:
+        data = gzip.decompress(path.read_bytes()) if path.suffix == ".gz" else path.read_bytes()
+        if data[:4] != bytes([0, 0, 8, ndim]):
+            raise ValueError(f"its header is {data[:4].hex(' ')}, not 00 00 08 {ndim:02x}")
+        shape = np.frombuffer(data, ">u4", count=ndim, offset=4)
+        values = np.frombuffer(data, np.uint8, offset=4 + 4 * ndim)
+        if values.size != shape.prod():
+            raise ValueError(f"{values.size} values where its header announces {shape.tolist()}")
+    except (OSError, EOFError, zlib.error, ValueError) as err:
         raise CorruptDataError(
             f"cannot read {path}: {type(err).__name__}: {err}. The file is truncated, damaged "
             "or not an IDX file of unsigned bytes; replace it (see data/README.md)."
         ) from err
+    return torch.from_numpy(values.reshape(shape.tolist()).copy())
 
 
 def load_mnist(split: str = "train", root: str | os.PathLike | None = None,
@@ -66,20 +69,18 @@ def load_mnist(split: str = "train", root: str | os.PathLike | None = None,
     ``root``: the data directory; ``download=False``: DataNotFoundError instead of fetching."""
     if split not in ("train", "test"):
         raise ValueError(f"split must be one of 'train', 'test'; got {split!r}")
-    from torchvision import datasets
-    from torchvision.datasets.mnist import read_image_file, read_label_file
-
     directory = data_dir(root)
     files = find_mnist(directory, split)
-    if files is not None:
-        images, labels = _read_idx(files[0], read_image_file), _read_idx(files[1], read_label_file)
-    elif not download:
+    if files is None and not download:
         raise DataNotFoundError(_missing_message(directory, split))
-    else:
+    if files is None:  # torchvision downloads all four files to MNIST/raw, checking their MD5
+        from torchvision import datasets  # here: importing torchvision takes over a second
+
         try:
-            dataset = datasets.MNIST(str(directory), train=split == "train", download=True)
+            datasets.MNIST(str(directory), train=split == "train", download=True)
         except (OSError, RuntimeError, ValueError) as err:  # no network, HTTP error, wrong MD5
             message = _missing_message(directory, split)
             raise DataNotFoundError(f"{message}\n\nThe download failed: {err}") from err
-        images, labels = dataset.data, dataset.targets
+        files = find_mnist(directory, split)
+    images, labels = _read_idx(files[0], 3), _read_idx(files[1], 1)
     return images[:, None].contiguous(), labels.long()
