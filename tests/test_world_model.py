@@ -325,6 +325,14 @@ def _replay(replay_steps=3, lr=1e-3, monkeypatch=None, decay_steps=0, **options)
     return world.LatentReplay(tiny_model(), config, frames=3, device="cpu")
 
 
+def test_replay_refuses_a_process_count_that_cannot_share_its_draw(monkeypatch):
+    # 1024 windows per update: 3 processes pass the launch check of a batch of 384 (the paper's)
+    # but could not split the replay's draw; the run says so before it trains
+    monkeypatch.setattr(world.distributed, "world_size", lambda: 3)
+    with pytest.raises(ValueError, match="1024 windows per update cannot be shared by 3"):
+        _replay()
+
+
 def test_the_replay_buffer_keeps_the_last_windows(small_replay):
     replay = _replay()
     for value in (1.0, 2.0, 3.0):  # three batches of 4 windows into room for 8
