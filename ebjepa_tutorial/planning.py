@@ -14,6 +14,7 @@ import torch
 
 from . import envs
 from .envs import MAX_STEP, clip_actions
+from .envs.trajectories import roll_out
 from .envs.two_rooms import HIGH, LOW, in_wall, wall_collision
 from .evaluation.metrics import wilson_interval
 from .utils import check_fields, is_int_at_least, is_non_negative, is_positive
@@ -423,12 +424,8 @@ class TrueDynamics:
 
     def rollout(self, states: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """States ``(R, 3)``, actions ``(R, H, 2)`` -> the states visited ``(R, H, 3)``."""
-        episode, positions = states[:, :1], states[:, 1:]
-        layouts, out = self.layouts[episode[:, 0].long()], []
-        for action in actions.unbind(1):
-            positions = envs.transition(positions, action, layouts)
-            out.append(torch.cat([episode, positions], dim=1))
-        return torch.stack(out, dim=1)
+        visited = roll_out(states[:, 1:], actions, self.layouts[states[:, 0].long()])[:, 1:]
+        return torch.cat([states[:, None, :1].expand(-1, visited.shape[1], -1), visited], dim=-1)
 
 
 @torch.no_grad()

@@ -170,8 +170,7 @@ def random_walk(heading: torch.Tensor, steps: int, kappa: float, step_mean: floa
 
 def roll_out(start: torch.Tensor, actions: torch.Tensor, layouts: torch.Tensor) -> torch.Tensor:
     """Positions (n, T+1, 2) from ``start`` (n, 2) under ``actions`` (n, T, 2)."""
-    positions = torch.empty(len(start), actions.shape[1] + 1, 2)
-    positions[:, 0] = start
-    for t in range(actions.shape[1]):
-        positions[:, t + 1] = transition(positions[:, t], actions[:, t], layouts)
-    return positions
+    positions = [start]
+    for action in actions.unbind(1):
+        positions.append(transition(positions[-1], action, layouts))
+    return torch.stack(positions, dim=1)
