@@ -42,7 +42,7 @@ def hint(name, level: int | None = None) -> None:
         print(say("no_such_exercise", name=name, names=", ".join(sorted(HINTS))))
         return
     level = min(_shown.get(name, 0) + 1, len(LEVELS)) if level is None else level
-    if level not in range(1, len(LEVELS) + 1):
+    if not isinstance(level, int) or level not in range(1, len(LEVELS) + 1):  # 2.0: not an index
         raise ValueError(say("bad_level", level=level))
     _shown[name] = max(_shown.get(name, 0), level)
     print(_hint_text(name, level))
