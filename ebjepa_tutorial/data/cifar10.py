@@ -83,14 +83,25 @@ def _read_tree(split_dir: Path) -> tuple[np.ndarray, np.ndarray]:
     return images, np.asarray(folder.targets, dtype=np.int64)
 
 
+def _split_members(archive: tarfile.TarFile, split: str) -> list[tarfile.TarInfo]:
+    """The files and folders under ``[<top>/]<split>/``, none that could unpack outside the
+    folder it is given: no link, no absolute path, no ``..``."""
+    members = []
+    for member in archive:
+        parts = PurePosixPath(member.name).parts
+        if (member.isfile() or member.isdir()) and split in parts[:2] and parts[0] != "/" \
+                and ".." not in parts:
+            members.append(member)
+    return members
+
+
 def _read_packed(path: Path, split: str) -> tuple[np.ndarray, np.ndarray]:
     """A tree stored as ``[<top>/]<split>/<class>/<file>`` in a tar.gz, split unpacked in /tmp."""
     with tempfile.TemporaryDirectory() as unpacked:
         try:
-            with tarfile.open(path) as archive:  # only this split's files, only inside unpacked
-                safe = {"filter": "data"} if hasattr(tarfile, "data_filter") else {}  # 3.10.12+
-                archive.extractall(unpacked, [m for m in archive
-                                              if split in PurePosixPath(m.name).parts[:2]], **safe)
+            with tarfile.open(path) as archive:  # and Python's own filter, where it has one
+                safe = {"filter": "data"} if hasattr(tarfile, "data_filter") else {}
+                archive.extractall(unpacked, _split_members(archive, split), **safe)
         except (EOFError, tarfile.TarError, zlib.error, gzip.BadGzipFile) as err:
             raise CorruptDataError(
                 f"cannot read CIFAR-10 from {path}: {type(err).__name__}: {err}. The archive is "
