@@ -1,6 +1,6 @@
 """Run notebook 02's sensitivity and projector sweeps at a scale; store the results as JSON.
 
-    python -m research.sweep --scale class --out checkpoints/sweeps_class.json
+    python -m research.sweep --scale class --out checkpoints/sweeps_class.json [--record]
 
 Two families of short training runs of the CIFAR-10 recipe (``sweep_steps`` steps each,
 from the same initial weights), each scored with the frozen protocol
@@ -32,9 +32,10 @@ from ebjepa_tutorial.data import data_dir, load_cifar10, random_subset
 from ebjepa_tutorial.data.cifar10 import find_cifar10
 from ebjepa_tutorial.data.paths import atomic_file
 from ebjepa_tutorial.evaluation.classify import probe_encoder
-from ebjepa_tutorial.evaluation.sweeps import shorten
+from ebjepa_tutorial.evaluation.sweeps import load_sweeps, shorten, tenfold_costs
 from ebjepa_tutorial.training.image import ImageJEPAConfig, identity, train_image_jepa
 from ebjepa_tutorial.utils import get_device
+from tools import figures
 
 from .train_image import protocol
 
@@ -176,7 +177,11 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description="Notebook 02's sensitivity and projector sweeps.")
     parser.add_argument("--scale", choices=SCALES, default="class")
     parser.add_argument("--out", required=True, help="the JSON file to write (and resume)")
+    parser.add_argument("--record", action="store_true", help="store the tenfold costs in "
+                        "checkpoints/reference.json, which the pages quote (class scale only)")
     args = parser.parse_args(argv)
+    if args.record and args.scale != "class":
+        parser.error("--record stores the class sweep's figures: drop --scale or --record")
     sizes = preset("02", args.scale)
     train = random_subset(*load_cifar10("train"), sizes.train_images)
     test = random_subset(*load_cifar10("test"), sizes.test_images)
@@ -189,6 +194,20 @@ def main(argv: list[str] | None = None) -> None:
     written = json.loads(Path(args.out).read_text())  # the description of the runs' training
     save_results(args.out, rows, {name: value for name, value in written.items() if name != "runs"})
     print(f"done in {(time.perf_counter() - start) / 60:.1f} min; results in {args.out}")
+    if args.record:
+        record_tenfold_costs(args.out, meta["command"] + " --record")
+
+
+def record_tenfold_costs(path: str | Path, command: str) -> None:
+    """Record the points of probe accuracy a tenth or ten times each default costs, per method
+    (``tenfold_costs``: the fewest and most over its coefficients), from the sweep at ``path``."""
+    meta, rows = load_sweeps(path)
+    for method, (low, high) in tenfold_costs(rows["sensitivity"]).items():
+        figures.record(f"sweep_{method.lower()}_tenfold_points", high, command,
+                       "points of linear-probe accuracy lost at a tenth or ten times each "
+                       f"default coefficient, {rows['sensitivity'][0]['config']['steps']} steps "
+                       "per run, one seed; spread: the fewest and most over the method's "
+                       "coefficients", meta["torch_threads"], spread=(low, high))
 
 
 if __name__ == "__main__":

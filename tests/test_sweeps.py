@@ -195,3 +195,15 @@ def test_the_recorded_tenfold_costs_are_those_of_the_shipped_sweep():
         entry = recorded[f"sweep_{method.lower()}_tenfold_points"]  # what the pages print
         assert entry["spread"] == pytest.approx([low, high])
         assert entry["value"] == pytest.approx(high)
+
+
+def test_record_stores_the_shipped_sweeps_tenfold_costs_and_refuses_other_scales(monkeypatch):
+    stored = {}
+    monkeypatch.setattr(sweep.figures, "record", lambda key, value, command, protocol, threads,
+                        spread: stored.update({key: (value, spread, command)}))
+    sweep.record_tenfold_costs(SHIPPED_DIR / "sweeps_class.json", "the command")
+    _, rows = load_sweeps(SHIPPED_DIR / "sweeps_class.json")
+    assert stored == {f"sweep_{method.lower()}_tenfold_points": (high, (low, high), "the command")
+                      for method, (low, high) in tenfold_costs(rows["sensitivity"]).items()}
+    with pytest.raises(SystemExit):  # before any data is read or any run trains
+        sweep.main(["--scale", "ci", "--out", "x.json", "--record"])
