@@ -681,7 +681,7 @@ def test_hints_come_one_level_at_a_time(capsys):
     assert "Hint 2 of 3 for covariance_term, the formula" in capsys.readouterr().out
     exercises.hint("mppi")
     assert "no exercise called 'mppi'" in capsys.readouterr().out
-    for level in (4, 2.0):  # past the last hint, or a float that looks like a level
+    for level in (4, 2.0, True):  # past the last hint, or a float or bool that looks like one
         with pytest.raises(ValueError, match=f"level is 1 .*not {level!r}"):
             exercises.hint("mppi_update", level=level)
 

@@ -10,6 +10,8 @@ from pathlib import Path
 import torch
 import yaml
 
+from ...utils import is_int_at_least
+
 TEXTS = yaml.safe_load(Path(__file__).with_name("hints.yaml").read_text(encoding="utf-8"))
 WORDS = yaml.safe_load(Path(__file__).with_name("general.yaml").read_text(encoding="utf-8"))
 HINTS = {name: tuple(texts["hints"]) for name, texts in TEXTS.items()}
@@ -42,7 +44,7 @@ def hint(name, level: int | None = None) -> None:
         print(say("no_such_exercise", name=name, names=", ".join(sorted(HINTS))))
         return
     level = min(_shown.get(name, 0) + 1, len(LEVELS)) if level is None else level
-    if not isinstance(level, int) or level not in range(1, len(LEVELS) + 1):  # 2.0: not an index
+    if not is_int_at_least(1)(level) or level > len(LEVELS):  # 2.0 or True: not a level
         raise ValueError(say("bad_level", level=level))
     _shown[name] = max(_shown.get(name, 0), level)
     print(_hint_text(name, level))
