@@ -56,3 +56,10 @@ def test_a_short_full_image_run_takes_a_shorter_warmup(monkeypatch, capsys):
     with pytest.raises(SystemExit):  # the preset's 1,950 warm-up steps do not fit in 300
         train_image.main(["--scale", "full", "--steps", "300", "--out", "x"])
     assert "warmup_steps" in capsys.readouterr().err
+
+
+def test_a_step_the_noise_outweighed_reads_not_measured_rather_than_zero_seconds():
+    from research.benchmarks import full_scale
+
+    line = full_scale.row("image", None, 2, math.nan, math.nan, set())
+    assert line.startswith("image       2  not measured") and "more --steps" in line

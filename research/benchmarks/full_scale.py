@@ -160,8 +160,8 @@ def output_dtypes():
 
 def time_steps(chapter: Chapter, batch: int, steps: int, warmup: int,
                device: torch.device) -> tuple[float, set[torch.dtype]]:
-    """Wall seconds of one training step, ``(T(warmup + steps) - T(warmup)) / steps``, and the
-    dtypes its networks computed in.
+    """Wall seconds of one training step, ``(T(warmup + steps) - T(warmup)) / steps`` (nan if
+    not positive: the noise outweighed the steps), and the dtypes its networks computed in.
 
     Every run starts from a fresh model, so building it and its first (slow) steps cancel
     in the difference. A first, untimed run pays the process's one-time costs (the CUDA
@@ -177,7 +177,8 @@ def time_steps(chapter: Chapter, batch: int, steps: int, warmup: int,
 
     with output_dtypes() as dtypes:
         chapter.train(warmup, batch, device)
-    return max(timed(warmup + steps) - timed(warmup), 0.0) / steps, dtypes
+    seconds = (timed(warmup + steps) - timed(warmup)) / steps
+    return (seconds if seconds > 0 else math.nan), dtypes  # nan: noise outweighed the steps
 
 
 def chosen_batch(chapter: Chapter, args, ranks: int) -> int:
@@ -202,7 +203,10 @@ def duration(seconds: float) -> str:
 def row(name: str, chapter: Chapter, batch: int, s_per_step: float, peak_gib: float,
         dtypes: set[torch.dtype]) -> str:
     """One line of the table; the schedule's wall time assumes this many samples per second."""
-    rate = batch / s_per_step if s_per_step > 0 else math.inf
+    if not s_per_step > 0:
+        return (f"{name:<7}{batch:>6}  not measured: the timed steps took less than the timing's "
+                "noise (building a model on busy cores); time more --steps")
+    rate = batch / s_per_step
     epochs = chapter.schedule_steps * chapter.batch / chapter.epoch  # e.g. 300 of CIFAR-10
     projected = "projected" if batch == chapter.batch else (
         f"projected from batch {batch}, not the paper's {chapter.batch}")
