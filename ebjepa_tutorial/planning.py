@@ -335,8 +335,9 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig, steps: int 
     if world not in WORLDS:
         raise ValueError(f"world must be one of {WORLDS}, got {world!r}")
     seeds, batch = list(seeds), batch or len(seeds)
-    if not seeds:
-        raise ValueError("run_episodes needs at least one seed (one episode per seed)")
+    if not seeds or not (steps is None or is_int_at_least(1)(steps)):
+        raise ValueError(f"run_episodes needs at least one seed (one episode per seed) and "
+                         f"steps None or an int >= 1; got {len(seeds)} seeds, steps={steps!r}")
     model.eval()
     cpu, wall = time.process_time(), time.perf_counter()
     arrived = None  # the energy below which the agent stands still: pixels for "true_xy"

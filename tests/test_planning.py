@@ -348,8 +348,10 @@ def test_with_true_motion_and_the_euclidean_energy_the_planner_crosses_the_door(
     assert result.success.all()  # each start and goal lie in opposite rooms
     with pytest.raises(ValueError, match="world must be one of"):
         planning.run_episodes(LinearLatentModel(), [0], config, world="perfect")
-    with pytest.raises(ValueError, match="at least one seed"):  # not range()'s zero step
+    with pytest.raises(ValueError, match="at least one seed.*got 0 seeds"):  # not range()'s
         planning.run_episodes(LinearLatentModel(), [], config)
+    with pytest.raises(ValueError, match="steps None or an int >= 1.*steps=0"):  # not stack's
+        planning.run_episodes(LinearLatentModel(), [0], config, steps=0)
 
 
 def test_energy_by_distance_of_a_position_latent_is_the_ring_distance():
