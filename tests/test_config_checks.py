@@ -5,7 +5,7 @@ import dataclasses
 import pytest
 import torch
 
-from ebjepa_tutorial.course.presets import PRESETS
+from ebjepa_tutorial.course.presets import PRESETS, SCALES
 from ebjepa_tutorial.models.video import VideoJEPA
 from ebjepa_tutorial.training.image import ImageJEPAConfig
 from ebjepa_tutorial.training.video import VIDEO_CONFIGS, VideoJEPAConfig
@@ -22,12 +22,30 @@ def test_a_config_that_cannot_work_names_its_field(config, change, message):
         config(**change)
 
 
+def _configs(value):
+    """Every dataclass inside ``value`` (itself, its fields, tuples of them), depth first."""
+    if dataclasses.is_dataclass(value):
+        yield value
+        for field in dataclasses.fields(value):
+            yield from _configs(getattr(value, field.name))
+    elif isinstance(value, tuple):
+        for item in value:
+            yield from _configs(item)
+
+
 def test_every_preset_is_a_valid_config():
-    # building scale.PRESETS ran every __post_init__; the replaced copies must pass too
-    for notebook in ("01", "02"):
-        for preset in PRESETS[notebook].values():
-            dataclasses.replace(preset.long_config)
-    assert all(PRESETS[n] for n in PRESETS)
+    # every notebook has a preset at every scale, and every config inside one passes its
+    # checks again when rebuilt (dataclasses.replace reruns __post_init__), so a check
+    # added later cannot be silently broken by a preset built before it
+    assert set(PRESETS) == {f"{n:02d}" for n in range(8)}
+    checked = 0
+    for notebook, scales in PRESETS.items():
+        assert set(scales) == set(SCALES), notebook
+        for preset in scales.values():
+            for config in _configs(preset):
+                dataclasses.replace(config)
+                checked += 1
+    assert checked > 100  # the planners, recipes, models and noise of every preset
 
 
 def test_float_frames_in_0_255_are_refused_and_uint8_accepted():

@@ -20,6 +20,11 @@ def test_variance_hinge_by_hand():
     # dim 0: unbiased var 2 -> std 1.414 > 1, no penalty; dim 1: var 0 -> std sqrt(eps)
     expected = (0.0 + (1.0 - math.sqrt(1e-4))) / 2
     assert losses.variance_term(z).item() == pytest.approx(expected, abs=1e-6)
+    # a spread under gamma: dim 0 has unbiased var 0.5 (biased 0.25), so the hinge reads
+    # 1 - sqrt(0.5 + eps); a biased variance or an eps outside the root gives another number
+    z = torch.tensor([[0.0, 0.0], [1.0, 0.0]])
+    expected = ((1.0 - math.sqrt(0.5 + 1e-4)) + (1.0 - math.sqrt(1e-4))) / 2
+    assert losses.variance_term(z).item() == pytest.approx(expected, abs=1e-6)
 
 
 def test_variance_is_zero_when_every_std_exceeds_gamma():
@@ -33,6 +38,10 @@ def test_covariance_two_dims_by_hand():
     # C = [[2, 4], [4, 8]]; off-diagonal squares 16 + 16, divided by D(D-1) = 2
     assert losses.covariance_matrix(z).tolist() == [[2.0, 4.0], [4.0, 8.0]]
     assert losses.covariance_term(z).item() == pytest.approx(16.0)
+    # the same rows moved by (1, 1): the covariance is of the centred rows, so it is unchanged
+    # (without centring it would read [[4, 6], [6, 10]] and a term of 36, not 16)
+    assert losses.covariance_matrix(z + 1).tolist() == [[2.0, 4.0], [4.0, 8.0]]
+    assert losses.covariance_term(z + 1).item() == pytest.approx(16.0)
 
 
 def test_covariance_three_dims_by_hand():
@@ -52,6 +61,12 @@ def test_vicreg_loss_weights_the_terms():
     total, terms = losses.vicreg_loss(z_a, z_b, inv_coeff=2.0, std_coeff=3.0, cov_coeff=5.0)
     expected = 2 * terms["invariance"] + 3 * terms["variance"] + 5 * terms["covariance"]
     assert total.item() == pytest.approx(float(expected), rel=1e-5)
+    # each regulariser is the mean over the two views, the invariance between them
+    by_term = {"invariance": losses.invariance_term(z_a, z_b),
+               "variance": (losses.variance_term(z_a) + losses.variance_term(z_b)) / 2,
+               "covariance": (losses.covariance_term(z_a) + losses.covariance_term(z_b)) / 2}
+    assert {k: float(v) for k, v in terms.items()} == pytest.approx(
+        {k: float(v) for k, v in by_term.items()}, rel=1e-6)
     assert set(terms) == {"invariance", "variance", "covariance"}
     # detached tensors: logging them keeps no graph alive and costs no wait for a GPU
     assert all(v.ndim == 0 and not v.requires_grad for v in terms.values())

@@ -5,7 +5,7 @@ import torch
 
 from ebjepa_tutorial.augment import build_augmentation, two_views
 from ebjepa_tutorial.losses import vicreg_loss
-from ebjepa_tutorial.models.encoders import ResNet18, build_projector
+from ebjepa_tutorial.models.encoders import ResidualBlock, ResNet18, build_projector
 from ebjepa_tutorial.utils import as_generator
 
 SMALL = (8, 16, 32, 64)
@@ -67,3 +67,25 @@ def test_one_vicreg_training_step_runs():
     optimizer.step()
     assert torch.isfinite(loss) and set(terms) == {"invariance", "variance", "covariance"}
     assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in params)
+    for _ in range(2):  # the same views again: steps down the gradient lower their loss
+        z = projector(encoder(torch.cat([view_a, view_b])))
+        later, _ = vicreg_loss(*z.chunk(2), inv_coeff=25.0, std_coeff=25.0, cov_coeff=1.0)
+        optimizer.zero_grad()
+        later.backward()
+        optimizer.step()
+    assert later.item() < loss.item() - 0.1, (loss.item(), later.item())
+
+
+def test_a_residual_block_adds_its_shortcut_and_rectifies_only_when_asked():
+    # with the second convolution's weights at zero the residual branch adds nothing, so the
+    # block is its shortcut: relu(x) for an identity shortcut, x itself with relu_out=False
+    x = torch.randn(2, 4, 6, 6, generator=as_generator(0))
+    for relu_out, expected in ((True, torch.relu(x)), (False, x)):
+        block = ResidualBlock(4, 4, relu_out=relu_out).eval()
+        torch.nn.init.zeros_(block.conv2.weight)
+        assert torch.allclose(block(x), expected, atol=1e-6)
+    # a block that changes the width or the side projects the shortcut (a 1x1 conv with stride)
+    block = ResidualBlock(4, 8, stride=2).eval()
+    torch.nn.init.zeros_(block.conv2.weight)
+    assert torch.allclose(block(x), torch.relu(block.shortcut(x)), atol=1e-6)
+    assert block(x).shape == (2, 8, 3, 3)

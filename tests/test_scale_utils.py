@@ -53,9 +53,13 @@ def test_seed_must_be_an_integer():
         seed_everything(1.5)
 
 
-def test_device_choice():
-    assert get_device("cpu") == torch.device("cpu")
-    assert get_device().type in {"cuda", "mps", "cpu"}
+@pytest.mark.parametrize("cuda, mps, best", [
+    (True, True, "cuda"), (False, True, "mps"), (False, False, "cpu")])
+def test_device_choice_prefers_cuda_then_mps_then_cpu(monkeypatch, cuda, mps, best):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: cuda)
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: mps)
+    assert get_device().type == best
+    assert get_device("cpu") == torch.device("cpu")  # asked for, whatever is available
 
 
 def test_video_preset_fits_its_clips_and_budget():

@@ -96,6 +96,11 @@ def test_directions_are_unit_and_seeded():
     d1 = random_directions(8, 5, as_generator(3))
     assert d1.shape == (8, 5) and torch.allclose(d1.norm(dim=0), torch.ones(5))
     assert torch.equal(d1, random_directions(8, 5, as_generator(3)))
+    # uniform on the sphere: no favoured direction, so the second moment is I / D (uniform
+    # numbers in [0, 1), or directions left unnormalised, would fail this)
+    d = random_directions(8, 20_000, as_generator(4))
+    assert torch.allclose(d @ d.T / 20_000, torch.eye(8) / 8, atol=0.005)
+    assert d.mean(dim=1).abs().max() < 0.01
 
 
 def test_same_generator_same_value_fresh_slices_each_call():

@@ -361,6 +361,11 @@ def test_environment_steps_and_scores():
     assert not env.success().any()  # goals are in the other room, far away
     env.positions = env.goals.clone()
     assert env.success().all() and torch.equal(env.distance_to_goal(), torch.zeros(8))
+    # the paper's 4.5 px, edge included: 3-4-5 away fails, 4.5 straight up succeeds
+    offsets = [[3.0, 4.0], [0.0, 4.5], [0.0, 4.6]] + [[0.0, 0.0]] * 5
+    env.positions = env.goals + torch.tensor(offsets)
+    assert env.distance_to_goal()[:3].tolist() == pytest.approx([5.0, 4.5, 4.6])
+    assert env.success()[:3].tolist() == [False, True, False]
     for wrong in (torch.zeros(4, 2), torch.zeros(0, 2)):  # an empty batch too: a clear error
         with pytest.raises(ValueError, match=r"shape \(8, 2\)"):
             env.step(wrong)
