@@ -62,7 +62,7 @@ fetch-data: setup
 # The fast unit tests (under 30 s on 2 idle cores), for quick edit-test loops; `slow` marks the rest.
 # Spread like `test` (--dist load: the fast tests are many and short, so per test, not per file).
 # No nbval: it runs no notebook here, and loading it (nbformat, jsonschema) costs each process
-# about a second before the first test.
+# one to several seconds before the first test (research/notes/2026-12-07-thin-package-10.md).
 test-fast: setup
 	MPLBACKEND=agg OMP_WAIT_POLICY=PASSIVE OMP_NUM_THREADS=1 $(BIN)/python -m pytest tests \
 		-q -n auto --maxprocesses 4 -m "not slow and not browser" -p no:nbval

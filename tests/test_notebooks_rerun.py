@@ -1,7 +1,7 @@
 """The student versions run to the end with nothing solved, and survive re-running any cell.
 
-The book's ci build (tests/test_book.py) runs every notebook, with its solutions,
-top to bottom.
+nbval runs every notebook once, with its solutions, top to bottom (the book's test
+renders them without running them again).
 This runs each notebook's student version (``make student``: every exercise
 left as its stub) top to bottom, as a learner's "Run All" does, then every cell
 again, the edit-and-rerun habit of a class. The exercise cells are the only
