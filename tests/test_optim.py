@@ -38,6 +38,9 @@ def test_scheduler_sets_the_optimizer_lr():
         scheduler.step()
     assert seen[0] == pytest.approx(0.3 / 5) and seen[4] == pytest.approx(0.3)
     assert seen[-1] == pytest.approx(0.0, abs=1e-12)
+    for _ in range(5):  # a resumed or over-long run: the rate stays at 0, never climbs back
+        scheduler.step()
+        assert optimizer.param_groups[0]["lr"] == pytest.approx(0.0, abs=1e-12)
 
 
 def test_split_decay_params():
@@ -45,3 +48,6 @@ def test_split_decay_params():
     decay, no_decay = split_decay_params(model, 0.05)
     assert [p.shape for p in decay["params"]] == [(4, 3)] and decay["weight_decay"] == 0.05
     assert len(no_decay["params"]) == 3 and no_decay["weight_decay"] == 0.0
+    model[0].weight.requires_grad_(False)  # a frozen layer is in neither group
+    decay, no_decay = split_decay_params(model, 0.05)
+    assert decay["params"] == [] and len(no_decay["params"]) == 3

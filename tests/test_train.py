@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from ebjepa_tutorial.training import checkpoints, loop
+from ebjepa_tutorial.training.loop import History
 
 
 def _problem(seed=0):
@@ -168,6 +169,16 @@ def test_load_or_train_prefers_a_matching_shipped_checkpoint(tmp_path, capsys):
     assert "Loaded" in capsys.readouterr().out
     assert torch.equal(fresh.weight, model.weight)
     assert not (tmp_path / "cache.pt").exists()
+    # another run's shipped file (5 steps, not 6) is neither loaded nor touched: this run trains
+    before = shipped.read_bytes()
+    trained = _problem(seed=4)[0]
+    loaded, _ = loop.load_or_train(tmp_path / "cache.pt", _problem(seed=3)[0],
+                                   lambda partial: (trained, History()), {"steps": 6},
+                                   shipped=shipped)
+    assert "Trained and saved" in capsys.readouterr().out
+    assert torch.equal(loaded.weight, trained.weight) and not torch.equal(loaded.weight,
+                                                                         model.weight)
+    assert shipped.read_bytes() == before and (tmp_path / "cache.pt").exists()
 
 
 def test_checkpoint_paths_separate_cache_and_shipped(monkeypatch, tmp_path):

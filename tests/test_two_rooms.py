@@ -366,6 +366,13 @@ def test_environment_steps_and_scores():
     env.positions = env.goals + torch.tensor(offsets)
     assert env.distance_to_goal()[:3].tolist() == pytest.approx([5.0, 4.5, 4.6])
     assert env.success()[:3].tolist() == [False, True, False]
+    # the record a planner's results are read from: every position, start first, and every
+    # action as asked, a copy the caller may reuse
+    assert len(env.path) == 2 and torch.equal(env.path[0], start)
+    assert torch.equal(env.path[1], transition(start, action, env.layouts))
+    asked = action.clone()
+    action += 1.0  # the caller's tensor changes after the step
+    assert len(env.actions) == 1 and torch.equal(env.actions[0], asked)
     for wrong in (torch.zeros(4, 2), torch.zeros(0, 2)):  # an empty batch too: a clear error
         with pytest.raises(ValueError, match=r"shape \(8, 2\)"):
             env.step(wrong)
