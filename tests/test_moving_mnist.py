@@ -153,6 +153,16 @@ def test_generated_speed_is_fixed(batch):
     assert torch.allclose(speed, torch.full_like(speed, 3.6))
 
 
+def test_the_pasted_digits_move_by_their_velocity(batch):
+    # between frames without a bounce a digit's patch moves by its velocity, to within the
+    # rounding of each position to whole pixels (x and y swapped, or frozen digits, would fail)
+    moved = (batch.offsets[:, 1:] - batch.offsets[:, :-1]).float()  # (N, T-1, K, 2)
+    velocity = batch.velocities[:, :-1]
+    straight = (batch.velocities[:, 1:] == velocity).all(dim=-1)  # neither axis bounced
+    assert straight.float().mean() > 0.7
+    assert ((moved - velocity).abs()[straight] <= 1.0 + 1e-5).all()
+
+
 def test_same_seed_same_clips_and_different_seed_different(digits_and_boxes):
     digits = digits_and_boxes[0]
     a = generate_moving_mnist(digits, 8, seed=11)
