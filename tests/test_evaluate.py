@@ -1,5 +1,7 @@
 """Linear probe and kNN on synthetic features; features of a frozen encoder."""
 
+import math
+
 import pytest
 import torch
 
@@ -65,6 +67,15 @@ def test_knn_votes_by_hand():
     # but the temperature's weights favour the much closer class-1 neighbour for the first
     # query (cosine 0.8 vs 0.6 and 0.68).
     assert knn_predict(train, labels, query).tolist() == [1, 0]
+    # the single nearest row (class 0, cosine 1) loses to five slightly farther class-1 rows
+    # (cosine 0.99 each: 5 exp(0.99 / 0.07) > exp(1 / 0.07)), where 1-NN would say class 0
+    angle = math.acos(0.99)
+    near = [[math.cos(angle), math.sin(angle)]] * 5
+    assert knn_predict(torch.tensor([[1.0, 0.0]] + near), torch.tensor([0] + [1] * 5),
+                       torch.tensor([[1.0, 0.0]])).tolist() == [1]
+    # similarity is the cosine, not the dot product: a long row pointing away does not win
+    assert knn_predict(torch.tensor([[0.5, 0.0], [10.0, 10.0]]), torch.tensor([0, 1]),
+                       torch.tensor([[1.0, 0.0]])).tolist() == [0]
 
 
 def test_embed_is_frozen_and_restores_the_mode():
