@@ -100,10 +100,12 @@ class LatentReplay:
     STREAM = 2**40  # the replay's generators: seeded apart from the batches' (step_generator)
 
     def __init__(self, model: WorldModel, config: WorldTrainConfig, frames: int, device):
-        if REPLAY_BATCH % distributed.world_size():  # each rank replays its share of the draw
+        try:  # each rank replays its share of the draw, by the batch's own rule
+            distributed.per_rank_batch(REPLAY_BATCH)
+        except ValueError:
             raise ValueError(f"latent replay's {REPLAY_BATCH} windows per update cannot be "
                              f"shared by {distributed.world_size()} processes: run a power of "
-                             "2 of them, or a recipe with replay_steps=0")
+                             "2 of them, or a recipe with replay_steps=0") from None
         self.model, self.config, self.filled, self.head = model, config, 0, 0
         self.parameters = [*model.predictor.parameters(), *model.action_encoder.parameters()]
         self.optimizer = torch.optim.Adam(self.parameters, lr=REPLAY_LR)
