@@ -20,7 +20,6 @@ optimiser) and, on a CPU with bf16, how much longer the step takes in float32
 from __future__ import annotations
 
 import argparse
-import platform
 import statistics
 import time
 from dataclasses import replace
@@ -45,7 +44,7 @@ from ebjepa_tutorial.training.image import (
 )
 from ebjepa_tutorial.training.optim import split_decay_params
 from ebjepa_tutorial.utils import at_least_float32, mixed_precision
-from research.benchmarks import command_line
+from research.benchmarks import command_line, cpu_name
 from research.benchmarks.timing import (
     backward_and_step,
     precision_name,
@@ -84,16 +83,6 @@ def step_split(config, images: torch.Tensor, bf16: bool = True) -> dict[str, flo
         yield from backward_and_step(optimizer, loss)
 
     return time_parts(step)
-
-
-def cpu_name() -> str:
-    """The CPU's model name (Linux), for a timing's protocol: speeds differ between hosts."""
-    try:
-        with open("/proc/cpuinfo") as info:
-            return next(line.split(":", 1)[1].strip() for line in info
-                        if line.startswith("model name"))
-    except (OSError, StopIteration):
-        return platform.processor() or "an unnamed CPU"
 
 
 def split_and_precision(config, images: torch.Tensor, args, rounds: int = 7) -> None:

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import shutil
 import time
 from contextlib import contextmanager
@@ -27,7 +26,7 @@ import nbformat
 import torch
 from nbclient import NotebookClient
 
-from research.benchmarks import command_line
+from research.benchmarks import command_line, cpu_name
 from tools import figures
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -79,7 +78,7 @@ def main() -> None:
                         help="move data/cache's trained runs aside: a learner's first run")
     parser.add_argument("--record", action="store_true")
     args = parser.parse_args()
-    host = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores"
+    host = f"{cpu_name()}, {os.cpu_count()} cores"
     with cold_cache(args.cold):
         for path in notebooks(args.only):
             seconds = run_notebook(path, args.scale)
