@@ -402,6 +402,20 @@ def test_a_sign_flipped_answer_is_named(name):
         CHECKERS[name](_sign_flipped(SOLUTIONS[name]))
 
 
+def test_the_general_causes_use_the_cases_own_tolerance():
+    # a case whose answer float32 can only give to 1e-2: a sign flip off by 5e-3 is still a
+    # sign flip, and the checker must say so rather than print only the numbers
+    from ebjepa_tutorial.course.exercises.common import Case, Exercise
+
+    def course(x):
+        return 100 * x.sum()
+
+    check = Exercise("variance_term", course, mistakes={},
+                     cases=lambda: [Case("a loose case", (torch.full((4,), 0.025),), atol=1e-2)])
+    with pytest.raises(exercises.ExerciseError, match=r"has the wrong sign on a loose case"):
+        check(lambda x: -course(x) + 5e-3)
+
+
 def test_a_numpy_implementation_is_named():
     def variance_term(z, gamma=1.0, eps=1e-4):
         std = np.sqrt(np.var(z.detach().numpy(), axis=0, ddof=1) + eps)

@@ -265,7 +265,7 @@ class Exercise:
             return f"{name} {words}{why}"
         sizes = {k: n for i, axes in self.dims.items()
                  for k, n in zip(axes, case.args[i].shape) if k != "_"}
-        if why or not (general := _general_cause(g, e, self.atol, {**sizes, **case.sizes},
+        if why or not (general := _general_cause(g, e, atol, {**sizes, **case.sizes},
                                                  TEXTS[self.exercise].get("factors", {}))):
             return say("wrong_value", name=name, numbers=numbers, case=case.description, why=why)
         found, means, look = general
