@@ -123,8 +123,8 @@ def generate_trajectories(n: int, steps: int = 16, seed=0, door_fraction: float 
                           wall_fraction: float = 0.0, kappa: float = 5.0, step_mean: float = 1.0,
                           walls: int = 1, layouts: torch.Tensor | None = None) -> Trajectories:
     """``n`` random walks of ``steps`` actions (``steps + 1`` frames), in fresh layouts of
-    ``walls`` walls or in ``layouts`` (n, 2W); ``seed``: an int or a torch.Generator.
-    ``round(door_fraction * n)`` start at a door, ``round(wall_fraction * n)`` at a wall."""
+    ``walls`` walls or in ``layouts`` (n, 2W); ``seed``: an int or a torch.Generator. Of them,
+    ``round(door_fraction * n)`` start at a door, up to ``round(wall_fraction * n)`` at a wall."""
     if not (0 <= door_fraction and 0 <= wall_fraction and door_fraction + wall_fraction <= 1
             and kappa > 0):
         raise ValueError("door_fraction and wall_fraction must be >= 0 with a sum <= 1, and kappa "
