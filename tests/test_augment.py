@@ -110,3 +110,21 @@ def test_same_generator_state_gives_same_views_and_leaves_global_rng_alone():
 def test_bad_input_is_named(bad, match):
     with pytest.raises(ValueError, match=match):
         augment(bad, PIPELINE, as_generator(0))
+
+
+def test_each_setting_of_the_config_reaches_its_augmentation():
+    config = AugmentConfig(size=24, crop_scale=(0.3, 0.9), jitter_p=0.7, grayscale_p=0.15,
+                           solarize_p=0.05, flip_p=0.25)
+    steps = {type(m).__name__: m for m in build_augmentation(config).children()}
+    torch.manual_seed(0)
+    shape = torch.Size([4000, 3, 32, 32])
+    crop = steps["RandomResizedCrop"].forward_parameters(shape)
+    corners = crop["src"]  # (B, 4, 2): the crop's corners in the 32-px image, clockwise
+    area = ((corners[:, 1, 0] - corners[:, 0, 0] + 1) * (corners[:, 2, 1] - corners[:, 1, 1] + 1)
+            / 32**2)  # the fraction kept, within a pixel's rounding of crop_scale
+    assert 0.27 < area.min() < 0.33 and 0.87 < area.max() < 0.93
+    assert tuple(crop["output_size"][0].tolist()) == (24, 24)
+    for name, p in [("ColorJitter", 0.7), ("RandomGrayscale", 0.15), ("RandomSolarize", 0.05),
+                    ("RandomHorizontalFlip", 0.25)]:  # the share of images each one changes
+        applied = steps[name].forward_parameters(shape)["batch_prob"].float().mean()
+        assert abs(applied - p) < 0.03, name

@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 
+from ebjepa_tutorial.augment import CIFAR10_MEAN, CIFAR10_STD
 from ebjepa_tutorial.evaluation.classify import accuracy, embed, knn_predict, linear_probe
 from ebjepa_tutorial.models.encoders import ResNet18
 from ebjepa_tutorial.utils import as_generator
@@ -92,3 +93,40 @@ def test_embed_is_frozen_and_restores_the_mode():
     with pytest.raises(TypeError, match="uint8"):
         embed(encoder, images.float(), 32)
 
+
+
+class _ChannelMeans(torch.nn.Module):
+    """An "encoder" whose features are each channel's mean: ``(N, 3, S, S) -> (N, 3)``."""
+
+    def __init__(self):
+        super().__init__()
+        self.anchor = torch.nn.Parameter(torch.zeros(()))  # embed reads the device from it
+
+    def forward(self, x):
+        return x.mean(dim=(2, 3))
+
+
+@pytest.mark.parametrize("size", [32, 16])
+def test_embed_normalises_with_the_cifar_statistics_before_the_encoder(size):
+    # a flat image stays flat when resized, so its features are (value / 255 - mean) / std
+    # per channel at every size: a missing /255, a missing normalisation or a resize that
+    # darkens the borders would each give other numbers
+    levels = torch.tensor([[0, 128, 255], [40, 200, 90]], dtype=torch.uint8)  # (N, 3)
+    images = levels[:, :, None, None].expand(2, 3, 32, 32).contiguous()
+    mean, std = torch.tensor(CIFAR10_MEAN), torch.tensor(CIFAR10_STD)
+    expected = (levels.float() / 255 - mean) / std
+    assert torch.allclose(embed(_ChannelMeans(), images, size), expected, atol=1e-5)
+
+
+def test_the_linear_probe_standardises_with_the_training_features():
+    # train: class 0 at x = -1, class 1 at x = +1, both shifted by 100; test: class 1 only.
+    # Standardised with the training statistics, every test point lands at +1 and is right;
+    # standardised with the test set's own, they would land around 0, half of them wrong.
+    gen = as_generator(0)
+    y_train = torch.arange(200) % 2
+    x_train = 100 + (2 * y_train.float() - 1)[:, None] + 0.1 * torch.randn(200, 1, generator=gen)
+    x_test = 101 + 0.1 * torch.randn(50, 1, generator=gen)
+    test_accuracy, probe = linear_probe(x_train, y_train, x_test, torch.ones(50, dtype=torch.long))
+    assert test_accuracy == 1.0
+    assert torch.allclose(probe.mean, x_train.mean(dim=0))
+    assert torch.allclose(probe.std, x_train.std(dim=0) + 1e-6)

@@ -9,7 +9,7 @@ import pytest
 import torch
 from torch import nn
 
-from ebjepa_tutorial import augment
+from ebjepa_tutorial import augment, losses
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.evaluation import classify
 from ebjepa_tutorial.training import image
@@ -324,3 +324,17 @@ def test_long_run_command_takes_a_scale_and_counts_resumed_minutes(tmp_path, mon
     train_image.main(["--scale", "ci", "--steps", "6", "--out", str(out)])  # resumes: all done
     assert asked == ["ci"]
     assert torch.load(out, weights_only=True)["minutes"] == 3.0  # 6 steps of 30 s, not 0
+
+
+def test_the_default_weights_are_the_reference_codes_with_the_views_averaged():
+    # the EB-JEPA code adds the two views' regularisers with weights 1 / 1 / 80; the course
+    # averages them, so the same loss needs 1 / 2 / 160 (a copied 1 / 1 / 80 halves both)
+    gen = torch.Generator().manual_seed(0)
+    z_a, z_b = torch.randn(32, 8, generator=gen), torch.randn(32, 8, generator=gen) * 0.5
+    weights = image.VICReg()
+    ours, _ = losses.vicreg_loss(z_a, z_b, weights.inv_coeff, weights.std_coeff,
+                                 weights.cov_coeff)
+    reference = (losses.invariance_term(z_a, z_b)
+                 + 1.0 * (losses.variance_term(z_a) + losses.variance_term(z_b))
+                 + 80.0 * (losses.covariance_term(z_a) + losses.covariance_term(z_b)))
+    assert torch.allclose(ours, reference, rtol=1e-6)

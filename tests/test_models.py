@@ -38,6 +38,9 @@ def test_projector_layers_and_identity():
     assert isinstance(projector, torch.nn.Sequential)
     kinds = [type(m).__name__ for m in projector]
     assert kinds == ["Linear", "BatchNorm1d", "ReLU"] * 2 + ["Linear"]
+    # a bias before batch norm is subtracted again at once; only the output layer keeps one
+    assert [m.bias is not None for m in projector if isinstance(m, torch.nn.Linear)] == [
+        False, False, True]
     assert projector(torch.randn(4, 64)).shape == (4, 32) and projector.out_dim == 32
     identity = build_projector(64, 0, 0, depth=0)
     x = torch.randn(4, 64)
