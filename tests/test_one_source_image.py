@@ -87,3 +87,53 @@ def test_an_edited_step_is_a_run_of_its_own(tmp_path, monkeypatch, capsys):
     assert history != unedited
     _, again = image.train_or_load(config, "a_run", images)  # the package's step: unedited
     assert "Loaded" in capsys.readouterr().out and again == unedited  # kept, not replaced
+
+
+def _notebook_01(vicreg_source: str):
+    """Notebook 01's step and the learner's ``vicreg`` from ``vicreg_source``, both defined
+    as a kernel defines a cell's functions (in ``__main__``)."""
+    space = {**vars(image), "__name__": "__main__"}
+    for source in (vicreg_source, notebook_function("01_vicreg.ipynb", "vicreg_step")):
+        filename = f"<cell {abs(hash(source))}>"
+        linecache.cache[filename] = (len(source), None, source.splitlines(True), filename)
+        exec(compile(source, filename, "exec"), space)
+    return space
+
+
+RIGHT = """def vicreg(z_a, z_b, inv_coeff, std_coeff, cov_coeff):
+    return vicreg_loss(z_a, z_b, inv_coeff, std_coeff, cov_coeff)[0]
+"""
+
+
+def test_a_learners_loss_trains_the_courses_run_only_once_it_passed_its_check():
+    from ebjepa_tutorial.course import exercises
+
+    config = preset("01", "ci").config
+    course = image.identity(config)
+    space = _notebook_01(RIGHT)
+    # written but not checked yet: it may be anything, so its runs are its own
+    unchecked = image.identity(config, step=space["vicreg_step"])
+    assert unchecked != course and set(unchecked["calls"]) == {"vicreg"}
+    space["vicreg"] = exercises.check_vicreg(space["vicreg"])
+    assert image.identity(config, step=space["vicreg_step"]) == course
+    # an edit after the check is a new function, unchecked again
+    space = _notebook_01(RIGHT.replace("inv_coeff, std_coeff, cov_coeff)[0]",
+                                       "inv_coeff, std_coeff, 0.0)[0]"))
+    assert image.identity(config, step=space["vicreg_step"]) not in (course, unchecked)
+    # the student's stub: the check hands over the course's function, whose run is the course's
+    space = _notebook_01(RIGHT.replace("return vicreg_loss(", "raise NotImplementedError(")
+                         .replace(")[0]", ")"))
+    space["vicreg"] = exercises.check_vicreg(space["vicreg"])
+    assert image.identity(config, step=space["vicreg_step"]) == course
+
+
+def test_a_loss_that_failed_its_check_trains_no_run():
+    from ebjepa_tutorial.course import exercises
+
+    # a failed check leaves the learner's function bound (the assignment never happens)
+    space = _notebook_01(RIGHT.replace("std_coeff, cov_coeff)[0]", "std_coeff, cov_coeff)[0] * 2"))
+    with pytest.raises(exercises.ExerciseError):
+        space["vicreg"] = exercises.check_vicreg(space["vicreg"])
+    with pytest.raises(ValueError, match=r"vicreg failed its exercise's check, so no run trains "
+                                         r"with it: correct it and rerun its check cell"):
+        image.identity(preset("01", "ci").config, step=space["vicreg_step"])

@@ -4,6 +4,7 @@ run's identity; another run's file is never loaded in its place, nor overwritten
 from __future__ import annotations
 
 import ast
+import dis
 import hashlib
 import inspect
 import json
@@ -103,11 +104,43 @@ def code_of(function) -> str:
     return ast.dump(tree)
 
 
+CHECKED = "exercise_check"  # the course's checkers mark a learner's function "passed" or "failed"
+
+
+def _digest(function) -> str:
+    return hashlib.sha256(code_of(function).encode()).hexdigest()[:16]
+
+
+def _unchecked_calls(function, seen: set) -> dict:
+    """``{name: hash}`` of the notebook's own functions (``__main__``) that ``function`` reads,
+    and of theirs, save those that passed a check; one that failed it is refused."""
+    codes, names, found = [function.__code__], set(), {}
+    while codes:  # the function's code and the code of the functions and lambdas inside it
+        code = codes.pop()
+        names |= {i.argval for i in dis.get_instructions(code) if i.opname == "LOAD_GLOBAL"}
+        codes += [c for c in code.co_consts if inspect.iscode(c)]
+    for name in sorted(names):
+        called = function.__globals__.get(name)
+        if (not inspect.isfunction(called) or called.__module__ != "__main__" or called in seen
+                or getattr(called, CHECKED, None) == "passed"):
+            continue
+        if getattr(called, CHECKED, None) == "failed":
+            raise ValueError(f"{name} failed its exercise's check, so no run trains with it: "
+                             "correct it and rerun its check cell (a body of `raise "
+                             "NotImplementedError` hands over the course's)")
+        seen.add(called)
+        found |= {name: _digest(called), **_unchecked_calls(called, seen)}
+    return found
+
+
 def step_identity(step, course_step) -> dict:
-    """``{}`` for ``step`` None or a copy of ``course_step``'s code, else ``{"step": hash}``."""
-    if step is None or code_of(step) == code_of(course_step):
+    """``{}`` for ``step`` None or a copy of ``course_step``'s code, else ``{"step": hash}``;
+    and ``{"calls": ...}`` (:func:`_unchecked_calls`): an unchecked edit is a run of its own."""
+    if step is None:
         return {}
-    return {"step": hashlib.sha256(code_of(step).encode()).hexdigest()[:16]}
+    calls = _unchecked_calls(step, set())
+    edited = {} if code_of(step) == code_of(course_step) else {"step": _digest(step)}
+    return {**edited, **({"calls": calls} if calls else {})}
 
 
 def kept_path(path: Path, config: Any) -> Path:

@@ -10,6 +10,7 @@ from pathlib import Path
 import torch
 import yaml
 
+from ...training.checkpoints import CHECKED
 from ...utils import is_int_at_least
 
 TEXTS = yaml.safe_load(Path(__file__).with_name("hints.yaml").read_text(encoding="utf-8"))
@@ -55,6 +56,14 @@ def _hint_text(name: str, level: int) -> str:
     text = f"Hint {level} of {len(LEVELS)} for {name}, {LEVELS[level - 1]}:\n"
     text += body if last else textwrap.fill(body, 88)  # the outline keeps its lines
     return text if last else text + f"\n(exercises.hint({name!r}) again gives {LEVELS[level]}.)"
+
+
+def _mark(fn: Callable, verdict: str) -> None:
+    """Record the check's ``verdict`` on ``fn``, for the training runs (``checkpoints``)."""
+    try:
+        setattr(fn, CHECKED, verdict)
+    except (AttributeError, TypeError):  # a callable that takes no attributes stays unmarked
+        pass
 
 
 @dataclass
@@ -198,6 +207,7 @@ class Exercise:
             print(say("not_yet", name=name, exercise=self.exercise))
             return self.reference
         except ExerciseError as error:  # raised from here, it shows the learner's cell only
+            _mark(fn, "failed")  # so that no training run takes it up
             level = _shown.get(self.exercise, 0) + 1  # offer the next hint short of the code
             if level < len(LEVELS):
                 _shown[self.exercise] = level
@@ -209,6 +219,7 @@ class Exercise:
                   what=f" (values, and gradients with respect to {what})" if what else ""))
         if gap:  # a right answer that needed a case's looser tolerance
             print(TEXTS[self.exercise]["float32"].format(diff=gap))
+        _mark(fn, "passed")  # a run with it is the course's run
         return fn
 
     def _run(self, fn: Callable, name: str, case: Case):
