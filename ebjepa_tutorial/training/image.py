@@ -46,7 +46,8 @@ class SIGReg:
 
 @dataclass(frozen=True)
 class ImageJEPAConfig:
-    """One training run. Defaults: the class-scale VICReg run."""
+    """One training run (``course.presets`` holds each scale's). The defaults, an earlier
+    recipe, stay as they are: a stored identity leaves out the fields that equal them."""
 
     loss: VICReg | SIGReg | None = VICReg()  # None: invariance alone (no regulariser: collapses)
     widths: tuple[int, int, int, int] = (16, 32, 64, 128)  # ResNet stage widths
