@@ -16,6 +16,7 @@ import torch.nn.functional as F
 from ebjepa_tutorial import losses, planning
 from ebjepa_tutorial.course import exercises
 from ebjepa_tutorial.course.exercises import check_wall_collision, common
+from ebjepa_tutorial.envs.two_rooms import HIGH, LOW
 from tools.student import MARKDOWN_SOLUTION, strip_solutions
 
 NOTEBOOKS = sorted(Path(__file__).resolve().parents[1].glob("notebooks/*.ipynb"))
@@ -397,7 +398,7 @@ def test_an_answer_that_cuts_the_gradient_is_named(name, cut):
 @pytest.mark.parametrize("name", list(TRAINED))
 def test_a_sign_flipped_answer_is_named(name):
     with pytest.raises(exercises.ExerciseError,
-                       match=r"has the wrong sign on .*: it is minus the answer\. A loss "
+                       match=r"has the wrong sign on .*: it is minus the answer\. Look "
                              r".*difference taken the wrong way round.*Yours: -?[\d.]"):
         CHECKERS[name](_sign_flipped(SOLUTIONS[name]))
 
@@ -459,7 +460,7 @@ def _temporal_over_t(z):
      r"is too small by a factor of T/\(T - 1\) = 1.062.*T latents make T - 1 changes"),
     (exercises.check_inverse_dynamics,
      lambda g, z, a: (g(z[:, :-1], z[:, 1:]) - a).pow(2).sum(-1).mean(),
-     r"is too large by a factor of A = 2 on .*averaged over the A action dimensions"),
+     r"is too large by a factor of A = 4 on .*averaged over the A action dimensions"),
     (exercises.check_epps_pulley,
      lambda x, knots=17, t_max=3.0, scale_by_n=True: losses.sigreg.epps_pulley(
          x, knots=knots, t_max=t_max, scale_by_n=False),
@@ -502,6 +503,68 @@ def _temporal_over_t(z):
 def test_general_mistakes_are_named_in_words(checker, wrong, message):
     with pytest.raises(exercises.ExerciseError, match=message):
         checker(wrong)
+
+
+def _rollout_overwriting_z(predictor, z, context=2, steps=4, detach_later=False):
+    """The course's unroll, but each step's sequence is z itself, overwritten in place."""
+    errors, sequence = [], z
+    for _ in range(steps):
+        predictions = _step(predictor, sequence, context, per_frame=False)
+        errors.append(F.mse_loss(predictions, z[:, context:]))
+        sequence = z  # the slip: the caller's z, not a new tensor
+        sequence[:, context:] = predictions
+    return torch.stack(errors).mean()
+
+
+def _wall_without_enters(positions, moves, layouts):
+    """The notebook's wall rules with ``enters &`` left out of the face rule."""
+    wall_x, door_y = layouts.float().unbind(-1)
+    x_lo, x_hi, y_lo, y_hi = wall_x - 2.5, wall_x + 2.5, door_y - 3.5, door_y + 3.5
+    x0, y0 = positions.unbind(-1)
+    x1, y1 = (positions + moves).clamp(LOW, HIGH).unbind(-1)
+    t_in, t_out = SOLUTIONS["slab_crossing"](x0, x1, x_lo, x_hi)
+    y_in = y0 + t_in * (y1 - y0)
+    hits_face = (y_in < y_lo) | (y_in > y_hi)
+    return torch.stack([torch.where(hits_face, torch.where(x0 <= x_lo, x_lo, x_hi), x1), y1], -1)
+
+
+def _wall_stopping_on_its_centre(positions, moves, layouts):
+    new = check_wall_collision.reference(positions, moves, layouts)
+    stopped = new[:, 0] != (positions + moves).clamp(LOW, HIGH)[:, 0]
+    return torch.stack([torch.where(stopped, layouts[:, 0].float(), new[:, 0]), new[:, 1]], -1)
+
+
+@pytest.mark.parametrize("checker, wrong, says, not_says", [
+    # a wrong shape in a tuple answer: its values, joined, cannot tell one slip from another
+    (exercises.check_mppi_update, lambda *args: (_mppi(*args)[0][:, None], _mppi(*args)[1]),
+     r"returned shape \(\d+, 1, \d+, 2\) .* for your mean", "Likely cause"),
+    # an input overwritten in place inside the loss: the step would project the predictions
+    (exercises.check_parallel_rollout_loss, _rollout_overwriting_z,
+     r"changed its input z in place", "Correct"),
+    # a move that never reaches the wall stopped at the face: no open door to speak of
+    (check_wall_collision, _wall_without_enters, r"gave \(.*\) but the reference gives",
+     "the door is open"),
+    (check_wall_collision, _wall_stopping_on_its_centre, r"left the dot centre inside the wall",
+     "pass through"),
+    # a squared error summed over each latent's elements, averaged over frames and batch
+    (exercises.check_parallel_rollout_loss, lambda predictor, z, context=2, steps=4,
+     detach_later=False: _parallel(predictor, z, context, steps, detach_later) * z[0, 0].numel(),
+     r"summed the squared error over each latent's elements", "Correct"),
+    # half the mean squared error: a factor 2, not a sum over 2-d actions
+    (exercises.check_inverse_dynamics, lambda g, z, a: F.mse_loss(g(z[:, :-1], z[:, 1:]), a) / 2,
+     r"too small by a factor of 2 ", "A = 2"),
+    # the label is named once, the numbers after it plainly
+    (exercises.check_vicreg_paper_to_ebjepa,
+     lambda inv, std, cov, dim: (1.0, std / inv, 2 * cov * (dim - 1) / inv),
+     r"\(your covariance weight\)\. .* Yours: [\d.]+, but", "Yours: your"),
+    (exercises.check_vicreg_paper_to_ebjepa, lambda inv, std, cov, dim: None,
+     r"returned None on .*did you forget the return statement", "NoneType"),
+])
+def test_a_typical_mistake_is_described_as_it_is(checker, wrong, says, not_says):
+    with pytest.raises(exercises.ExerciseError) as caught:
+        checker(wrong)
+    assert re.search(says, str(caught.value)), str(caught.value)
+    assert not_says not in str(caught.value)
 
 
 def _rules_on_the_raw_target(positions, moves, layouts, clamp_at_the_end):

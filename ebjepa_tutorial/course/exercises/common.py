@@ -244,10 +244,12 @@ class Exercise:
         expected = self._reference(*case.args, **case.kwargs)
         got = self._run(fn, name, case)
         atol, parts, gap = self.atol if case.atol is None else case.atol, self.parts, 0.0
-        if parts and (not isinstance(got, (tuple, list)) or len(got) != len(parts)):
+        if parts and got is not None and (not isinstance(got, (tuple, list))
+                                          or len(got) != len(parts)):
             raise ExerciseError(say("not_a_tuple", name=name, n=len(parts), case=case.description,
                                     parts=", ".join(parts), kind=_describe(got)))
-        for label, g, e in zip(parts, got, expected) if parts else [("", got, expected)]:
+        for label, g, e in zip(parts, got, expected) if parts and got is not None else [
+                ("", got, expected)]:
             if (torch.is_tensor(e) and not torch.is_tensor(g)) or _numbers(g) is None:
                 key = ("returned_none" if g is None else "returned_several"
                        if isinstance(g, (tuple, list)) else "returned_other")
@@ -260,7 +262,7 @@ class Exercise:
                                         got=tuple(g.shape), expected=tuple(e.shape),
                                         label=f" for your {label}" if label else "",
                                         single=" (a single number)" if e.ndim == 0 else "")
-                                    + diagnose(got, self._mistakes, case, atol))
+                                    + ("" if parts else diagnose(got, self._mistakes, case, atol)))
             if not torch.allclose(g, e, atol=atol, rtol=1e-4):
                 raise ExerciseError(self._value_problem(name, got, g, e, case, label, atol))
             if not torch.allclose(g, e, atol=self.atol, rtol=1e-4):
@@ -270,7 +272,8 @@ class Exercise:
     def _value_problem(self, name, got, g, e, case: Case, label: str, atol: float) -> str:
         """Words for a wrong output ``g`` (a part of ``got``; ``e`` the answer): one of the
         exercise's own mistakes, else a general one, else only the numbers."""
-        numbers = f"{'your ' + label + ' ' if label else ''}{_disagreement(g, e, atol)}"
+        plain = _disagreement(g, e, atol)
+        numbers = f"{'your ' + label + ' ' if label else ''}{plain}"
         why = diagnose(got, self._mistakes, case, atol)
         if self.explain and (words := self.explain(case, g, e, bool(why))):
             return f"{name} {words}{why}"
@@ -281,7 +284,7 @@ class Exercise:
             return say("wrong_value", name=name, numbers=numbers, case=case.description, why=why)
         found, means, look = general
         return say("general_cause", name=name, found=found, case=case.description, means=means,
-                   where=f" (your {label})" if label else "", look=look, numbers=numbers)
+                   where=f" (your {label})" if label else "", look=look, numbers=plain)
 
     def _gradient(self, fn: Callable, name: str, case: Case, index: int, label: str) -> None:
         """Raise unless ``fn``'s gradient with respect to argument ``index`` is the reference's."""

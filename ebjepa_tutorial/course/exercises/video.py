@@ -20,10 +20,17 @@ _PREDICTORS = {
 
 
 def _call(loss_fn: Callable) -> Callable:
-    """``loss_fn`` on a case of :func:`_cases`, called positionally as the training step does."""
-    def run(kind, weight, z_first, z_last, context, steps, detach_later):
-        z = torch.cat([z_first, z_last[:, None]], dim=1)
-        return loss_fn(partial(_PREDICTORS[kind], weight=weight), z, context, steps, detach_later)
+    """``loss_fn`` on a case of :func:`_cases`, called positionally as the training step does; a
+    ``z`` it changes in place shows as a change of ``z`` (the case's latents but the last)."""
+    def run(kind, weight, z, z_last, context, steps, detach_later):
+        whole = torch.cat([z, z_last[:, None]], dim=1)
+        given = whole.detach().clone()
+        loss = loss_fn(partial(_PREDICTORS[kind], weight=weight), whole, context, steps,
+                       detach_later)
+        if not torch.equal(whole.detach(), given):  # the step would project what it overwrote
+            with torch.no_grad():
+                z.add_(1.0)
+        return loss
     return run
 
 
@@ -97,7 +104,7 @@ check_parallel_rollout_loss = Exercise(
         off_by_one=_slip(early=1), context_averaged=_slip(with_context=True),
         last_step_only=_slip(last_only=True), batch_axis=_slip(batch_axis=True),
         context_ignored=_slip(context=2),
-        summed_elements=_slip(error=lambda d: d.pow(2).flatten(1).sum(1).mean()),
+        summed_elements=_slip(error=lambda d: d.pow(2).flatten(2).sum(2).mean()),
         unsquared=_slip(error=lambda d: d.pow(2).mean().sqrt()),
         absolute=_slip(error=lambda d: d.abs().mean()), autoregressive=rollout_loss),
     _cases, adapt=_call, grad=[(1, "the predictor's weights"), (2, "the other latents z[:, :-1]"),

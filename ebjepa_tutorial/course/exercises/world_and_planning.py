@@ -45,8 +45,9 @@ def _linear_inverse_model(latent_dim: int, action_dim: int, seed: int, dtype=tor
 def _inverse_cases() -> list[Case]:
     """``(predict_actions, z (B, T, D), actions (B, T - 1, A))``."""
     g, cases = torch.Generator().manual_seed(4), []
-    for b, t, d, a, dtype in [(4, 17, 8, 2, torch.float32), (3, 2, 5, 2, torch.float32),
-                              (2, 9, 6, 3, torch.float32), (5, 7, 4, 2, None),
+    # first no size n with n or n - 1 = 2: a factor 2 (a 1/2 convention) is then no size's
+    for b, t, d, a, dtype in [(5, 9, 6, 4, torch.float32), (4, 17, 8, 2, torch.float32),
+                              (3, 2, 5, 2, torch.float32), (5, 7, 4, 2, None),
                               (3, 6, 5, 3, torch.float64)]:
         model = (_linear_inverse_model(d, a, b, dtype) if dtype is not None  # or a difference,
                  else lambda z, z_next: (z_next - z)[..., :2])  # right only in time order
