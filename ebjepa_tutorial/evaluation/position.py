@@ -87,8 +87,8 @@ def _nearer(model, trajectories, steps, max_steps: int | None, through_wall: boo
 @torch.no_grad()
 def middle_wall_test(model, trajectories) -> dict:
     """``stopped``: on the first 1000 (``n_stopped``) steps a wall cut short, the fraction of
-    predictions nearer the real next latent than the dot moved into the wall; ``moved`` (the
-    control: a predictor that never moves scores 1 above): on free steps (``n_moved``), vs z_t."""
+    predictions nearer the real next latent than the dot moved into the wall; ``moved``: on the
+    first 1000 free steps (``n_moved``), vs z_t (a still predictor: 0 here, about 1 above)."""
     stopped_steps, moved_steps = _wall_steps(trajectories)
     stopped = _nearer(model, trajectories, stopped_steps, 1000, through_wall=True)[0]
     moved = _nearer(model, trajectories, moved_steps, 1000, through_wall=False)[0]

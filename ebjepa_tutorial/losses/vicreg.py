@@ -1,5 +1,5 @@
 """VICReg's loss terms, one function per term of the paper (notebooks 00, 01, 03 and 05). Each
-takes embeddings ``z`` of shape ``(B, D)`` (batch, dimensions) and returns a 0-d tensor."""
+term takes embeddings ``z`` of shape ``(B, D)`` (batch, dimensions) and returns a 0-d tensor."""
 
 from __future__ import annotations
 

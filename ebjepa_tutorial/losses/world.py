@@ -72,8 +72,8 @@ def multistep_prediction_loss(
 
 
 def variance_covariance_loss(z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``v(Z)`` and ``c(Z)`` of ``(B, T, D)`` flattened to ``(B*T, D)`` (a dimension that varies
-    only along time, like the dot's position, counts as varied): two 0-d tensors."""
+    """``v(Z)`` and ``c(Z)`` of ``(B, T, D)``, T >= 2, flattened to ``(B*T, D)`` (a dimension
+    varying only along time, like the dot's position, counts as varied): two 0-d tensors."""
     _check_sequence(z)
     flat = z.reshape(-1, z.shape[-1])
     return variance_term(flat), covariance_term(flat)
@@ -96,7 +96,7 @@ def inverse_dynamics_loss(predict_actions: Callable[[torch.Tensor, torch.Tensor]
 
 
 def encode_for_loss(model, frames: torch.Tensor) -> torch.Tensor:
-    """Frames ``(B, T, 2, 65, 65)`` -> float32 latents ``(B, T, D)``, encoded in bf16 on a GPU."""
+    """Frames ``(B, T, 2, 65, 65)`` -> float32 latents ``(B, T, D)``, bf16 where it is fast."""
     with mixed_precision(frames.device):
         z = model.encode(frames)
     return at_least_float32(z)

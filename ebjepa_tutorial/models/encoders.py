@@ -7,7 +7,7 @@ from torch import nn
 
 
 def conv_bn_relu(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
-    """conv3x3 (no bias), BN, ReLU: ``(N, c_in, s, s) -> (N, c_out, s/stride, s/stride)``."""
+    """conv3x3 (no bias), BN, ReLU: ``(N, c_in, s, s) -> (N, c_out, s', s')``, s' = ⌈s/stride⌉."""
     return nn.Sequential(nn.Conv2d(c_in, c_out, 3, stride, padding=1, bias=False),
                          nn.BatchNorm2d(c_out), nn.ReLU(inplace=True))
 
