@@ -37,9 +37,9 @@ class CollapsePreset:
 
 @dataclass(frozen=True)
 class ImagePreset:
-    """Notebooks 01 and 02: the CIFAR-10 runs (the VICReg config; others derive from it)."""
+    """Notebooks 01 and 02: the CIFAR-10 runs of the notebook's loss (01 VICReg, 02 SIGReg)."""
 
-    config: ImageJEPAConfig  # the VICReg run; SIGReg and ablations use dataclasses.replace
+    config: ImageJEPAConfig  # the notebook's run; its sweeps and ablations use dataclasses.replace
     long_config: ImageJEPAConfig  # the longer run they load (shipped at class; full: config)
     train_images: int = 50_000  # CIFAR-10 train images used to train and to fit the probe
     test_images: int = 10_000  # CIFAR-10 test images the probe and kNN are scored on
@@ -131,7 +131,7 @@ class BeyondPreset:
 
     two_rooms: WorldTrainConfig  # chapter 05's class run
     three_rooms: WorldTrainConfig  # the same recipe on Three Rooms in a row
-    flat: PlannerConfig  # chapter 06's planner
+    flat: PlannerConfig  # chapter 06's class MPPI, its first spread 1.5 px as when measured
     short: PlannerConfig  # the same at a short horizon, latent distance
     learned: PlannerConfig  # `short` with the learned cost, in px: a temperature of 1
     two_level: TwoLevelPreset

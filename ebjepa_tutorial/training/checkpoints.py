@@ -32,7 +32,7 @@ class UnsafeCheckpointError(CheckpointError):
 
 
 def checkpoint_paths(name: str) -> tuple[Path, Path]:
-    """The run ``name``'s cache file ``data/cache/checkpoints/<name>.pt`` and shipped file
+    """The run ``name``'s cache file ``<cache_dir()>/checkpoints/<name>.pt`` and shipped file
     ``checkpoints/<name>.pt``."""
     return cache_dir() / "checkpoints" / f"{name}.pt", SHIPPED_DIR / f"{name}.pt"
 

@@ -125,7 +125,7 @@ def vicreg_step(net, batch, optimizer, scheduler, weights):
 
 
 def sigreg_step(net, batch, optimizer, scheduler, weights):
-    """:func:`vicreg_step` with SIGReg's loss (notebook 02); ``weights``: a :class:`SIGReg`."""
+    """:func:`vicreg_step` with SIGReg's loss (notebook 02), terms as a dict; weights: SIGReg."""
     views, generator = batch  # two augmented views: (b, 3, S, S) each; the step's generator
     z_a, z_b = embed(net, views)  # encoder, then projector: (B, D) each
     loss, terms = sigreg_loss(z_a, z_b, weights.lam, weights.slices, generator,

@@ -56,7 +56,8 @@ def run_steps(update: Callable[[Any, int], tuple[torch.Tensor, Any]],
               parts: tuple = (), identity: Any = None, every: int = 250,
               after: Callable[[int, History], Any] | None = None) -> History:
     """Steps ``0 .. steps - 1`` of ``update(batch_fn(step), step) -> (loss, terms)``, or the rest
-    of the run ``identity`` saved at ``checkpoint`` (every ``every`` steps and at the last).
+    of the run ``identity`` saved at ``checkpoint`` (every ``every`` steps and at the last; it
+    resumes only with ``parts``).
     ``terms``: a dict of floats or 0-d tensors, or a function giving one, called only every
     ``log_every`` steps (reading a number waits for a GPU); then ``after(done, history)``."""
     start, history = resume(checkpoint, *parts, config=identity) if parts else (0, History())

@@ -37,9 +37,9 @@ class Recipe:
     """How a run departs from the paper's training (notebook 05); the defaults are the paper's."""
 
     window: int = 0  # frames per training window at a random offset (0: whole trajectories)
-    wall_fraction: float = 0.0  # share of trajectories that start heading into the middle wall
+    wall_fraction: float = 0.0  # share of trajectories that start heading into a wall
     stay_probability: float = 0.0  # share of imagined steps that are "still" (zero action)
-    replay_steps: int = 0  # predictor-only updates on replayed latents per step (LatentReplay)
+    replay_steps: int = 0  # predictor updates (encoder frozen) on replayed latents per step
     channels_last: bool = False  # faster convolutions, but another order of float sums
     decay_steps: int = 0  # the last decay_steps lower the rate linearly towards 0 (0: constant)
     grad_clip: float = 0.0  # every update's gradient scaled to at most this norm (0: none)
@@ -94,8 +94,8 @@ def make_data(config: WorldTrainConfig) -> Trajectories:
 
 
 class LatentReplay:
-    """Predictor-only updates on the detached latents ``(B, T, D)`` and actions ``(B, T-1, A)``
-    of recent batches (:meth:`add`); ``replay(step)`` makes ``recipe.replay_steps`` of them."""
+    """Predictor and action-encoder updates on the detached latents ``(B, T, D)`` and actions
+    ``(B, T-1, A)`` of recent batches (:meth:`add`); ``replay(step)`` makes ``replay_steps``."""
 
     STREAM = 2**40  # the replay's generators: seeded apart from the batches' (step_generator)
 
