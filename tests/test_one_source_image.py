@@ -137,3 +137,11 @@ def test_a_loss_that_failed_its_check_trains_no_run():
     with pytest.raises(ValueError, match=r"vicreg failed its exercise's check, so no run trains "
                                          r"with it: correct it and rerun its check cell"):
         image.identity(preset("01", "ci").config, step=space["vicreg_step"])
+
+
+def test_a_step_that_is_no_plain_function_still_has_an_identity():
+    import functools
+
+    config = preset("01", "ci").config
+    step = functools.partial(image.vicreg_step)  # no __code__ to read its calls from
+    assert image.identity(config, step=step) != image.identity(config)  # a run of its own

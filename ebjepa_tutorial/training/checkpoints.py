@@ -114,6 +114,8 @@ def _digest(function) -> str:
 def _unchecked_calls(function, seen: set) -> dict:
     """``{name: hash}`` of the notebook's own functions (``__main__``) that ``function`` reads,
     and of theirs, save those that passed a check; one that failed it is refused."""
+    if not inspect.isfunction(function):  # a partial or a callable object: its code is hidden
+        return {}
     codes, names, found = [function.__code__], set(), {}
     while codes:  # the function's code and the code of the functions and lambdas inside it
         code = codes.pop()
