@@ -4,12 +4,17 @@ through, and gradients are averaged over ranks. Everything here is a no-op in on
 
 from __future__ import annotations
 
+import warnings
+
 import torch
 import torch.distributed as dist
 import torch.distributed.nn.functional as collective  # collectives that autograd goes through
 from torch import nn
 
 from .losses import vicreg
+
+# torch 2.14 deprecates these for a private module; they work, and the gloo tests check them
+warnings.filterwarnings("ignore", r"torch\.distributed\.nn\.functional\.", FutureWarning)
 
 
 def running() -> bool:
