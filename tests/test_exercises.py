@@ -960,3 +960,19 @@ def test_a_student_notebook_cut_off_while_written_is_not_kept_as_work(tmp_path, 
     assert list((tmp_path / "student").iterdir()) == []  # nothing half-written to keep
     monkeypatch.undo()
     assert student.write_student_versions(source, tmp_path / "student")  # written, not kept
+
+
+def test_a_run_takes_a_learners_function_only_once_it_passed_its_check():
+    def variance_term(z, gamma=1.0, eps=1e-4):  # right
+        return torch.relu(gamma - torch.sqrt(z.var(dim=0) + eps)).mean()
+
+    def wrong(z, gamma=1.0, eps=1e-4):
+        return 2 * variance_term(z, gamma, eps)
+
+    course = losses.variance_term
+    assert exercises.checked(variance_term, course) is course  # written, not checked yet
+    assert exercises.checked(None, course) is course  # not written
+    assert exercises.checked(exercises.check_variance_term(variance_term), course) is variance_term
+    with pytest.raises(exercises.ExerciseError):
+        exercises.check_variance_term(wrong)
+    assert exercises.checked(wrong, course) is course

@@ -9,7 +9,7 @@ from .collapse import (
     check_vicreg,
     check_vicreg_paper_to_ebjepa,
 )
-from .common import ExerciseError, hint, whose
+from .common import ExerciseError, checked, hint, whose
 from .two_rooms import check_slab_crossing, check_wall_collision
 from .video import check_parallel_rollout_loss
 from .world_and_planning import (
@@ -19,7 +19,7 @@ from .world_and_planning import (
 )
 
 __all__ = [
-    "ExerciseError", "hint", "whose", "check_variance_term", "check_covariance_term",
+    "ExerciseError", "checked", "hint", "whose", "check_variance_term", "check_covariance_term",
     "check_vicreg", "check_vicreg_paper_to_ebjepa", "check_epps_pulley",
     "check_parallel_rollout_loss", "check_slab_crossing", "check_wall_collision",
     "check_temporal_similarity", "check_inverse_dynamics", "check_mppi_update",

@@ -58,6 +58,11 @@ def _hint_text(name: str, level: int) -> str:
     return text if last else text + f"\n(exercises.hint({name!r}) again gives {LEVELS[level]}.)"
 
 
+def checked(fn: Callable | None, course: Callable) -> Callable:
+    """``fn`` once it passed its exercise's check, else ``course``: what a run trains with."""
+    return fn if getattr(fn, CHECKED, None) == "passed" else course
+
+
 def _mark(fn: Callable, verdict: str) -> None:
     """Record the check's ``verdict`` on ``fn``, for the training runs (``checkpoints``)."""
     try:
