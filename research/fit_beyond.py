@@ -20,7 +20,7 @@ from dataclasses import fields, replace
 from pathlib import Path
 
 from ebjepa_tutorial.course.presets import preset
-from ebjepa_tutorial.training.checkpoints import run_identity, save_checkpoint
+from ebjepa_tutorial.training.checkpoints import SHIPPED_DIR, run_identity, save_checkpoint
 from ebjepa_tutorial.training.world import identity, load_run
 
 from .beyond_fits import (
@@ -83,6 +83,13 @@ def main(argv: list[str] | None = None) -> None:
     unknown = [s for s in args.set if s.split("=", 1)[0] not in known or "=" not in s]
     if unknown:
         parser.error(f"--set {unknown}: not FIELD=VALUE of CostConfig or CoarseConfig")
+    # the variants keep the shipped files' names: written there, they would replace the fits
+    # notebook 07 loads (its load_fit checks only the world model's identity)
+    variants = [flag for flag, given in (("--tiny", args.tiny), ("--set", args.set),
+                                         ("--walks-only", args.walks_only)) if given]
+    if variants and Path(args.out_dir).resolve() == SHIPPED_DIR.resolve():
+        parser.error(f"{', '.join(variants)} would overwrite the shipped fits in {SHIPPED_DIR}: "
+                     "give another --out-dir")
     _, config, name = world_run(args.world)
     model = load_run(config, name, device="cpu")
     cost, coarse = fit_configs(args.world, args.tiny)

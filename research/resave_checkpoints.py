@@ -1,7 +1,7 @@
 """Re-save the shipped checkpoints with the identity their notebooks ask for today.
 
     python -m research.resave_checkpoints           # check, rewrite what differs
-    python -m research.resave_checkpoints --check   # only say what differs
+    python -m research.resave_checkpoints --check   # only say what differs (exit 1 if any)
 
 A notebook uses ``checkpoints/<name>.pt`` only when the identity stored in the file equals
 the one its preset computes (``training.checkpoints.run_identity``: the fields that
@@ -96,16 +96,18 @@ def compare(stored: dict, today: dict) -> tuple[list[str], list[str], list[str]]
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--check", action="store_true", help="only report; write nothing")
+    parser.add_argument("--check", action="store_true",
+                        help="only report; write nothing; exit 1 if any file differs")
     parser.add_argument("--drop", action="append", default=[], metavar="FIELD",
                         help="a dotted field the identity no longer records (repeatable)")
     args = parser.parse_args(argv)
-    refused = 0
+    refused, differ = 0, []
     for name, today in shipped_runs().items():
         path = SHIPPED_DIR / f"{name}.pt"
         state = load_checkpoint(path)
         if state.get("config") == today:
             continue
+        differ.append(f"{name}.pt")
         disagree, only_stored, only_today = compare(state.get("config") or {}, today)
         print(f"{name}: only stored {only_stored}; only today {only_today}")
         unexplained = [field for field in only_stored if field not in args.drop]
@@ -116,6 +118,9 @@ def main(argv=None) -> int:
         elif not args.check:
             save_checkpoint(path, **{**state, "config": today})
             print(f"  re-saved {Path(path).name}")
+    if args.check and differ:  # a check fails on any file today's notebooks would not load
+        print(f"{len(differ)} file(s) differ from today's identity: {', '.join(differ)}")
+        return 1
     return 1 if refused else 0
 
 

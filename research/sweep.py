@@ -148,7 +148,9 @@ def run_sweep(runs: list[Run], train, test, path: str | Path | None = None, devi
     stored = stored_rows(path)
     todo = list({key(run.config, *sizes): run for run in runs
                  if key(run.config, *sizes) not in stored}.values())
-    print(f"{len(runs) - len(todo)} of {len(runs)} runs found in {path or 'no file'}; "
+    # counted over the file, not as runs - todo: todo trains a run two sweeps share only once
+    found = sum(key(run.config, *sizes) in stored for run in runs)
+    print(f"{found} of {len(runs)} runs found in {path or 'no file'}; "
           f"training {len(todo)} now.")
     own = load_results(path)
     for i, run in enumerate(todo, start=1):

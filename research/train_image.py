@@ -62,11 +62,14 @@ def main(argv: list[str] | None = None) -> None:
     """
     parser = _parser()
     args = parser.parse_args(argv)
+    if args.steps is not None and args.steps < 1:  # as train_world: a usage error, not a run
+        parser.error("--steps takes an int >= 1")
     sizes = preset("01" if args.loss == "vicreg" else "02", args.scale)
     try:
         long = sizes.long_config
         warmup = long.warmup_steps if args.warmup_steps is None else args.warmup_steps
-        config = replace(long, steps=args.steps or long.steps, warmup_steps=warmup)
+        steps = long.steps if args.steps is None else args.steps
+        config = replace(long, steps=steps, warmup_steps=warmup)
     except ValueError as error:
         parser.error(str(error))  # checked before the data is loaded
     device = launch.join(parser, args, config.batch_size, identity(config),

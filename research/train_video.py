@@ -62,7 +62,8 @@ def _parser() -> argparse.ArgumentParser:
                              "--seed say otherwise), named video_jepa_<scale>_long_K<K>_seed<S>")
     parser.add_argument("--unroll", choices=sorted(UNROLLS),
                         help="train the K-step loss so instead of the preset's way (the paper's "
-                             "parallel unroll); the runs are named video_jepa_<scale>_<unroll>_...")
+                             "parallel unroll); the runs are named video_jepa_<scale>_<unroll>_... "
+                             "(the preset's own, parallel, keeps the plain name)")
     launch.add_flags(parser)
     return parser
 

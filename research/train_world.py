@@ -141,7 +141,12 @@ def _refit(parser, args, given: dict, recipe: dict) -> None:
     if args.ddp or launch.launched_by_torchrun():
         parser.error("--refit runs in one process (a small MLP on precomputed latents): "
                      "start it with python -m, without torchrun or --ddp")
-    refit_main(args.refit, args.out, RefitConfig(**given))
+    try:  # checked before anything is fitted, as the training path's options are
+        config = RefitConfig(**given)
+        refit_base(args.refit)
+    except ValueError as error:
+        parser.error(str(error))  # a usage message, not a traceback
+    refit_main(args.refit, args.out, config)
 
 
 def _config(args, given: dict, recipe: dict) -> WorldTrainConfig:
@@ -235,14 +240,20 @@ def train_world_model(config: WorldTrainConfig, checkpoint=None, device=None,
                                         progress)
 
 
-def refit_main(trained: str, out: str, config: RefitConfig) -> None:
-    """Refit the predictor of the model saved at ``trained``; save it to ``out`` with the
-    trained model's stored config (``"base"``), and print the wall test before and after.
-    Both models are on the best available device (cuda, mps, cpu)."""
+def refit_base(trained: str) -> dict:
+    """The checkpoint at ``trained``, if a refit can use it (ValueError if not)."""
     base = load_checkpoint(trained)
     if base.get("config", {}).get("walls", 1) != 1:  # the refit's data and wall test: Two Rooms
         raise ValueError(f"{trained} was trained in a world of {base['config']['walls']} walls; "
                          "the refit fits and tests Two Rooms data only")
+    return base
+
+
+def refit_main(trained: str, out: str, config: RefitConfig) -> None:
+    """Refit the predictor of the model saved at ``trained``; save it to ``out`` with the
+    trained model's stored config (``"base"``), and print the wall test before and after.
+    Both models are on the best available device (cuda, mps, cpu)."""
+    base = refit_base(trained)
     device = get_device()
     model = load_world_model(trained, device=device)  # it encodes every refit trajectory
     new, history = refit_predictor(model, config, device=device)

@@ -31,6 +31,18 @@ def test_record_refuses_a_run_that_is_not_the_class_recipe(monkeypatch, capsys):
     assert "drop --scale, --steps, --eval-size, --seed" in capsys.readouterr().err
 
 
+def test_split_record_refuses_a_step_that_is_not_vicregs(monkeypatch, capsys):
+    from research.benchmarks import image_jepa
+
+    # the pages state image_float32_step_ratio as a VICReg step's: SIGReg's would overwrite it
+    monkeypatch.setattr(image_jepa, "load_cifar10", lambda split: pytest.fail("data read"))
+    monkeypatch.setattr(sys, "argv", ["image_jepa", "--split", "--record", "--loss", "sigreg"])
+    with pytest.raises(SystemExit) as done:
+        image_jepa.main()
+    assert done.value.code == 2  # before any data is read
+    assert "ratio of a VICReg step" in capsys.readouterr().err
+
+
 @pytest.mark.slow  # trains 3 steps at ci scale and probes twice on real CIFAR-10: seconds
 def test_a_short_run_trains_the_seed_asked_for_and_ends_with_a_parseable_line():
     shared_data()  # the benchmark reads CIFAR-10: skip without a copy

@@ -105,6 +105,25 @@ def test_rows_of_other_data_sizes_are_not_reused(tmp_path, monkeypatch):
     assert len(sweep.load_results(path)) == 2
 
 
+def test_a_run_two_sweeps_share_is_trained_once_and_not_counted_as_found(tmp_path, monkeypatch,
+                                                                         capsys):
+    calls = []
+
+    def fake(run, train, test, device="cpu", progress=True):  # a row stored as the real one is
+        calls.append(run)
+        return {"probe_acc": 0.5, "knn_acc": 0.5, "seconds": 0.0, "n_train": len(train[0]),
+                "n_test": len(test[0]), "config": sweep.run_identity(run.config)}
+
+    monkeypatch.setattr(sweep, "train_and_probe", fake)
+    shared = [sweep.Run("sigreg_lambda", 0.1, TINY, 1.0), sweep.Run("other", 7, TINY, 1.0)]
+    path, train, test = tmp_path / "sweep.json", _data(48, 0), _data(20, 1)
+    sweep.run_sweep(shared, train, test, path=path, progress=False)
+    assert len(calls) == 1
+    assert "0 of 2 runs found in" in capsys.readouterr().out  # nothing was stored before
+    sweep.run_sweep(shared, train, test, path=path, progress=False)
+    assert "2 of 2 runs found in" in capsys.readouterr().out and len(calls) == 1
+
+
 def test_rows_probed_at_another_size_are_not_reused(tmp_path, monkeypatch):
     path = tmp_path / "sweep.json"
     train, test = _data(48, 0), _data(20, 1)

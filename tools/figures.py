@@ -40,15 +40,21 @@ def record(key: str, value: float, command: str, protocol: str, threads: int,
     """Store a measured ``value`` under ``key`` (atomically; other keys are kept).
 
     ``spread``: (low, high), over seeds, runs or a 95% interval, which ``protocol``
-    names; ``date``: when it was measured (default today).
+    names; ``date``: when it was measured (default today). Without one, the key's recorded
+    spread is kept.
     """
     if key not in FORMATS:
         raise KeyError(f"unknown reference key {key!r}; known: {sorted(FORMATS)}")
     figures = load(path)
+    # a benchmark that measures one run passes no spread, but the pages print the range that a
+    # maintainer recorded (<!--fig:KEY:spread-->): dropping it would break every such marker
+    kept = figures.get(key, {}).get("spread")
     figures[key] = {"value": float(value), "command": command, "protocol": protocol,
                     "threads": threads, "date": date or datetime.date.today().isoformat()}
     if spread is not None:
         figures[key]["spread"] = [float(spread[0]), float(spread[1])]
+    elif kept is not None:
+        figures[key]["spread"] = kept
     with atomic_file(path) as f:
         f.write((json.dumps(figures, indent=1, sort_keys=True) + "\n").encode())
 

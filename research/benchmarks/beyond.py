@@ -15,8 +15,9 @@ them). Each row: the success rate, its Wilson 95% interval and the process CPU
 seconds per episode (all threads counted). Last line, for
 the last world played:
 ``world=... flat=... short=... learned_cost=... two_level=... s_per_episode=...``
-(s_per_episode: the best new planner's). ``--record`` stores every rate in
-``checkpoints/reference.json`` as the figures notebook 07 prints beside its own.
+(s_per_episode: the best new planner's). ``--record`` (200 episodes, the recorded protocol's
+size) stores every rate in ``checkpoints/reference.json`` as the figures notebook 07 prints
+beside its own.
 """
 
 from __future__ import annotations
@@ -29,11 +30,13 @@ from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.planning import run_episodes
 from ebjepa_tutorial.training.world import identity, load_run
 from research import fit_beyond
+from research.benchmarks import command_line
 from research.beyond_fits import NOTEBOOK as NB
 from tools import figures
 
 WORLDS = {walls: world for world, walls in fit_beyond.WORLDS.items()}  # 1: "two_rooms", ...
 NEW = ("learned_cost", "two_level")
+RECORDED_EPISODES = 200  # a world's rates in reference.json: 200 episodes from each first seed
 PLANNERS = ["flat", "short", *NEW]
 
 
@@ -54,7 +57,7 @@ def planners(walls: int) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--walls", type=int, nargs="+", choices=sorted(WORLDS), default=[1, 2])
-    parser.add_argument("--episodes", type=int, default=200)
+    parser.add_argument("--episodes", type=int, default=RECORDED_EPISODES)
     parser.add_argument("--first-seed", type=int, default=12_600)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--batch", type=int, default=10)
@@ -63,6 +66,9 @@ def main() -> None:
     parser.add_argument("--record", action="store_true",
                         help="store the rates as notebook 07's reference figures")
     args = parser.parse_args()
+    if args.record and args.episodes != RECORDED_EPISODES:  # a smaller run's rate is too noisy
+        parser.error(f"--record stores the recorded protocol's rates: {RECORDED_EPISODES} "
+                     "episodes (drop --episodes)")
     torch.set_num_threads(args.threads)
     seeds = list(range(args.first_seed, args.first_seed + args.episodes))
     for walls in args.walls:
@@ -77,7 +83,7 @@ def main() -> None:
             if args.record:
                 figures.record(
                     f"beyond_{name}_{planner}", result.success_rate, threads=args.threads,
-                    command="python -m research.benchmarks.beyond --record",
+                    command=command_line(__spec__.name),
                     protocol=f"{name}, {len(seeds)} episodes, seeds {seeds[0]}-{seeds[-1]}; "
                              "the world's step budget; success within 4.5 px; notebook 07's "
                              f"class planners; {cpu[planner]:.2f} s CPU per episode")

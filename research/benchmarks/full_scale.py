@@ -26,8 +26,9 @@ the real batch.
 
 Under torchrun every process trains its share of each global batch (DistributedDataParallel,
 see ``ebjepa_tutorial.distributed``) and rank 0 prints the global throughput. The last line
-is for scripts: ``device=... image_s_per_step=... sigreg_s_per_step=...
-video_s_per_step=... world_s_per_step=...`` (``nan`` for a chapter left out).
+is for scripts: ``device=... ranks=... image_s_per_step=... sigreg_s_per_step=...
+video_s_per_step=... world_s_per_step=...`` (ranks: the processes; ``nan`` for a chapter left
+out).
 """
 
 from __future__ import annotations

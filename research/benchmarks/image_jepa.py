@@ -14,7 +14,7 @@ scale, no overrides) stores the probe accuracies in ``checkpoints/reference.json
 which notebooks 01 and 02 print beside the learner's. ``--split`` prints where
 one training step's time goes (augmentation, forward, loss, backward,
 optimiser) and, on a CPU with bf16, how much longer the step takes in float32
-(``--split --record`` stores that ratio), and stops.
+(``--split --record``, VICReg's step only, stores that ratio), and stops.
 """
 
 from __future__ import annotations
@@ -123,6 +123,8 @@ def main() -> None:
             "class", None, None, None):
         parser.error("--record stores the class recipe's figures: drop --scale, --steps, "
                      "--eval-size, --seed")
+    if args.split and args.record and args.loss != "vicreg":  # the pages: a VICReg step's ratio
+        parser.error("--split --record stores the ratio of a VICReg step: drop --loss")
     torch.set_num_threads(args.threads)
 
     preset = image_preset(args.scale, args.loss)

@@ -5,10 +5,10 @@ chapter table and each notebook's first cell state.
     python -m research.benchmarks.notebooks --scale class --cold --record
 
 Each notebook runs in a fresh kernel (nbclient) from ``notebooks/``, as a learner's Jupyter
-would, with ``EBJEPA_SCALE`` set. ``--cold`` moves ``data/cache/checkpoints`` and
-``data/cache/probes`` aside first (and puts them back after), so chapters 01 and 02 train
-their class runs live, as on a learner's first run; the shipped ``checkpoints/`` always
-load. ``--record`` stores each wall time as ``notebook_NN_<scale>`` in
+would, with ``EBJEPA_SCALE`` set. ``--cold`` moves the cache's ``checkpoints`` and ``probes``
+(``$EBJEPA_CACHE``, else ``data/cache``) aside first (and puts them back after), so chapters 01
+and 02 train their class runs live, as on a learner's first run; the shipped ``checkpoints/``
+always load. ``--record`` stores each wall time as ``notebook_NN_<scale>`` in
 ``checkpoints/reference.json``, in seconds. Time only on idle cores: a second job on a
 2-core machine slows both by far more than hosts differ.
 """
@@ -26,12 +26,12 @@ import nbformat
 import torch
 from nbclient import NotebookClient
 
+from ebjepa_tutorial.data.paths import cache_dir
 from research.benchmarks import command_line, cpu_name
 from tools import figures
 
 ROOT = Path(__file__).resolve().parents[2]
 NOTEBOOKS = ROOT / "notebooks"
-CACHE = ROOT / "data" / "cache"
 MOVABLE = ("checkpoints", "probes")  # what a first run has not made yet
 
 
@@ -42,11 +42,12 @@ def notebooks(only: list[str] | None = None) -> list[Path]:
 
 @contextmanager
 def cold_cache(enabled: bool):
-    """``data/cache``'s trained runs and scores moved aside while the block runs."""
+    """The cache's trained runs and scores moved aside while the block runs (the cache the
+    kernels read: ``$EBJEPA_CACHE``, which they inherit, else ``data/cache``)."""
     moved = []
     try:
         for name in MOVABLE if enabled else ():
-            path = CACHE / name
+            path = cache_dir() / name
             if path.exists():
                 aside = path.with_name(f"{name}.aside-{os.getpid()}")
                 path.rename(aside)
@@ -73,9 +74,9 @@ def run_notebook(path: Path, scale: str, timeout: int = 3600) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scale", choices=("ci", "class"), default="ci")
-    parser.add_argument("--only", nargs="*", help="two-digit chapter numbers (default: all)")
+    parser.add_argument("--only", nargs="+", help="two-digit chapter numbers (default: all)")
     parser.add_argument("--cold", action="store_true",
-                        help="move data/cache's trained runs aside: a learner's first run")
+                        help="move the cache's trained runs aside: a learner's first run")
     parser.add_argument("--record", action="store_true")
     args = parser.parse_args()
     host = f"{cpu_name()}, {os.cpu_count()} cores"

@@ -13,7 +13,7 @@ trained there. Episodes run ``--batch`` at a time. Prints the success rate with
 its Wilson 95% interval, the mean first-arrival step (episodes that
 arrived), and process CPU seconds per episode (all threads counted). Last
 line: ``success=... ci_low=... ci_high=... s_per_episode=...``. ``--record``
-(one of the three models of ``RECORDED``, the chapter's planner, first seed 10,000)
+(one of the seven models of ``RECORDED``, the chapter's planner, first seed 10,000)
 stores the success rate in ``checkpoints/reference.json``, which notebook 06
 prints beside the learner's.
 """
@@ -27,7 +27,8 @@ from pathlib import Path
 import torch
 
 from ebjepa_tutorial.envs.two_rooms import WALL_X_RANGES
-from ebjepa_tutorial.planning import PlannerConfig, run_episodes
+from ebjepa_tutorial.planning import METHODS, PlannerConfig, run_episodes
+from ebjepa_tutorial.training.checkpoints import load_checkpoint
 from ebjepa_tutorial.training.world import load_world_model
 from research.benchmarks import command_line
 from tools import figures
@@ -39,6 +40,9 @@ RECORDED = {"world_model_class.pt": "planning_success_class",
             "world_model_class_long20k_mlp.pt": "planning_success_refit",
             **{f"world_model_class_{suffix}.pt": f"planning_success_{suffix}"
                for suffix in ("no_variance", "no_covariance", "no_temporal", "no_idm")}}
+# the planner settings with a fixed set of values: a typo is a usage error. No "learned" cost:
+# it needs a cost head (chapter 07's), which this command does not load
+CHOICES = {"method": METHODS, "cost": ("sum", "last")}
 
 
 def _yes_no(text: str) -> bool:
@@ -87,7 +91,8 @@ def main() -> None:
                         help="episode length (default: the world's budget, 200 or 120)")
     for name, default in _settings(PlannerConfig()).items():  # --method, ..., --noise-period
         kind = _yes_no if isinstance(default, bool) else type(default)
-        parser.add_argument(f"--{name.replace('_', '-')}", type=kind, default=default)
+        parser.add_argument(f"--{name.replace('_', '-')}", type=kind, default=default,
+                            choices=CHOICES.get(name))
     parser.add_argument("--record", action="store_true",
                         help="store the success rate in checkpoints/reference.json")
     args = parser.parse_args()
@@ -99,6 +104,12 @@ def main() -> None:
         parser.error(f"--record stores the chapter's planner (no planner options, first seed "
                      f"10000, Two Rooms at its 200 steps) with one of {sorted(RECORDED)}")
     model = load_world_model(args.checkpoint)
+    # a model's identity records its world's walls where they are not Two Rooms' one (a refit,
+    # "base" alone, is Two Rooms only); a file without an identity cannot be checked
+    stored = load_checkpoint(args.checkpoint).get("config")
+    if stored is not None and stored.get("walls", 1) != args.walls:
+        parser.error(f"{args.checkpoint} was trained with --walls {stored.get('walls', 1)}; "
+                     f"it cannot plan in a world of --walls {args.walls}")
     seeds = list(range(args.first_seed, args.first_seed + args.episodes))
     result = run_episodes(model, seeds, config, steps=args.steps, batch=args.batch,
                           walls=args.walls)

@@ -6,7 +6,8 @@ Prints trajectories per second (17 frames, 16 actions) for the states alone
 and with every 65x65x2 frame rendered (float32, in batches into one reused
 buffer, as a training loop would); then trains notebook 05's class run (the
 course's recipe) from scratch for ``--steps`` steps (default: the preset's,
-under 10 minutes on 2 cores; ``--steps 0`` skips it) and reports training
+about 9-15 minutes on 2 cores, ``world_train_min`` in ``checkpoints/reference.json``;
+``--steps 0`` skips it) and reports training
 trajectories per second, the linear position probe's error on held-out
 trajectories (pixels) by notebook 05's protocol, and notebook 06's one-step
 wall test. ``--out PATH``

@@ -6,8 +6,9 @@ Trains notebook 03's ``full`` preset (K = 4, seed 0: the paper's 18,000 clips of
 batch 64, Adam at a constant 1e-3) and, after each epoch, scores it by the notebook's
 protocol at that scale (detection probe on frozen latents, AP per horizon on clips of
 held-out digits). The rate is constant, so the first epochs of this run are the first
-epochs of the paper's 50. It stops after the epoch during which ``--budget`` seconds ran
-out. ``--scale ci`` runs the same on the ci preset, to test this script on a CPU.
+epochs of the paper's 50. It starts no epoch that the mean epoch time so far (evaluation
+included) predicts would end past ``--budget`` seconds. ``--scale ci`` runs the same on the ci
+preset, to test this script on a CPU.
 Needs the MNIST test digits (``EBJEPA_DATA``). Last line:
 ``epochs=... clips_per_s=... map=... ap3=...`` (ap3: AP three steps ahead).
 """

@@ -11,8 +11,11 @@ paper's protocol (parallel unroll) and then autoregressively. The last line
 is ``clips_per_s=... train_clips_per_s=... map=... ap3=...`` (the paper's
 protocol; ap3: AP three steps ahead) for scripts. ``--steps`` shortens the run (a quick
 check; the figures are then not the class run's); ``--steps 0`` skips the
-model part (``nan``). ``--record`` stores the main run's mAP (K = 4, seed 0)
-in ``checkpoints/reference.json``, which notebook 03 prints beside yours.
+model part (``nan``). ``--record`` stores the main run's (K = 4, seed 0) mAP as
+``video_map`` in ``checkpoints/reference.json``, which no page or notebook prints
+(notebook 03 prints ``video_map_class_K4``, the mean of ``research.train_video``'s seeds),
+and its training minutes as ``video_train_min``, which the README, RESULTS.md and notebook 03
+state.
 ``--split`` first prints where one class-scale step's time goes (encoder,
 rollout, projector and regulariser, backward, optimiser).
 Needs the MNIST test digits on disk (``load_mnist("test", download=False)``);
