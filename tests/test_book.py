@@ -82,6 +82,15 @@ def test_generated_project_is_offline_and_lists_chapters(tmp_path):
     index = bk.index_md(book, "ci")
     assert index.startswith("# My Book") and "`ci`" in index
     assert index.index("notebooks/00_a\n") < index.index("notebooks/01_b\n")
+    assert "solutions edition" in index and "make lab-student" in index  # learners: the stubs
+
+
+def test_the_courses_book_holds_every_notebook_in_order():
+    book = bk.load_book(Path(__file__).resolve().parents[1] / "book.yml")
+    notebooks = sorted(p for p in book.chapters if p.startswith("notebooks/"))
+    on_disk = sorted(f"notebooks/{p.name}" for p in (book.root / "notebooks").glob("*.ipynb"))
+    assert notebooks == on_disk and list(notebooks) == [
+        p for p in book.chapters if p.startswith("notebooks/")]  # a new chapter is not left out
 
 
 def tiny_notebook(tmp_path: Path, *cells: tuple[str, list[str]]) -> Path:

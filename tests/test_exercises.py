@@ -836,7 +836,8 @@ def test_the_student_version_holds_no_line_of_a_solution(path):
         lines = _solution_lines(_source(cell))
         names = re.findall(r"^def (\w+)\(", _source(cell), flags=re.M)
         hints = "\n".join(common.HINTS[name][level] for name in names for level in (0, 1))
-        near = "\n".join(_exercise_cells(student, index)) + hints
+        # every cell a learner has read by the exercise, its statement and its check
+        near = "\n".join(student[:index] + _exercise_cells(student, index)) + hints
         for line in lines:
             assert line not in text + hints, f"{path.name} cell {index}: {line!r} is shown"
             rhs = _right_hand_side(line)

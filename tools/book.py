@@ -186,6 +186,8 @@ def index_md(book: Book, scale: str | None) -> str:
         parts += ["By " + ", ".join(book.authors), ""]
     if book.description:
         parts += [book.description.strip(), ""]
+    parts += ["This is the solutions edition: every exercise is shown solved. To work them "
+              "yourself, open the student versions with `make lab-student`.", ""]
     if scale is None:
         parts += ["The notebooks on these pages are shown as committed, without outputs: "
                   "run them with `make lab`.", ""]
