@@ -301,3 +301,18 @@ def test_first_chapter_renders_math_and_code(site):
         assert picture.size == (1280, 2000)
         assert max(ImageStat.Stat(picture.convert("L")).stddev) > 10, "blank screenshot"
     print(f"screenshot of {page}: {shot}")
+
+
+@pytest.mark.parametrize("cell", [
+    {"cell_type": "markdown", "metadata": {}, "source": "<!--BEGIN SOLUTION-->the answer"},
+    {"cell_type": "markdown", "metadata": {}, "source": "<!-- BEGIN SOLUTION -->no end"},
+    {"cell_type": "raw", "metadata": {}, "source": "### BEGIN SOLUTION\nx = 1\n### END SOLUTION"},
+    {"cell_type": "code", "metadata": {}, "outputs": [], "execution_count": None,
+     "source": "def f(x):\n    ## begin solution\n    return x\n"},
+])
+def test_a_misspelt_solution_marker_stops_the_student_build(cell):
+    from tools.student import student_notebook
+
+    notebook = {"cells": [cell], "metadata": {}, "nbformat": 4, "nbformat_minor": 5}
+    with pytest.raises(ValueError, match="solution marker is left"):
+        student_notebook(notebook)

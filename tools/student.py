@@ -90,6 +90,9 @@ def student_notebook(notebook):
             cell.outputs, cell.execution_count = [], None
         elif cell.cell_type == "markdown":
             cell.source = MARKDOWN_SOLUTION.sub("", cell.source)
+        if re.search(r"(?i)(begin|end)\s+solution", cell.source):  # a marker that matched nothing
+            raise ValueError(f"a solution marker is left in a {cell.cell_type} cell, so its "
+                             f"solution would stay: {cell.source[:80]!r}")
     return student
 
 
