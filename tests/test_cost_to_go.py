@@ -9,7 +9,7 @@ import pytest
 import torch
 from torch import nn
 
-from ebjepa_tutorial.planning import PlannerConfig, planning_cost
+from ebjepa_tutorial.planning import planning_cost
 from ebjepa_tutorial.training.checkpoints import (
     CheckpointError,
     UnsafeCheckpointError,
@@ -23,6 +23,7 @@ from research.beyond_fits import (
     CostConfig,
     CostData,
     Multiplier,
+    cost_data,
     cost_objective,
     fit_cost_to_go,
     imagination_gap,
@@ -167,7 +168,6 @@ def test_the_learned_cost_is_the_cost_to_go_from_the_last_imagined_step():
     assert cost[0].tolist() == pytest.approx([7.0, 109 ** 0.5, 10.0])
     with pytest.raises(ValueError, match="WithLearnedCost"):
         planning_cost(Drift(), z0, goal, plans, "learned")
-    assert PlannerConfig(cost="learned").cost == "learned"
 
 
 def test_a_head_for_other_latents_is_refused():
@@ -257,3 +257,33 @@ def test_the_fit_command_writes_files_that_the_notebook_then_loads(tmp_path, cap
     assert stored["consistency"] == 0.0 and stored["seed"] == 3 and stored["walls"] == 2
     assert torch.load(out / "coarse_three_rooms_class.pt")["config"]["coarse"]["seed"] == 3
     assert head(torch.zeros(1, model.latent_dim), torch.zeros(1, model.latent_dim)) == 0
+
+
+class _ExactModel(nn.Module):
+    """Latent = (x, y, wall_x, door_y) read off a frame; rollout = the world's own transition."""
+
+    def __init__(self):
+        from test_three_rooms_planning import WallsReader
+
+        super().__init__()
+        self.reader, self.unused = WallsReader(), nn.Parameter(torch.zeros(()))
+
+    def encode(self, frames):
+        return self.reader.encode(frames.flatten(0, -4)).view(*frames.shape[:-3], -1)
+
+    def rollout(self, z0, actions):
+        z, out = z0, []
+        for action in actions.unbind(1):
+            z = self.reader.predict(z, action)
+            out.append(z)
+        return torch.stack(out, 1)
+
+
+def test_cost_data_imagines_each_piece_from_its_own_first_frame():
+    # with a model that imagines exactly, imagined step j of piece p is the latent of frame
+    # p k + j + 1: a rollout started a frame late or early is off by a whole step
+    data = cost_data(_ExactModel(), CostConfig(n_trajectories=8, trajectory_steps=32, layouts=2,
+                                               seed=0))
+    pieces, k = data.imagined.shape[1:3]
+    true = torch.stack([data.latents[:, p * k + 1:p * k + k + 1] for p in range(pieces)], 1)
+    assert pieces == 2 and (data.imagined - true).abs().max() < 2e-3

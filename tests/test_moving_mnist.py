@@ -63,6 +63,13 @@ def batch(digits_and_boxes):
     return generate_moving_mnist(digits_and_boxes[0], n_clips=64, n_frames=12, seed=3)
 
 
+def test_digits_start_out_in_every_direction(batch):
+    # a half-circle of directions (pi for 2 pi) would send every digit the same way in y
+    first = batch.velocities[:, 0].flatten(0, 1)  # (clips x digits, 2): each digit's first step
+    for axis in (0, 1):
+        assert 0.35 < (first[:, axis] < 0).float().mean() < 0.65
+
+
 def test_shapes_and_dtypes(batch):
     assert batch.clips.shape == (64, 12, 1, 64, 64) and batch.clips.dtype == torch.uint8
     assert batch.centres.shape == (64, 12, 2, 2) and batch.centres.dtype == torch.float32

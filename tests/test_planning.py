@@ -170,6 +170,37 @@ def test_costs_fall_over_iterations():
                            generators(4), record=True)
     assert (result.costs[:, -1] < result.costs[:, 0]).all()
     assert len(result.history) == 6 and result.history[0][0].shape == (4, 200, 10, 2)
+    # each iteration's figure is its cheapest sample (what notebook 06 prints), not a mean
+    best = torch.stack([costs.min(dim=1).values for _, costs in result.history], dim=1)
+    assert torch.equal(result.costs, best)
+
+
+def test_a_shifted_plan_drops_what_was_executed_and_pads_with_zeros():
+    mean = torch.arange(6.0).view(1, 6, 1)  # (B, H, A): actions 0..5
+    assert planning.shift_plan(mean, 2).flatten().tolist() == [2, 3, 4, 5, 0, 0]
+
+
+def test_the_summary_averages_first_arrival_over_the_episodes_that_arrived():
+    episodes, _ = planning.episode_generators([0, 1, 2])
+    result = planning.EpisodeResults(
+        [0, 1, 2], episodes, torch.zeros(3, 3, 2), torch.zeros(3, 2, 2),
+        torch.tensor([True, False, True]), torch.tensor([10, -1, 30]), 3.0, 3.0)
+    assert "mean first arrival 20 steps" in result.summary()  # -1: never arrived, left out
+
+
+class XOnly(LinearLatentModel):
+    """The dot's x alone: an energy blind to y."""
+
+    def encode(self, frames):
+        return super().encode(frames)[:, :1]
+
+
+def test_true_motion_plans_with_the_models_energy():
+    # world="true" imagines the real motion but scores it with the model's latent distance:
+    # an energy that sees only x brings x to the goal and leaves y where it lies
+    result = planning.run_episodes(XOnly(), range(2), SMALL_PLANNER, world="true")
+    gap = (result.paths[:, -1] - result.episodes.goals).abs()  # (2, 2): |dx|, |dy| at the end
+    assert (gap[:, 0] < 2).all() and not result.success.any()
 
 
 def test_planning_cost_sum_and_last():
@@ -298,6 +329,7 @@ def test_the_benchmark_prints_its_figures(tmp_path):
          "--episodes", "3", "--batch", "2", "--horizon", "4", "--samples", "8", "--elites", "2",
          "--iterations", "1", "--threads", "1"],
         cwd=root, capture_output=True, text=True, check=True).stdout
+    assert "samples=8, elites=2, iterations=1" in out.splitlines()[0]  # the flags reach it
     last = dict(item.split("=") for item in out.strip().splitlines()[-1].split())
     assert set(last) == {"success", "ci_low", "ci_high", "s_per_episode"}
     assert 0 <= float(last["ci_low"]) <= float(last["success"]) <= float(last["ci_high"]) <= 1

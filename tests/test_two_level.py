@@ -113,3 +113,38 @@ def test_settings_a_coarse_fit_cannot_use_are_refused():
         CoarseConfig(stride=0)
     with pytest.raises(ValueError, match="episodes"):
         CoarseFit(CoarseConfig(), LOW, HIGH, lookahead=2, reach_px=4.5, episodes=0)
+
+
+def test_a_coarse_rollout_chains_its_steps():
+    torch.manual_seed(0)
+    coarse = NOTEBOOK.CoarseModel(2, stride=4, hidden=8)
+    torch.nn.init.normal_(coarse.out.weight)  # a step that moves (an untrained one stands still)
+    z0, macro = torch.randn(3, 2), torch.randn(3, 3, 2)
+    with torch.no_grad():
+        chained = coarse.predict(coarse.predict(coarse.predict(z0, macro[:, 0]), macro[:, 1]),
+                                 macro[:, 2])
+        assert torch.allclose(coarse.rollout(z0, macro)[:, 2], chained)
+
+
+def test_the_high_level_re_plans_from_its_last_plan_one_coarse_step_on():
+    from dataclasses import dataclass
+
+    seen = []  # (warm start, iterations, the plan made) per call of subgoals
+
+    @dataclass(frozen=True)
+    class Recording(TwoLevel):
+        def subgoals(self, z0, z_goal, config, generators, mean):
+            out = super().subgoals(z0, z_goal, config, generators, mean)
+            seen.append((mean.clone(), config.iterations, out[1].clone()))
+            return out
+
+    aim = Recording(Drift(stride=4), HIGH, lookahead=2).aim(
+        [torch.Generator().manual_seed(s) for s in range(2)])
+    z, goal = torch.zeros(2, 2), torch.tensor([[30.0, -12.0], [5.0, 5.0]])
+    first = aim(z, goal, torch.tensor([True, True]))
+    second = aim(z, goal, torch.tensor([True, False]))  # episode 1 has arrived
+    assert torch.equal(seen[1][0], shift_plan(seen[0][2], 1)[:1])  # only the moving row re-plans
+    assert [s[1] for s in seen] == [HIGH.iterations, HIGH.warm().iterations]
+    assert torch.equal(second[1], goal[1])  # an arrived episode aims at the goal itself
+    # the subgoal: where the first `lookahead` macro-actions lead under the coarse model
+    assert torch.allclose(first[0], seen[0][2][0, :2].sum(0))

@@ -481,3 +481,31 @@ def video_jepa_preset():
     ci = PRESETS["03"]["ci"]
     short = replace(ci.train, n_clips=16, steps=2, batch_size=2)
     return replace(ci, train=short, long_config=replace(short, steps=3))
+
+
+class _PlusOne(torch.nn.Module):
+    """A predictor "last latent + 1": a step k ahead of its newest true latent is that + k."""
+
+    def forward(self, window):
+        return window[:, -1] + 1
+
+
+@pytest.mark.parametrize("unroll", ["autoregressive", "parallel"])
+def test_each_horizon_scores_the_predictions_that_many_steps_ahead(unroll):
+    from ebjepa_tutorial.evaluation.detection import _pool
+
+    torch.manual_seed(0)
+    digits = torch.zeros(8, 1, 28, 28, dtype=torch.uint8)
+    digits[:, :, 9:19, 9:19] = 255
+    model = VideoJEPA(VIDEO_MODEL_CONFIGS["ci"]).eval()
+    model.predictor = _PlusOne()
+    clips = generate_moving_mnist(digits, 3, 10, seed=3).clips  # (3, 10, 1, 64, 64)
+    c = model.config.context
+    with torch.no_grad():
+        z = _pool(model.encode(clips))  # (3, 10, C, 8, 8)
+    _, predicted = grid_features(model, clips, horizons=4, unroll=unroll)
+    for k in range(1, 5):
+        # one rollout from the first c frames: entry k - 1 is frame c - 1 + k; the parallel
+        # unroll: every frame from c - 1 + k on, each k steps past its newest true latent
+        expected = z[:, c - 1:c] + k if unroll == "autoregressive" else z[:, c - 1:10 - k] + k
+        assert torch.allclose(predicted[k - 1], expected, atol=1e-5), k
