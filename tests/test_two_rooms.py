@@ -473,3 +473,12 @@ def test_the_environment_asks_for_reset_before_anything_else():
     for use in (env.observe, lambda: env.step(torch.zeros(1, 2))):
         with pytest.raises(RuntimeError, match=r"call env.reset\(n, seed\) before"):
             use()
+
+
+@pytest.mark.parametrize("start", [(10.0, 64.0), (10.0, 0.5), (64.0, 10.0), (0.5, 10.0),
+                                   (float("nan"), 10.0)])
+def test_a_start_outside_the_arena_is_refused(start):
+    layouts, positions = torch.tensor([[30, 30]]), torch.tensor([start])
+    with pytest.raises(ValueError, match="outside the arena"):
+        check_world(layouts, positions)
+    check_world(layouts, torch.tensor([[LOW, HIGH]]))  # the arena's own corner is allowed

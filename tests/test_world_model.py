@@ -954,3 +954,63 @@ def test_a_clipped_replay_run_trains(small_replay):
     config = replace(config, recipe=replace(config.recipe, grad_clip=0.1))
     _, history = train_world_model(config, progress=False, device="cpu")
     assert len(history["loss"]) == 2
+
+
+# -- scores by hand ----------------------------------------------------------------------------
+def test_the_probe_error_is_the_mean_euclidean_distance_in_pixels():
+    read = torch.tensor([[3.0, 4.0], [0.0, 0.0], [1.0, 1.0]])  # an identity probe reads these
+    # distances 5, 0 and sqrt(2) from the origin: their mean, not the root mean square (3)
+    assert probe_error_px(torch.nn.Identity(), read, torch.zeros(3, 2)) == pytest.approx(
+        (5 + 2 ** 0.5) / 3, rel=1e-6)
+
+
+def test_the_blind_baseline_answers_the_mean_training_position():
+    train, test = torch.tensor([[0.0, 0.0], [0.0, 4.0]]), torch.tensor([[3.0, 6.0], [3.0, 6.0]])
+    assert mean_baseline_px(train, test) == pytest.approx(5.0)  # from (0, 2): a 3-4-5 triangle
+
+
+class _Noise(torch.nn.Module):
+    """A latent that knows nothing: fresh Gaussian numbers for every frame."""
+
+    def __init__(self):
+        super().__init__()
+        self.anchor, self.generator = torch.nn.Parameter(torch.zeros(())), torch.Generator()
+        self.generator.manual_seed(0)
+
+    def encode(self, frames):
+        return torch.randn(*frames.shape[:-3], 64, generator=self.generator)
+
+
+def test_the_probe_report_scores_frames_the_probe_never_saw():
+    # 64 random numbers fit 3 x 17 frames' positions perfectly; on held-out frames they know
+    # nothing, so the probe must score about the blind baseline, not the fit's near-zero error
+    from ebjepa_tutorial.evaluation.position import probe_report
+
+    report = probe_report(_Noise(), n_fit=3, n_test=20)
+    assert report["probe_px"] > 0.8 * report["baseline_px"]
+
+
+def test_a_restored_replay_writes_its_next_windows_where_the_saved_one_would(small_replay):
+    first, second = _replay(), _replay()
+    first.add(torch.randn(11, 3, 8), torch.randn(11, 2, 2))  # 11 windows into 8 rows: head 3
+    second.load_state_dict(first.state_dict())
+    assert (second.head, second.filled) == (3, 8)
+    more = torch.randn(2, 3, 8), torch.randn(2, 2, 2)
+    first.add(*more), second.add(*more)
+    assert torch.equal(first.latents, second.latents)
+
+
+def test_the_wall_test_keeps_steps_a_wall_cut_short_and_free_steps_of_full_length():
+    from ebjepa_tutorial.envs.trajectories import roll_out
+    from ebjepa_tutorial.evaluation.position import _wall_steps
+
+    layouts = torch.tensor([[30, 40], [30, 40]])  # the wall's left face at x = 27.5
+    starts = torch.tensor([[10.0, 10.0], [27.0, 10.0]])
+    actions = torch.tensor([[[0.3, 0.0], [1.0, 0.0]],  # a short free step, then a full one
+                            [[1.8, 0.0], [0.0, 1.0]]])  # into the wall (1.3 px lost), then down
+    positions = roll_out(starts, actions, layouts)
+    assert positions[1, 1].tolist() == [27.5, 10.0]
+    door = torch.zeros(2, dtype=torch.bool)
+    stopped, moved = _wall_steps(Trajectories(positions, actions, layouts, door))
+    assert stopped.tolist() == [[False, False], [True, False]]
+    assert moved.tolist() == [[False, True], [False, True]]  # 0.3 px is too short to count
