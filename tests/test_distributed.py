@@ -516,3 +516,27 @@ def test_torchrun_trains_the_world_command_on_two_processes(tmp_path, flags, cha
     assert stored["history"]["step"] == [0, 3]  # logged every 10 steps and the last
     assert world.load_world_model(out).config == config.model
     assert not out.with_suffix(".partial").exists()
+
+
+def _replays_agree(rank):
+    world.REPLAY_BATCH, world.REPLAY_CAPACITY = 8, 16  # small, and shared 4 + 4 by the ranks
+    torch.manual_seed(0)  # the same weights on both ranks
+    model = WorldModel(WORLD_TINY)
+    config = world.WorldTrainConfig(model=WORLD_TINY, batch_size=8, rollout_steps=2,
+                                    recipe=world.Recipe(replay_steps=2))
+    replay = world.LatentReplay(model, config, frames=3, device="cpu")
+    mine = torch.Generator().manual_seed(rank)  # each rank adds windows of its own
+    replay.add(torch.randn(4, 3, model.latent_dim, generator=mine),
+               torch.randn(4, 2, WORLD_TINY.action_dim, generator=mine))
+    replay(0)
+    for name, p in model.named_parameters():  # the ranks' copies of each replayed weight
+        copies = [torch.empty_like(p) for _ in range(WORLD)]
+        dist.all_gather(copies, p.detach())
+        assert torch.equal(copies[0], copies[1]), name
+
+
+@pytest.mark.slow
+def test_replay_updates_keep_the_ranks_weights_identical():
+    # each rank replays its share of the draw, so without averaging the replay's gradients
+    # the two copies of the predictor would drift apart with no error
+    spawn(_replays_agree)
