@@ -1014,3 +1014,39 @@ def test_the_wall_test_keeps_steps_a_wall_cut_short_and_free_steps_of_full_lengt
     stopped, moved = _wall_steps(Trajectories(positions, actions, layouts, door))
     assert stopped.tolist() == [[False, False], [True, False]]
     assert moved.tolist() == [[False, True], [False, True]]  # 0.3 px is too short to count
+
+
+def test_a_world_run_resumes_where_it_stopped_replay_included(tmp_path, monkeypatch):
+    # the course recipe's run, saved every step, dies while rendering step 3's batch; the run
+    # started again must train steps 3 and 4 only and end as the straight run ends (the replay
+    # buffer, its write position and its Adam come back from the file with the model)
+    monkeypatch.setattr(world, "REPLAY_BATCH", 8)
+    monkeypatch.setattr(world, "REPLAY_CAPACITY", 5)  # 12 windows by step 3: it has wrapped
+    recipe = world.Recipe(window=4, replay_steps=2, stay_probability=0.2, decay_steps=3)
+    config = world.WorldTrainConfig(model=replace(TINY, predictor="mlp"), n_trajectories=16,
+                                    batch_size=4, steps=5, rollout_steps=2, recipe=recipe)
+    nb = notebook()
+    cell = nb.train_world_model.__globals__  # the notebook cell's names
+    run_steps = cell["run_steps"]
+    monkeypatch.setitem(cell, "run_steps", lambda *args, **kw: run_steps(
+        *args, **{**kw, "every": 1, "log_every": 1}))
+    data = world.make_data(config)
+    straight, history = nb.train_world_model(config, data, world.world_model_step, None, "cpu",
+                                             False)
+    render, calls = cell["envs"].render, []
+
+    def dying_render(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 4:
+            raise KeyboardInterrupt
+        return render(*args, **kwargs)
+
+    checkpoint = tmp_path / "run.pt"
+    monkeypatch.setattr(cell["envs"], "render", dying_render)
+    with pytest.raises(KeyboardInterrupt):
+        nb.train_world_model(config, data, world.world_model_step, checkpoint, "cpu", False)
+    monkeypatch.setattr(cell["envs"], "render", render)
+    resumed, again = nb.train_world_model(config, data, world.world_model_step, checkpoint,
+                                          "cpu", False)
+    assert again["step"] == history["step"] and again["loss"] == history["loss"]
+    assert all(torch.equal(a, b) for a, b in zip(straight.parameters(), resumed.parameters()))
