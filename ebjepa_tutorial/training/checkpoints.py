@@ -123,10 +123,11 @@ def _unchecked_calls(function, seen: set) -> dict:
         codes += [c for c in code.co_consts if inspect.iscode(c)]
     for name in sorted(names):
         called = function.__globals__.get(name)
+        verdict = getattr(called, CHECKED, None)
         if (not inspect.isfunction(called) or called.__module__ != "__main__" or called in seen
-                or getattr(called, CHECKED, None) == "passed"):
+                or verdict == "passed"):
             continue
-        if getattr(called, CHECKED, None) == "failed":
+        if verdict == "failed":
             raise ValueError(f"{name} failed its exercise's check, so no run trains with it: "
                              "correct it and rerun its check cell (a body of `raise "
                              "NotImplementedError` hands over the course's)")

@@ -248,13 +248,12 @@ class Exercise:
         case's looser ``atol`` holds, else 0."""
         expected = self._reference(*case.args, **case.kwargs)
         got = self._run(fn, name, case)
-        atol, parts, gap = self.atol if case.atol is None else case.atol, self.parts, 0.0
-        if parts and got is not None and (not isinstance(got, (tuple, list))
-                                          or len(got) != len(parts)):
+        atol, gap = self.atol if case.atol is None else case.atol, 0.0
+        parts = self.parts if got is not None else None  # None: the missing return's words
+        if parts and (not isinstance(got, (tuple, list)) or len(got) != len(parts)):
             raise ExerciseError(say("not_a_tuple", name=name, n=len(parts), case=case.description,
                                     parts=", ".join(parts), kind=_describe(got)))
-        for label, g, e in zip(parts, got, expected) if parts and got is not None else [
-                ("", got, expected)]:
+        for label, g, e in zip(parts, got, expected) if parts else [("", got, expected)]:
             if (torch.is_tensor(e) and not torch.is_tensor(g)) or _numbers(g) is None:
                 key = ("returned_none" if g is None else "returned_several"
                        if isinstance(g, (tuple, list)) else "returned_other")
