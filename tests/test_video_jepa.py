@@ -265,6 +265,22 @@ def test_bad_inputs_raise_clear_errors():
         grid_features(model, torch.zeros(4, 8, 1, 64, 64), horizons=4)
 
 
+def test_grid_features_reads_in_eval_mode_and_hands_the_model_back_as_it_was():
+    """Batch norm's running statistics, not the clips', give the features (a model scored in
+    the middle of training then trains on in training mode)."""
+    model = VideoJEPA(VIDEO_MODEL_CONFIGS["ci"]).train()
+    clips = torch.randint(0, 256, (3, 8, 1, 64, 64), dtype=torch.uint8)
+    encoded, _ = grid_features(model, clips, horizons=2)
+    assert model.training
+    with torch.no_grad():
+        expected = torch.nn.functional.adaptive_avg_pool2d(
+            model.eval().encode(clips).flatten(0, 1), 8)
+    assert torch.allclose(encoded.flatten(0, 1), expected, atol=1e-6)
+    assert not model.training  # (the eval() just above)
+    grid_features(model, clips, horizons=2)
+    assert not model.training
+
+
 @pytest.mark.slow  # trains, resumes, probes and decodes: seconds
 def test_training_resumes_and_evaluation_runs(digits, tmp_path):
     clips = generate_moving_mnist(digits, 32, 10, seed=1).clips

@@ -30,23 +30,26 @@ def grid_features(model: VideoJEPA, clips: torch.Tensor, horizons: int = 7,
                   unroll: str = "parallel"):
     """Pooled latents on the CPU of uint8 ``clips (N, T, 1, 64, 64)``: ``encoded (N, T, C, 8, 8)``
     and, for k = 1..``horizons``, ``predicted[k - 1] (N, F_k, C, 8, 8)``: frames from
-    ``context - 1 + k`` on (``parallel``: all later ones; else that one), predicted k ahead."""
+    ``context - 1 + k`` on (``parallel``: all later ones; else that one), predicted k ahead; the model in eval mode (its own mode restored after)."""
     context = model.config.context
     check_clips(clips, context + horizons)
     if unroll not in UNROLLS:
         raise ValueError(f"unroll must be one of {sorted(UNROLLS)}, got {unroll!r}")
-    model.eval()
-    device = next(model.parameters()).device
+    device, was_training = next(model.parameters()).device, model.training
     encoded, predicted = [], []
-    for lo in range(0, len(clips), 100):
-        z = model.encode(clips[lo:lo + 100].to(device))
-        if unroll == "parallel":  # step k's predictions from frame context - 1 + k on
-            steps = parallel_unroll(model.predictor, z, context, horizons)
-            predicted.append([_pool(p[:, k:]).cpu() for k, p in enumerate(steps)])
-        else:  # one rollout from the first context frames: entry k - 1 is k steps ahead
-            steps = _pool(rollout(model.predictor, z[:, :context], horizons)).cpu()
-            predicted.append(list(steps.split(1, dim=1)))
-        encoded.append(_pool(z).cpu())
+    model.eval()  # batch norm's running statistics; a model in training is handed back so
+    try:
+        for lo in range(0, len(clips), 100):
+            z = model.encode(clips[lo:lo + 100].to(device))
+            if unroll == "parallel":  # step k's predictions from frame context - 1 + k on
+                steps = parallel_unroll(model.predictor, z, context, horizons)
+                predicted.append([_pool(p[:, k:]).cpu() for k, p in enumerate(steps)])
+            else:  # one rollout from the first context frames: entry k - 1 is k steps ahead
+                steps = _pool(rollout(model.predictor, z[:, :context], horizons)).cpu()
+                predicted.append(list(steps.split(1, dim=1)))
+            encoded.append(_pool(z).cpu())
+    finally:
+        model.train(was_training)
     return torch.cat(encoded), [torch.cat(k_steps) for k_steps in zip(*predicted)]
 
 
