@@ -30,7 +30,11 @@ from ebjepa_tutorial.envs.two_rooms import WALL_X_RANGES
 from ebjepa_tutorial.evaluation.position import middle_wall_test, probe_report
 from ebjepa_tutorial.losses.world import WorldLossCoeffs
 from ebjepa_tutorial.models.world import WorldConfig
-from ebjepa_tutorial.training.checkpoints import load_checkpoint, save_checkpoint
+from ebjepa_tutorial.training.checkpoints import (
+    CheckpointError,
+    load_checkpoint,
+    save_checkpoint,
+)
 from ebjepa_tutorial.training.world import (
     ABLATABLE_TERMS,
     WorldTrainConfig,
@@ -144,7 +148,7 @@ def _refit(parser, args, given: dict, recipe: dict) -> None:
     try:  # checked before anything is fitted, as the training path's options are
         config = RefitConfig(**given)
         refit_base(args.refit)
-    except ValueError as error:
+    except (ValueError, FileNotFoundError, CheckpointError) as error:  # a missing or bad file
         parser.error(str(error))  # a usage message, not a traceback
     refit_main(args.refit, args.out, config)
 

@@ -101,7 +101,7 @@ def test_planning_refuses_a_bad_planner_setting_and_a_model_of_another_world(mon
     assert "trained with --walls 1" in err
 
 
-def test_train_world_refit_gives_usage_errors_not_tracebacks(monkeypatch, capsys):
+def test_train_world_refit_gives_usage_errors_not_tracebacks(monkeypatch, capsys, tmp_path):
     from research import train_world
 
     monkeypatch.setattr(train_world, "refit_predictor", lambda *a, **k: pytest.fail("it fit"))
@@ -112,6 +112,13 @@ def test_train_world_refit_gives_usage_errors_not_tracebacks(monkeypatch, capsys
     three_rooms = str(SHIPPED_DIR / "world_model_three_rooms_class.pt")
     err = _usage_error(train_world.main, ["--refit", three_rooms, "--out", "x.pt"], capsys)
     assert "Two Rooms data only" in err
+    err = _usage_error(train_world.main, ["--refit", str(tmp_path / "none.pt"), "--out", "x.pt"],
+                       capsys)
+    assert "no checkpoint at" in err and "none.pt" in err
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
+    err = _usage_error(train_world.main, ["--refit", str(tmp_path / "bad.pt"), "--out", "x.pt"],
+                       capsys)
+    assert "is damaged" in err
 
 
 @pytest.mark.parametrize("variant", [["--tiny"], ["--set", "consistency=0"], ["--walks-only"]])
