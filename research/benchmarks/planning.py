@@ -14,8 +14,8 @@ its Wilson 95% interval, the mean first-arrival step (episodes that
 arrived), and process CPU seconds per episode (all threads counted). Last
 line: ``success=... ci_low=... ci_high=... s_per_episode=...``. ``--record``
 (one of the seven models of ``RECORDED``, the chapter's planner, first seed 10,000)
-stores the success rate in ``checkpoints/reference.json``, which notebook 06
-prints beside the learner's.
+stores the success rate in ``checkpoints/reference.json``: notebook 06 prints the
+first three models' beside the learner's, RESULTS.md states the four ablations'.
 """
 
 from __future__ import annotations
