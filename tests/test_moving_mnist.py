@@ -208,10 +208,14 @@ def test_grid_targets_by_hand():
     assert grid[1, 1, 1] == 1 and grid[1].sum() == 1  # both centres in one cell
 
 
-def test_grid_targets_from_a_batch(batch):
+def test_grid_targets_from_a_batch_mark_each_centre_cell_and_nothing_else(batch):
     grid = centres_to_grid(batch.centres)
     assert grid.shape == (64, 12, 8, 8)
-    assert ((grid.sum(dim=(-1, -2)) >= 1) & (grid.sum(dim=(-1, -2)) <= 2)).all()
+    expected = torch.zeros(64, 12, 8, 8)
+    for (n, t, _), (x, y) in zip(torch.cartesian_prod(*map(torch.arange, (64, 12, 2))).tolist(),
+                                 batch.centres.flatten(0, 2).tolist()):
+        expected[n, t, int(y) // 8, int(x) // 8] = 1  # row: the y cell, column: the x cell
+    assert torch.equal(grid, expected)
 
 
 @pytest.mark.parametrize(

@@ -244,13 +244,25 @@ def test_sigreg_joins_the_world_model_loss_when_weighted(data):
     assert "sigreg" not in off  # off by default: the paper's recipe costs nothing more
 
 
-def test_a_sigreg_world_model_trains():
-    from ebjepa_tutorial.training.world import WorldTrainConfig
+def _two_runs(config, **changes):
+    """The trained weights and history of ``config`` and of ``config`` with ``changes``."""
+    runs = [train_world_model(c, progress=False, device="cpu")
+            for c in (config, replace(config, **changes))]
+    return [(model.state_dict(), history) for model, history in runs]
 
-    config = WorldTrainConfig(model=tiny_model().config, n_trajectories=16, batch_size=4,
-                              steps=2, coeffs=wl.WorldLossCoeffs(sigreg=0.05))
-    _, history = train_world_model(config, progress=False)
+
+def _differ(a: dict, b: dict, prefix: str) -> bool:
+    """Whether any weight whose name starts with ``prefix`` differs between the state dicts."""
+    return any(not torch.equal(a[k], b[k]) for k in a if k.startswith(prefix))
+
+
+def test_a_sigreg_coefficient_reaches_the_run_and_changes_what_trains():
+    config = world.WorldTrainConfig(model=TINY, n_trajectories=16, batch_size=4, steps=2)
+    (plain, plain_history), (with_sigreg, history) = _two_runs(
+        config, coeffs=wl.WorldLossCoeffs(sigreg=0.05))
     assert len(history["sigreg"]) == 2 and all(math.isfinite(v) for v in history["sigreg"])
+    assert "sigreg" not in plain_history  # off by default: computed only when it weighs
+    assert _differ(plain, with_sigreg, "encoder.")
 
 
 def test_training_windows_are_consecutive_frames_of_one_trajectory_at_any_offset():
@@ -283,14 +295,15 @@ def test_training_windows_are_consecutive_frames_of_one_trajectory_at_any_offset
         world.WorldTrainConfig(rollout_steps=17)
 
 
-def test_a_windowed_channels_last_run_trains():
-    from ebjepa_tutorial.training.world import WorldTrainConfig
-
-    config = WorldTrainConfig(model=tiny_model().config, n_trajectories=16, batch_size=4,
-                              steps=2, recipe=world.Recipe(window=9, channels_last=True,
-                                                           wall_fraction=0.25))
-    _, history = train_world_model(config, progress=False, device="cpu")
-    assert len(history["loss"]) == 2 and all(math.isfinite(v) for v in history["loss"])
+def test_channels_last_is_a_memory_layout_only_the_run_is_the_same():
+    recipe = world.Recipe(window=9, wall_fraction=0.25)
+    config = world.WorldTrainConfig(model=TINY, n_trajectories=16, batch_size=4, steps=2,
+                                    recipe=recipe)
+    (plain, plain_history), (last, history) = _two_runs(
+        config, recipe=replace(recipe, channels_last=True))
+    assert history["loss"] == pytest.approx(plain_history["loss"], rel=1e-4)
+    assert all(torch.allclose(plain[k], last[k], atol=1e-5) for k in plain
+               if isinstance(plain[k], torch.Tensor))
 
 
 def test_a_three_rooms_run_trains_on_three_rooms_data_and_is_another_run():
@@ -377,12 +390,15 @@ def test_a_replay_restored_from_its_state_continues_exactly(small_replay):
                                                   second.model.predictor.parameters()))
 
 
-def test_a_replay_run_trains(small_replay):
-    recipe = world.Recipe(window=9, replay_steps=2, stay_probability=0.2)
+def test_a_replay_run_updates_the_predictor_after_each_step(small_replay):
+    recipe = world.Recipe(window=9, stay_probability=0.2)
     config = world.WorldTrainConfig(model=replace(TINY, predictor="mlp"), n_trajectories=16,
-                                    batch_size=4, steps=2, recipe=recipe)
-    _, history = train_world_model(config, progress=False, device="cpu")
-    assert len(history["loss"]) == 2 and all(math.isfinite(v) for v in history["loss"])
+                                    batch_size=4, steps=1, recipe=recipe)
+    (plain, plain_history), (replayed, history) = _two_runs(
+        config, recipe=replace(recipe, replay_steps=2))
+    assert history["loss"] == plain_history["loss"]  # the replay comes after the step...
+    assert _differ(plain, replayed, "predictor.")  # ...and moves the predictor
+    assert not _differ(plain, replayed, "encoder.")  # on stored latents: the encoder stays
 
 
 # -- the probe ---------------------------------------------------------------------------
@@ -948,12 +964,12 @@ def test_a_clipped_replay_update_steps_with_at_most_the_clipped_gradient(small_r
     assert len(norms) == 2 and max(norms) == pytest.approx(1e-3, rel=1e-4)
 
 
-def test_a_clipped_replay_run_trains(small_replay):
+def test_a_clipped_run_clips_the_step_the_course_recipe_takes(small_replay):
     config = world.course_recipe(world.WorldTrainConfig(
         model=WORLD_CONFIGS["ci"], n_trajectories=16, batch_size=4, steps=2))
-    config = replace(config, recipe=replace(config.recipe, grad_clip=0.1))
-    _, history = train_world_model(config, progress=False, device="cpu")
-    assert len(history["loss"]) == 2
+    (plain, _), (clipped, history) = _two_runs(
+        config, recipe=replace(config.recipe, grad_clip=1e-3))
+    assert len(history["loss"]) == 2 and _differ(plain, clipped, "encoder.")
 
 
 # -- scores by hand ----------------------------------------------------------------------------
