@@ -9,6 +9,7 @@ from test_one_source import chapter_00_loop, notebook_function
 from ebjepa_tutorial import losses
 from ebjepa_tutorial.course import exercises
 from ebjepa_tutorial.course.presets import preset
+from ebjepa_tutorial.losses.vicreg import variance_term as course_term  # a notebook's import
 from ebjepa_tutorial.training import image, toy
 
 CONFIG = replace(preset("01", "ci").config, steps=4, warmup_steps=1)  # chapter 01's ci run, cut
@@ -90,3 +91,38 @@ def test_chapter_01_trains_with_the_course_s_vicreg_while_the_learner_s_is_unwri
     _, history = image.train_image_jepa(config, images, progress=False,
                                         step=_chapter_01_step(checked))
     assert history == image.train_image_jepa(config, images, progress=False)[1]
+
+
+def _in_notebook(fn):
+    """``fn`` as if a notebook cell defined it (its module ``__main__``)."""
+    fn.__module__ = "__main__"
+    return fn
+
+
+def test_a_notebook_answer_that_calls_the_course_s_own_function_is_refused_and_never_trains():
+    wrappers = [  # through a module's attributes, an alias, a lambda inside, a slip on top
+        lambda z, gamma=1.0, eps=1e-4: losses.vicreg.variance_term(z, gamma, eps),
+        lambda z, gamma=1.0, eps=1e-4: course_term(z, gamma, eps),
+        lambda z, gamma=1.0, eps=1e-4: (lambda y: losses.variance_term(y, gamma, eps))(z),
+        lambda z, gamma=1.0, eps=1e-4: 2 * losses.variance_term(z, gamma, eps),
+    ]
+    for wrapper in map(_in_notebook, wrappers):
+        try:
+            exercises.check_variance_term(wrapper)
+        except exercises.ExerciseError as error:
+            assert "calls the course's own variance_term" in str(error)
+            assert "hint" in str(error).lower()  # and offers the next hint
+        else:
+            raise AssertionError("a wrapper of the course's function passed")
+        assert getattr(wrapper, exercises.common.CHECKED) == "failed"  # so no run takes it
+
+
+def test_a_notebook_answer_may_call_the_course_s_other_functions(capsys):
+    def vicreg(z_a, z_b, inv_coeff=25.0, std_coeff=25.0, cov_coeff=1.0):  # the course's terms
+        invariance = (z_a - z_b).pow(2).mean()
+        variance = (losses.variance_term(z_a) + losses.variance_term(z_b)) / 2
+        covariance = (losses.covariance_term(z_a) + losses.covariance_term(z_b)) / 2
+        return inv_coeff * invariance + std_coeff * variance + cov_coeff * covariance
+
+    assert exercises.check_vicreg(_in_notebook(vicreg)) is vicreg
+    assert "Correct" in capsys.readouterr().out

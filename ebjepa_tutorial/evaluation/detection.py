@@ -30,7 +30,8 @@ def grid_features(model: VideoJEPA, clips: torch.Tensor, horizons: int = 7,
                   unroll: str = "parallel"):
     """Pooled latents on the CPU of uint8 ``clips (N, T, 1, 64, 64)``: ``encoded (N, T, C, 8, 8)``
     and, for k = 1..``horizons``, ``predicted[k - 1] (N, F_k, C, 8, 8)``: frames from
-    ``context - 1 + k`` on (``parallel``: all later ones; else that one), predicted k ahead; the model in eval mode (its own mode restored after)."""
+    ``context - 1 + k`` on (``parallel``: all later ones; else that one), predicted k ahead.
+    The model runs in eval mode and is handed back in its own."""
     context = model.config.context
     check_clips(clips, context + horizons)
     if unroll not in UNROLLS:
