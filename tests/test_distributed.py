@@ -231,6 +231,22 @@ def test_the_global_batch_must_split_evenly(monkeypatch):
         distributed.per_rank_batch(4)
 
 
+def test_each_rank_takes_its_own_block_of_the_global_batch(monkeypatch):
+    """Rank r of W holds rows r b .. (r+1) b of a global batch of W b rows: the shares, in rank
+    order (as ``gather_rows`` joins them), give the global batch back, and each rank's part of
+    a draw for the global batch (``rand_rows``) is that draw's rows of its block."""
+    monkeypatch.setattr(distributed, "world_size", lambda: 2)
+    batch = torch.arange(8)
+    whole_draw = torch.rand(8, 3, generator=torch.Generator().manual_seed(1))
+    shares, draws = [], []
+    for rank in range(2):
+        monkeypatch.setattr(dist, "get_rank", lambda rank=rank: rank)
+        shares.append(distributed.local_rows(batch))
+        draws.append(distributed.rand_rows(4, 3, generator=torch.Generator().manual_seed(1)))
+    assert [share.tolist() for share in shares] == [[0, 1, 2, 3], [4, 5, 6, 7]]
+    assert torch.equal(torch.cat(draws), whole_draw)
+
+
 def test_init_names_the_missing_torchrun_variables():
     with pytest.raises(RuntimeError, match="MASTER_ADDR, MASTER_PORT are not set.*torchrun"):
         launch.init_from_env({"RANK": "0", "WORLD_SIZE": "2", "LOCAL_RANK": "0"})

@@ -1,6 +1,7 @@
 """The image-JEPA recipe: config checks, loss choice, reproducible and resumable training,
 and the evaluation protocol (frozen features of un-augmented images at ``eval_image_size``)."""
 
+import copy
 import dataclasses
 import math
 import time
@@ -273,7 +274,6 @@ def test_seconds_per_step_cancels_the_set_up_and_first_step(monkeypatch):
     # no learning-rate warm-up: a 1-step run has none to do
 
 
-
 @pytest.mark.slow  # the full-width ResNet-18
 @pytest.mark.parametrize("notebook, projector", [("01", (2048, 2048)), ("02", (2048, 128))])
 def test_full_scale_is_the_papers_recipe_and_takes_a_step(notebook, projector):
@@ -338,3 +338,66 @@ def test_the_default_weights_are_the_reference_codes_with_the_views_averaged():
                  + 1.0 * (losses.variance_term(z_a) + losses.variance_term(z_b))
                  + 80.0 * (losses.covariance_term(z_a) + losses.covariance_term(z_b)))
     assert torch.allclose(ours, reference, rtol=1e-6)
+
+
+def _record_steps(config, record):
+    """Train ``config`` on 32 random images with the package's step, calling ``record(batch,
+    optimizer)`` before each step."""
+    def recording(net, batch, optimizer, scheduler, weights):
+        record(batch, optimizer)
+        return image.package_step(config)(net, batch, optimizer, scheduler, weights)
+
+    return image.train_image_jepa(config, _images(), progress=False, step=recording)
+
+
+def test_the_optimiser_warms_up_then_follows_a_cosine_and_spares_1d_params_weight_decay():
+    """The run's AdamW: every group's rate rises linearly over ``warmup_steps`` to ``LR``, then
+    follows a half cosine down to 0 at the last step; weight decay falls on the weight
+    matrices only, never on biases or batch-norm parameters."""
+    rates, groups = [], []
+
+    def record(batch, optimizer):
+        rates.append([group["lr"] for group in optimizer.param_groups])
+        groups.append([(group["weight_decay"], {p.ndim > 1 for p in group["params"]})
+                       for group in optimizer.param_groups])
+
+    _record_steps(dataclasses.replace(TINY, steps=4, warmup_steps=2), record)
+    # warm-up: 1/2, 1; cosine from step 1 (the peak) to step 3: halfway at step 2, then 0
+    lr = image.LR
+    assert [r for step in rates for r in step] == pytest.approx([lr / 2] * 2 + [lr] * 2
+                                                                + [lr / 2] * 2 + [0.0] * 2)
+    assert groups[0] == [(image.WEIGHT_DECAY, {True}), (0.0, {False})]
+
+
+def test_every_step_trains_on_a_batch_of_its_own():
+    """Step n's views come from its own draw of images and augmentations: no two steps of a
+    run see the same batch (a run repeating one batch still trains, on 1/steps of the data)."""
+    views = []
+    _record_steps(dataclasses.replace(TINY, steps=4), lambda batch, _: views.append(batch[0][0]))
+    assert len(views) == 4
+    assert not any(torch.equal(views[i], views[j]) for i in range(4) for j in range(i))
+
+
+def test_all_views_passes_each_view_through_the_model_on_its_own():
+    """``AllViews`` runs the model once per view, so batch norm normalises each view over its
+    own batch, exactly as two separate calls would (one pass over both views mixes their
+    statistics)."""
+    torch.manual_seed(0)
+    model = nn.Sequential(nn.Linear(3, 4), nn.BatchNorm1d(4)).train()
+    a, b = torch.randn(8, 3), 3 * torch.randn(8, 3) + 1
+    reference = copy.deepcopy(model)
+    out_a, out_b = image.AllViews(model)(a, b)
+    assert torch.allclose(out_a, reference(a), atol=1e-6)
+    assert torch.allclose(out_b, reference(b), atol=1e-6)
+
+
+def test_resize_averages_detail_finer_than_its_new_pixels():
+    """Downsizing is antialiased: a bright row every 4 rows, shrunk from 32 to 8 px, becomes an
+    even grey a quarter of the way to white (plain bilinear sampling falls between the
+    stripes and loses them, black all over)."""
+    images = torch.zeros(1, 3, 32, 32, dtype=torch.uint8)
+    images[..., ::4, :] = 255
+    black = augment.normalize(torch.zeros(1, 3, 1, 1, dtype=torch.uint8))
+    white = augment.normalize(torch.full((1, 3, 1, 1), 255, dtype=torch.uint8))
+    share = (image.resize(images, 8) - black) / (white - black)  # 0 black, 1 white
+    assert torch.allclose(share[..., 1:-1, :], torch.full((1, 3, 6, 8), 0.25), atol=1e-4)

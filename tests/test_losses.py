@@ -81,3 +81,20 @@ def test_bad_inputs_give_clear_errors():
         losses.invariance_term(torch.ones(4, 3), torch.ones(4, 2))
     with pytest.raises(ValueError, match="at least 2 embedding dimensions"):
         losses.covariance_term(torch.ones(4, 1))
+
+
+def test_still_steps_are_the_draws_below_the_stay_probability():
+    """A step stands still where its uniform draw falls below ``stay_probability`` (so a
+    probability of 0.1 stills about a tenth of the steps, not nine tenths). With the draws 0.1
+    then 0.9 against 0.5, step 1 stands still and step 2 makes the first move: the sequence
+    reads z0, z0, z1, so a predictor that never moves errs only on step 2."""
+    from ebjepa_tutorial.losses import world
+
+    z = torch.tensor([[[0.0], [1.0], [3.0]]])  # (1, K + 1 = 3, 1)
+    actions = torch.tensor([[[1.0], [2.0]]])  # (1, K = 2, 1)
+    draws = lambda rows, steps, generator=None: torch.tensor([[0.1, 0.9]])  # noqa: E731
+    stands = lambda z, a: z  # noqa: E731  (predicts no change, whatever the action)
+    loss = world.multistep_prediction_loss(stands, z, actions, steps=2, stay_probability=0.5,
+                                           rand=draws)
+    # targets z0 = 0, z1 = 1 against the prediction 0: errors 0 and 1 -> mean 1/2
+    assert loss.item() == pytest.approx(0.5)

@@ -51,3 +51,27 @@ def test_split_decay_params():
     model[0].weight.requires_grad_(False)  # a frozen layer is in neither group
     decay, no_decay = split_decay_params(model, 0.05)
     assert decay["params"] == [] and len(no_decay["params"]) == 3
+
+
+def test_a_one_step_run_without_warm_up_takes_the_full_rate():
+    """A run of a single step and no warm-up (as a timing run makes) has no cosine to descend:
+    its one step, and any step past it, use the full base rate."""
+    assert warmup_cosine(0, 1, 0) == 1.0
+    weight = torch.nn.Parameter(torch.ones(2))
+    optimizer = torch.optim.SGD([weight], lr=0.3)
+    scheduler = warmup_cosine_scheduler(optimizer, total_steps=1, warmup_steps=0)
+    for _ in range(3):
+        assert optimizer.param_groups[0]["lr"] == pytest.approx(0.3)
+        weight.grad = torch.ones(2)
+        optimizer.step()
+        scheduler.step()
+
+
+def test_a_frozen_layer_is_in_neither_group():
+    """Freezing a whole layer (its weight and its bias) takes both out of the optimiser's
+    groups, the 1-D bias as well as the matrix."""
+    model = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.BatchNorm1d(4))
+    model[0].requires_grad_(False)
+    decay, no_decay = split_decay_params(model, 0.05)
+    assert decay["params"] == []
+    assert [p is q for p, q in zip(no_decay["params"], model[1].parameters())] == [True, True]

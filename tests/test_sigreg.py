@@ -13,6 +13,7 @@ from ebjepa_tutorial.losses.sigreg import (
     sigreg,
     sigreg_loss,
 )
+from ebjepa_tutorial.training.image import SIGReg
 from ebjepa_tutorial.utils import as_generator
 
 
@@ -122,6 +123,8 @@ def test_sigreg_loss_terms_and_gradient():
     directions = random_directions(8, 32, as_generator(1))  # the draw sigreg_loss made
     both = (sigreg(z_a, directions=directions) + sigreg(z_b, directions=directions)) / 2
     assert float(terms["sigreg"]) == pytest.approx(both.item(), rel=1e-6)  # both views, alike
+    # detached tensors: logging them keeps no graph alive and costs no wait for a GPU
+    assert all(v.ndim == 0 and not v.requires_grad for v in terms.values())
     total.backward()
     for z in (z_a, z_b):  # each view is pushed by its own regulariser and the invariance
         assert torch.isfinite(z.grad).all() and z.grad.abs().sum() > 0
@@ -141,3 +144,40 @@ def test_half_precision_inputs_are_computed_in_float32():
     full = sigreg(z, 16, as_generator(2))
     half = sigreg(z.bfloat16(), 16, as_generator(2))
     assert half.dtype == torch.float32 and half.item() == pytest.approx(full.item(), rel=0.05)
+
+
+def test_angle_addition_does_not_drift_over_thousands_of_knots():
+    """cos and sin are recomputed exactly every 8 knots, so float32's error stays at a few ulp
+    however many knots there are; angle addition alone drifts (some 7e-6 by 2,000 knots)."""
+    x = 3 * torch.randn(64, 4, generator=as_generator(1))  # float32, arguments up to ~100 rad
+    knots, t_max = 2001, 12.0
+    real, imag = EmpiricalCF.apply(x, t_max / (knots - 1), knots)
+    angles = x.double()[..., None] * torch.linspace(0.0, t_max, knots, dtype=torch.float64)
+    assert (real.double() - angles.cos().mean(0)).abs().max() < 2e-6
+    assert (imag.double() - angles.sin().mean(0)).abs().max() < 2e-6
+
+
+def test_without_the_factor_n_both_views_lose_it():
+    """``scale_by_n=False`` drops the factor N from both views' statistics alike: the
+    regulariser is then the scaled one divided by N (here 32), the invariance unchanged."""
+    gen = as_generator(0)
+    z_a, z_b = torch.randn(32, 8, generator=gen), 2 * torch.randn(32, 8, generator=gen)
+    _, scaled = sigreg_loss(z_a, z_b, num_slices=16, generator=as_generator(1))
+    total, unscaled = sigreg_loss(z_a, z_b, lam=0.5, num_slices=16, generator=as_generator(1),
+                                  scale_by_n=False)
+    assert float(unscaled["sigreg"]) == pytest.approx(float(scaled["sigreg"]) / 32, rel=1e-5)
+    assert torch.equal(unscaled["invariance"], scaled["invariance"])
+    assert total.item() == pytest.approx(float(unscaled["invariance"] + 0.5 * unscaled["sigreg"]),
+                                        rel=1e-6)
+
+
+def test_sigreg_loss_defaults_are_the_course_recipe():
+    """Called with its defaults, ``sigreg_loss`` is the course's ``SIGReg()`` (lambda, slices,
+    the factor N): a cell that calls it bare trains with the weights the course trains with."""
+    gen = as_generator(0)
+    z_a, z_b = torch.randn(32, 8, generator=gen), 2 * torch.randn(32, 8, generator=gen)
+    recipe = SIGReg()
+    bare, _ = sigreg_loss(z_a, z_b, generator=as_generator(1))
+    explicit, _ = sigreg_loss(z_a, z_b, recipe.lam, recipe.slices, as_generator(1),
+                              recipe.scale_by_n)
+    assert torch.equal(bare, explicit)

@@ -1,5 +1,7 @@
 """Notebook 00's claims hold: invariance alone collapses, VICReg does not."""
 
+import itertools
+
 import pytest
 import torch
 from test_one_source import chapter_00_loop
@@ -59,3 +61,22 @@ def test_energy_map_is_zero_at_the_anchor(data):
     coords, energy = toy.energy_map(torch.nn.Identity(), torch.tensor([0.5, 0.0]), 1.0, 3)
     x, y = coords[None, :], coords[:, None]
     assert torch.allclose(energy, (x - 0.5) ** 2 + y**2)
+
+
+def test_blobs_sit_around_k_centres_evenly_spaced_on_the_circle():
+    """Label ``l`` of ``k`` is centred at angle ``2 pi l / k`` on the circle of ``radius``; the
+    points scatter around it with standard deviation ``spread`` on each axis."""
+    centres = torch.tensor([[2.0, 0.0], [0.0, 2.0], [-2.0, 0.0], [0.0, -2.0]])
+    x, labels = toy.make_blobs(40, k=4, radius=2.0, spread=0.0, seed=0)
+    assert set(labels.tolist()) == {0, 1, 2, 3}
+    assert torch.allclose(x, centres[labels], atol=1e-6)
+    x, labels = toy.make_blobs(4000, k=4, radius=2.0, spread=0.3, seed=0)
+    assert (x - centres[labels]).std().item() == pytest.approx(0.3, rel=0.05)
+
+
+def test_spectrum_is_the_covariance_eigenvalues_largest_first():
+    """On centred, uncorrelated columns scaled by 1, 3 and 2 the eigenvalues are the columns'
+    variances, ``(8/7) s^2`` for 8 sign patterns, and they come sorted largest first."""
+    signs = torch.tensor(list(itertools.product([-1.0, 1.0], repeat=3)))  # (8, 3)
+    z = signs * torch.tensor([1.0, 3.0, 2.0])
+    assert torch.allclose(toy.spectrum(z), torch.tensor([9.0, 4.0, 1.0]) * 8 / 7)

@@ -1,5 +1,6 @@
 """The training loop: history, NaN guard, atomic checkpoints, exact resume, load-or-train."""
 
+import linecache
 import os
 import tempfile
 from pathlib import Path
@@ -339,3 +340,79 @@ def test_training_time_adds_up_over_resumed_parts(tmp_path):
 
 def test_the_shipped_checkpoints_are_found_beside_the_package():
     assert checkpoints.checkpoint_paths("world_model_class")[1].is_file()
+
+
+def test_an_infinite_loss_stops_with_a_clear_error():
+    """An overflowing loss (inf, not NaN) stops the run too: one more step would fill the
+    weights with NaN."""
+    model, optimizer, _, batch = _problem()
+
+    def inf_loss(xy):
+        return model(xy[0]).sum() * 0 + float("inf"), {"term": 2.0}
+
+    with pytest.raises(FloatingPointError, match="became inf at step 0"):
+        fit(model, optimizer, inf_loss, batch, steps=3, progress=False)
+
+
+def test_step_generators_of_other_seeds_draw_other_batches():
+    """Each (seed, step) pair draws a batch of its own: a run with another seed never replays
+    this run's batches a few steps apart; the same pair draws the same batch again."""
+    draws = {(seed, step): tuple(torch.rand(4, generator=loop.step_generator(seed, step)).tolist())
+             for seed in range(4) for step in range(50)}
+    assert len(set(draws.values())) == len(draws)
+    again = torch.rand(4, generator=loop.step_generator(3, 7))
+    assert tuple(again.tolist()) == draws[3, 7]
+
+
+def test_a_kept_run_is_found_again_whatever_the_order_of_its_identity(tmp_path, capsys):
+    """A run moved aside is found again by its identity's content, not by the order its keys
+    were written in (a config rebuilt with its fields in another order is the same run)."""
+    path = tmp_path / "model.pt"
+    written = {"steps": 3, "lr": 0.1, "model": {"width": 4, "depth": 2}}
+    reordered = {"model": {"depth": 2, "width": 4}, "lr": 0.1, "steps": 3}
+    checkpoints.save_checkpoint(checkpoints.kept_path(path, written), model={}, config=written)
+    found = checkpoints.find_run(path, reordered, "cpu")
+    assert found is not None and found[0]["config"] == written and found[1] == path
+    assert "moved it back" in capsys.readouterr().out and path.is_file()
+    assert checkpoints.kept_path(path, written) != checkpoints.kept_path(path, {**written,
+                                                                               "lr": 0.2})
+
+
+CELL = '''
+def inner(x):
+    return x + 1
+
+def middle(x):
+    return inner(x)
+
+def step(x):
+    return middle(x)
+
+def step_in_a_lambda(xs):
+    return list(map(lambda x: inner(x), xs))
+'''
+
+
+def _notebook_cell(source: str) -> dict:
+    """The functions ``source`` defines, as a notebook cell would: in ``__main__``, source
+    readable by ``inspect``."""
+    filename = f"<cell {abs(hash(source))}>"
+    linecache.cache[filename] = (len(source), None, source.splitlines(True), filename)
+    space = {"__name__": "__main__"}
+    exec(compile(source, filename, "exec"), space)
+    return space
+
+
+def test_an_unchecked_edit_is_seen_through_helpers_and_lambdas():
+    """A run's identity holds every notebook function its step reads, also through another
+    helper or inside a lambda: an edit there is a run of its own, which never loads the
+    unedited run's checkpoint."""
+    cell, edited = _notebook_cell(CELL), _notebook_cell(CELL.replace("x + 1", "x + 2"))
+
+    def identity(space, name):
+        return checkpoints.step_identity(space[name], space[name]).get("calls", {})
+
+    assert set(identity(cell, "step")) == {"middle", "inner"}
+    assert identity(cell, "step") != identity(edited, "step")
+    assert set(identity(cell, "step_in_a_lambda")) == {"inner"}
+    assert identity(cell, "step_in_a_lambda") != identity(edited, "step_in_a_lambda")
