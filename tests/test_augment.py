@@ -76,6 +76,24 @@ def test_normalize_by_hand_and_round_trip():
     assert torch.allclose(denormalize(normalize(floats)), floats, atol=1e-6)
 
 
+def test_normalize_uses_each_channels_own_cifar10_statistics():
+    """Black and white pixels standardised with CIFAR-10's published training mean (0.4914,
+    0.4822, 0.4465) and std (0.2470, 0.2435, 0.2616), all three channels written out: a
+    figure copied from another channel would shift every green (middle) value."""
+    images = torch.tensor([0, 255], dtype=torch.uint8).view(2, 1, 1, 1).expand(2, 3, 2, 2)
+    black = [-0.4914 / 0.2470, -0.4822 / 0.2435, -0.4465 / 0.2616]
+    white = [0.5086 / 0.2470, 0.5178 / 0.2435, 0.5535 / 0.2616]
+    assert torch.allclose(normalize(images).mean(dim=(2, 3)), torch.tensor([black, white]),
+                          atol=1e-5)
+
+
+def test_denormalize_clips_to_what_can_be_shown():
+    """Values past normalize's black and white (a model's output, say) come back as 0 and 1,
+    the range imshow takes for float images, not below or above it."""
+    images = torch.tensor([-10.0, 10.0]).view(2, 1, 1, 1).expand(2, 3, 1, 1)
+    assert denormalize(images).flatten(1).tolist() == [[0.0] * 3, [1.0] * 3]
+
+
 def test_uint8_and_float_inputs_give_the_same_views():
     images = _images(4)
     from_uint8 = augment(images, PIPELINE, as_generator(3))
@@ -104,6 +122,7 @@ def test_same_generator_state_gives_same_views_and_leaves_global_rng_alone():
         (torch.rand(2, 1, 32, 32), "3 colour channels"),
         (torch.rand(2, 32, 32, 3), "3 colour channels"),
         (torch.rand(2, 3, 32, 32) * 4 - 2, r"\[0, 1\]"),
+        (torch.rand(2, 3, 32, 32) * 255, r"\[0, 1\]"),  # float pixels never divided by 255
         (torch.rand(2, 3, 32, 32).index_fill_(2, torch.tensor([5]), float("nan")), "nan"),
     ],
 )
@@ -128,3 +147,52 @@ def test_each_setting_of_the_config_reaches_its_augmentation():
                     ("RandomHorizontalFlip", 0.25)]:  # the share of images each one changes
         applied = steps[name].forward_parameters(shape)["batch_prob"].float().mean()
         assert abs(applied - p) < 0.03, name
+
+
+def test_the_default_recipe_is_the_one_its_docstring_names():
+    """AugmentConfig()'s pipeline, measured: crops keep 20% to 100% of the area, and colour
+    jitter, grayscale, solarisation and flips reach 80%, 20%, 10% and 50% of the images
+    (the SimCLR / VICReg CIFAR-10 settings that the chapters' figures come from)."""
+    steps = {type(m).__name__: m for m in PIPELINE.children()}
+    shape = torch.Size([4000, 3, 32, 32])
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(0)
+        corners = steps["RandomResizedCrop"].forward_parameters(shape)["src"]
+        applied = {name: steps[name].forward_parameters(shape)["batch_prob"].float().mean()
+                   for name in ("ColorJitter", "RandomGrayscale", "RandomSolarize",
+                                "RandomHorizontalFlip")}
+    area = ((corners[:, 1, 0] - corners[:, 0, 0] + 1) * (corners[:, 2, 1] - corners[:, 1, 1] + 1)
+            / 32**2)
+    assert 0.17 < area.min() < 0.23 and area.max() > 0.97
+    expected = {"ColorJitter": 0.8, "RandomGrayscale": 0.2, "RandomSolarize": 0.1,
+                "RandomHorizontalFlip": 0.5}
+    for name, p in expected.items():
+        assert abs(applied[name] - p) < 0.03, name
+
+
+def test_colour_jitter_draws_the_vicreg_strengths():
+    """Brightness and contrast factors from [0.6, 1.4], saturation from [0.8, 1.2] and hue
+    shifts from [-0.1, 0.1] (VICReg's CIFAR-10 jitter, 0.4, 0.4, 0.2, 0.1): each range is
+    filled and not exceeded."""
+    jitter = next(m for m in PIPELINE.children() if isinstance(m, K.ColorJitter))
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(0)
+        params = jitter.forward_parameters(torch.Size([4000, 3, 32, 32]))
+    ranges = {"brightness_factor": (0.6, 1.4), "contrast_factor": (0.6, 1.4),
+              "saturation_factor": (0.8, 1.2), "hue_factor": (-0.1, 0.1)}
+    for key, (low, high) in ranges.items():
+        values = params[key]
+        assert low - 1e-6 <= values.min() < low + 0.01, key
+        assert high - 0.01 < values.max() <= high + 1e-6, key
+
+
+def test_solarize_inverts_exactly_the_pixels_from_one_half_up():
+    """BYOL's solarisation: a pixel below 0.5 is kept and one at or above it becomes 1 - x,
+    with nothing added first (a drawn threshold or an addition would move other pixels)."""
+    pipeline = build_augmentation(AugmentConfig(solarize_p=1.0))
+    solarize = next(m for m in pipeline.children() if isinstance(m, K.RandomSolarize))
+    x = torch.linspace(0.01, 0.99, 3 * 8 * 8).view(1, 3, 8, 8).repeat(16, 1, 1, 1)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(0)
+        out = solarize(x)
+    assert torch.allclose(out, torch.where(x < 0.5, x, 1 - x), atol=1e-6)

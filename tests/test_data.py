@@ -264,6 +264,18 @@ def test_packed_tree(tmp_path):
     assert find_cifar10(tmp_path / "data") == tmp_path / "data" / "cifar10-mine.tar.gz"
 
 
+def test_find_cifar10_prefers_the_official_folder_then_the_first_archive_by_name(tmp_path):
+    """The order the docstring and the missing-data message promise: the extracted official
+    release over any packed copy, and of several packed copies the first by name (a choice
+    that does not hang on the order the file system lists them in)."""
+    assert find_cifar10(tmp_path) is None
+    for name in ("cifar10-b.tar.gz", "cifar10-a.tar.gz"):
+        (tmp_path / name).write_bytes(b"")
+    assert find_cifar10(tmp_path) == tmp_path / "cifar10-a.tar.gz"
+    (tmp_path / "cifar-10-batches-py").mkdir()
+    assert find_cifar10(tmp_path) == tmp_path / "cifar-10-batches-py"
+
+
 @pytest.mark.parametrize("top", ["mine", "./mine"])  # `tar czf x.tar.gz ./mine` writes "./"
 def test_packed_tree_with_top_folder(tmp_path, top):
     expected = write_tree(tmp_path / "src")
@@ -322,6 +334,20 @@ def test_other_sizes_missing_class_and_cache_invalidation(tmp_path):
     with pytest.raises(DataNotFoundError, match="dog"):
         load_cifar10("test", root=data, download=False)
 
+
+def test_an_image_of_another_shape_keeps_its_centred_square_not_a_squashed_whole(tmp_path):
+    """A 64x48 image gives its middle 48x48 square, resized to 32x32: the black bands in its
+    outer 6 columns (of the 8 each side outside that square) are cut off. Squashing the whole
+    width into 32 px would keep them, and distort every non-square image."""
+    tree = tmp_path / "src"
+    write_tree(tree)
+    wide = np.full((48, 64, 3), 255, dtype=np.uint8)
+    wide[:, :6] = wide[:, -6:] = 0
+    Image.fromarray(wide).save(tree / "test" / "cat" / "wide.png")  # sorts after 0001.png
+    pack(tree, tmp_path / "data")
+    images, labels = load_cifar10("test", root=tmp_path / "data", download=False)
+    cropped = images[labels == 3][-1]
+    assert cropped.shape == (3, 32, 32) and cropped.min() >= 250  # white, edges included
 
 # --- MNIST IDX files ------------------------------------------------------------------------
 
@@ -407,6 +433,15 @@ def test_data_and_cache_dir_resolution(tmp_path, monkeypatch, tmp_cache):
     assert data_dir(tmp_path / "explicit") == tmp_path / "explicit"
     assert cache_dir() == tmp_cache
     monkeypatch.delenv("EBJEPA_CACHE")
+    assert cache_dir() == REPO / "data" / "cache"
+
+
+def test_the_default_folders_do_not_depend_on_the_working_directory(tmp_path, monkeypatch):
+    """Without EBJEPA_DATA / EBJEPA_CACHE the data and cache live in the checkout's data/,
+    wherever Python was started: notebooks run from notebooks/, scripts from anywhere."""
+    monkeypatch.delenv("EBJEPA_CACHE")
+    monkeypatch.chdir(tmp_path)
+    assert data_dir() == REPO / "data"
     assert cache_dir() == REPO / "data" / "cache"
 
 

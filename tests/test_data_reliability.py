@@ -58,6 +58,52 @@ def test_damaged_cache_file_is_decoded_again_and_rewritten(tmp_path, tmp_cache, 
     assert leftovers(tmp_cache) == []
 
 
+def _decode_counting(calls: list, value: int = 0, n: int = 3):
+    """A ``decode`` for cached_arrays that notes each call: images (n, 2) filled with value."""
+    def decode():
+        calls.append(value)
+        return np.full((n, 2), value, np.uint8), np.arange(n)
+    return decode
+
+
+def test_cached_images_and_labels_of_different_lengths_are_decoded_again(tmp_path, tmp_cache):
+    """Two readable cache files that disagree in length (one left by another decode) are no
+    dataset: the arrays are decoded again and rewritten, not returned mismatched."""
+    source, calls = tmp_path / "source", []
+    source.write_bytes(b"x")
+    paths.cached_arrays(source, "x", _decode_counting(calls))
+    (labels_file,) = tmp_cache.glob("*-labels.npy")
+    np.save(labels_file, np.arange(2))
+    images, labels = paths.cached_arrays(source, "x", _decode_counting(calls))
+    assert calls == [0, 0] and len(images) == len(labels) == 3
+    assert len(np.load(labels_file)) == 3
+
+
+def test_two_sources_of_one_size_and_time_keep_their_own_cache(tmp_path, tmp_cache):
+    """The cache key holds the source's path, not only its size and time: two copies of an
+    archive in two folders, same size and same timestamp, each get their own arrays."""
+    stamp = 1_700_000_000 * 10**9
+    got = []
+    for value, folder in enumerate(("one", "two"), start=1):
+        source = tmp_path / folder / "cifar10-x.tar.gz"
+        source.parent.mkdir()
+        source.write_bytes(folder.encode())  # three bytes each
+        os.utime(source, ns=(stamp, stamp))
+        got.append(paths.cached_arrays(source, "x", _decode_counting([], value))[0])
+    assert got[0].max() == 1 and got[1].max() == 2
+
+
+def test_a_cache_that_cannot_be_written_costs_a_warning_not_the_result(tmp_path, monkeypatch):
+    """A cache folder that cannot be made (a file stands where its parent should be; root
+    could write to a read-only folder) warns and still returns the decoded arrays."""
+    (tmp_path / "a_file").write_bytes(b"")
+    monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path / "a_file" / "cache"))
+    source = tmp_path / "source"
+    source.write_bytes(b"x")
+    with pytest.warns(UserWarning, match="could not cache x"):
+        images, labels = paths.cached_arrays(source, "x", _decode_counting([], 7))
+    assert images.shape == (3, 2) and (images == 7).all() and labels.tolist() == [0, 1, 2]
+
 # --- (b) atomic writes are flushed to disk before the rename --------------------------------
 
 
@@ -95,6 +141,7 @@ def test_an_atomic_write_cut_short_keeps_the_old_file_and_no_temporary(tmp_path)
     assert path.read_bytes() == b"old" and sorted(tmp_path.iterdir()) == [path]
     assert path.stat().st_mode & 0o777 == 0o644  # readable by all, unlike mkstemp's own files
 
+
 def test_remove_stale_temporaries_keeps_fresh_and_unrelated_files(tmp_path):
     folder = tmp_path / "checkpoints"
     folder.mkdir()
@@ -117,6 +164,16 @@ def test_remove_stale_temporaries_never_raises_on_an_unreadable_folder(tmp_path)
     finally:
         folder.chmod(0o755)
     assert removed in ([], [folder / "a.tmp"])  # root may read it anyway; it must not raise
+
+
+def test_remove_stale_temporaries_leaves_a_link_alone(tmp_path):
+    """A link whose name matches is no temporary this code wrote (lstat, never stat): it is
+    kept, and so is the hour-old file it points to."""
+    target = old_file(tmp_path / "precious.npy")
+    link = tmp_path / ".run.pt.abc123.part"
+    link.symlink_to(target)
+    assert paths.remove_stale_temporaries(tmp_path, [".*.part"]) == []
+    assert link.is_symlink() and target.exists()
 
 
 def test_loads_clean_their_stale_temporaries(tmp_path, tmp_cache):

@@ -6,8 +6,15 @@ import pytest
 import torch
 
 from ebjepa_tutorial.augment import CIFAR10_MEAN, CIFAR10_STD
-from ebjepa_tutorial.evaluation.classify import accuracy, embed, knn_predict, linear_probe
+from ebjepa_tutorial.evaluation.classify import (
+    accuracy,
+    embed,
+    knn_predict,
+    linear_probe,
+    probe_encoder,
+)
 from ebjepa_tutorial.models.encoders import ResNet18
+from ebjepa_tutorial.training.image import ImageJEPAConfig
 from ebjepa_tutorial.utils import as_generator
 
 
@@ -94,7 +101,6 @@ def test_embed_is_frozen_and_restores_the_mode():
         embed(encoder, images.float(), 32)
 
 
-
 class _ChannelMeans(torch.nn.Module):
     """An "encoder" whose features are each channel's mean: ``(N, 3, S, S) -> (N, 3)``."""
 
@@ -130,3 +136,59 @@ def test_the_linear_probe_standardises_with_the_training_features():
     assert test_accuracy == 1.0
     assert torch.allclose(probe.mean, x_train.mean(dim=0))
     assert torch.allclose(probe.std, x_train.std(dim=0) + 1e-6)
+
+
+def test_knn_ignores_the_length_of_a_query():
+    """Cosine similarity on both sides: a query scaled by any factor has the same neighbours
+    and the same weighted vote. Here the nearest row (class 0, cosine 1) outweighs two at
+    cosine 0.9 (exp(1 / 0.07) > 2 exp(0.9 / 0.07)); a query left unnormalised at a tenth of
+    its length would flatten the weights into a majority for class 1."""
+    far = [[0.9, math.sqrt(1 - 0.81)]] * 2
+    train, labels = torch.tensor([[1.0, 0.0]] + far), torch.tensor([0, 1, 1])
+    for scale in (0.1, 1.0, 3.0):
+        assert knn_predict(train, labels, torch.tensor([[scale, 0.0]])).tolist() == [0], scale
+
+
+def test_a_dead_feature_leaves_the_linear_probe_finite():
+    """A feature that never varies (a ReLU unit off for every image, common in a trained
+    encoder) has standard deviation 0: the probe's + 1e-6 keeps its standardised value at 0,
+    not 0 / 0, so the other features still classify."""
+    x_train, y_train = _clusters(300, seed=0)
+    x_test, y_test = _clusters(100, seed=1)
+
+    def with_dead(x):
+        return torch.cat([x, torch.zeros(len(x), 1)], dim=1)
+
+    test_accuracy, probe = linear_probe(with_dead(x_train), y_train, with_dead(x_test), y_test)
+    assert test_accuracy > 0.95 and torch.isfinite(probe(with_dead(x_test))).all()
+
+
+def test_probe_encoder_fits_on_the_train_split_and_scores_on_the_test_split():
+    """Both scores come from models fitted to the train split: when the test split labels
+    red images 1 and blue images 0, the opposite of train, the probe and the kNN are wrong on
+    every test image. Fitting either to the test split (the kNN finding each test image
+    itself among its neighbours) would score 100%."""
+    gen = as_generator(0)
+
+    def split(red_label):
+        red = torch.rand(20, generator=gen) < 0.5
+        red_rgb, blue_rgb = torch.tensor([200, 30, 30]), torch.tensor([30, 30, 200])
+        colours = torch.where(red[:, None], red_rgb, blue_rgb)
+        colours = colours + torch.randint(-20, 21, (20, 3), generator=gen)
+        images = colours.to(torch.uint8)[:, :, None, None].expand(20, 3, 32, 32).contiguous()
+        return images, torch.where(red, red_label, 1 - red_label)
+
+    scores = probe_encoder(_ChannelMeans(), ImageJEPAConfig(), split(0), split(1))
+    assert scores == {"probe_acc": 0.0, "knn_acc": 0.0}
+
+
+def test_the_returned_probe_standardises_raw_features_itself():
+    """The probe linear_probe hands back takes raw features: on the training features, far
+    from 0 (class 0 at 99, class 1 at 101), it is right on every row. A head fed them without
+    the stored train statistics would put every row on one side."""
+    gen = as_generator(0)
+    y_train = torch.arange(200) % 2
+    x_train = 100 + (2 * y_train.float() - 1)[:, None] + 0.1 * torch.randn(200, 1, generator=gen)
+    _, probe = linear_probe(x_train, y_train, x_train, y_train)
+    with torch.no_grad():
+        assert accuracy(probe(x_train), y_train) == 1.0

@@ -778,6 +778,83 @@ def test_a_failed_check_offers_the_next_hint_without_code():
     assert common.HINTS["covariance_term"][2] not in "".join(offered)
 
 
+def test_a_hint_asked_for_by_level_never_lowers_the_next_one(capsys):
+    """hint(name, level=k) shows level k; the next plain hint() goes on from the highest level
+    shown so far, not from the one just asked for again."""
+    exercises.hint("mppi_update", level=3)
+    exercises.hint("mppi_update", level=1)
+    capsys.readouterr()
+    exercises.hint("mppi_update")
+    assert "Hint 3 of 3 for mppi_update" in capsys.readouterr().out
+
+
+def test_each_hint_but_the_last_says_what_the_next_one_gives(capsys):
+    """The idea says the formula comes next, the formula that an outline of the code does; the
+    outline, the last, promises nothing more."""
+    for level, following in ((1, "the formula"), (2, "an outline of the code")):
+        exercises.hint("covariance_term", level=level)
+        assert (f"(exercises.hint('covariance_term') again gives {following}.)"
+                in capsys.readouterr().out)
+    exercises.hint("covariance_term", level=3)
+    assert "again gives" not in capsys.readouterr().out
+
+
+def test_a_hint_on_the_course_function_a_check_handed_over_finds_its_exercise(capsys):
+    """After an unfinished exercise the notebook's name holds the course's function, whose own
+    name may differ from the exercise's (epps_pulley for epps_pulley_1d): hint() on it still
+    gives that exercise's hint."""
+    course = exercises.check_epps_pulley.reference
+    assert course.__name__ != "epps_pulley_1d"
+    exercises.hint(course)
+    assert "Hint 1 of 3 for epps_pulley_1d, the idea" in capsys.readouterr().out
+
+
+def test_a_known_slip_is_named_only_when_it_explains_the_answer_to_float_precision():
+    """A slip is named when the answer matches it within a tenth of the tolerance: an answer a
+    few tolerances away from the biased variance (that slip and something else besides) is
+    shown by its numbers, not blamed on the one slip."""
+    def variance_term(z, gamma=1.0, eps=1e-4):
+        return _biased_variance(z, gamma, eps) + 3e-5
+
+    with pytest.raises(exercises.ExerciseError, match="but the answer is") as caught:
+        exercises.check_variance_term(variance_term)
+    assert "Likely cause" not in str(caught.value)
+
+
+def test_of_two_slips_that_give_the_same_numbers_the_first_listed_is_named():
+    """Where two known slips give one answer on a case, the checker names the one the exercise
+    lists first (the likelier slip), the same on every run."""
+    from ebjepa_tutorial.course.exercises.common import Case, Exercise
+
+    slips = common.TEXTS["variance_term"]["slips"]
+    first, second = list(slips)[:2]
+
+    def doubled(x):
+        return 2 * x.sum()
+
+    check = Exercise("variance_term", lambda x: x.sum(), mistakes={first: doubled, second: doubled},
+                     cases=lambda: [Case("a case", (torch.ones(3),))])
+    with pytest.raises(exercises.ExerciseError) as caught:
+        check(lambda x: 2 * x.sum())
+    assert f"Likely cause: {slips[first]}" in str(caught.value)
+
+
+def test_a_gradient_a_little_off_is_refused_with_the_values_tolerance():
+    """Gradients are held to the tolerance the values are (atol 1e-5, rtol 1e-4): an answer
+    right in value whose gradient is off by 0.005 (a loss that would train a little wrongly)
+    is refused, though the gap is under 0.25% of every gradient element."""
+    from ebjepa_tutorial.course.exercises.common import Case, Exercise
+
+    check = Exercise("variance_term", lambda z: z.pow(2).sum(), mistakes={},
+                     cases=lambda: [Case("a batch", (torch.linspace(1, 2, 6),))], grad=((0, "z"),))
+
+    def skewed(z):
+        return z.pow(2).sum() + 0.005 * (z.sum() - z.sum().detach())
+
+    with pytest.raises(exercises.ExerciseError, match="not the right gradient with respect to z"):
+        check(skewed)
+
+
 def test_every_exercise_has_three_hints_and_its_checker_names_each_mistake_in_hints_yaml():
     assert set(common.TEXTS) == set(CHECKERS)
     for name, checker in CHECKERS.items():

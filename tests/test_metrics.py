@@ -1,11 +1,12 @@
-"""Average precision: hand-computed cases, ties, errors, the whole set ranked together."""
+"""Average precision: hand-computed cases, ties, errors, the whole set ranked together; the
+Wilson interval's edge cases."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from ebjepa_tutorial.evaluation.metrics import average_precision
+from ebjepa_tutorial.evaluation.metrics import average_precision, wilson_interval
 
 
 def brute_force_ap(scores: list[float], targets: list[int]) -> float:
@@ -77,3 +78,17 @@ def test_whole_set_ap_is_not_the_mean_of_batch_aps():
     pooled = average_precision(torch.cat([scores_a, scores_b]), torch.cat([targets_a, targets_b]))
     assert per_batch == 1.0
     assert pooled == pytest.approx(0.5 * 1 + 0.5 * 2 / 3)
+
+
+def test_wilson_interval_refuses_an_empty_count_and_stays_within_0_and_1():
+    """No episode is no rate: 0 of 0 is a ValueError naming the rule, not a division by zero.
+    At all or nothing the interval keeps to [0, 1], touching the end it sits at."""
+    with pytest.raises(ValueError, match="n >= 1"):
+        wilson_interval(0, 0)
+    with pytest.raises(ValueError, match="successes <= n"):
+        wilson_interval(-1, 4)
+    for n in (1, 7, 100):
+        low, high = wilson_interval(n, n)
+        assert 0 < low < 1 and high == pytest.approx(1.0)
+        low, high = wilson_interval(0, n)
+        assert low == 0 and 0 < high < 1

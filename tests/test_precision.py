@@ -28,7 +28,6 @@ def test_on_the_cpu_nothing_is_lowered_or_reordered():
     assert utils.memory_format("cuda") == torch.channels_last
 
 
-
 @pytest.mark.parametrize("has_bf16", [True, False])
 def test_a_cpu_lowers_only_when_asked_and_able(monkeypatch, has_bf16):
     for check in ("_is_avx512_bf16_supported", "_is_amx_tile_supported"):  # the CPU's bf16
@@ -65,6 +64,7 @@ def test_video_training_asks_for_bf16_on_the_cpu(monkeypatch):
     clips = generate_moving_mnist(digits, 8, config.n_frames, seed=0).clips
     notebook().train_video_jepa(config, clips, video.video_jepa_step, device="cpu")
     assert len(calls) == 2 and all(k == {"cpu": True} for k in calls)
+
 
 def cpu_bf16(device, **_):
     return torch.autocast("cpu", dtype=torch.bfloat16)

@@ -45,6 +45,49 @@ def test_a_missing_figure_names_the_benchmark_that_records_it(tmp_path):
         figs.record("made_up", 1.0, "", "", 2, tmp_path / "r.json")
 
 
+def test_compare_prints_a_recorded_range_and_the_date(tmp_path):
+    """A figure recorded over seeds prints its range beside the value, in the metric's own
+    format, with the threads and the date it was measured."""
+    path = tmp_path / "reference.json"
+    figs.record("video_map_class_K4", 0.5181, "python v.py --record", "3 seeds", 2, path,
+                spread=(0.5043, 0.5351), date="2026-01-02")
+    line = reference.compare("video_map_class_K4", scale="class", path=path)
+    assert ("the course's class runs, mean of 3 seeds 0.518 (range 0.504 to 0.535, 2 CPU "
+            "threads, 2026-01-02)") in line
+
+
+def test_only_a_learners_ci_figure_is_called_a_smoke_test_and_only_a_benchmark_is_named(
+        tmp_path):
+    """The ci warning is about the learner's own figure: a line printing only the references
+    has none. A figure no benchmark records (its notebook prints it) is left out when it is
+    missing, rather than sending the reader to run a command that does not exist."""
+    missing = tmp_path / "none.json"
+    assert "smoke test" not in reference.compare("vicreg_probe_acc", scale="ci", path=missing)
+    assert "smoke test" in reference.compare("vicreg_probe_acc", 0.3, scale="ci", path=missing)
+    assert reference.METRICS["video_ap3_lead"].benchmark is None
+    line = reference.compare("video_ap3_lead", 0.1, scale="class", path=missing)
+    assert line == "AP three steps ahead, K = 4 minus K = 1: yours 0.10"
+
+
+def test_the_papers_figures_agree_with_the_paper_column_of_the_results_page():
+    """RESULTS.md sets the course's figures beside the paper's, in each table's last column;
+    the paper's figures are also typed into reference.METRICS, which the notebooks print. On
+    every row that marks a figure with a paper value, that value, in the metric's format, is
+    among the last column's numbers: two copies of one figure must not drift apart (nor a
+    Table 4 value move to the wrong ablation)."""
+    with_paper = {k for k, m in reference.METRICS.items() if m.paper is not None}
+    checked = 0
+    lines = (ROOT / "RESULTS.md").read_text(encoding="utf-8").splitlines()
+    for row in [line for line in lines if line.startswith("|")]:  # the tables' rows
+        last_column = row.strip().strip("|").split("|")[-1]
+        for key in {m[1] for m in figs.FIGURE.finditer(row)} & with_paper:
+            metric = reference.METRICS[key]
+            numbers = re.findall(r"\d[\d.]*%?", last_column)
+            assert metric.fmt.format(metric.paper) in numbers, (key, row)
+            checked += 1
+    assert checked >= 8  # the probes, the detection mAP, planning and the four ablations
+
+
 @pytest.mark.parametrize("chapter", ["01", "02", "03", "05", "06"])
 def test_chapter_prints_its_result_beside_the_references(chapter):
     (path,) = NOTEBOOKS.glob(f"{chapter}_*.ipynb")

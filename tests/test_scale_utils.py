@@ -1,10 +1,13 @@
-"""The presets switch, seeding and device choice."""
+"""The presets switch, seeding and device choice, precision and the config checks' rules."""
 
-from dataclasses import replace
+import random
+from dataclasses import dataclass, replace
 
+import numpy as np
 import pytest
 import torch
 
+from ebjepa_tutorial import utils
 from ebjepa_tutorial.course import presets
 from ebjepa_tutorial.utils import as_generator, get_device, seed_everything
 
@@ -51,6 +54,26 @@ def test_same_seed_same_numbers():
 def test_seed_must_be_an_integer():
     with pytest.raises(TypeError, match="seed must be an int"):
         seed_everything(1.5)
+
+
+def test_seed_everything_seeds_python_and_numpy_too():
+    """Notebook code draws from random and numpy.random as well as torch: after the same seed
+    each gives the same numbers again, also for a seed past numpy's 2**32 limit."""
+    for seed in (3, 2**40 + 3):
+        seed_everything(seed)
+        first = (random.random(), np.random.rand(), torch.rand(1).item())
+        seed_everything(seed)
+        assert (random.random(), np.random.rand(), torch.rand(1).item()) == first, seed
+
+
+def test_as_generator_hands_a_generator_back_itself_and_refuses_a_bool():
+    """A torch.Generator passed on is used as it stands (its stream goes on, not restarts);
+    True is an int to Python but no seed anyone means."""
+    generator = torch.Generator().manual_seed(5)
+    torch.rand(3, generator=generator)
+    assert as_generator(generator) is generator
+    with pytest.raises(TypeError, match="seed must be an int"):
+        as_generator(True)
 
 
 @pytest.mark.parametrize("cuda, mps, best", [
@@ -107,3 +130,53 @@ def test_time_parts_takes_the_median_of_each_part_after_a_warm_up(monkeypatch):
             yield name
 
     assert timing.time_parts(step, repeats=3) == {"load": 2, "train": 4}
+
+
+def test_at_least_float32_raises_only_half_precisions():
+    """bfloat16 and float16 outputs are raised to float32 before a loss's statistics; float32
+    and float64 are left as they are (a float64 check must not lose its digits)."""
+    for dtype, expected in ((torch.bfloat16, torch.float32), (torch.float16, torch.float32),
+                            (torch.float32, torch.float32), (torch.float64, torch.float64)):
+        assert utils.at_least_float32(torch.ones(2, dtype=dtype)).dtype == expected, dtype
+
+
+@pytest.mark.parametrize("major, dtype", [(7, torch.float32), (8, torch.bfloat16),
+                                          (9, torch.bfloat16)])
+def test_a_cuda_gpu_computes_in_bfloat16_from_ampere_on(monkeypatch, major, dtype):
+    """Compute capability 8 (Ampere, the A100) and later have native bfloat16; a Volta or
+    Turing GPU (7) would only emulate it, slower than float32."""
+    monkeypatch.setattr(torch.cuda, "get_device_capability", lambda device=None: (major, 0))
+    assert utils.network_dtype("cuda") == dtype
+
+
+def test_the_check_predicates_refuse_bools_zero_and_infinity():
+    """is_int_at_least, is_positive and is_non_negative: True is not a count, 0 is not
+    positive, and an infinite or NaN number is neither positive nor non-negative."""
+    at_least_one = utils.is_int_at_least(1)
+    assert at_least_one(1) and not at_least_one(0) and not at_least_one(True)
+    assert not at_least_one(2.0)
+    assert utils.is_positive(0.5) and utils.is_positive(3)
+    for bad in (0, 0.0, -1, True, float("inf"), float("nan")):
+        assert not utils.is_positive(bad), bad
+    assert utils.is_non_negative(0) and utils.is_non_negative(2.5)
+    for bad in (-1e-9, False, float("inf"), float("nan")):
+        assert not utils.is_non_negative(bad), bad
+
+
+def test_check_fields_names_the_field_and_what_it_means():
+    """The error names the class, the field, its meaning when the rule gives one, the rule and
+    the value; a config that keeps every rule passes silently."""
+
+    @dataclass
+    class Config:
+        steps: int = 10
+        lr: float = 0.1
+
+    rules = {"steps": (utils.is_int_at_least(1), "an int >= 1"),
+             "lr": (utils.is_positive, "a number > 0", "the learning rate")}
+    utils.check_fields(Config(), rules)
+    with pytest.raises(ValueError, match=r"^Config\.lr \(the learning rate\) must be a number "
+                                         r"> 0, got -0\.1$"):
+        utils.check_fields(Config(lr=-0.1), rules)
+    with pytest.raises(ValueError, match=r"^Config\.steps must be an int >= 1, got 0$"):
+        utils.check_fields(Config(steps=0, lr=-0.1), rules)  # the first broken rule
