@@ -160,9 +160,10 @@ def _epps_pulley_real_part_only(x, knots=17, t_max=3.0, scale_by_n=True):
 
 
 def _parallel(predictor, z, context=2, steps=4, detach_later=False, *, per_frame=False,
-              axis=1, reduce=torch.mean):
+              axis=1, reduce=torch.mean, error=F.mse_loss):
     """A learner's parallel unroll, written another way than the course's: one predictor call
-    per frame (``per_frame``) or windows by ``unfold``; ``axis`` and ``reduce`` make a mistake."""
+    per frame (``per_frame``) or windows by ``unfold``; ``axis``, ``reduce`` and ``error`` (a
+    step's error) make a mistake."""
     z = z.transpose(0, 1) if axis == 0 else z
     errors, sequence = [], z
     for k in range(steps):
@@ -171,7 +172,7 @@ def _parallel(predictor, z, context=2, steps=4, detach_later=False, *, per_frame
             sequence = torch.cat([source[:, :context], _step(predictor, source, context,
                                                              per_frame)], dim=1)
         predictions = _step(predictor, sequence, context, per_frame)
-        errors.append(F.mse_loss(predictions, source[:, context:]))
+        errors.append(error(predictions, source[:, context:]))
         sequence = torch.cat([source[:, :context], predictions], dim=1)
     return reduce(torch.stack(errors))
 
@@ -202,16 +203,20 @@ def _parallel_every_step_to_the_encoder(predictor, z, context=2, steps=4, detach
     return _parallel(predictor, z, context, steps, False)
 
 
-def _mppi(actions, costs, elites, temperature, *, scale=None, std=None, shift=True):
-    """The notebook's MPPI update; ``scale`` replaces ``/ tau``, ``std`` the spread, and
-    ``shift=False`` leaves out the minimum cost."""
+def _mppi(actions, costs, elites, temperature, *, scale=None, std=None, shift=True,
+          normalise=True):
+    """The notebook's MPPI update; ``scale`` replaces ``/ tau``, ``std`` the spread
+    (``"variance"`` or ``"uncentred"``), ``shift=False`` leaves out the minimum cost and
+    ``normalise=False`` the division of the weights by their sum."""
     elite_costs, index = costs.topk(elites, dim=1, largest=False)
     elite = actions.gather(1, index[:, :, None, None].expand(-1, -1, *actions.shape[2:]))
     if shift:
         elite_costs = elite_costs - elite_costs.min(dim=1, keepdim=True).values
     logits = -elite_costs * temperature if scale == "times" else -elite_costs / temperature
-    w = torch.softmax(logits, dim=1)[:, :, None, None]
+    w = (torch.softmax(logits, dim=1) if normalise else torch.exp(logits))[:, :, None, None]
     mean = (w * elite).sum(dim=1)
+    if std == "uncentred":
+        return mean, (w * elite.pow(2)).sum(dim=1).sqrt()
     var = (w * (elite - mean[:, None]).pow(2)).sum(dim=1)
     return mean, var if std == "variance" else var.sqrt()
 
@@ -337,6 +342,97 @@ def test_checker_names_each_mistake_it_knows(checker):
             checker(wrong)
 
 
+def _epps_pulley_rectangles(x, knots=17, t_max=3.0, scale_by_n=True):
+    t, real, imag, gaussian, n = _epps_pulley_parts(x, knots, t_max, scale_by_n)
+    return 2 * (gaussian * ((real - gaussian) ** 2 + imag**2)).sum() * (t[1] - t[0]) * n
+
+
+def _epps_pulley_over_both_signs(x, knots=17, t_max=3.0, scale_by_n=True):
+    t = torch.linspace(-t_max, t_max, knots)  # the whole line at once, so no doubling
+    real, imag = torch.cos(x[:, None] * t).mean(0), torch.sin(x[:, None] * t).mean(0)
+    gaussian = torch.exp(-(t**2) / 2)
+    area = torch.trapezoid(gaussian * ((real - gaussian) ** 2 + imag**2), t)
+    return area * len(x) if scale_by_n else area
+
+
+def _slab_crossing_unclamped(x0, x1, x_lo, x_hi):
+    moving = x1 != x0
+    dx = torch.where(moving, x1 - x0, torch.ones_like(x0))
+    t_a, t_b = (x_lo - x0) / dx, (x_hi - x0) / dx
+    inside = ((x0 > x_lo) & (x0 < x_hi)).to(x0.dtype)
+    return (torch.where(moving, torch.minimum(t_a, t_b), 0.0),
+            torch.where(moving, torch.maximum(t_a, t_b), inside))
+
+
+def _slab_crossing_dividing_by_zero(x0, x1, x_lo, x_hi):
+    t_a, t_b = (x_lo - x0) / (x1 - x0), (x_hi - x0) / (x1 - x0)
+    return torch.minimum(t_a, t_b).clamp(0, 1), torch.maximum(t_a, t_b).clamp(0, 1)
+
+
+def _off_diagonal(z, f):
+    cov = torch.cov(z.T)
+    return (f(cov).sum() - f(cov.diagonal()).sum()) / (z.shape[1] * (z.shape[1] - 1))
+
+
+@pytest.mark.parametrize("checker, wrong, words", [
+    (exercises.check_variance_term,
+     lambda z, gamma=1.0, eps=1e-4: torch.relu(gamma - z.std(dim=0) - eps).mean(),
+     "you added eps after the square root"),
+    (exercises.check_variance_term,
+     lambda z, gamma=1.0, eps=1e-4: torch.relu(gamma - (z.var(dim=0) + eps)).mean(),
+     "you used the variance where the standard deviation belongs"),
+    (exercises.check_covariance_term, lambda z: _off_diagonal(z, lambda c: c),
+     "you summed the covariances themselves; square them first"),
+    (exercises.check_covariance_term, lambda z: _off_diagonal(z, torch.abs),
+     "you took absolute values; the term squares"),
+    (exercises.check_epps_pulley, _epps_pulley_rectangles,
+     r"you used a plain sum times the knot spacing \(a rectangle rule\)"),
+    (exercises.check_epps_pulley, _epps_pulley_over_both_signs,
+     r"you spread the knots over \[-t_max, t_max\]"),
+    (exercises.check_parallel_rollout_loss, lambda predictor, z, context=2, steps=4,
+     detach_later=False: _parallel(predictor, z, context, steps, detach_later,
+                                   error=lambda p, t: F.mse_loss(p, t).sqrt()),
+     r"an unsquared distance: the loss is the mean \*squared\* error"),
+    (exercises.check_parallel_rollout_loss, lambda predictor, z, context=2, steps=4,
+     detach_later=False: _parallel(predictor, z, context, steps, detach_later, error=F.l1_loss),
+     "you used the absolute error; the loss is the mean squared error"),
+    (exercises.check_slab_crossing, _slab_crossing_unclamped,
+     r"you did not clamp the fractions to \[0, 1\]"),
+    (exercises.check_slab_crossing, _slab_crossing_dividing_by_zero,
+     "a move with no change in x divides by zero"),
+    (exercises.check_temporal_similarity, lambda z: F.mse_loss(z[:, 1:], z[:, :-1].detach()),
+     r"the gradient reaches z_t\+1 but not z_t: you detached the earlier latent"),
+    (exercises.check_temporal_similarity, lambda z: F.mse_loss(z[:, 1:].detach(), z[:, :-1]),
+     r"the gradient reaches z_t but not z_t\+1: you detached the later latent"),
+    (exercises.check_inverse_dynamics, lambda g, z, a: (g(z[:, :-1], z[:, 1:]) - a).pow(2).sum(),
+     "you summed instead of averaging"),
+    (exercises.check_inverse_dynamics, lambda g, z, a: F.l1_loss(g(z[:, :-1], z[:, 1:]), a),
+     "you used the absolute error; the loss is the mean squared error"),
+    (exercises.check_mppi_update, functools.partial(_mppi, normalise=False),
+     "your weights do not sum to 1"),
+    (exercises.check_mppi_update, functools.partial(_mppi, std="uncentred"),
+     "your std does not subtract the mean"),
+    (exercises.check_step_violation, lambda d, length: (d - length).pow(2).mean(),
+     "a step SHORTER than its action breaks nothing"),
+    (exercises.check_step_violation, lambda d, length: (length - d).clamp(min=0).pow(2).mean(),
+     "the excess is step_distance - step_length"),
+    (exercises.check_spread_loss, lambda d, cap: torch.log1p(torch.exp(d - cap)).mean(),
+     "the sign is flipped"),
+    (exercises.check_spread_loss, lambda d, cap: (cap - d).clamp(min=0).mean(),
+     "use the smooth hinge softplus, not relu"),
+    (exercises.check_spread_loss, lambda d, cap: torch.log1p(torch.exp(-d)).mean(),
+     "the cap is missing"),
+    (exercises.check_spread_loss, lambda d, cap: F.softplus(cap - d).sum(),
+     "average over the pairs, do not sum"),
+])
+def test_a_learner_s_own_slip_is_named_in_its_words(checker, wrong, words):
+    """A slip the checker knows, written as a learner would (not the checker's own slip
+    function), is named in that slip's words: the test above pairs each slip function with
+    the words it is filed under, so it cannot notice two slips' words swapped."""
+    with pytest.raises(exercises.ExerciseError, match="Likely cause: " + words):
+        checker(wrong)
+
+
 # ------------------------------------------- an output that trains must keep its gradient
 
 def _detached(right, index):
@@ -442,6 +538,11 @@ def _temporal_over_t(z):
     return (z[:, 1:] - z[:, :-1]).pow(2).sum() / z.numel()
 
 
+def _epps_pulley_undoubled(x, knots=17, t_max=3.0, scale_by_n=True):
+    t, real, imag, gaussian, n = _epps_pulley_parts(x, knots, t_max, scale_by_n)
+    return torch.trapezoid(gaussian * ((real - gaussian) ** 2 + imag**2), t) * n
+
+
 @pytest.mark.parametrize("checker, wrong, message", [
     # a factor off
     (exercises.check_covariance_term,
@@ -465,6 +566,12 @@ def _temporal_over_t(z):
      lambda x, knots=17, t_max=3.0, scale_by_n=True: losses.sigreg.epps_pulley(
          x, knots=knots, t_max=t_max, scale_by_n=False),
      r"is too small by a factor of N = 256 on .*N times the integral"),
+    (exercises.check_epps_pulley, _epps_pulley_undoubled,
+     r"is too small by a factor of 2 on .*integrate over \[0, t_max\], then double once"),
+    (exercises.check_covariance_term,
+     lambda z: torch.cov(z.T).fill_diagonal_(0).pow(2).sum() / z.shape[1] ** 2,
+     r"is too small by a factor of D/\(D - 1\) = 1.143 on .*D\(D - 1\) off-diagonal entries, "
+     r"not D\^2"),
     # an input changed in place
     (exercises.check_covariance_term,
      lambda z: (z.sub_(z.mean(0)).T @ z / (len(z) - 1)).fill_diagonal_(0).pow(2).sum()
@@ -593,6 +700,111 @@ def test_an_unclamped_target_is_named_not_an_open_door(clamp_at_the_end):
         check_wall_collision(wall_collision)
     assert "the target was not clamped to the arena first. Rule 1" in str(caught.value)
     assert "the door is open there" not in str(caught.value)
+
+
+# ------------------------- each case tries what the others cannot: a right answer on one is not
+
+def test_a_covariance_term_that_types_in_the_notebook_s_sizes_is_refused():
+    """Notebook 00 embeds in D = 8 dimensions: a term that divides by 8 * 7 = 56 (or by a batch
+    of 32 less one) agrees on a (32, 8) batch, so the check must also try other sizes."""
+    def typed_d(z):
+        return torch.cov(z.T).fill_diagonal_(0).pow(2).sum() / 56
+
+    def typed_b(z):
+        centred = z - z.mean(0)
+        cov = (centred.T @ centred / 31).fill_diagonal_(0)
+        return cov.pow(2).sum() / (z.shape[1] * (z.shape[1] - 1))
+
+    for wrong in (typed_d, typed_b):
+        with pytest.raises(exercises.ExerciseError, match="but the answer is"):
+            exercises.check_covariance_term(wrong)
+
+
+def _epps_pulley_typed_knots(x, knots=17, t_max=3.0, scale_by_n=True):
+    t, real, imag, gaussian, n = _epps_pulley_parts(x, 17, 3.0, scale_by_n)  # the defaults
+    return 2 * torch.trapezoid(gaussian * ((real - gaussian) ** 2 + imag**2), t) * n
+
+
+@pytest.mark.parametrize("wrong, message", [
+    (_epps_pulley_typed_knots, r"on knots=5 and t_max=2.0"),
+    (lambda x, knots=17, t_max=3.0, scale_by_n=True: losses.sigreg.epps_pulley(x, knots, t_max),
+     r"too large by a factor of N = 100 on a Gaussian sample of 100 numbers with "
+     r"scale_by_n=False"),
+], ids=["knots and t_max typed in", "scale_by_n ignored"])
+def test_the_epps_pulley_check_holds_the_statistic_to_its_arguments(wrong, message):
+    """The statistic's knots, t_max and scale_by_n are the learner's to honour: one that always
+    integrates over 17 knots of [0, 3], or always multiplies by N, is right at the defaults
+    only, and the cases that set those arguments refuse it."""
+    with pytest.raises(exercises.ExerciseError, match=message):
+        exercises.check_epps_pulley(wrong)
+
+
+def test_a_spread_loss_that_types_in_its_cap_is_refused():
+    """The text's cap C = 150 px is 15 in the head's units; a spread that types 15 in and
+    ignores its cap argument agrees on the cases of cap 15 only."""
+    with pytest.raises(exercises.ExerciseError, match="but the answer is .* on the same, cap 5"):
+        exercises.check_spread_loss(lambda distance, cap: F.softplus(15.0 - distance).mean())
+
+
+def test_a_slab_crossing_that_never_counts_a_still_dot_inside_is_refused():
+    """A move with no change in x spends all of it inside the slab when the dot stands inside
+    (t_out = 1): answering 0 for every still move is right only for dots outside, and the
+    check has still dots on both sides."""
+    def slab_crossing(x0, x1, x_lo, x_hi):
+        still = x1 == x0
+        dx = torch.where(still, torch.ones_like(x0), x1 - x0)
+        t_a, t_b = (x_lo - x0) / dx, (x_hi - x0) / dx
+        return (torch.where(still, 0.0, torch.minimum(t_a, t_b).clamp(0, 1)),
+                torch.where(still, 0.0, torch.maximum(t_a, t_b).clamp(0, 1)))
+
+    with pytest.raises(exercises.ExerciseError,
+                       match=r"your t_out .* but the answer is 1 .*on moves with no change in x"):
+        exercises.check_slab_crossing(slab_crossing)
+
+
+def test_a_wall_rule_that_stops_short_of_the_face_is_refused():
+    """The dot stops on the wall's face, not a safety margin before it: 0.01 px short is a
+    wrong position the check's tolerance (1e-4 px) must not absorb."""
+    def wall_collision(positions, moves, layouts):
+        new = check_wall_collision.reference(positions, moves, layouts)
+        stopped = ~torch.isclose(new[:, 0], (positions + moves).clamp(LOW, HIGH)[:, 0])
+        back = torch.where(new[:, 0] < layouts[:, 0].float(), -0.01, 0.01)
+        return torch.stack([new[:, 0] + torch.where(stopped, back, 0.0), new[:, 1]], -1)
+
+    with pytest.raises(exercises.ExerciseError, match=r"gave \(.*\) but the reference gives"):
+        check_wall_collision(wall_collision)
+
+
+def test_vicreg_with_a_stop_gradient_on_the_second_view_is_refused():
+    """VICReg trains both branches: an invariance term that stops the gradient at z_b (as
+    BYOL and SimSiam do) has the right value, and only the gradient with respect to the
+    second view tells it apart."""
+    def vicreg(z_a, z_b, inv_coeff, std_coeff, cov_coeff):
+        variance = (losses.variance_term(z_a) + losses.variance_term(z_b)) / 2
+        covariance = (losses.covariance_term(z_a) + losses.covariance_term(z_b)) / 2
+        return (inv_coeff * F.mse_loss(z_a, z_b.detach()) + std_coeff * variance
+                + cov_coeff * covariance)
+
+    with pytest.raises(exercises.ExerciseError,
+                       match="not the right gradient with respect to the second view z_b"):
+        exercises.check_vicreg(vicreg)
+
+
+def test_an_unroll_whose_later_steps_train_nothing_is_refused():
+    """detach_later cuts the encoder off from steps 2..K, not the predictor: running those
+    steps under torch.no_grad() gives the right value and the right gradient for the latents,
+    and only the gradient with respect to the predictor's weights shows the mistake."""
+    def parallel_rollout_loss(predictor, z, context=2, steps=4, detach_later=False):
+        if not detach_later:
+            return _parallel(predictor, z, context, steps)
+        first = _parallel(predictor, z, context, 1)
+        with torch.no_grad():  # steps 2..K: counted, but (wrongly) training nothing
+            later = _parallel(predictor, z, context, steps, True) * steps - first
+        return (first + later) / steps
+
+    with pytest.raises(exercises.ExerciseError,
+                       match="not the right gradient with respect to the predictor's weights"):
+        exercises.check_parallel_rollout_loss(parallel_rollout_loss)
 
 
 # ------------------------------------------------------------- valid answers are accepted

@@ -2,6 +2,7 @@
 
 import random
 from dataclasses import dataclass, replace
+from operator import attrgetter
 
 import numpy as np
 import pytest
@@ -9,6 +10,7 @@ import torch
 
 from ebjepa_tutorial import utils
 from ebjepa_tutorial.course import presets
+from ebjepa_tutorial.envs.episodes import THREE_ROOMS_EPISODE_STEPS
 from ebjepa_tutorial.utils import as_generator, get_device, seed_everything
 
 
@@ -98,6 +100,39 @@ def test_video_preset_fits_its_clips_and_budget():
     # under 10 minutes per class run on 2 idle CPU cores (RESULTS.md, section 03)
     assert (class_.train.batch_size, class_.train.steps, class_.train.n_clips) == (16, 2400, 4000)
     assert ci.train.steps * ci.train.batch_size * len(ci.seeds) < 1000  # ci: seconds
+
+
+_IMAGE_WORK = ("config.steps", "long_config.steps", "train_images", "test_images", "sweep_steps")
+WORK = {  # the counts that set how long each notebook runs ("seeds": how many; None: 120 steps)
+    "00": ("n_points", "steps"), "01": _IMAGE_WORK, "02": _IMAGE_WORK,
+    "03": ("train.steps", "train.n_clips", "long_config.steps", "seeds", "n_probe", "n_eval",
+           "probe_steps", "decoder_steps"),
+    "04": ("n_trajectories", "n_episodes"),
+    "05": ("train.steps", "train.n_trajectories", "n_probe", "n_test", "n_layouts"),
+    "06": ("n_episodes", "n_compare", "episode_steps", "n_wall_test", "longer.n_ablation",
+           "planner.samples", "planner.horizon"),
+    "07": ("n_episodes", "episode_steps", "flat.samples", "short.samples",
+           "two_level.low.samples"),
+}
+
+
+def _work(notebook, scale, path):
+    value = attrgetter(path)(presets.preset(notebook, scale))
+    if value is None:  # notebook 07's episodes: each world's step budget, 120 in Three Rooms
+        return THREE_ROOMS_EPISODE_STEPS
+    return len(value) if isinstance(value, tuple) else value
+
+
+@pytest.mark.parametrize("notebook", sorted(WORK))
+def test_ci_is_a_fraction_of_class_and_class_no_more_than_full(notebook):
+    """ci is a smoke test (each notebook in about a minute on 2 cores, `make test` runs them
+    all), class a class period's run, full the paper's: every count that sets how long a
+    notebook runs is at most a third at ci of its class value, and no larger at class than at
+    full. A ci count left at class's size, or a full one cut below class, breaks this."""
+    assert set(WORK) == set(presets.PRESETS)
+    for path in WORK[notebook]:
+        ci, class_, full = (_work(notebook, scale, path) for scale in presets.SCALES)
+        assert 3 * ci <= class_ <= full, (notebook, path, ci, class_, full)
 
 
 @pytest.mark.parametrize("name", presets.SCALES)

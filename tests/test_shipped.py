@@ -8,12 +8,14 @@ that re-saves the files when identities change); these tests hold the files to
 it, and the sweep file's runs to notebook 02's plan. No model is built.
 """
 
+import re
 from dataclasses import replace
 from pathlib import Path
 
 import pytest
 import torch
 
+from ebjepa_tutorial.course import reference
 from ebjepa_tutorial.course.presets import preset
 from ebjepa_tutorial.data import DataNotFoundError, load_mnist
 from ebjepa_tutorial.training.checkpoints import load_checkpoint, save_checkpoint
@@ -85,3 +87,44 @@ def test_the_sweep_file_holds_every_run_of_notebook_02():
     missing = [run for group in sweep.sweep_plan("class").values() for run in group
                if sweep.key(run.config, cfg.train_images, cfg.test_images) not in stored]
     assert not missing, f"{len(missing)} runs would be retrained: {missing[:2]}"
+
+
+# a recorded figure's key, its notebook, what its protocol says of the run and its probe, and
+# the sizes of the notebook's class preset that must say the same
+RECORDED_SIZES = [
+    ("world_probe_px", "05", r"^(\d+) steps; linear probe fitted on (\d+) trajectories, scored "
+     r"on (\d+) held-out ones of (\d+) steps", lambda c: (c.train.steps, c.n_probe, c.n_test,
+                                                      c.horizon)),
+    ("video_map", "03", r"fitted on (\d+) clips of training digits, AP on (\d+) clips of "
+     r"held-out digits, horizons 1\.\.(\d+)", lambda c: (c.n_probe, c.n_eval, c.horizons)),
+    ("video_map_class_K4", "03", r"K = (\d+), ([\d,]+) steps",
+     lambda c: (c.train.rollout_steps, c.train.steps)),
+    ("video_map_long_K4", "03", r"K = 4, ([\d,]+) steps", lambda c: (c.long_config.steps,)),
+    ("random_walk_success", "04", r"^(\d+) episodes of (\d+) steps",
+     lambda c: (c.n_episodes, c.episode_steps)),
+    ("planning_success_class", "06", r"seeds (\d+)-\d+; (\d+) steps; .*MPPI H(\d+) N(\d+) "
+     r"J(\d+) \((\d+) warm\), first spread (\d+) px, re-plan every (\d+), stands still within "
+     r"(\d+) px", lambda c: (c.first_seed, c.episode_steps, c.planner.horizon, c.planner.samples,
+                             c.planner.iterations, c.planner.habits.warm_iterations,
+                             c.planner.noise.std, c.planner.execute, c.planner.habits.stop_px)),
+    ("sweep_vicreg_tenfold_points", "02", r"(\d+) steps per run", lambda c: (c.sweep_steps,)),
+    ("vicreg_probe_acc", "01", r"^(\d+) steps", lambda c: (c.config.steps,)),
+    ("sigreg_probe_acc", "02", r"^(\d+) steps", lambda c: (c.config.steps,)),
+    ("vicreg_shipped_probe_acc", "01", r"for ([\d,]+) steps .*, ([\d,]+) train / ([\d,]+) test",
+     lambda c: (c.long_config.steps, c.train_images, c.test_images)),
+    ("sigreg_shipped_probe_acc", "02", r"for ([\d,]+) steps", lambda c: (c.long_config.steps,)),
+]
+
+
+@pytest.mark.parametrize("key, notebook, protocol, sizes", RECORDED_SIZES,
+                         ids=[key for key, *_ in RECORDED_SIZES])
+def test_a_recorded_figure_was_measured_at_its_notebook_s_class_sizes(key, notebook, protocol,
+                                                                     sizes):
+    """A notebook compares its class run's figure with the recorded one (reference.compare),
+    which means something only while the class preset keeps the sizes the figure was
+    measured with: a preset edited apart from its figure would compare unlike runs."""
+    recorded = reference.load()[key]["protocol"]
+    found = re.search(protocol, recorded)
+    assert found, f"{key}: {protocol!r} not in its protocol {recorded!r}"
+    numbers = tuple(float(group.replace(",", "")) for group in found.groups())
+    assert numbers == sizes(preset(notebook, "class")), key
