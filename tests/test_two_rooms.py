@@ -306,6 +306,26 @@ def test_same_seed_same_data():
     assert not torch.equal(a.positions, generate_trajectories(64, seed=8).positions)
 
 
+def test_a_selection_of_trajectories_keeps_each_ones_door_flag():
+    """Indexing picks the same trajectories from every field: the door starts taken out are
+    all door starts (a field left unindexed would mix them with the others)."""
+    data = generate_trajectories(8, steps=3, seed=0, door_fraction=0.5)
+    doors, others = data[data.door], data[~data.door]
+    assert len(doors) == len(others) == 4 and doors.door.all() and not others.door.any()
+    picked = data[[5, 0, 3]]
+    for field in ("positions", "actions", "layouts", "door"):
+        assert torch.equal(getattr(picked, field), getattr(data, field)[[5, 0, 3]])
+
+
+@pytest.mark.parametrize("kwargs", [{"door_fraction": -0.2}, {"wall_fraction": -0.2},
+                                    {"kappa": 0.0}])
+def test_negative_shares_and_a_flat_turn_distribution_are_refused(kwargs):
+    """A negative share would mark all but a few trajectories as door starts (a slice
+    ``[:-k]``), and kappa 0 has no von Mises sampler: both refused by name."""
+    with pytest.raises(ValueError, match="door_fraction and wall_fraction must be >= 0"):
+        generate_trajectories(10, **kwargs)
+
+
 def test_wall_starts_face_the_wall_away_from_the_door_and_leave_other_data_alone():
     base = generate_trajectories(2000, seed=3)
     more = generate_trajectories(2000, seed=3, wall_fraction=0.25)
@@ -344,6 +364,39 @@ def test_episodes_start_and_goal_in_opposite_rooms():
     again = make_episodes(1000, seed=3)
     assert torch.equal(episodes.goals, again.goals) and torch.equal(episodes.starts, again.starts)
     assert not torch.equal(make_episodes(1000, seed=4).starts, episodes.starts)
+
+
+def test_episodes_slice_and_concatenate_back():
+    """Slices of episodes keep each task's layout, start and goal together, and ``concat``
+    puts the pieces back in order: what the planner's batched runs rely on."""
+    episodes = make_episodes(6, seed=2)
+    parts = [episodes[:2], episodes[2:5], episodes[5:]]
+    assert [len(part) for part in parts] == [2, 3, 1]
+    assert torch.equal(parts[1].goals, episodes.goals[2:5])
+    again = Episodes.concat(parts)
+    for field in ("layouts", "starts", "goals"):
+        assert torch.equal(getattr(again, field), getattr(episodes, field))
+
+
+def test_the_goal_image_is_the_view_of_the_dot_standing_on_the_goal():
+    """The planner compares observations with the goal image: with the dot exactly on its
+    goal (not a rounded one) the two must be the same picture."""
+    env = TwoRoomsEnv()
+    env.reset(n=4, seed=2)
+    assert not torch.equal(env.observe(), env.goal_images())
+    env.positions = env.goals.clone()
+    assert torch.equal(env.observe(), env.goal_images())
+
+
+def test_the_environment_reports_the_room_the_dot_is_in():
+    """``rooms()`` follows the dot, not its goal: 0 left of the wall at x = 30, 1 right."""
+    env = TwoRoomsEnv()
+    env.reset(episodes=Episodes(torch.tensor([[30, 30]] * 2),
+                                torch.tensor([[10.0, 10.0], [50.0, 50.0]]),
+                                torch.tensor([[50.0, 50.0], [10.0, 10.0]])))
+    assert env.rooms().tolist() == [0, 1]
+    env.positions = env.goals.clone()
+    assert env.rooms().tolist() == [1, 0]
 
 
 def test_environment_steps_and_scores():
@@ -433,7 +486,11 @@ def test_shortest_path_lengths_by_hand():
              ((10, 20), (50, 20)): 40.0,  # straight through the doorway, either way
              ((50, 20), (10, 20)): 40.0,
              # round the wall: to the doorway's lower corner, across, on to the goal
-             ((10, 50), (50, 50)): math.hypot(19.5, 26.5) + 5 + math.hypot(15.5, 26.5)}
+             ((10, 50), (50, 50)): math.hypot(19.5, 26.5) + 5 + math.hypot(15.5, 26.5),
+             # from the near face and to the far one (where a collision leaves the dot): still
+             # round the wall, not through it
+             ((29.5, 50), (50, 50)): 26.5 + 5 + math.hypot(15.5, 26.5),
+             ((10, 50), (34.5, 50)): math.hypot(19.5, 26.5) + 5 + 26.5}
     for (start, goal), length in pairs.items():
         found = shortest_path_length(torch.tensor([start], dtype=torch.float32),
                                      torch.tensor([goal], dtype=torch.float32), one)

@@ -119,8 +119,8 @@ def shortest_path_length(starts: torch.Tensor, goals: torch.Tensor,
     rows = gate_lo[..., None] + (gate_hi - gate_lo)[..., None] * torch.linspace(
         0, 1, 29, device=starts.device, dtype=starts.dtype)  # (B, 2W, P = 29)
     gate = torch.stack([gate_x[..., None].expand_as(rows), rows], dim=-1)  # (B, 2W, P, 2)
-    before = (gate_x <= start[:, :1])[..., None, None]
-    after = (gate_x >= goal[:, :1])[..., None, None]
+    before = (gate_x < start[:, :1])[..., None, None]  # a dot on a face has that gate ahead
+    after = (gate_x > goal[:, :1])[..., None, None]
     gate = torch.where(before, start[:, None, None], torch.where(after, goal[:, None, None], gate))
     length = torch.zeros(len(starts), 1, device=starts.device, dtype=starts.dtype)
     here = start[:, None]  # (B, 1, 2): the points reached so far
