@@ -170,6 +170,30 @@ def test_the_pasted_digits_move_by_their_velocity(batch):
     assert ((moved - velocity).abs()[straight] <= 1.0 + 1e-5).all()
 
 
+def test_draws_cover_every_digit_and_the_whole_free_range(digits_and_boxes):
+    """Digits are drawn with replacement from all of ``digits``, and start uniformly over the
+    free range [0, 64 - 28 = 36] of their top-left corner: rounded to whole pixels, the first
+    frame's corners reach both ends, 0 and 36, and average 18 (a corner truncated instead of
+    rounded, or a range one short, never reaches 36)."""
+    batch = generate_moving_mnist(digits_and_boxes[0], n_clips=500, n_frames=1, seed=0)
+    assert batch.digit_ids.unique().tolist() == list(range(40))
+    corners = batch.offsets[:, 0].flatten(0, 1)  # (clips x digits, 2)
+    for axis in (0, 1):
+        assert corners[:, axis].min() == 0 and corners[:, axis].max() == 36
+        assert abs(corners[:, axis].float().mean() - 18) < 1.5
+
+
+def test_speeds_from_0_to_the_free_range_are_allowed(digits_and_boxes):
+    """``speed`` in [0, 36] px/frame, both ends included: at 0 the digits stand still, at 36
+    (one edge per axis per step at most) they still bounce inside the frame."""
+    digits = digits_and_boxes[0]
+    still = generate_moving_mnist(digits, n_clips=3, n_frames=4, speed=0.0, seed=0)
+    assert torch.equal(still.offsets, still.offsets[:, :1].expand_as(still.offsets))
+    fastest = generate_moving_mnist(digits, n_clips=3, n_frames=6, speed=36.0, seed=0)
+    assert torch.allclose(fastest.velocities.norm(dim=-1), torch.tensor(36.0))
+    assert fastest.offsets.min() >= 0 and fastest.offsets.max() <= 36
+
+
 def test_same_seed_same_clips_and_different_seed_different(digits_and_boxes):
     digits = digits_and_boxes[0]
     a = generate_moving_mnist(digits, 8, seed=11)
@@ -193,6 +217,15 @@ def test_split_digits_is_disjoint_and_deterministic():
     assert not torch.equal(held_out, torch.arange(80, 100))  # a permutation, not the last 20
 
 
+def test_the_held_out_digits_are_pinned():
+    """The shipped video models trained on the first 8,000 digits of this permutation of the
+    10,000 MNIST test digits and are probed on the other 2,000: a changed seed or draw would
+    silently put their training digits among the held-out ones."""
+    train, held_out = split_digits(torch.arange(10_000))
+    assert train[:6].tolist() == [6044, 2890, 9399, 1917, 4919, 1729]
+    assert held_out[:6].tolist() == [8052, 366, 9079, 841, 7920, 2344]
+
+
 def test_clips_from_held_out_digits_use_only_those_digits(digits_and_boxes):
     digits = digits_and_boxes[0]
     _, held_out = split_digits(digits, n_train=30)
@@ -206,6 +239,13 @@ def test_grid_targets_by_hand():
     assert grid.shape == (2, 8, 8)
     assert grid[0, 7, 0] == 1 and grid[0, 3, 4] == 1 and grid[0].sum() == 2
     assert grid[1, 1, 1] == 1 and grid[1].sum() == 1  # both centres in one cell
+
+
+def test_grid_targets_of_centres_on_the_frame_edge_are_the_border_cells():
+    """A centre on the frame's far edge (x or y = 64) is in the last cell of its row or
+    column, not in a cell past the grid (the next row's first cell, or out of range)."""
+    grid = centres_to_grid(torch.tensor([[64.0, 20.0], [0.0, 64.0]]))
+    assert grid[2, 7] == 1 and grid[7, 0] == 1 and grid.sum() == 2
 
 
 def test_grid_targets_from_a_batch_mark_each_centre_cell_and_nothing_else(batch):

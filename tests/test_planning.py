@@ -449,6 +449,136 @@ def test_plot_energy_shapes_draws_each_profile_over_its_ring_middles_scaled_to_1
     matplotlib.pyplot.close(ax.figure)
 
 
+def test_two_rooms_pictures_colour_the_floor_the_walls_and_the_dot():
+    """An observation (dot, walls) as a picture: white floor, grey (0.35, 0.4, 0.5) walls, a
+    red (0.85, 0.1, 0.1) dot, and a dot pixel at half intensity half way from floor to red."""
+    import matplotlib
+
+    matplotlib.use("agg")
+    from ebjepa_tutorial import viz
+
+    obs = torch.zeros(2, 3, 3)
+    obs[1, 0, 0] = 1.0  # a wall pixel
+    obs[0, 1, 1], obs[0, 2, 2] = 1.0, 0.5  # the dot's centre, and its flank
+    rgb = viz.two_rooms_rgb(obs)
+    assert rgb.shape == (3, 3, 3)
+    assert rgb[0, 1].tolist() == pytest.approx([1.0, 1.0, 1.0])
+    assert rgb[0, 0].tolist() == pytest.approx([0.35, 0.4, 0.5])
+    assert rgb[1, 1].tolist() == pytest.approx([0.85, 0.1, 0.1])
+    assert rgb[2, 2].tolist() == pytest.approx([0.925, 0.55, 0.55])
+
+
+def test_episode_pictures_show_every_wall_the_goal_the_start_and_the_trail_so_far():
+    """``draw_two_rooms`` draws both walls of a Three Rooms layout with row 0 at the top (as
+    an observation is shown), the success circle and the star on the goal, the black dot on
+    the start; a frame of ``animate_episodes`` draws the trail up to its step, and the
+    frames, ``every`` steps apart, end on the last position."""
+    import matplotlib
+
+    matplotlib.use("agg")
+    from ebjepa_tutorial import viz
+    from ebjepa_tutorial.envs import Episodes
+
+    layouts = torch.tensor([[30, 30, 30, 30], [20, 15, 44, 50]])
+    starts, goals = torch.tensor([[5.0, 5.0], [5.0, 60.0]]), torch.tensor([[9.0, 9.0], [60.0, 5.0]])
+    paths = torch.arange(20.0).view(2, 5, 2)  # two episodes of 4 steps
+    results = SimpleNamespace(episodes=Episodes(layouts, starts, goals), paths=paths)
+    animation = viz.animate_episodes(results, [1], every=2, titles=["second"])
+    assert list(animation.new_frame_seq()) == [0, 2, 4]
+    trail, dot = animation._func(2)  # FuncAnimation's drawing function, at step 2
+    assert trail.get_xydata().tolist() == paths[1, :3].tolist()
+    assert dot.get_xydata().tolist() == paths[1, 2:3].tolist()
+    ax = trail.axes
+    picture = ax.images[0].get_array()
+    for column in (20, 44):  # both walls, grey; the floor between them white
+        assert picture[30, column].tolist() == pytest.approx([0.35, 0.4, 0.5])
+    assert picture[30, 32].tolist() == pytest.approx([1.0, 1.0, 1.0])
+    assert ax.yaxis_inverted()
+    (circle,) = ax.patches
+    assert circle.center == (60.0, 5.0) and circle.radius == SUCCESS_RADIUS
+    assert [marks.get_offsets().tolist() for marks in ax.collections] == [[[60.0, 5.0]],
+                                                                          [[5.0, 60.0]]]
+    matplotlib.pyplot.close(ax.figure)
+
+
+def test_energy_maps_show_each_energy_at_its_point_with_the_anchor_on_top():
+    """``energy[i, j]``, the energy at ``(x, y) = (coords[j], coords[i])``, is drawn at that
+    point (rows upwards), and the anchor's star at ``(anchor[0], anchor[1])``."""
+    import matplotlib
+
+    matplotlib.use("agg")
+    from ebjepa_tutorial import viz
+
+    coords = torch.linspace(-2.0, 2.0, 5)
+    energy = 10 * torch.arange(5.0)[:, None] + torch.arange(5.0)  # 10 i + j
+    ax = viz.plot_energy_map(coords, energy, (1.0, -2.0), torch.tensor([[0.5, 1.5]]))
+    image = ax.images[0]
+    for x, y, value in ((-1.0, 1.0, 31), (1.0, -1.0, 13), (0.0, 1.6, 42)):
+        xs, ys = ax.transData.transform((x, y))
+        assert image.get_cursor_data(SimpleNamespace(x=xs, y=ys)) == value, (x, y)
+    points, anchor = ax.collections
+    assert points.get_offsets().tolist() == [[0.5, 1.5]]
+    assert anchor.get_offsets().tolist() == [[1.0, -2.0]]
+    matplotlib.pyplot.close(ax.figure)
+
+
+def test_spectra_are_drawn_from_rank_1_with_zeros_kept_on_the_log_scale():
+    """Eigenvalues in the order given, largest first, at ranks 1 .. D; a zero eigenvalue is
+    drawn at 1e-8 (a log scale has no 0), one labelled line per run."""
+    import matplotlib
+
+    matplotlib.use("agg")
+    from ebjepa_tutorial import viz
+
+    ax = viz.plot_spectrum({"run": torch.tensor([4.0, 1.0, 0.0])})
+    ((ranks, values),) = (line.get_data() for line in ax.get_lines())
+    assert list(ranks) == [1, 2, 3] and list(values) == pytest.approx([4.0, 1.0, 1e-8])
+    assert ax.get_yscale() == "log"
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["run"]
+    matplotlib.pyplot.close(ax.figure)
+
+
+def test_embeddings_are_drawn_on_their_first_two_principal_components():
+    """Points spread 3 along one direction and 1 along another, turned in 3-D and moved off
+    the origin: the scatter shows those two spreads, in that order (each up to its sign)."""
+    import matplotlib
+
+    matplotlib.use("agg")
+    from ebjepa_tutorial import viz
+
+    a, b = torch.tensor([3.0, -3.0, 0.0, 0.0]), torch.tensor([0.0, 0.0, 1.0, -1.0])
+    turn = torch.linalg.qr(torch.randn(3, 3, generator=torch.Generator().manual_seed(0)))[0]
+    z = torch.stack([a, b, torch.zeros(4)], 1) @ turn.T + torch.tensor([5.0, -3.0, 2.0])
+    ax = viz.plot_embedding(z, torch.arange(4))
+    xy = torch.as_tensor(ax.collections[0].get_offsets().data)
+    assert torch.allclose(xy.abs().float(), torch.stack([a, b], 1).abs(), atol=1e-4)
+    matplotlib.pyplot.close(ax.figure)
+
+
+@pytest.mark.slow  # three panels: about 0.1 s
+def test_characteristic_function_panels_show_the_modulus_and_the_epps_pulley_integrand():
+    """For 8 samples all at x = 1, phi_N(t) = exp(i t): Re is cos t, |phi_N| is 1; the third
+    panel's curve integrates over [-3, 3] to the Epps-Pulley statistic in its legend, and the
+    histogram is a density (area 1)."""
+    import matplotlib
+
+    matplotlib.use("agg")
+    from ebjepa_tutorial import viz
+    from ebjepa_tutorial.losses.sigreg import epps_pulley
+
+    x = torch.ones(8)
+    axes = viz.plot_characteristic_functions({"ones": x})
+    _, real, modulus = axes[1].get_lines()
+    t = torch.as_tensor(real.get_xdata())
+    assert torch.allclose(torch.as_tensor(real.get_ydata()), t.cos(), atol=1e-5)
+    assert torch.allclose(torch.as_tensor(modulus.get_ydata()), torch.ones_like(t), atol=1e-5)
+    (gap,) = axes[2].get_lines()
+    area = torch.trapezoid(torch.as_tensor(gap.get_ydata()), torch.as_tensor(gap.get_xdata()))
+    assert area.item() == pytest.approx(epps_pulley(x).item(), rel=1e-3)
+    assert sum(bar.get_height() * bar.get_width() for bar in axes[0].patches) == pytest.approx(1)
+    matplotlib.pyplot.close(axes[0].figure)
+
+
 def test_episodes_keep_the_actions_that_replay_their_paths():
     """What the agent asked, moved by the world's transition, is the path it took, walls
     included (the linear model plans straight through them): offline data, as

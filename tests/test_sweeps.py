@@ -11,7 +11,7 @@ from torch import nn
 
 from ebjepa_tutorial.course import reference
 from ebjepa_tutorial.course.presets import preset
-from ebjepa_tutorial.evaluation.sweeps import load_sweeps, tenfold_costs
+from ebjepa_tutorial.evaluation.sweeps import SWEEP_LABELS, load_sweeps, shorten, tenfold_costs
 from ebjepa_tutorial.training.checkpoints import SHIPPED_DIR
 from ebjepa_tutorial.training.image import ImageJEPAConfig, SIGReg, VICReg
 from research import sweep
@@ -205,6 +205,32 @@ def test_tenfold_costs_take_the_points_lost_at_a_tenth_and_ten_times_each_defaul
     costs = tenfold_costs(rows)  # a hundredfold either side is not counted
     assert costs["SIGReg"] == pytest.approx((5.0, 10.0))
     assert costs["VICReg"] == pytest.approx((1.0, 30.0))  # over both of VICReg's weights
+
+
+def test_shorten_cuts_the_steps_and_keeps_a_warm_up_of_at_most_a_tenth():
+    """A run cut to 1000 steps keeps its own warm-up when that is shorter than a tenth of
+    them (50 stays 50, 0 stays 0), and a longer one is cut to the tenth (500 -> 100)."""
+    short = shorten(dataclasses.replace(TINY, steps=5000, warmup_steps=50), 1000)
+    assert (short.steps, short.warmup_steps) == (1000, 50)
+    long_warm_up = dataclasses.replace(TINY, steps=5000, warmup_steps=500)
+    assert shorten(long_warm_up, 1000).warmup_steps == 100
+    assert shorten(TINY, 1000).warmup_steps == 0
+
+
+def test_each_sweep_label_names_the_loss_and_the_weight_its_runs_vary():
+    """Notebook 02 labels its axes and printout with ``SWEEP_LABELS``: each label names the
+    loss the sweep's runs train with and, for a sensitivity sweep, the one weight of that
+    loss the runs vary (VICReg's two weights swapped would mislabel both curves)."""
+    plan = sweep.sweep_plan("class")
+    terms = {"lam": "lambda", "std_coeff": "variance weight", "cov_coeff": "covariance weight"}
+    for family in ("sensitivity", "projector"):
+        for name in {run.sweep for run in plan[family]}:
+            losses = [run.config.loss for run in plan[family] if run.sweep == name]
+            label = SWEEP_LABELS[name]
+            assert label.split(":")[0] == type(losses[0]).__name__, name
+            varied = [terms[field.name] for field in dataclasses.fields(losses[0])
+                      if len({getattr(loss, field.name) for loss in losses}) > 1]
+            assert varied == ([] if family == "projector" else [label.split(": ")[1]]), name
 
 
 def test_the_recorded_tenfold_costs_are_those_of_the_shipped_sweep():

@@ -17,6 +17,7 @@ from ebjepa_tutorial.envs import (
     render,
     room_of,
     sample_positions,
+    step_budget,
     transition,
 )
 from ebjepa_tutorial.envs.episodes import THREE_ROOMS_EPISODE_STEPS
@@ -298,6 +299,16 @@ def test_environment_runs_three_rooms():
         reached = (env.positions - waypoints[torch.arange(4), leg]).norm(dim=-1) < 1e-3
         leg = (leg + reached.long()).clamp(max=5)
     assert env.success().all() and env.steps_taken < 110
+
+
+def test_step_budgets_are_200_steps_in_two_rooms_and_120_in_three():
+    """The budgets of the module docstring, which every recorded success rate was run
+    with: a longer Three Rooms budget would let sliding along the walls find the doors."""
+    assert step_budget(random_layouts(3, torch.Generator(), walls=1)) == 200
+    assert step_budget(LAYOUT) == 120
+    env = TwoRoomsEnv()
+    env.reset(episodes=make_episodes(2, seed=0, walls=2))
+    assert env.step_budget == 120
 
 
 def test_a_three_rooms_run_records_the_ranges_of_its_walls(monkeypatch):

@@ -452,6 +452,58 @@ def test_moving_mnist_figures(digits):
     assert len(ax.get_lines()) == 1
 
 
+def test_clip_animations_draw_each_frame_and_mark_the_centres_half_a_pixel_up_left(digits):
+    """A frame of ``animate_clips`` shows that frame of every clip in grey levels 0..1, a
+    cross on each digit's centre moved by -0.5 px (pixel i covers [i, i + 1); imshow puts its
+    centre at i), and the grid's lines between pixels 7 | 8, 15 | 16, ..."""
+    import matplotlib
+
+    matplotlib.use("agg")
+    batch = generate_moving_mnist(digits, 2, 4, seed=0)
+    animation = viz.animate_clips(batch.clips, batch.centres, grid=8)
+    images, marks = (drawn := animation._func(3))[:2], drawn[2:]  # FuncAnimation's, at frame 3
+    for i in range(2):
+        assert torch.equal(torch.as_tensor(images[i].get_array()), batch.clips[i, 3, 0] / 255)
+        assert marks[i].get_xydata().tolist() == (batch.centres[i, 3] - 0.5).tolist()
+    grid_lines = images[0].axes.lines[1:]  # after the cross: a row's line, then a column's
+    edges = [8 * k - 0.5 for k in range(1, 8)]
+    assert [line.get_ydata()[0] for line in grid_lines[0::2]] == edges
+    assert [line.get_xdata()[0] for line in grid_lines[1::2]] == edges
+    matplotlib.pyplot.close(images[0].figure)
+
+
+def test_frame_rows_put_each_frame_in_its_time_column(digits):
+    """A row starting at ``first = 2`` shows its frame k in column 2 + k, in grey levels 0..1,
+    the columns before it blank and unframed; the columns are titled by time step."""
+    import matplotlib
+
+    matplotlib.use("agg")
+    frames = generate_moving_mnist(digits, 1, 2, seed=0).clips[0]  # uint8 (2, 1, 64, 64)
+    axes = viz.show_frame_rows({"late": (2, frames)}, n_frames=4)
+    for k in range(2):
+        shown = torch.as_tensor(axes[0, 2 + k].images[0].get_array())
+        assert torch.equal(shown, frames[k, 0] / 255)
+    assert not axes[0, 0].images and not axes[0, 1].images and axes[0, 0].get_ylabel() == "late"
+    assert not any(spine.get_visible() for spine in axes[0, 0].spines.values())
+    assert [ax.get_title() for ax in axes[0]] == ["t=0", "t=1", "t=2", "t=3"]
+    matplotlib.pyplot.close(axes[0, 0].figure)
+
+
+def test_ap_curves_start_at_one_step_ahead_with_the_spread_as_a_band():
+    """AP at horizons k = 1 .. H, and the band spans each label's (low, high), not the curve."""
+    import matplotlib
+
+    matplotlib.use("agg")
+    ax = viz.plot_ap_curves({"a": torch.tensor([0.5, 0.4])},
+                            spread={"a": (torch.tensor([0.4, 0.3]), torch.tensor([0.6, 0.5]))})
+    ((horizons, ap),) = (line.get_data() for line in ax.get_lines())
+    assert list(horizons) == [1, 2] and list(ap) == pytest.approx([0.5, 0.4])
+    (band,) = ax.collections
+    corners = {(round(x, 6), round(y, 6)) for x, y in band.get_paths()[0].vertices.tolist()}
+    assert {(1, 0.4), (2, 0.3), (2, 0.5), (1, 0.6)} <= corners
+    matplotlib.pyplot.close(ax.figure)
+
+
 @pytest.mark.slow
 def test_command_line_trains_and_reports(digits, tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
