@@ -91,3 +91,15 @@ def check_fields(config, rules: dict) -> None:
         if not ok(value):
             label = f"{name} ({meaning[0]})" if meaning else name
             raise ValueError(f"{type(config).__name__}.{label} must be {rule}, got {value!r}")
+
+
+@contextlib.contextmanager
+def evaluating(model: torch.nn.Module):
+    """``model`` in eval mode inside the block (batch norm's running statistics), handed back
+    in the mode it came in (a model scored in the middle of training trains on)."""
+    was_training = model.training
+    model.eval()
+    try:
+        yield model
+    finally:
+        model.train(was_training)

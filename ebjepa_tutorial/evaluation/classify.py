@@ -10,6 +10,7 @@ from torch import nn
 
 from ..data.paths import atomic_file, cache_dir
 from ..training.image import ImageJEPAConfig, resize
+from ..utils import evaluating
 
 KNN_K, KNN_TEMPERATURE = 20, 0.07  # the kNN's neighbours and the softness of their votes
 
@@ -85,13 +86,9 @@ def embed(encoder: nn.Module, images: torch.Tensor, size: int):
     if images.dtype != torch.uint8:
         raise TypeError(f"embed expects the stored uint8 images, got {images.dtype}")
     device = next(encoder.parameters()).device
-    was_training = encoder.training
-    encoder.eval()
-    try:
+    with evaluating(encoder):
         chunks = [encoder(resize(images[i:i + 256].to(device), size)).float().cpu()
                   for i in range(0, len(images), 256)]
-    finally:
-        encoder.train(was_training)
     return torch.cat(chunks)
 
 

@@ -7,6 +7,7 @@ import torch.nn.functional as F
 from ..data.moving_mnist import GRID, centres_to_grid, generate_moving_mnist
 from ..losses.rollout import UNROLLS, parallel_unroll, rollout
 from ..models.video import VideoJEPA, detection_head
+from ..utils import evaluating
 from .metrics import average_precision
 
 
@@ -36,10 +37,9 @@ def grid_features(model: VideoJEPA, clips: torch.Tensor, horizons: int = 7,
     check_clips(clips, context + horizons)
     if unroll not in UNROLLS:
         raise ValueError(f"unroll must be one of {sorted(UNROLLS)}, got {unroll!r}")
-    device, was_training = next(model.parameters()).device, model.training
+    device = next(model.parameters()).device
     encoded, predicted = [], []
-    model.eval()  # batch norm's running statistics; a model in training is handed back so
-    try:
+    with evaluating(model):
         for lo in range(0, len(clips), 100):
             z = model.encode(clips[lo:lo + 100].to(device))
             if unroll == "parallel":  # step k's predictions from frame context - 1 + k on
@@ -49,8 +49,6 @@ def grid_features(model: VideoJEPA, clips: torch.Tensor, horizons: int = 7,
                 steps = _pool(rollout(model.predictor, z[:, :context], horizons)).cpu()
                 predicted.append(list(steps.split(1, dim=1)))
             encoded.append(_pool(z).cpu())
-    finally:
-        model.train(was_training)
     return torch.cat(encoded), [torch.cat(k_steps) for k_steps in zip(*predicted)]
 
 
