@@ -111,16 +111,22 @@ def _digest(function) -> str:
     return hashlib.sha256(code_of(function).encode()).hexdigest()[:16]
 
 
+def nested_codes(function) -> list:
+    """``function``'s code object and those of the functions and lambdas inside it."""
+    codes, found = [function.__code__], []
+    while codes:
+        found.append(codes.pop())
+        codes += [c for c in found[-1].co_consts if inspect.iscode(c)]
+    return found
+
+
 def _unchecked_calls(function, seen: set) -> dict:
     """``{name: hash}`` of the notebook's own functions (``__main__``) that ``function`` reads,
     and of theirs, save those that passed a check; one that failed it is refused."""
     if not inspect.isfunction(function):  # a partial or a callable object: its code is hidden
         return {}
-    codes, names, found = [function.__code__], set(), {}
-    while codes:  # the function's code and the code of the functions and lambdas inside it
-        code = codes.pop()
-        names |= {i.argval for i in dis.get_instructions(code) if i.opname == "LOAD_GLOBAL"}
-        codes += [c for c in code.co_consts if inspect.iscode(c)]
+    names, found = {i.argval for code in nested_codes(function)
+                    for i in dis.get_instructions(code) if i.opname == "LOAD_GLOBAL"}, {}
     for name in sorted(names):
         called = function.__globals__.get(name)
         verdict = getattr(called, CHECKED, None)

@@ -11,7 +11,7 @@ from pathlib import Path
 import torch
 import yaml
 
-from ...training.checkpoints import CHECKED
+from ...training.checkpoints import CHECKED, nested_codes
 from ...utils import is_int_at_least
 
 TEXTS = yaml.safe_load(Path(__file__).with_name("hints.yaml").read_text(encoding="utf-8"))
@@ -174,9 +174,10 @@ def _reads(fn: Callable, target: Callable) -> bool:
     """Whether the notebook's (``__main__``) function ``fn``, or a function inside it, reads
     ``target``: by a global name (``from ... import variance_term as v``) or a module's attribute
     (``losses.variance_term``). A partial or a callable object is not looked into."""
-    codes = [fn.__code__] if inspect.isfunction(fn) and fn.__module__ == "__main__" else []
-    while codes:
-        code, found = codes.pop(), None
+    if not inspect.isfunction(fn) or fn.__module__ != "__main__":
+        return False
+    for code in nested_codes(fn):
+        found = None
         for step in dis.get_instructions(code):
             if step.opname == "LOAD_GLOBAL":
                 found = fn.__globals__.get(step.argval)
@@ -186,7 +187,6 @@ def _reads(fn: Callable, target: Callable) -> bool:
                 found = None
             if found is target:
                 return True
-        codes += [c for c in code.co_consts if inspect.iscode(c)]
     return False
 
 
