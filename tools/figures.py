@@ -30,7 +30,7 @@ FORMATS = {key: metric.fmt for key, metric in METRICS.items()} | {
     "sigreg_shipped_probe_acc": "{:.1%}", "vicreg_train_min": "{:.1f} min",
     "sigreg_train_min": "{:.1f} min", "sweep_sigreg_tenfold_points": "{:.0f} points",
     "sweep_vicreg_tenfold_points": "{:.0f} points",
-    "image_float32_step_ratio": "{:.1f} times",
+    "image_float32_step_ratio": "{:.1f} times", "world_probe_baseline_px": "{:.1f} px",
 } | {f"notebook_{nb:02d}_{scale}": "{:.0f} s" for nb in range(8) for scale in ("ci", "class")}
 
 

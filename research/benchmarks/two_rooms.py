@@ -115,6 +115,10 @@ def main() -> None:
                        protocol=f"{config.steps} steps; linear probe fitted on "
                                 f"{CLASS_RUN.n_probe} trajectories, scored on "
                                 f"{CLASS_RUN.n_test} held-out ones of {CLASS_RUN.horizon} steps")
+        figures.record("world_probe_baseline_px", report["baseline_px"], **where,
+                       protocol=f"always answering the mean position of the probe's "
+                                f"{CLASS_RUN.n_probe} fitting trajectories, scored on the same "
+                                f"{CLASS_RUN.n_test} held-out ones (no model involved)")
         figures.record("world_train_min", seconds / 60, **where,
                        protocol=f"{config.steps} steps, training alone (no probe), idle cores")
 
