@@ -52,7 +52,8 @@ def plot_embedding(z: torch.Tensor, labels: torch.Tensor, ax=None, title: str = 
 def plot_energy_map(coords, energy, anchor, points, ax=None, title: str = ""):
     """Heat map of ``E(anchor, y)`` over a grid of ``y``, the data ``points`` ``(N, 2)`` over it."""
     ax = _axes(ax)
-    extent = [coords[0], coords[-1], coords[0], coords[-1]]
+    half = float(coords[1] - coords[0]) / 2  # each cell centred on its grid point
+    extent = [float(coords[0]) - half, float(coords[-1]) + half] * 2
     image = ax.imshow(energy, origin="lower", extent=extent, cmap="viridis")
     ax.scatter(points[:, 0], points[:, 1], s=1, c="white", alpha=0.3)
     ax.scatter([anchor[0]], [anchor[1]], marker="*", s=150, c="red")

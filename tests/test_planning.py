@@ -2,6 +2,7 @@
 
 import ast
 import inspect
+import itertools
 import json
 import math
 import textwrap
@@ -502,8 +503,9 @@ def test_episode_pictures_show_every_wall_the_goal_the_start_and_the_trail_so_fa
 
 
 def test_energy_maps_show_each_energy_at_its_point_with_the_anchor_on_top():
-    """``energy[i, j]``, the energy at ``(x, y) = (coords[j], coords[i])``, is drawn at that
-    point (rows upwards), and the anchor's star at ``(anchor[0], anchor[1])``."""
+    """``energy[i, j]``, the energy at ``(x, y) = (coords[j], coords[i])``, is drawn in the
+    cell centred on that point (rows upwards; up to half a step either side, the edges
+    included), and the anchor's star at ``(anchor[0], anchor[1])``."""
     import matplotlib
 
     matplotlib.use("agg")
@@ -513,9 +515,11 @@ def test_energy_maps_show_each_energy_at_its_point_with_the_anchor_on_top():
     energy = 10 * torch.arange(5.0)[:, None] + torch.arange(5.0)  # 10 i + j
     ax = viz.plot_energy_map(coords, energy, (1.0, -2.0), torch.tensor([[0.5, 1.5]]))
     image = ax.images[0]
-    for x, y, value in ((-1.0, 1.0, 31), (1.0, -1.0, 13), (0.0, 1.6, 42)):
-        xs, ys = ax.transData.transform((x, y))
-        assert image.get_cursor_data(SimpleNamespace(x=xs, y=ys)) == value, (x, y)
+    for i, j in itertools.product(range(5), repeat=2):
+        for dx, dy in itertools.product((-0.45, 0.45), repeat=2):
+            x, y = coords[j].item() + dx, coords[i].item() + dy
+            xs, ys = ax.transData.transform((x, y))
+            assert image.get_cursor_data(SimpleNamespace(x=xs, y=ys)) == 10 * i + j, (x, y)
     points, anchor = ax.collections
     assert points.get_offsets().tolist() == [[0.5, 1.5]]
     assert anchor.get_offsets().tolist() == [[1.0, -2.0]]
