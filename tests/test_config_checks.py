@@ -48,9 +48,12 @@ def test_every_preset_is_a_valid_config():
     assert checked > 100  # the planners, recipes, models and noise of every preset
 
 
-def test_float_frames_in_0_255_are_refused_and_uint8_accepted():
+def test_float_frames_outside_0_1_are_refused_and_uint8_accepted():
+    """0..255 floats (a forgotten / 255) and standardised frames (negative) are refused."""
     model = VideoJEPA(VIDEO_CONFIGS["ci"].model)
     frames = torch.randint(0, 256, (1, 2, 1, 64, 64), dtype=torch.uint8)
-    with pytest.raises(ValueError, match=r"uint8 or float in 0\.\.1"):
-        model.encode(frames.float())
+    scaled = frames.float() / 255
+    for wrong in (frames.float(), (scaled - scaled.mean()) / scaled.std()):
+        with pytest.raises(ValueError, match=r"uint8 or float in 0\.\.1"):
+            model.encode(wrong)
     assert torch.equal(model.encode(frames), model.encode(frames.float() / 255))
