@@ -3,6 +3,7 @@ chapter 00 its variance and covariance terms, chapter 01 its VICReg loss."""
 
 from dataclasses import replace
 
+import pytest
 import torch
 from test_one_source import chapter_00_loop, notebook_function
 
@@ -115,6 +116,25 @@ def test_a_notebook_answer_that_calls_the_course_s_own_function_is_refused_and_n
         else:
             raise AssertionError("a wrapper of the course's function passed")
         assert getattr(wrapper, exercises.common.CHECKED) == "failed"  # so no run takes it
+
+
+def test_a_wrapper_hidden_in_a_notebook_helper_or_a_closure_is_refused_too():
+    def helper(z, gamma, eps):  # the call two steps away from the answer
+        return losses.variance_term(z, gamma, eps)
+
+    def answer(z, gamma=1.0, eps=1e-4):
+        return helper(z, gamma, eps)
+
+    def made_with(term):  # the course's function captured in a closure
+        return lambda z, gamma=1.0, eps=1e-4: term(z, gamma, eps)
+
+    def recursive(z, gamma=1.0, eps=1e-4, depth=0):  # reads itself: the walk must end
+        return recursive(z, gamma, eps, 1) if depth == 0 else course_term(z, gamma, eps)
+
+    _in_notebook(helper)
+    for wrapper in map(_in_notebook, (answer, made_with(losses.variance_term), recursive)):
+        with pytest.raises(exercises.ExerciseError, match="calls the course's own variance_term"):
+            exercises.check_variance_term(wrapper)
 
 
 def test_a_notebook_answer_may_call_the_course_s_other_functions(capsys):

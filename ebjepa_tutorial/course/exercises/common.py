@@ -170,12 +170,18 @@ def _disagreement(got, expected, atol: float) -> str:
             f"of {bad.numel()})")
 
 
-def _reads(fn: Callable, target: Callable) -> bool:
+def _reads(fn: Callable, target: Callable, seen: set | None = None) -> bool:
     """Whether the notebook's (``__main__``) function ``fn``, or a function inside it, reads
-    ``target``: by a global name (``from ... import variance_term as v``) or a module's attribute
-    (``losses.variance_term``). A partial or a callable object is not looked into."""
-    if not inspect.isfunction(fn) or fn.__module__ != "__main__":
+    ``target``: by a global name (``from ... import variance_term as v``), a module's attribute
+    (``losses.variance_term``), a closure, or through another notebook function it reads (a
+    helper). A partial or a callable object is not looked into."""
+    seen = set() if seen is None else seen
+    if not inspect.isfunction(fn) or fn.__module__ != "__main__" or fn in seen:
         return False
+    seen.add(fn)
+    cells = inspect.getclosurevars(fn).nonlocals.values()  # a closure's variables
+    if any(cell is target or _reads(cell, target, seen) for cell in cells):
+        return True
     for code in nested_codes(fn):
         found = None
         for step in dis.get_instructions(code):
@@ -185,7 +191,7 @@ def _reads(fn: Callable, target: Callable) -> bool:
                 found = getattr(found, step.argval, None)
             else:
                 found = None
-            if found is target:
+            if found is target or _reads(found, target, seen):
                 return True
     return False
 
