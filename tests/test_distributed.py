@@ -4,7 +4,8 @@ image chapters (01-02), the video JEPA (03) and the world model (05).
 
 The multi-process tests start two processes with ``torch.multiprocessing`` (or torchrun)
 and a process group on 127.0.0.1; every check runs inside both ranks, and a failed
-assertion on either fails the test.
+assertion on either fails the test. The fast tests run two ranks as two threads with
+stand-in collectives, so the arithmetic around the collectives is checked in the inner loop.
 """
 
 import copy
@@ -12,6 +13,7 @@ import os
 import socket
 import subprocess
 import sys
+import threading
 from dataclasses import replace
 from pathlib import Path
 
@@ -245,6 +247,114 @@ def test_each_rank_takes_its_own_block_of_the_global_batch(monkeypatch):
         draws.append(distributed.rand_rows(4, 3, generator=torch.Generator().manual_seed(1)))
     assert [share.tolist() for share in shares] == [[0, 1, 2, 3], [4, 5, 6, 7]]
     assert torch.equal(torch.cat(draws), whole_draw)
+
+
+# --- two ranks in one process: the collectives' arithmetic, fast --------------------------------
+
+
+class TwoThreads:
+    """Two ranks as two threads of this process, with collectives that add or gather across
+    them. Values only: autograd does not cross threads (the gloo tests check gradients)."""
+
+    def __init__(self, monkeypatch):
+        self.barrier, self.slots, self.local = threading.Barrier(WORLD), [None] * WORLD, \
+            threading.local()
+        for name, fake in [("get_world_size", lambda: WORLD), ("get_rank", self.rank),
+                           ("get_backend", lambda: "gloo"), ("all_reduce", self.all_reduce),
+                           ("broadcast_object_list", self.broadcast)]:
+            monkeypatch.setattr(dist, name, fake)
+        monkeypatch.setattr(distributed, "running", lambda: True)
+        monkeypatch.setattr(distributed.collective, "all_reduce", self.summed)
+        monkeypatch.setattr(distributed.collective, "all_gather", self.gathered)
+
+    def rank(self) -> int:
+        return self.local.rank
+
+    def exchange(self, value) -> list:
+        """Every rank's ``value``, in rank order."""
+        self.slots[self.rank()] = value
+        self.barrier.wait()
+        everyone = list(self.slots)
+        self.barrier.wait()  # no rank writes its next value before every rank has read these
+        return everyone
+
+    def all_reduce(self, tensor):  # in place, as torch.distributed's
+        tensor.copy_(sum(self.exchange(tensor.clone())))
+
+    def broadcast(self, box, src=0):
+        box[:] = self.exchange(list(box))[src]
+
+    def summed(self, tensor):  # autograd's all_reduce: this rank's tensor plus the others' values
+        others = [t.detach() for r, t in enumerate(self.exchange(tensor)) if r != self.rank()]
+        return tensor + sum(others)
+
+    def gathered(self, tensor):
+        return tuple(t if r == self.rank() else t.detach()
+                     for r, t in enumerate(self.exchange(tensor)))
+
+    def run(self, work) -> list:
+        """``work(rank)`` on every rank at once: the results in rank order (an error re-raised)."""
+        results, errors = [None] * WORLD, []
+
+        def rank_main(rank):
+            self.local.rank = rank
+            try:
+                results[rank] = work(rank)
+            except BaseException as error:  # noqa: BLE001 - handed to the test's thread
+                errors.append(error)
+                self.barrier.abort()  # the other rank stops waiting
+
+        threads = [threading.Thread(target=rank_main, args=(r,)) for r in range(WORLD)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(timeout=30)
+        errors.sort(key=lambda error: isinstance(error, threading.BrokenBarrierError))
+        if errors:  # the failure itself, not the other rank's broken wait
+            raise errors[0]
+        return results
+
+
+def test_two_ranks_see_the_global_batch_s_variance_and_covariance(monkeypatch):
+    z = torch.randn(8, 5, generator=torch.Generator().manual_seed(0)) * torch.arange(1.0, 6.0)
+    ranks = TwoThreads(monkeypatch)
+    results = ranks.run(lambda rank: distributed.variance_and_covariance(z[4 * rank:4 * rank + 4]))
+    for variance, covariance in results:  # every rank: the terms of all 8 rows, not its 4
+        assert torch.allclose(variance, variance_term(z), atol=1e-6)
+        assert torch.allclose(covariance, covariance_term(z), atol=1e-6)
+    gathered = ranks.run(lambda rank: distributed.gather_rows(z[4 * rank:4 * rank + 4]))
+    assert all(torch.equal(rows, z) for rows in gathered)  # in rank order
+
+
+def test_two_ranks_average_gradients_and_logged_numbers(monkeypatch):
+    ranks = TwoThreads(monkeypatch)
+
+    def work(rank):
+        weight = nn.Parameter(torch.zeros(3))
+        weight.grad = torch.tensor([1.0, 2.0, 3.0]) * (1 + 2 * rank)  # rank 0: g, rank 1: 3 g
+        distributed.average_gradients([weight, nn.Parameter(torch.zeros(1))])  # no grad: skipped
+        return weight.grad, distributed.mean_of_floats([1.0 + rank, 10.0 * rank])
+
+    for grad, logged in ranks.run(work):
+        assert grad.tolist() == [2.0, 4.0, 6.0] and logged == [1.5, 5.0]
+
+
+def test_rank_0_s_result_or_error_reaches_every_rank(monkeypatch):
+    ranks = TwoThreads(monkeypatch)
+    assert ranks.run(lambda rank: distributed.from_main(lambda: {"rank": rank})) == [
+        {"rank": 0}, {"rank": 0}]
+
+    def failing(rank):
+        try:
+            distributed.from_main(lambda: int("not a number"))
+        except ValueError:
+            return "rank 0's own error"
+        except RuntimeError as error:
+            return str(error)
+
+    assert ranks.run(failing) == [
+        "rank 0's own error", "rank 0 failed: ValueError: invalid literal for int() with base 10: "
+        "'not a number'"]
 
 
 def test_init_names_the_missing_torchrun_variables():
