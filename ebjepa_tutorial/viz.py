@@ -54,6 +54,7 @@ def plot_energy_map(coords, energy, anchor, points, ax=None, title: str = ""):
     ax = _axes(ax)
     half = float(coords[1] - coords[0]) / 2  # each cell centred on its grid point
     extent = [float(coords[0]) - half, float(coords[-1]) + half] * 2
+    energy = torch.as_tensor(energy).numpy()  # numpy 2 warns when matplotlib converts a tensor
     image = ax.imshow(energy, origin="lower", extent=extent, cmap="viridis")
     ax.scatter(points[:, 0], points[:, 1], s=1, c="white", alpha=0.3)
     ax.scatter([anchor[0]], [anchor[1]], marker="*", s=150, c="red")

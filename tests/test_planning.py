@@ -486,6 +486,7 @@ def test_episode_pictures_show_every_wall_the_goal_the_start_and_the_trail_so_fa
     results = SimpleNamespace(episodes=Episodes(layouts, starts, goals), paths=paths)
     animation = viz.animate_episodes(results, [1], every=2, titles=["second"])
     assert list(animation.new_frame_seq()) == [0, 2, 4]
+    animation._init_draw()  # its first frame, as a notebook's first draw would (else it warns)
     trail, dot = animation._func(2)  # FuncAnimation's drawing function, at step 2
     assert trail.get_xydata().tolist() == paths[1, :3].tolist()
     assert dot.get_xydata().tolist() == paths[1, 2:3].tolist()

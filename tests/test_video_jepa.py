@@ -461,6 +461,7 @@ def test_clip_animations_draw_each_frame_and_mark_the_centres_half_a_pixel_up_le
     matplotlib.use("agg")
     batch = generate_moving_mnist(digits, 2, 4, seed=0)
     animation = viz.animate_clips(batch.clips, batch.centres, grid=8)
+    animation._init_draw()  # its first frame, as a notebook's first draw would (else it warns)
     images, marks = (drawn := animation._func(3))[:2], drawn[2:]  # FuncAnimation's, at frame 3
     for i in range(2):
         assert torch.equal(torch.as_tensor(images[i].get_array()), batch.clips[i, 3, 0] / 255)
