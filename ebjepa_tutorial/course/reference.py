@@ -40,7 +40,7 @@ METRICS = {  # the figures the notebooks print (the pages' others: tools/figures
     **{f"video_map_{run}_K{k}": Metric(f"detection mAP, K = {k}", "{:.3f}", paper, setting,
                                        ours=ours)
        for run, ours in (("class", _SEEDS), ("long", "the course's shipped long run"))
-       for k, paper, setting in ((1, None, ""), (4, 0.607, "K = 4, trained on a GPU"))},
+       for k, paper, setting in ((1, None, ""), (4, 0.607, "K = 4, its code release, on a GPU"))},
     "video_ap3_lead": Metric("AP three steps ahead, K = 4 minus K = 1", "{:.2f}", ours=_SEEDS),
     "world_probe_px": Metric("position probe error", "{:.2f} px",
                              benchmark="python -m research.benchmarks.two_rooms"),

@@ -18,7 +18,8 @@ def epps_pulley(x: torch.Tensor, knots: int = 17, t_max: float = 3.0, sigma: flo
         EP = N integral_{-T}^{T} |phi_N(t) - exp(-t^2 / 2)|^2 exp(-t^2 / (2 sigma^2)) dt
 
     with phi_N(t) = (1/N) sum_n exp(i t x_n). The factor N (LeJEPA's) makes EP about 1.05 for
-    Gaussian samples; ``scale_by_n=False`` drops it (and ``lam`` must grow N-fold)."""
+    Gaussian samples; ``scale_by_n=False`` drops it, as EB-JEPA's code does (``lam`` N-fold
+    larger)."""
     if x.ndim not in (1, 2) or x.shape[0] < 2:
         raise ValueError(f"epps_pulley needs at least 2 samples along dimension 0 of a (N,) or "
                          f"(N, M) tensor, got shape {tuple(x.shape)}")

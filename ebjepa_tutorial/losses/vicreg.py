@@ -19,7 +19,7 @@ def _check_embeddings(z: torch.Tensor) -> None:
 
 def invariance_term(z_a: torch.Tensor, z_b: torch.Tensor) -> torch.Tensor:
     """Mean squared distance between two views ``(B, D)``: ``mean_{b,d} (z_a - z_b)^2``, the
-    energy ``E(x, y)`` of a joint-embedding architecture, averaged over pairs."""
+    energy ``E(x, y)`` of a joint-embedding architecture averaged over pairs, divided by D."""
     if z_a.ndim != 2 or z_a.shape != z_b.shape:
         raise ValueError(f"the views must be (batch, dim) tensors and not differ in shape, got "
                          f"{tuple(z_a.shape)} and {tuple(z_b.shape)}")

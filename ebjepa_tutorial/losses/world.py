@@ -96,7 +96,7 @@ def inverse_dynamics_loss(predict_actions: Callable[[torch.Tensor, torch.Tensor]
 
 
 def encode_for_loss(model, frames: torch.Tensor) -> torch.Tensor:
-    """Frames ``(B, T, 2, 65, 65)`` -> float32 latents ``(B, T, D)``, bf16 where it is fast."""
+    """Frames ``(B, T, 2, 65, 65)`` -> float32 latents ``(B, T, D)`` (bf16 on a fast CUDA GPU)."""
     with mixed_precision(frames.device):
         z = model.encode(frames)
     return at_least_float32(z)

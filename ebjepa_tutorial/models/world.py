@@ -14,7 +14,8 @@ CHANNELS = 2  # a Two Rooms frame's channels: the dot and the walls, (2, 65, 65)
 
 @dataclass(frozen=True)
 class WorldConfig:
-    """Sizes of a :class:`WorldModel`. The default is the class-scale model."""
+    """Sizes of a :class:`WorldModel`. The default: the class-scale sizes (``course_recipe``
+    swaps in the MLP predictor)."""
 
     widths: tuple[int, ...] = (16, 32, 32)  # channels of each IMPALA stack
     blocks: int = 1  # residual blocks per stack (IMPALA and the paper: 2)

@@ -58,7 +58,7 @@ class WorldTrainConfig:
     model: WorldConfig = field(default_factory=lambda: WORLD_CONFIGS["class"])
     coeffs: WorldLossCoeffs = field(default_factory=WorldLossCoeffs)  # the paper's weights
     recipe: Recipe = field(default_factory=Recipe)  # the paper's; course_recipe: the class run's
-    n_trajectories: int = 20_000  # offline data set (the paper: ~1.2 million windows)
+    n_trajectories: int = 20_000  # offline data set (the paper: 100,000 trajectories)
     walls: int = 1  # 1: Two Rooms (the paper's world); 2: Three Rooms in a row (chapter 07)
     batch_size: int = 64  # trajectories per step, global under torchrun (the paper: 384)
     steps: int = 1000
