@@ -6,6 +6,7 @@ import functools
 import json
 import re
 import shutil
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -160,15 +161,18 @@ def _epps_pulley_real_part_only(x, knots=17, t_max=3.0, scale_by_n=True):
 
 
 def _parallel(predictor, z, context=2, steps=4, detach_later=False, *, per_frame=False,
-              axis=1, reduce=torch.mean, error=F.mse_loss):
+              axis=1, reduce=torch.mean, error=F.mse_loss, go_on=False):
     """A learner's parallel unroll, written another way than the course's: one predictor call
-    per frame (``per_frame``) or windows by ``unfold``; ``axis``, ``reduce`` and ``error`` (a
-    step's error) make a mistake."""
+    per frame (``per_frame``) or windows by ``unfold``; ``axis``, ``reduce``, ``error`` (a
+    step's error) and ``go_on`` (steps 2..K go on from step 1's sequence, detached) make a
+    mistake."""
     z = z.transpose(0, 1) if axis == 0 else z
     errors, sequence = [], z
     for k in range(steps):
         source = z.detach() if detach_later and k > 0 else z
-        if detach_later and k == 1:  # unroll again from the detached latents
+        if detach_later and k == 1 and go_on:
+            sequence = sequence.detach()
+        elif detach_later and k == 1:  # unroll again from the detached latents
             sequence = torch.cat([source[:, :context], _step(predictor, source, context,
                                                              per_frame)], dim=1)
         predictions = _step(predictor, sequence, context, per_frame)
@@ -193,6 +197,19 @@ def _parallel_summed_over_steps(predictor, z, context=2, steps=4, detach_later=F
 
 def _parallel_along_the_batch(predictor, z, context=2, steps=4, detach_later=False):
     return _parallel(predictor, z, context, steps, detach_later, axis=0)
+
+
+def _parallel_going_on_detached(predictor, z, context=2, steps=4, detach_later=False):
+    return _parallel(predictor, z, context, steps, detach_later, go_on=True)
+
+
+def _mppi_shifted_by_the_batch(actions, costs, elites, temperature):
+    elite_costs, index = costs.topk(elites, dim=1, largest=False)
+    elite = actions.gather(1, index[:, :, None, None].expand(-1, -1, *actions.shape[2:]))
+    weights = torch.exp(-(elite_costs - elite_costs.min()) / temperature)  # one min for all
+    w = (weights / weights.sum(1, keepdim=True))[:, :, None, None]
+    mean = (w * elite).sum(1)
+    return mean, (w * (elite - mean[:, None]).pow(2)).sum(1).sqrt()
 
 
 def _autoregressive_given(predictor, z, context=2, steps=4, detach_later=False):
@@ -369,6 +386,13 @@ def _slab_crossing_dividing_by_zero(x0, x1, x_lo, x_hi):
     return torch.minimum(t_a, t_b).clamp(0, 1), torch.maximum(t_a, t_b).clamp(0, 1)
 
 
+def _variance_deciding_with_if(z, gamma=1.0, eps=1e-4):
+    std = (z.var(0) + eps).sqrt()  # (D,): an `if` cannot decide for each of them
+    if std < gamma:
+        return (gamma - std).mean()
+    return std.sum() * 0
+
+
 def _off_diagonal(z, f):
     cov = torch.cov(z.T)
     return (f(cov).sum() - f(cov.diagonal()).sum()) / (z.shape[1] * (z.shape[1] - 1))
@@ -378,6 +402,17 @@ def _off_diagonal(z, f):
     (exercises.check_variance_term,
      lambda z, gamma=1.0, eps=1e-4: torch.relu(gamma - z.std(dim=0) - eps).mean(),
      "you added eps after the square root"),
+    (exercises.check_variance_term,
+     lambda z, gamma=1.0, eps=1e-4: torch.relu(gamma - torch.sqrt(z.var(0) + 1e-4)).mean(),
+     "you ignored the eps argument"),
+    (exercises.check_temporal_similarity, lambda z: torch.diff(z).pow(2).mean(),
+     r"you took differences along the last axis, D \(torch.diff's default"),
+    (exercises.check_temporal_similarity, lambda z: (torch.roll(z, -1, 1) - z).square().mean(),
+     "your pairs include the last frame with the first"),
+    (exercises.check_mppi_update, _mppi_shifted_by_the_batch,
+     "you subtracted the cheapest cost of the whole batch"),
+    (exercises.check_parallel_rollout_loss, _parallel_going_on_detached,
+     "you detached the predictions between steps"),
     (exercises.check_variance_term,
      lambda z, gamma=1.0, eps=1e-4: torch.relu(gamma - (z.var(dim=0) + eps)).mean(),
      "you used the variance where the standard deviation belongs"),
@@ -606,10 +641,86 @@ def _epps_pulley_undoubled(x, knots=17, t_max=3.0, scale_by_n=True):
      r"returned a tuple of 2 on .*a loss and its parts"),
     (exercises.check_covariance_term, lambda z: float(losses.covariance_term(z)),
      r"returned a Python float"),
+    # a plan the course feeds back must keep its dtype (a loss may compute in float64)
+    (exercises.check_mppi_update,
+     lambda a, c, q, tau: tuple(x.double() for x in planning.mppi_update(a, c, q, tau)),
+     r"returned mean as torch.float64 on .*where the course returns torch.float32.*numpy"),
+    # a crash names the learner's line; an `if` on a tensor gets its remedy
+    (exercises.check_variance_term, _variance_deciding_with_if,
+     r"raised RuntimeError: Boolean value .* \(line \d+ of your code: if std < gamma:\)"
+     r"\. An `if` .* torch\.where"),
 ])
 def test_general_mistakes_are_named_in_words(checker, wrong, message):
     with pytest.raises(exercises.ExerciseError, match=message):
         checker(wrong)
+
+
+def test_a_move_that_never_enters_may_give_any_pair_of_equal_fractions(capsys):
+    """The text asks only that t_in equal t_out when the move never enters the slab: (1, 1)
+    for a move that stays outside is as right as the course's (0, 0) or clamped values."""
+    def slab_crossing(x0, x1, x_lo, x_hi):
+        moving = x1 != x0
+        dx = torch.where(moving, x1 - x0, torch.ones_like(x0))
+        t_a, t_b = (x_lo - x0) / dx, (x_hi - x0) / dx
+        t_in, t_out = torch.minimum(t_a, t_b).clamp(0, 1), torch.maximum(t_a, t_b).clamp(0, 1)
+        never = moving & (t_in == t_out) | ~moving & ((x0 <= x_lo) | (x0 >= x_hi))
+        t_in = torch.where(never, 1.0, torch.where(moving, t_in, 0.0))
+        return t_in, torch.where(never | ~moving, 1.0, t_out)
+
+    assert exercises.check_slab_crossing(slab_crossing) is slab_crossing
+    assert "Correct" in capsys.readouterr().out
+
+
+def _wall_with_a_strict_doorway(positions, moves, layouts):
+    """The three rules, with the doorway open only strictly between its edges."""
+    from ebjepa_tutorial.envs.two_rooms import wall_bounds
+
+    x_lo, x_hi, y_lo, y_hi = wall_bounds(layouts)
+    (x0, y0), (x1, y1) = positions.unbind(-1), (positions + moves).clamp(LOW, HIGH).unbind(-1)
+    t_in, t_out = exercises.two_rooms._crossing_slip()(x0, x1, x_lo, x_hi)
+    y_in, y_out = y0 + t_in * (y1 - y0), y0 + t_out * (y1 - y0)
+    enters, door = t_out > t_in, lambda y: (y > y_lo) & (y < y_hi)  # should be >= and <=
+    x = torch.where(enters & ~door(y_in), torch.where(x0 <= x_lo, x_lo, x_hi), x1)
+    y = torch.where(enters & door(y_in) & ~door(y_out), y1.clamp(y_lo, y_hi), y1)
+    return torch.stack([x, y], -1)
+
+
+def test_a_doorway_without_its_edges_is_refused_where_a_door_side_stop_leaves_the_dot():
+    """A stop at the door's side leaves the dot exactly on the door's edge; a doorway open only
+    strictly between its edges then throws the dot to the wall's face on its next move."""
+    with pytest.raises(exercises.ExerciseError,
+                       match=r"a move along the door's edge, from inside the wall"):
+        check_wall_collision(_wall_with_a_strict_doorway)
+
+
+def test_a_wrong_gradient_is_put_down_only_to_a_slip_with_the_right_value():
+    """Detaching the sine's part leaves the value right; the slip "the imaginary part is
+    missing" has the same gradient but another value, so it is not named."""
+    def epps_pulley_1d(x, knots=17, t_max=3.0, scale_by_n=True):
+        t = torch.linspace(0.0, t_max, knots)
+        gaussian = torch.exp(-t**2 / 2)
+        gap = ((torch.cos(x[:, None] * t).mean(0) - gaussian) ** 2
+               + torch.sin(x[:, None] * t).mean(0).detach() ** 2)
+        statistic = 2 * torch.trapezoid(gaussian * gap, t)
+        return statistic * len(x) if scale_by_n else statistic
+
+    with pytest.raises(exercises.ExerciseError, match="not the right gradient") as error:
+        exercises.check_epps_pulley(epps_pulley_1d)
+    assert "imaginary" not in str(error.value)
+
+
+def test_a_slips_own_warnings_stay_inside_the_check():
+    """A std clamped to 0.05 is wrong; finding its cause runs the Q = 1 slips, whose std of one
+    elite warns (degrees of freedom <= 0): the learner must not see that warning."""
+    def mppi_update(actions, costs, elites, temperature):
+        mean, std = _mppi(actions, costs, elites, temperature)
+        return mean, std.clamp_min(0.05)
+
+    with warnings.catch_warnings(record=True) as shown:
+        warnings.simplefilter("always")
+        with pytest.raises(exercises.ExerciseError, match="your std"):
+            exercises.check_mppi_update(mppi_update)
+    assert [str(w.message) for w in shown] == []
 
 
 def _rollout_overwriting_z(predictor, z, context=2, steps=4, detach_later=False):

@@ -33,10 +33,13 @@ check_variance_term = Exercise(
         variance_not_std=lambda z, gamma=1.0: torch.relu(gamma - (z.var(0) + 1e-4)).mean(),
         no_hinge=lambda z, gamma=1.0: (gamma - (z.var(0) + 1e-4).sqrt()).mean(),
         gamma_ignored=lambda z, gamma=1.0: torch.relu(1.0 - (z.var(0) + 1e-4).sqrt()).mean(),
+        eps_ignored=lambda z, gamma=1.0, eps=1e-4: torch.relu(
+            gamma - (z.var(0) + 1e-4).sqrt()).mean(),
         per_dimension=lambda z, gamma=1.0: torch.relu(gamma - (z.var(0) + 1e-4).sqrt()),
         wrong_axis=lambda z, gamma=1.0: losses.variance_term(z.T.contiguous(), gamma)),
     lambda: _embedding_cases() + [Case("gamma=2.0", (
-        torch.randn(32, 4, generator=torch.Generator().manual_seed(1)),), {"gamma": 2.0})],
+        torch.randn(32, 4, generator=torch.Generator().manual_seed(1)),), {"gamma": 2.0}),
+        Case("eps=0.01 on a collapsed batch", (torch.ones(8, 3),), {"eps": 1e-2})],
     grad=[(0, "z")], dims={0: "BD"})
 
 

@@ -4,6 +4,8 @@ compares a learner's function with the course's and names a wrong answer in word
 import dis
 import inspect
 import textwrap
+import traceback
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,6 +22,7 @@ HINTS = {name: tuple(texts["hints"]) for name, texts in TEXTS.items()}
 LEVELS = ("the idea", "the formula", "an outline of the code")
 _shown: dict[str, int] = {}  # exercise -> the highest hint level shown in this session
 _REFERENCES: dict[Callable, str] = {}  # the course's functions a check may hand over -> exercise
+_LIBRARIES = (str(Path(torch.__file__).parent), str(Path(__file__).parents[2]))  # not the learner's
 
 
 def say(key: str, **fields) -> str:
@@ -122,7 +125,9 @@ def diagnose(got, variants: Sequence[tuple[str, Callable]], case: Case, atol: fl
     got, matches = _numbers(got), []
     for order, (words, variant) in enumerate(variants if got is not None else ()):
         try:
-            wrong = _numbers(variant(*case.args, **case.kwargs))
+            with warnings.catch_warnings():  # a slip's own warnings are not the learner's
+                warnings.simplefilter("ignore")
+                wrong = _numbers(variant(*case.args, **case.kwargs))
         except Exception:  # a variant may fail where its mistake makes no sense
             continue
         if (wrong is not None and wrong.shape == got.shape
@@ -264,9 +269,14 @@ class Exercise:
             out = fn(*args, **case.kwargs)  # keyword arguments are numbers
         except NotImplementedError:
             raise
-        except Exception as err:
-            raise ExerciseError(say("raised", name=name, case=case.description,
-                                    error=f"{type(err).__name__}: {err}")) from err
+        except Exception as err:  # where in the learner's code, and advice for a tensor's `if`
+            mine = [f for f in traceback.extract_tb(err.__traceback__)
+                    if not f.filename.startswith(_LIBRARIES) and f.line]
+            where = say("where", line=mine[-1].lineno, source=mine[-1].line) if mine else ""
+            advice = " " + say("tensor_if") if "Boolean value of Tensor" in str(err) else ""
+            raise ExerciseError(say("raised", name=name, case=case.description, where=where,
+                                    error=f"{type(err).__name__}: {str(err).rstrip('.')}",
+                                    advice=advice)) from err
         for label, before, after in zip(self._labels, case.args, args):
             if isinstance(before, torch.Tensor) and not torch.equal(after, before):
                 raise ExerciseError(say("in_place", name=name, label=label,
@@ -290,6 +300,12 @@ class Exercise:
                 raise ExerciseError(say(key, name=name, label=f"{label} as " if label else "",
                                         kind=_describe(g), case=case.description, what="a torch "
                                         "tensor" if torch.is_tensor(e) else "a number"))
+            # a loss may compute in float64 (autograd promotes it); an answer the course feeds
+            # back (a plan, a position) must keep its inputs' dtype
+            if torch.is_tensor(e) and not self.grad and g.dtype != e.dtype and g.shape == e.shape:
+                raise ExerciseError(say("wrong_dtype", name=name, case=case.description,
+                                        label=f"{label} as " if label else "", got=g.dtype,
+                                        expected=e.dtype))
             g, e = _numbers(g), _numbers(e)
             if g.shape != e.shape:
                 raise ExerciseError(say("wrong_shape", name=name, case=case.description,
@@ -336,8 +352,17 @@ class Exercise:
         got = got.double() if connected else zeros
         if torch.allclose(got, expected, atol=atol, rtol=1e-4):
             return
-        why = diagnose(got, [(w, gradient(v, index)) for w, v in self._mistakes], case,
-                       atol) if connected else ""  # an own slip explains only a partial cut
+        right = _numbers(self._reference(*case.args, **case.kwargs))
+
+        def same_value(slip):  # a slip explains a wrong gradient only if its value is right too
+            try:
+                value = _numbers(slip(*case.args, **case.kwargs))
+            except Exception:
+                return False
+            return value is not None and value.shape == right.shape and torch.allclose(
+                value, right, atol=atol, rtol=1e-4)
+        slips = [(w, gradient(v, index)) for w, v in self._mistakes if same_value(v)]
+        why = diagnose(got, slips, case, atol) if connected else ""  # own slips: partial cuts
         key = "no_flow" if expected.abs().max() > 0 and not got.any() else "wrong_gradient"
         raise ExerciseError(say(key, name=name, case=case.description, label=label, why=why,
                                 numbers=_disagreement(got, expected, atol)))

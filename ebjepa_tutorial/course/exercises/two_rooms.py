@@ -1,7 +1,7 @@
 """Checkers of chapter 04: ``slab_crossing(x0, x1, x_lo, x_hi) -> (t_in, t_out)``, all ``(B,)``,
 and ``wall_collision(positions, moves, layouts)`` -> new positions ``(B, 2)``."""
 
-from functools import partial
+from functools import partial, wraps
 
 import torch
 
@@ -25,7 +25,22 @@ def _crossing_slip(order=True, clamp=True, still=True, strict=True):
             t_in = torch.where(moving, t_in, 0.0)
             t_out = torch.where(moving, t_out, inside.to(x0.dtype))
         return t_in, t_out
+    slab_crossing.__qualname__ = "slab_crossing"  # as a learner sees the course's
     return slab_crossing
+
+
+def _empty_as_zero(fn):
+    """``fn`` with each empty crossing (``t_in == t_out``) read as ``(0, 0)``: the exercise asks
+    only that the two be equal when the move never enters the slab."""
+    @wraps(fn)
+    def run(*args):
+        out = fn(*args)
+        if not (isinstance(out, (tuple, list)) and len(out) == 2
+                and all(torch.is_tensor(t) and t.shape == out[0].shape for t in out)):
+            return out  # the check's own words for a wrong kind of answer
+        empty = out[0] == out[1]
+        return tuple(torch.where(empty, torch.zeros_like(t), t) for t in out)
+    return run
 
 
 def _crossing_cases(n: int = 64) -> list[Case]:
@@ -57,7 +72,7 @@ check_slab_crossing = Exercise(
     "slab_crossing", _crossing_slip(), dict(  # the reference: no mistake
         unordered=_crossing_slip(order=False), unclamped=_crossing_slip(clamp=False),
         division_by_zero=_crossing_slip(still=False), closed_slab=_crossing_slip(strict=False)),
-    _crossing_cases, parts=("t_in", "t_out"))
+    _crossing_cases, parts=("t_in", "t_out"), adapt=_empty_as_zero)
 
 
 def _wall_cases(n: int = 512) -> list[Case]:
@@ -90,6 +105,10 @@ def _wall_cases(n: int = 512) -> list[Case]:
         ("a random move", random_pos, 1.8 * torch.randn(n, 2, generator=g)),
         ("a huge random move", random_pos, 40 * torch.randn(n, 2, generator=g)),
     ]
+    edge = torch.where(rand(n) < 0.5, y_lo, y_hi)  # a door-side stop leaves the dot on it
+    cases.append(("a move along the door's edge, from inside the wall",
+                  torch.stack([wall_x + 4.8 * rand(n) - 2.4, edge], -1),
+                  torch.stack([1.8 * side, torch.zeros(n)], -1)))
     return [Case(desc, (pos, move, layouts)) for desc, pos, move in cases]
 
 

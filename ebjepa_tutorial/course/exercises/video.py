@@ -41,7 +41,7 @@ def _slip(**slip) -> Callable:
 
     def errors(predictor, z, inputs, targets, context, steps, cut):
         out, sequence = [], inputs
-        for _ in range(steps):
+        for k in range(steps):
             n = sequence.shape[1] - context
             windows = torch.stack([sequence[:, j:j + n] for j in range(context)], dim=2)
             predictions = predictor(windows.flatten(0, 1)).unflatten(0, windows.shape[:2])
@@ -52,6 +52,8 @@ def _slip(**slip) -> Callable:
                 predictions = predictions.detach()
             sequence = inputs if slip.get("teacher_forcing") else torch.cat(
                 [inputs[:, :context], predictions], dim=1)
+            if cut and mode == "continued" and k == 0:  # steps 2..K go on from step 1's, detached
+                sequence, targets = sequence.detach(), targets.detach()
         return out
 
     def parallel_rollout_loss(predictor, z, context=2, steps=4, detach_later=False):
@@ -59,7 +61,7 @@ def _slip(**slip) -> Callable:
         z = z.transpose(0, 1) if slip.get("batch_axis") else z
         targets = z.detach() if slip.get("detach_targets") else z
         cut = detach_later and steps > 1 and mode != "ignored"
-        if not cut or mode == "predictions":
+        if not cut or mode in ("predictions", "continued"):
             found = errors(predictor, z, z, targets, context, steps, cut)
         else:  # step 1 on z, steps 2..K again from the detached latents
             found = errors(predictor, z, z, targets, context, 1, False) + errors(
@@ -75,7 +77,7 @@ def _cases() -> list[Case]:
     g, cases = torch.Generator().manual_seed(7), []
     drift = torch.arange(7.0)[None, :, None, None, None] * torch.randn(1, 1, 2, 3, 3, generator=g)
     table = [  # what, predictor, latents (None: drift), context, K, detach_later, weights' seed
-        ("the predictor 'last latent + 0.5'", "shift", (2, 8, 3, 4, 4), 2, 3, False, 0),
+        ("the predictor 'last latent + 0.5'", "shift", (4, 9, 5, 4, 4), 2, 3, False, 0),
         ("a constant-velocity predictor on lines (loss 0)", "velocity", None, 2, 4, False, 0),
         ("a nonlinear predictor", "mixer", (3, 10, 4, 4, 4), 2, 4, False, 0),
         ("a predictor averaging its window", "mean", (2, 7, 2, 3, 3), 3, 2, False, 0),
@@ -99,7 +101,7 @@ def _cases() -> list[Case]:
 check_parallel_rollout_loss = Exercise(
     "parallel_rollout_loss", parallel_rollout_loss, dict(  # gradient-only slips first
         detach_ignored=_slip(detach="ignored"), targets_not_detached=_slip(detach="inputs"),
-        predictions_detached=_slip(detach="predictions"),
+        predictions_detached=(_slip(detach="predictions"), _slip(detach="continued")),
         targets_detached=_slip(detach_targets=True), teacher_forcing=_slip(teacher_forcing=True),
         off_by_one=_slip(early=1), context_averaged=_slip(with_context=True),
         last_step_only=_slip(last_only=True), batch_axis=_slip(batch_axis=True),

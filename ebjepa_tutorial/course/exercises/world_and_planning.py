@@ -30,7 +30,9 @@ check_temporal_similarity = Exercise(
         summed=lambda z: (z[:, 1:] - z[:, :-1]).pow(2).sum(),
         earlier_detached=lambda z: (z[:, 1:] - z[:, :-1].detach()).pow(2).mean(),
         later_detached=lambda z: (z[:, 1:].detach() - z[:, :-1]).pow(2).mean(),
-        wrong_axis=lambda z: world_losses.temporal_similarity_loss(z.transpose(0, 1))),
+        wrong_axis=lambda z: world_losses.temporal_similarity_loss(z.transpose(0, 1)),
+        feature_axis=lambda z: z.diff(dim=-1).pow(2).mean(),
+        wrapped=lambda z: (z.roll(-1, dims=1) - z).pow(2).mean()),
     _trajectory_latents, grad=[(0, "the latents z")], dims={0: "BTD"})
 
 
@@ -83,11 +85,14 @@ def _mppi_cases() -> list[Case]:
     # Unshifted, float32 rounds each -S/tau (about -100,000) to within S/tau 2^-24, so a weight
     # moves by twice that, relatively, and the mean and std by that much of the largest action.
     honest = 4 * 2.0**-24 * float(large.max()) / tau * float(actions.abs().max())
+    apart = costs + torch.tensor([[0.0], [1000.0]])  # one shift for the batch leaves 0/0
     return [
         Case("2 episodes x 10 plans of 4 steps, Q=3, tau=0.5", (actions, costs, 3, 0.5)),
         Case("the same plans with tau=5 (softer weights)", (actions, costs, 3, 5.0)),
         Case("costs near 10,000 (exp(-S/tau) alone would underflow to 0/0)",
              (actions, large, 4, tau), atol=honest),
+        Case("episodes whose costs lie 1,000 apart (each has its own cheapest plan)",
+             (actions, apart, 3, tau), atol=honest * float(apart.max() / large.max())),
         Case("Q=1 (only the best plan: std 0)", (actions, costs, 1, 1.0)),
         Case("Q=N=10 (every plan is an elite)", (actions, costs, 10, 1.0)),
         Case("one episode, 6 plans of 1 step", (torch.randn(1, 6, 1, 2, generator=g),
@@ -109,6 +114,12 @@ def _mppi_slip(weights=mppi_weights, std=None, elites_of=None, largest=False):
     return mppi_update
 
 
+def _batch_shifted(costs: torch.Tensor, tau: float) -> torch.Tensor:
+    """Weights shifted by the whole batch's cheapest cost: another episode's may underflow."""
+    weights = torch.exp(-(costs - costs.min()) / tau)
+    return weights / weights.sum(1, keepdim=True)
+
+
 def _shifted(costs: torch.Tensor) -> torch.Tensor:
     return costs - costs.min(dim=1, keepdim=True).values
 
@@ -119,6 +130,7 @@ check_mppi_update = Exercise(
             -s / tau).sum(1, keepdim=True)),
         all_samples=_mppi_slip(elites_of=lambda n, q: n), most_expensive=_mppi_slip(largest=True),
         times_tau=_mppi_slip(weights=lambda s, tau: torch.softmax(-_shifted(s) * tau, dim=1)),
+        batch_min_shift=_mppi_slip(weights=_batch_shifted),
         growing_weights=_mppi_slip(weights=lambda s, tau: torch.softmax(_shifted(s) / tau, 1)),
         equal_weights=_mppi_slip(weights=lambda s, tau: torch.full_like(s, 1 / s.shape[1])),
         unnormalised=_mppi_slip(weights=lambda s, tau: torch.exp(-_shifted(s) / tau)),
