@@ -156,8 +156,9 @@ class WorldModel(nn.Module):
             raise ValueError(f"need latents of shape (B, {self.latent_dim}), got {list(z.shape)}")
         shape = (z.shape[0], *steps.values(), self.config.action_dim)
         if tuple(actions.shape) != shape or not torch.isfinite(actions).all():
+            got = tuple(actions.shape) if tuple(actions.shape) != shape else "NaN or infinity"
             raise ValueError(f"actions must have shape {shape} (batch, [steps,] dx-dy), without "
-                             f"NaN or infinite values; got {tuple(actions.shape)}")
+                             f"NaN or infinite values; got {got}")
 
     def get_extra_state(self) -> dict:
         return {"config": asdict(self.config)}
