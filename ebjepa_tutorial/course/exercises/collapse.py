@@ -159,7 +159,8 @@ def _epps_pulley_slip(weight=True, imag=True, square=True, rule="trapezoid", ave
         gaussian = torch.exp(-(t**2) / 2)
         gap = (real - gaussian) ** 2 + im**2
         y = (gaussian if weight else 1.0) * (gap if square else gap.sqrt())
-        area = torch.trapezoid(y, t) if rule == "trapezoid" else y.sum() * (t[1] - t[0])
+        area = {"trapezoid": lambda: torch.trapezoid(y, t), "unit": lambda: torch.trapezoid(y),
+                "sum": lambda: y.sum() * (t[1] - t[0])}[rule]()
         statistic = area if symmetric else 2 * area
         return statistic * len(x) if scale_by_n else statistic
     return epps_pulley_1d
@@ -169,6 +170,7 @@ check_epps_pulley = Exercise(
     "epps_pulley_1d", epps_pulley, dict(  # sigma = 1: the cases pass the rest by keyword
         unweighted=_epps_pulley_slip(weight=False), real_only=_epps_pulley_slip(imag=False),
         unsquared=_epps_pulley_slip(square=False), rectangle_rule=_epps_pulley_slip(rule="sum"),
+        unit_spacing=_epps_pulley_slip(rule="unit"),
         summed=_epps_pulley_slip(average=False),
         symmetric_knots=_epps_pulley_slip(symmetric=True)),
     _epps_pulley_cases, atol=1e-4, grad=[(0, "the sample x")], dims={0: "N"})
