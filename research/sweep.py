@@ -208,8 +208,9 @@ def record_tenfold_costs(path: str | Path, command: str) -> None:
         figures.record(f"sweep_{method.lower()}_tenfold_points", high, command,
                        "points of linear-probe accuracy lost at a tenth or ten times each "
                        f"default coefficient, {rows['sensitivity'][0]['config']['steps']} steps "
-                       "per run, one seed; spread: the fewest and most over the method's "
-                       "coefficients", meta["torch_threads"], spread=(low, high))
+                       "per run, seed 0; value: the largest loss; spread: the fewest and most "
+                       "over the method's coefficients (SIGReg: lambda; VICReg: std_coeff and "
+                       "cov_coeff) and both factors", meta["torch_threads"], spread=(low, high))
 
 
 if __name__ == "__main__":

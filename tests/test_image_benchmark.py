@@ -81,3 +81,29 @@ def test_split_times_float32_against_bf16_and_records_the_median_ratio(monkeypat
     recorded.clear()
     image_jepa.split_and_precision(config, None, args)
     assert "computes the networks in float32 only" in capsys.readouterr().out and not recorded
+
+
+def test_the_untrained_encoders_figure_is_recorded_as_untrained(monkeypatch):
+    """The random-init probe is stored with a protocol of its own: an encoder at its initial
+    weights, not the trained run's "1600 steps ... trained on 16-px views"."""
+    from types import SimpleNamespace
+
+    from research.benchmarks import image_jepa
+
+    monkeypatch.setattr(sys, "argv", ["image_jepa", "--record"])
+    monkeypatch.setattr(image_jepa.torch, "set_num_threads", lambda n: None)  # this worker's
+    monkeypatch.setattr(image_jepa, "load_cifar10", lambda split: (None, None))
+    monkeypatch.setattr(image_jepa, "random_subset", lambda images, labels, n: (images, labels))
+    monkeypatch.setattr(image_jepa, "probe_encoder",
+                        lambda encoder, config, train, test: {"probe_acc": 0.5, "knn_acc": 0.4})
+    monkeypatch.setattr(image_jepa, "train_image_jepa",
+                        lambda config, images: (SimpleNamespace(encoder=None), None))
+    recorded = {}
+    monkeypatch.setattr(image_jepa.figures, "record",
+                        lambda key, value, **where: recorded.update({key: where["protocol"]}))
+    image_jepa.main()
+    assert recorded["vicreg_probe_acc"].startswith("1600 steps in ")
+    assert "trained on 16-px views" in recorded["vicreg_probe_acc"]
+    untrained = recorded["vicreg_random_init_probe_acc"]
+    assert untrained.startswith("no training: the class encoder at its initial weights")
+    assert "steps" not in untrained and "trained on" not in untrained

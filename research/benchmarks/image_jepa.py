@@ -100,7 +100,9 @@ def split_and_precision(config, images: torch.Tensor, args, rounds: int = 7) -> 
         figures.record("image_float32_step_ratio", ratio, command_line(__spec__.name),
                        f"one class-recipe {args.loss} training step (augmentation, forward, loss, "
                        f"backward, AdamW), float32 over bf16 autocast, median of {rounds} "
-                       f"interleaved pairs of 5-step medians, on {cpu_name()}", args.threads,
+                       "interleaved pairs (each side: the sum of its parts' medians over 5 timed "
+                       f"steps after a warm-up), on {cpu_name()}; spread: the lowest and highest "
+                       "pair ratio", args.threads,
                        spread=(min(ratios), max(ratios)))
 
 
@@ -161,7 +163,10 @@ def main() -> None:
         where = dict(command=command_line(__spec__.name), threads=args.threads,
                      protocol=f"{config.steps} steps in {precision}; {protocol(config)}")
         figures.record(f"{args.loss}_probe_acc", trained["probe_acc"], **where)
-        figures.record(f"{args.loss}_random_init_probe_acc", random_init["probe_acc"], **where)
+        untrained = protocol(config).split("; the encoder was trained")[0]  # it was not
+        figures.record(f"{args.loss}_random_init_probe_acc", random_init["probe_acc"],
+                       **where | dict(protocol="no training: the class encoder at its initial "
+                                      f"weights (torch.manual_seed({config.seed})); {untrained}"))
         figures.record(f"{args.loss}_train_min", seconds / 60, **where)
 
 
