@@ -115,6 +115,25 @@ def test_same_generator_state_gives_same_views_and_leaves_global_rng_alone():
     assert torch.equal(before, after)  # augmenting did not consume the global RNG
 
 
+def test_views_on_another_device_fork_that_devices_random_stream(monkeypatch):
+    """On a GPU the pipeline draws from the device's own generator: augment forks that one
+    (not only the CPU's), so seeding it leaves the caller's GPU stream as it was."""
+    import contextlib
+
+    forked = []
+
+    @contextlib.contextmanager
+    def fork_rng(devices, device_type):
+        forked.append((devices, device_type))
+        yield
+
+    monkeypatch.setattr(torch.random, "fork_rng", fork_rng)
+    monkeypatch.setattr(torch, "manual_seed", lambda seed: None)  # no GPU here to seed
+    images = torch.empty(2, 3, 8, 8, dtype=torch.uint8, device="meta")  # stands in for cuda
+    assert augment(images, lambda x: x, as_generator(0)).device == images.device
+    assert forked == [([images.device], "meta")]
+
+
 @pytest.mark.parametrize(
     "bad, match",
     [
