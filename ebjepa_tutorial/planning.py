@@ -108,8 +108,8 @@ def planning_cost(model, z0: torch.Tensor, z_goal: torch.Tensor, actions: torch.
     if z0.ndim != 2 or z_goal.ndim != 2 or len(z_goal) != len(z0):  # (1, D) would broadcast
         raise ValueError(f"z0 and z_goal must be latents (B, D), one goal per start; got z0 "
                          f"{tuple(z0.shape)}, z_goal {tuple(z_goal.shape)} (images? encode them "
-                         "first with model.encode; one latent: z_goal[None]; one goal for all "
-                         f"starts: z_goal.expand({len(z0)}, -1))")
+                         "first with model.encode; one start: z0[None] and z_goal[None]; one goal "
+                         f"for all starts: z_goal.expand({len(z0) if z0.ndim == 2 else 'B'}, -1))")
     if actions.ndim != 4 or len(actions) != len(z0):
         raise ValueError(f"actions must be plans ({len(z0)}, N, H, A), N per start in z0 "
                          f"{tuple(z0.shape)}; got {tuple(actions.shape)}")
@@ -211,6 +211,10 @@ def plan(model, z0: torch.Tensor, z_goal: torch.Tensor, config: PlannerConfig,
          record: bool = False, iteration=mppi_iteration) -> Plan:
     """Run ``J`` iterations from latents ``z0`` to goals ``z_goal`` (both ``(B, D)``) from the
     warm start ``mean`` ``(B, H, A)`` (default zeros: stand still) with ``iteration``."""
+    if not (isinstance(generators, Sequence) and len(generators) == len(z0)
+            and all(isinstance(g, torch.Generator) for g in generators)):  # else one is shared
+        raise ValueError(f"generators must be one torch.Generator per start, {len(z0)} here: "
+                         f"[torch.Generator().manual_seed(s) for s in seeds]; got {generators!r}")
     if mean is None:
         mean = z0.new_zeros(len(z0), config.horizon, model.config.action_dim)
     std = torch.full_like(mean, config.noise.std)

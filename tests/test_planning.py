@@ -290,7 +290,7 @@ def test_a_goal_image_of_the_wrong_shape_is_named():
     from ebjepa_tutorial.models.world import WORLD_CONFIGS, WorldModel
     model = WorldModel(WORLD_CONFIGS["ci"]).fit_input_stats(render(
         torch.tensor([[10.0, 10.0]]), torch.tensor([[30, 30]])))
-    with pytest.raises(ValueError, match="each frame must be"):
+    with pytest.raises(ValueError, match="frames must be"):
         model.encode(torch.zeros(1, 3, 65, 65))
 
 

@@ -57,6 +57,21 @@ def test_a_goal_that_is_not_one_latent_per_start_is_refused(goal, words):
         planning.planning_cost(ShiftModel(), torch.zeros(3, 2), goal, torch.zeros(3, 4, 5, 2))
 
 
+def test_a_single_start_is_told_to_add_the_batch_axis_to_both():
+    with pytest.raises(ValueError, match=r"one start: z0\[None\] and z_goal\[None\]"):
+        planning.planning_cost(ShiftModel(), torch.zeros(2), torch.zeros(2),
+                               torch.zeros(1, 4, 5, 2))
+
+
+@pytest.mark.parametrize("given", [generators([0]), generators([0, 1, 2, 3]),
+                                   torch.Generator(), [0, 1, 2]])
+def test_plan_needs_one_generator_per_start(given):
+    """One generator for three starts would give all three the same samples."""
+    config = dataclasses.replace(TINY, iterations=1)
+    with pytest.raises(ValueError, match=r"one torch.Generator per start, 3 here"):
+        planning.plan(ShiftModel(), torch.zeros(3, 2), torch.ones(3, 2), config, given)
+
+
 def test_a_start_that_is_not_a_batch_of_latents_is_refused():
     with pytest.raises(ValueError, match=r"must be latents \(B, D\).*got z0 \(2,\)"):
         planning.plan(ShiftModel(), torch.zeros(2), torch.zeros(2, 2), TINY, generators([1, 2]))

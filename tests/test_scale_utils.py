@@ -215,3 +215,14 @@ def test_check_fields_names_the_field_and_what_it_means():
         utils.check_fields(Config(lr=-0.1), rules)
     with pytest.raises(ValueError, match=r"^Config\.steps must be an int >= 1, got 0$"):
         utils.check_fields(Config(steps=0, lr=-0.1), rules)  # the first broken rule
+
+
+@pytest.mark.parametrize("scale", ["small", "", "CI"])
+def test_a_scale_passed_to_preset_is_checked_as_given(scale, monkeypatch):
+    """The argument, not EBJEPA_SCALE, is wrong: the message says so (an empty one does not
+    silently fall back to the environment's)."""
+    monkeypatch.setenv("EBJEPA_SCALE", "ci")
+    with pytest.raises(ValueError, match=r"scale must be one of ci, class, full, or None for "
+                                         r"EBJEPA_SCALE's; got"):
+        presets.preset("06", scale)
+    assert presets.preset("06", None) == presets.preset("06", "ci")

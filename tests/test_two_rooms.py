@@ -527,9 +527,24 @@ def test_trajectories_can_share_given_layouts():
 
 def test_the_environment_asks_for_reset_before_anything_else():
     env = TwoRoomsEnv()
-    for use in (env.observe, lambda: env.step(torch.zeros(1, 2))):
+    for use in (env.observe, lambda: env.step(torch.zeros(1, 2)), env.goal_images,
+                env.distance_to_goal, env.success, env.rooms):
         with pytest.raises(RuntimeError, match=r"call env.reset\(n, seed\) before"):
             use()
+
+
+def test_actions_that_carry_a_gradient_move_the_dot_and_leave_the_world_without_one():
+    """A plan found by gradient descent is a leaf that requires grad: the world takes its
+    values (it is not differentiable) and keeps stepping."""
+    env, plain = TwoRoomsEnv(), TwoRoomsEnv()
+    env.reset(2, seed=0)
+    plain.reset(2, seed=0)
+    plan = torch.full((2, 3, 2), 0.5, requires_grad=True)
+    for t in range(3):
+        env.step(plan[:, t])
+        plain.step(plan[:, t].detach())
+    assert torch.equal(env.positions, plain.positions) and not env.positions.requires_grad
+    assert env.steps_taken == 3 and not any(a.requires_grad for a in env.actions)
 
 
 @pytest.mark.parametrize("start", [(10.0, 64.0), (10.0, 0.5), (64.0, 10.0), (0.5, 10.0),

@@ -522,10 +522,13 @@ def test_bad_inputs_give_clear_errors(data):
         model.rollout(z, nan_actions)
     with pytest.raises(ValueError, match="NaN"):  # the training step checks its batch
         first_step(model, frames, nan_actions)
-    with pytest.raises(ValueError, match=r"each frame must be \(2, 65, 65\)"):
+    framed = r"frames must be \(B, 2, 65, 65\) or \(B, T, 2, 65, 65\)"
+    with pytest.raises(ValueError, match=framed):
         model.encode(frames[:, :, :1])
-    with pytest.raises(ValueError, match=r"each frame must be \(2, 65, 65\)"):
+    with pytest.raises(ValueError, match=framed):
         model.encode(frames[..., :64, :64])
+    with pytest.raises(ValueError, match=framed + r".*one frame: frames\[None\]"):
+        model.encode(frames[0, 0])
     with pytest.raises(ValueError, match="latents of shape"):
         model.rollout(z[:, :4], trajectories.actions)
     with pytest.raises(ValueError, match=r"time - 1"):
@@ -1066,3 +1069,8 @@ def test_a_world_run_resumes_where_it_stopped_replay_included(tmp_path, monkeypa
                                           "cpu", False)
     assert again["step"] == history["step"] and again["loss"] == history["loss"]
     assert all(torch.equal(a, b) for a, b in zip(straight.parameters(), resumed.parameters()))
+
+
+def test_a_misspelt_predictor_is_refused_not_built_as_the_mlp():
+    with pytest.raises(ValueError, match=r"predictor must be 'gru' or 'mlp', got 'GRU'"):
+        WorldConfig(predictor="GRU")

@@ -248,5 +248,9 @@ PRESETS: dict[str, dict[str, object]] = {
 def preset(notebook: str, scale: str | None = None):
     """Return the sizes for ``notebook`` (e.g. ``"00"``) at ``scale`` (default: current)."""
     if notebook not in PRESETS:
-        raise KeyError(f"no presets for notebook {notebook!r}; known: {', '.join(PRESETS)}")
-    return PRESETS[notebook][current_scale(None if scale is None else {"EBJEPA_SCALE": scale})]
+        raise KeyError(f"no presets for notebook {notebook!r}; known: {', '.join(PRESETS)} "
+                       "(two-digit strings)")
+    if scale is not None and scale not in SCALES:  # the argument, not the environment's
+        raise ValueError(f"scale must be one of {', '.join(SCALES)}, or None for "
+                         f"EBJEPA_SCALE's; got {scale!r}")
+    return PRESETS[notebook][scale or current_scale()]

@@ -92,6 +92,7 @@ class TwoRoomsEnv:
 
     def goal_images(self) -> torch.Tensor:
         """Goal images: (B, 2, 65, 65) float32."""
+        self._check_started()
         return self.episodes.goal_images()
 
     def step(self, actions: torch.Tensor) -> torch.Tensor:
@@ -103,15 +104,16 @@ class TwoRoomsEnv:
             raise ValueError(f"actions must have shape ({len(self.layouts)}, 2), one (dx, dy) per "
                              f"world, finite also in {dtype} (not NaN, infinite or too large); "
                              f"got shape {tuple(actions.shape)}{largest}")
+        actions = actions.detach()  # a world is not differentiable: plan through the model
         self.actions.append(actions.clone())  # the caller may reuse its tensor
-        actions = actions.to(device=self.device, dtype=dtype)
-        self.positions = transition(self.positions, actions, self.layouts)
+        self.positions = transition(self.positions, actions.to(self.device, dtype), self.layouts)
         self.steps_taken += 1
         self.path.append(self.positions)
         return self.observe()
 
     def distance_to_goal(self) -> torch.Tensor:
         """Euclidean distance from dot to goal, px: (B,)."""
+        self._check_started()
         return (self.positions - self.goals).norm(dim=-1)
 
     def success(self) -> torch.Tensor:
@@ -120,4 +122,5 @@ class TwoRoomsEnv:
 
     def rooms(self) -> torch.Tensor:
         """Room of each dot, 0 (leftmost) .. W: (B,) long."""
+        self._check_started()
         return room_of(self.positions, self.layouts)

@@ -27,6 +27,11 @@ class WorldConfig:
     predictor_hidden: int = 128  # width of the MLP predictor's two hidden layers
     idm_hidden: int = 128  # hidden width of the inverse-dynamics MLP
 
+    def __post_init__(self):  # a misspelt predictor would silently build the MLP
+        if self.predictor not in ("gru", "mlp"):
+            raise ValueError(f"WorldConfig.predictor must be 'gru' or 'mlp', got "
+                             f"{self.predictor!r}")
+
 
 WORLD_CONFIGS = {
     "ci": WorldConfig(widths=(8, 16, 16), blocks=1, latent_dim=32),
@@ -126,8 +131,9 @@ class WorldModel(nn.Module):
         """Frames ``(B, C, 65, 65)`` -> ``(B, D)``, or ``(B, T, C, 65, 65)`` -> ``(B, T, D)``."""
         framed = frames.ndim in (4, 5) and frames.shape[-3:] == (CHANNELS, IMAGE_SIZE, IMAGE_SIZE)
         if not framed or not frames.is_floating_point():
-            raise ValueError("each frame must be (2, 65, 65) (dot and walls), float in [0, 1] "
-                             f"(Trajectories.frames); got {tuple(frames.shape)} {frames.dtype}")
+            raise ValueError("frames must be (B, 2, 65, 65) or (B, T, 2, 65, 65) (dot and walls), "
+                             "float in [0, 1] (Trajectories.frames; one frame: frames[None]); "
+                             f"got {tuple(frames.shape)} {frames.dtype}")
         z = self.encoder(self.normalize(frames.flatten(0, frames.ndim - 4)))
         return z.view(*frames.shape[:-3], -1)
 
