@@ -47,8 +47,10 @@ def to_float_images(images: torch.Tensor) -> torch.Tensor:
         return images.float().div_(255)
     low, high = images.min().item(), images.max().item()
     if not images.is_floating_point() or not -1e-6 <= low <= high <= 1 + 1e-6:  # NaN fails
+        fix = ("normalised images? augment raw ones" if low < 0 else "0..255 values: make them "
+               "uint8 with .to(torch.uint8)" if 2 < high <= 255 else "clamp them to [0, 1]")
         raise ValueError(f"images must be uint8, or float in [0, 1], got {images.dtype} in "
-                         f"[{low:.3g}, {high:.3g}]; augment raw images, not normalised ones")
+                         f"[{low:.3g}, {high:.3g}]; {fix}")
     return images.float()
 
 

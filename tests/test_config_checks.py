@@ -14,6 +14,7 @@ from research.refit import RefitConfig
 
 @pytest.mark.parametrize("config, change, message", [
     (ImageJEPAConfig, {"steps": 100}, "warmup_steps must be an int in 0..steps-1 = 99, got 200"),
+    (ImageJEPAConfig, {"steps": 0}, "ImageJEPAConfig.steps must be an int >= 1, got 0"),
     (VideoJEPAConfig, {"unroll": "teacher"}, "unroll must be one of \\['autoregressive', "),
     (RefitConfig, {"hidden": 0}, "RefitConfig.hidden must be an int >= 1"),
 ])

@@ -199,8 +199,10 @@ def test_a_foreign_or_damaged_batch_is_refused_before_it_is_unpickled(tmp_path, 
     load_cifar10("test", root=tmp_path / "data")
     batch = tmp_path / "data" / "cifar-10-batches-py" / "test_batch"
     batch.write_bytes(pickle.dumps(Exploit()))
-    with pytest.raises(CorruptDataError, match="damaged or incomplete; delete the folder"):
+    with pytest.raises(CorruptDataError, match=r"damaged or incomplete \(its checksum fails\); "
+                                               "delete the folder") as refused:
         load_cifar10("test", root=tmp_path / "data", download=False)
+    assert "download=True" not in str(refused.value)  # torchvision's advice does not apply
     assert not (tmp_path / "pwned").exists()
 
 

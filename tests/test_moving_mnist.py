@@ -273,6 +273,15 @@ def test_bad_input_gives_a_clear_error(kwargs, error, match):
         generate_moving_mnist(**args)
 
 
+def test_numpy_digits_make_the_same_clips_and_float_digits_are_told_how_to_convert():
+    digits = synthetic_digits(3)[0]
+    clips = generate_moving_mnist(digits, n_clips=2, seed=0).clips
+    assert torch.equal(generate_moving_mnist(digits.numpy(), n_clips=2, seed=0).clips, clips)
+    with pytest.raises(TypeError, match=r"got torch.float64.*0..255 values with "
+                                        r"x.round\(\).to\(torch.uint8\)"):
+        generate_moving_mnist(digits.double(), n_clips=2)
+
+
 def test_real_mnist_digits_are_pasted_exactly():
     digits = real_mnist_digits()
     batch = generate_moving_mnist(digits[:500], n_clips=32, seed=0)

@@ -871,7 +871,8 @@ def test_train_or_load_returns_the_model_on_the_device_asked_for(tmp_path, monke
 def test_a_run_that_is_only_loaded_names_what_makes_it(tmp_path, monkeypatch):
     monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
     with pytest.raises(FileNotFoundError, match="no saved run of this configuration at .*"
-                       "never_trained.pt.*Notebook 05.*checkpoints/README.md.*docs/running.md"):
+                       "never_trained.pt \\(a file of another configuration is not used.*"
+                       "Notebook 05.*checkpoints/README.md.*docs/running.md"):
         world.load_run(WORLD_RUN, "never_trained", device="cpu")
     assert not list(tmp_path.rglob("*.pt*"))  # nothing trained, nothing written
 

@@ -51,8 +51,9 @@ def _read_official(directory: Path, split: str, download: bool) -> tuple[np.ndar
         dataset = datasets.CIFAR10(str(directory), train=split == "train", download=download)
     except RuntimeError as err:  # torchvision's words for a wrong MD5 or a missing batch file
         raise CorruptDataError(
-            f"cannot read CIFAR-10 from {directory / OFFICIAL_FOLDER}: {err}. A file "
-            "there is damaged or incomplete; delete the folder and load again (data/README.md)."
+            f"cannot read CIFAR-10 from {directory / OFFICIAL_FOLDER}: a file there is "
+            "damaged or incomplete (its checksum fails); delete the folder and load again "
+            "(data/README.md)."
         ) from err
     except (OSError, ValueError) as err:  # no network, an HTTP error, a bad download
         message = _missing_message(directory, split)

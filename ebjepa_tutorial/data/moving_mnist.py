@@ -91,13 +91,15 @@ def generate_moving_mnist(digits, n_clips: int, n_frames: int = 10, n_digits: in
     """``n_clips`` clips of ``n_frames`` frames, each showing ``n_digits`` of ``digits``
     (uint8 ``(D, 1, h, w)`` or ``(D, h, w)``, drawn with replacement) moving at ``speed``
     px/frame; ``seed``: an int or a ``torch.Generator``."""
+    digits = torch.as_tensor(digits)  # numpy digits too
     digits = digits[:, 0] if digits.ndim == 4 and digits.shape[1] == 1 else digits  # (D, h, h)
     if digits.ndim != 3 or len(digits) == 0 or not digits.shape[1] == digits.shape[2] <= 64:
         raise ValueError(f"digits must be square, (N, 1, H, W) or (N, H, W) with N >= 1 and H "
                          f"<= 64, got {tuple(digits.shape)}; pass the images from load_mnist")
     if digits.dtype != torch.uint8:
         raise TypeError(f"digits must be uint8 in 0..255, got {digits.dtype}; convert floats "
-                        "in [0, 1] with (x * 255).round().to(torch.uint8)")
+                        "in [0, 1] with (x * 255).round().to(torch.uint8), and 0..255 values "
+                        "with x.round().to(torch.uint8)")
     limit = float(FRAME_SIZE - digits.shape[1])  # the free range of a digit's top-left corner
     if not 0 <= speed <= limit:  # faster, a step could cross both edges of an axis
         raise ValueError(f"speed must be in [0, {limit}] px/frame (the free range), got {speed}")

@@ -63,7 +63,7 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     except Exception as err:  # the parser's many ways of meeting a damaged file
         why = f"{type(err).__name__}: {str(err)[:120]}"
     raise CheckpointError(f"{path} is damaged (truncated, empty or not a checkpoint: {why}). "
-                          "Delete it, or rerun: the course's loaders move it aside.")
+                          "Delete it.")
 
 
 def load_made_by(path: str | Path, made_by: str) -> dict:
@@ -176,8 +176,9 @@ def read_run(path: Path, device, movable: bool = True) -> dict | None:
     except CheckpointError as err:
         if movable:
             _move(path, path.with_name(path.name + ".damaged"), "is damaged")
-        else:
-            warnings.warn(f"{err} Not using it.", stacklevel=3)
+        else:  # a shipped file: the repository has the good one
+            warnings.warn(f"{err} Not using it; restore it with `git checkout -- {path}`.",
+                          stacklevel=3)
         return None
 
 
@@ -203,12 +204,15 @@ def find_run(path: Path, identity: Any, device, shipped: Path | None = None):
     return state, path
 
 
-def save_or_warn(path: Path, **state: Any) -> bool:
-    """:func:`save_checkpoint`, but a folder that cannot be written only warns (returns False)."""
+def save_or_warn(path: Path, final: bool = False, **state: Any) -> bool:
+    """:func:`save_checkpoint`, but a folder that cannot be written only warns (returns False);
+    ``final``: the trained model, else a resumable partial state."""
     try:
         save_checkpoint(path, **state)
         return True
     except OSError as err:
-        warnings.warn(f"could not save a checkpoint to {path} ({err}); training goes on "
-                      "without one, so an interruption will not be resumable.", stacklevel=3)
+        lost = ("the trained model lives only in this session, and the next run trains it again"
+                if final else "training goes on, but an interruption will not be resumable")
+        warnings.warn(f"could not save to {path} ({err}): {lost}. Set EBJEPA_CACHE to a "
+                      "folder you can write to.", stacklevel=3)
         return False

@@ -61,6 +61,8 @@ class ImageJEPAConfig:
     seed: int = 0
 
     def __post_init__(self):
+        if not self.steps >= 1:  # else the warm-up's bound below would be blamed
+            raise ValueError(f"ImageJEPAConfig.steps must be an int >= 1, got {self.steps}")
         if not 0 <= self.warmup_steps < self.steps:
             raise ValueError(f"ImageJEPAConfig.warmup_steps must be an int in 0..steps-1 = "
                              f"{self.steps - 1}, got {self.warmup_steps}")

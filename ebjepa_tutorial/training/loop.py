@@ -127,10 +127,12 @@ def load_or_train(path: str | Path, model: torch.nn.Module, train: Callable, con
             print(f"Loaded a trained model from {found[1]} (skip training).")
         return model.eval(), history
     if train is None:  # a run that is only loaded
-        raise FileNotFoundError(f"no saved run of this configuration at {shipped} or {path}")
+        raise FileNotFoundError(f"no saved run of this configuration at {shipped} or {path} (a "
+                                "file of another configuration is not used: pass the preset's "
+                                "config, or train this one in its notebook)")
     trained, history = train(path.with_suffix(".partial"))
     model.load_state_dict(trained.state_dict())
-    if distributed.is_main() and save_or_warn(path, model=model.state_dict(), config=config,
+    if distributed.is_main() and save_or_warn(path, True, model=model.state_dict(), config=config,
                                               history=dict(history), seconds=history.seconds):
         print(f"Trained and saved to {path} ({time.perf_counter() - start:.0f} s).")
         path.with_suffix(".partial").unlink(missing_ok=True)  # only now: it was all of the run
