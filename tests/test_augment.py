@@ -142,8 +142,8 @@ def test_views_on_another_device_fork_that_devices_random_stream(monkeypatch):
         (torch.rand(2, 32, 32, 3), "3 colour channels"),
         (torch.rand(2, 3, 32, 32) * 4 - 2, r"\[0, 1\].*normalised images\? augment raw ones"),
         (torch.rand(2, 3, 32, 32) * 255, r"\[0, 1\].*make them uint8"),  # never divided by 255
-        (torch.randint(0, 256, (2, 3, 8, 8)), r"torch.int64 in \[0, 255\].*make them uint8"),
-        (torch.rand(2, 3, 8, 8) + 0.2, r"\[0, 1\].*clamp them"),
+        (torch.arange(384).view(2, 3, 8, 8) % 256, r"torch.int64 in \[0, 255\].*make them uint8"),
+        (torch.full((2, 3, 8, 8), 1.2), r"\[0, 1\].*clamp them"),  # a jitter's overshoot
         (torch.rand(2, 3, 32, 32).index_fill_(2, torch.tensor([5]), float("nan")), "nan"),
     ],
 )

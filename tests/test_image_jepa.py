@@ -220,6 +220,15 @@ def test_train_or_load_can_keep_only_the_encoder(tmp_path, monkeypatch, capsys):
     assert "another configuration" in capsys.readouterr().out  # never reads encoder weights
 
 
+def test_a_run_given_the_images_with_their_labels_is_told_to_pass_the_images(tmp_path,
+                                                                             monkeypatch):
+    monkeypatch.setenv("EBJEPA_CACHE", str(tmp_path))
+    pair = _images(), torch.zeros(8, dtype=torch.long)
+    with pytest.raises(ValueError, match=r"no image tensor to train it on \(got tuple\): pass "
+                                         r"load_cifar10\('train'\)\[0\], the images without"):
+        image.train_or_load(TINY, "tiny_pair", pair)
+
+
 def test_long_run_command_writes_a_float16_encoder(tmp_path, monkeypatch, capsys):
     train = _images(40), torch.arange(40) % 4
     monkeypatch.setattr("research.train_image.load_cifar10", lambda split: train)

@@ -11,6 +11,7 @@ from ebjepa_tutorial.course.exercises import ExerciseError
 from ebjepa_tutorial.course.exercises.video import check_parallel_rollout_loss
 from ebjepa_tutorial.data.moving_mnist import centres_to_grid, generate_moving_mnist
 from ebjepa_tutorial.evaluation.detection import (
+    check_clips,
     detection_report,
     evaluation_clips,
     fit_detection_probe,
@@ -435,6 +436,14 @@ def test_evaluation_clips_use_their_own_digits_and_seeds(digits):
     assert set(eval_data.clips.unique().tolist()) == {0, 128}
     again, _ = evaluation_clips(digits, held_out, 4, 3)
     assert torch.equal(again.clips, probe_data.clips)  # fixed seeds: the same for every model
+
+
+def test_clips_given_as_the_whole_batch_are_told_to_pass_its_clips(digits):
+    batch = generate_moving_mnist(digits, 2, 4, seed=0)
+    check_clips(batch.clips, min_frames=4)
+    with pytest.raises(ValueError, match=r"generate_moving_mnist's batch.clips; got "
+                                         r"MovingMNISTBatch"):
+        check_clips(batch, min_frames=4)
 
 
 def test_moving_mnist_figures(digits):

@@ -23,7 +23,8 @@ def check_clips(clips: torch.Tensor, min_frames: int) -> None:
         got = (f"{tuple(clips.shape)} {clips.dtype}" if isinstance(clips, torch.Tensor)
                else type(clips).__name__)
         raise ValueError(f"clips must be uint8 (N, T, 1, 64, 64) with T at least {min_frames} "
-                         f"(context + prediction steps), from generate_moving_mnist; got {got}")
+                         f"(context + prediction steps), generate_moving_mnist's batch.clips; "
+                         f"got {got}")
 
 
 @torch.no_grad()

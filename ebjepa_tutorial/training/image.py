@@ -195,9 +195,10 @@ def train_or_load(config: ImageJEPAConfig, name: str, images: torch.Tensor, devi
     module = (model.encoder if encoder_only else model).to(device)
 
     def train(partial: Path):
-        if images is None:
-            raise ValueError(f"no saved run {name!r} of this configuration, and no images to "
-                             "train it on: pass load_cifar10('train')[0] as the data")
+        if not torch.is_tensor(images):  # None, or the (images, labels) pair
+            raise ValueError(f"no saved run {name!r} of this configuration, and no image tensor "
+                             f"to train it on (got {type(images).__name__}): pass "
+                             "load_cifar10('train')[0], the images without their labels")
         trained, history = train_image_jepa(config, images, partial, device, step=step)
         return (trained.encoder if encoder_only else trained), history
 
