@@ -338,10 +338,16 @@ def run_episodes(model, seeds: Sequence[int], config: PlannerConfig, steps: int 
     ``two_level``: a high level that picks subgoals, as notebook 07's ``TwoLevel``."""
     if world not in WORLDS:
         raise ValueError(f"world must be one of {WORLDS}, got {world!r}")
-    seeds, batch = list(seeds), batch or len(seeds)
-    if not seeds or not (steps is None or is_int_at_least(1)(steps)):
-        raise ValueError(f"run_episodes needs at least one seed (one episode per seed) and "
-                         f"steps None or an int >= 1; got {len(seeds)} seeds, steps={steps!r}")
+    if isinstance(seeds, int):  # a count or one seed? neither is guessed
+        raise TypeError(f"seeds must be a sequence of ints, one episode each (e.g. "
+                        f"range({seeds}, {seeds} + 10)); got the int {seeds}")
+    seeds = list(seeds)
+    batch = len(seeds) if batch is None else batch
+    if not seeds or not (steps is None or is_int_at_least(1)(steps)) or not is_int_at_least(1)(
+            batch):
+        raise ValueError(f"run_episodes needs at least one seed (one episode per seed), steps "
+                         f"None or an int >= 1 and batch None or an int >= 1; got {len(seeds)} "
+                         f"seeds, steps={steps!r}, batch={batch!r}")
     model.eval()
     cpu, wall = time.process_time(), time.perf_counter()
     arrived = None  # the energy below which the agent stands still: pixels for "true_xy"

@@ -64,7 +64,9 @@ def as_generator(seed: int | torch.Generator) -> torch.Generator:
     if isinstance(seed, torch.Generator):
         return seed
     if not isinstance(seed, int) or isinstance(seed, bool):
-        raise TypeError(f"seed must be an int (or a torch.Generator), got {type(seed).__name__}")
+        hint = " (NumPy's): pass int(seed)" if type(seed).__module__ == "numpy" else ""
+        raise TypeError(f"seed must be an int (or a torch.Generator), got "
+                        f"{type(seed).__name__}{hint}")
     return torch.Generator().manual_seed(seed)
 
 
@@ -90,7 +92,10 @@ def check_fields(config, rules: dict) -> None:
         value = getattr(config, name)
         if not ok(value):
             label = f"{name} ({meaning[0]})" if meaning else name
-            raise ValueError(f"{type(config).__name__}.{label} must be {rule}, got {value!r}")
+            numpy = "; a NumPy number: pass int(...) or float(...)" if type(value).__module__ \
+                == "numpy" else ""  # a config is stored as plain data (its run's identity)
+            raise ValueError(f"{type(config).__name__}.{label} must be {rule}, got {value!r}"
+                             f"{numpy}")
 
 
 @contextlib.contextmanager

@@ -385,6 +385,10 @@ def test_with_true_motion_and_the_euclidean_energy_the_planner_crosses_the_door(
         planning.run_episodes(LinearLatentModel(), [], config)
     with pytest.raises(ValueError, match="steps None or an int >= 1.*steps=0"):  # not stack's
         planning.run_episodes(LinearLatentModel(), [0], config, steps=0)
+    with pytest.raises(ValueError, match="batch None or an int >= 1.*batch=0"):  # not all
+        planning.run_episodes(LinearLatentModel(), [0], config, batch=0)
+    with pytest.raises(TypeError, match=r"one episode each \(e.g. range\(5, 5 \+ 10\)\)"):
+        planning.run_episodes(LinearLatentModel(), 5, config)
 
 
 def test_energy_by_distance_of_a_position_latent_is_the_ring_distance():

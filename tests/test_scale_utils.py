@@ -11,6 +11,7 @@ import torch
 from ebjepa_tutorial import utils
 from ebjepa_tutorial.course import presets
 from ebjepa_tutorial.envs.episodes import THREE_ROOMS_EPISODE_STEPS
+from ebjepa_tutorial.planning import PlannerConfig
 from ebjepa_tutorial.utils import as_generator, get_device, seed_everything
 
 
@@ -76,6 +77,15 @@ def test_as_generator_hands_a_generator_back_itself_and_refuses_a_bool():
     assert as_generator(generator) is generator
     with pytest.raises(TypeError, match="seed must be an int"):
         as_generator(True)
+
+
+def test_a_numpy_number_is_told_to_become_a_python_one():
+    """np.int64(5) reads as an int to a learner; the messages say what it is and the remedy."""
+    with pytest.raises(TypeError, match=r"got int64 \(NumPy's\): pass int\(seed\)"):
+        as_generator(np.int64(3))
+    with pytest.raises(ValueError, match=r"horizon must be an int >= 1, got np.int64\(5\); a "
+                                         r"NumPy number: pass int\(\.\.\.\) or float"):
+        PlannerConfig(horizon=np.int64(5))
 
 
 @pytest.mark.parametrize("cuda, mps, best", [
