@@ -30,13 +30,15 @@ from . import launch
 from .shipping import float16_state
 
 
-def protocol(config: ImageJEPAConfig) -> str:
-    """The evaluation protocol of ``probe_encoder``, in words, to print beside its numbers."""
+def protocol(config: ImageJEPAConfig, trained: bool = True) -> str:
+    """The evaluation protocol of ``probe_encoder``, in words, to print beside its numbers
+    (``trained=False``: of an encoder at its initial weights)."""
     size = config.eval_image_size
     native = "their native size, no resizing" if size == 32 else "resized from 32 px"
+    views = f"; the encoder was trained on {config.image_size}-px views" if trained else ""
     return (f"linear probe (fit on the train split, scored on the test split) and kNN "
             f"(k = {KNN_K}) on frozen encoder features of un-augmented {size}-px images "
-            f"({native}); the encoder was trained on {config.image_size}-px views")
+            f"({native}){views}")
 
 
 def _parser() -> argparse.ArgumentParser:

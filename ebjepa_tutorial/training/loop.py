@@ -132,8 +132,9 @@ def load_or_train(path: str | Path, model: torch.nn.Module, train: Callable, con
                                 "config, or train this one in its notebook)")
     trained, history = train(path.with_suffix(".partial"))
     model.load_state_dict(trained.state_dict())
-    if distributed.is_main() and save_or_warn(path, True, model=model.state_dict(), config=config,
-                                              history=dict(history), seconds=history.seconds):
+    if distributed.is_main() and save_or_warn(path, final=True, model=model.state_dict(),
+                                              config=config, history=dict(history),
+                                              seconds=history.seconds):
         print(f"Trained and saved to {path} ({time.perf_counter() - start:.0f} s).")
         path.with_suffix(".partial").unlink(missing_ok=True)  # only now: it was all of the run
     return model.eval(), history

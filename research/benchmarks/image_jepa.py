@@ -163,10 +163,10 @@ def main() -> None:
         where = dict(command=command_line(__spec__.name), threads=args.threads,
                      protocol=f"{config.steps} steps in {precision}; {protocol(config)}")
         figures.record(f"{args.loss}_probe_acc", trained["probe_acc"], **where)
-        untrained = protocol(config).split("; the encoder was trained")[0]  # it was not
         figures.record(f"{args.loss}_random_init_probe_acc", random_init["probe_acc"],
                        **where | dict(protocol="no training: the class encoder at its initial "
-                                      f"weights (torch.manual_seed({config.seed})); {untrained}"))
+                                      f"weights (torch.manual_seed({config.seed})); "
+                                      f"{protocol(config, trained=False)}"))
         figures.record(f"{args.loss}_train_min", seconds / 60, **where)
 
 

@@ -159,8 +159,8 @@ def _epps_pulley_slip(weight=True, imag=True, square=True, rule="trapezoid", ave
         gaussian = torch.exp(-(t**2) / 2)
         gap = (real - gaussian) ** 2 + im**2
         y = (gaussian if weight else 1.0) * (gap if square else gap.sqrt())
-        area = {"trapezoid": lambda: torch.trapezoid(y, t), "unit": lambda: torch.trapezoid(y),
-                "sum": lambda: y.sum() * (t[1] - t[0])}[rule]()
+        area = (torch.trapezoid(y, t) if rule == "trapezoid" else torch.trapezoid(y)
+                if rule == "unit" else y.sum() * (t[1] - t[0]))
         statistic = area if symmetric else 2 * area
         return statistic * len(x) if scale_by_n else statistic
     return epps_pulley_1d
