@@ -406,6 +406,23 @@ def _off_diagonal(z, f):
     return (f(cov).sum() - f(cov.diagonal()).sum()) / (z.shape[1] * (z.shape[1] - 1))
 
 
+def _covariance_batch_by_batch(z):
+    centred = z - z.mean(dim=0)
+    cov = centred @ centred.T / (len(z) - 1)  # (B, B): the transpose on the wrong side
+    return (cov - torch.diag(torch.diagonal(cov))).pow(2).sum() / (z.shape[1] * (z.shape[1] - 1))
+
+
+def _covariance_centred_by_one_mean(z):
+    centred = z - z.mean()  # every entry's mean, not each dimension's
+    cov = centred.T @ centred / (len(z) - 1)
+    return (cov - torch.diag(torch.diagonal(cov))).pow(2).sum() / (z.shape[1] * (z.shape[1] - 1))
+
+
+def _epps_pulley_knot_mean(x, knots=17, t_max=3.0, scale_by_n=True):
+    t, real, imag, gaussian, n = _epps_pulley_parts(x, knots, t_max, scale_by_n)
+    return 2 * t_max * (gaussian * ((real - gaussian) ** 2 + imag**2)).mean() * n
+
+
 @pytest.mark.parametrize("checker, wrong, words", [
     (exercises.check_variance_term,
      lambda z, gamma=1.0, eps=1e-4: torch.relu(gamma - z.std(dim=0) - eps).mean(),
@@ -469,6 +486,14 @@ def _off_diagonal(z, f):
      "the cap is missing"),
     (exercises.check_spread_loss, lambda d, cap: F.softplus(cap - d).sum(),
      "average over the pairs, do not sum"),
+    (exercises.check_covariance_term, _covariance_batch_by_batch,
+     "you multiplied centred by its transpose on the right, which gives a B x B matrix"),
+    (exercises.check_covariance_term, lambda z: (torch.corrcoef(z.T).fill_diagonal_(0) ** 2).sum()
+     / (z.shape[1] * (z.shape[1] - 1)), "you squared correlations"),
+    (exercises.check_covariance_term, _covariance_centred_by_one_mean,
+     "you subtracted one mean of all the entries of z"),
+    (exercises.check_epps_pulley, _epps_pulley_knot_mean,
+     "you averaged the integrand over the knots and multiplied by the range"),
 ])
 def test_a_learner_s_own_slip_is_named_in_its_words(checker, wrong, words):
     """A slip the checker knows, written as a learner would (not the checker's own slip
@@ -613,6 +638,9 @@ def _epps_pulley_undoubled(x, knots=17, t_max=3.0, scale_by_n=True):
      r"is too small by a factor of N = 256 on .*N times the integral"),
     (exercises.check_epps_pulley, _epps_pulley_undoubled,
      r"is too small by a factor of 2 on .*integrate over \[0, t_max\], then double once"),
+    (exercises.check_covariance_term,  # `/ dim * (dim - 1)`: D(D - 1) without its parentheses
+     lambda z: torch.cov(z.T).fill_diagonal_(0).pow(2).sum() / z.shape[1] * (z.shape[1] - 1),
+     r"is too large by a factor of \(D - 1\)² = 49 on .*put D\(D - 1\) in parentheses"),
     (exercises.check_covariance_term,
      lambda z: torch.cov(z.T).fill_diagonal_(0).pow(2).sum() / z.shape[1] ** 2,
      r"is too small by a factor of D/\(D - 1\) = 1.143 on .*D\(D - 1\) off-diagonal entries, "

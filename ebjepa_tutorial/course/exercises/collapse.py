@@ -43,6 +43,11 @@ check_variance_term = Exercise(
     grad=[(0, "z")], dims={0: "BD"})
 
 
+def _centred(z, dim=0):
+    """``z`` minus its mean over the batch (``dim=None``: over every entry)."""
+    return z - (z.mean() if dim is None else z.mean(dim))
+
+
 def _pair_mean(z, cov=losses.covariance_matrix, f=torch.square, diagonal=False):
     """``sum_{i != j} f(C_ij) / (D (D - 1))`` of ``C = cov(z)`` (``diagonal``: all i, j)."""
     c, d = cov(z), z.shape[1]
@@ -57,6 +62,11 @@ check_covariance_term = Exercise(
         not_squared=lambda z: _pair_mean(z, f=lambda c: c),
         absolute=lambda z: _pair_mean(z, f=torch.abs),
         cov_of_rows=lambda z: _pair_mean(z, cov=torch.cov),
+        batch_by_batch=lambda z: _pair_mean(z, cov=lambda z: _centred(z) @ _centred(z).T
+                                            / (len(z) - 1)),
+        correlations=lambda z: _pair_mean(z, cov=lambda z: torch.corrcoef(z.T)),
+        global_mean=lambda z: _pair_mean(z, cov=lambda z: _centred(z, dim=None).T
+                                         @ _centred(z, dim=None) / (len(z) - 1)),
         wrong_axis=lambda z: losses.covariance_term(z.T.contiguous())),
     lambda: _embedding_cases(seed=2),
     grad=[(0, "z")], dims={0: "BD"})
@@ -160,7 +170,8 @@ def _epps_pulley_slip(weight=True, imag=True, square=True, rule="trapezoid", ave
         gap = (real - gaussian) ** 2 + im**2
         y = (gaussian if weight else 1.0) * (gap if square else gap.sqrt())
         area = (torch.trapezoid(y, t) if rule == "trapezoid" else torch.trapezoid(y)
-                if rule == "unit" else y.sum() * (t[1] - t[0]))
+                if rule == "unit" else y.mean() * t_max if rule == "mean"
+                else y.sum() * (t[1] - t[0]))
         statistic = area if symmetric else 2 * area
         return statistic * len(x) if scale_by_n else statistic
     return epps_pulley_1d
@@ -170,7 +181,7 @@ check_epps_pulley = Exercise(
     "epps_pulley_1d", epps_pulley, dict(  # sigma = 1: the cases pass the rest by keyword
         unweighted=_epps_pulley_slip(weight=False), real_only=_epps_pulley_slip(imag=False),
         unsquared=_epps_pulley_slip(square=False), rectangle_rule=_epps_pulley_slip(rule="sum"),
-        unit_spacing=_epps_pulley_slip(rule="unit"),
+        unit_spacing=_epps_pulley_slip(rule="unit"), knot_mean=_epps_pulley_slip(rule="mean"),
         summed=_epps_pulley_slip(average=False),
         symmetric_knots=_epps_pulley_slip(symmetric=True)),
     _epps_pulley_cases, atol=1e-4, grad=[(0, "the sample x")], dims={0: "N"})

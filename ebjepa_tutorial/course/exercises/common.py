@@ -138,8 +138,8 @@ def diagnose(got, variants: Sequence[tuple[str, Callable]], case: Case, atol: fl
 
 def _general_cause(got, expected, atol: float, sizes: dict, advice: dict):
     """``(what was found, what it means, what to look at)`` when float64 ``got`` is NaN, minus
-    ``expected``, or off by a factor: a named size n, n - 1, n/(n - 1), its square, or 2 (what to
-    look at: ``advice[factor]``). Else None."""
+    ``expected``, or off by a factor: a named size n, n - 1, n/(n - 1), the square of either of
+    the last two, or 2 (what to look at: ``advice[factor]``). Else None."""
     if torch.isfinite(expected).all() and not torch.isfinite(got).all():
         return say("nan"), "", say("nan_look")
     if expected.abs().max() > 10 * atol and torch.allclose(got, -expected, atol=atol, rtol=1e-4):
@@ -153,7 +153,7 @@ def _general_cause(got, expected, atol: float, sizes: dict, advice: dict):
         return None
     factors = [(k, n) for k, n in sizes.items() if n >= 2] + [
         (words, value) for k, n in sizes.items() if n > 2 for words, value in
-        [(f"{k} - 1", n - 1), (f"{k}/({k} - 1)", n / (n - 1)),
+        [(f"{k} - 1", n - 1), (f"({k} - 1)²", (n - 1) ** 2), (f"{k}/({k} - 1)", n / (n - 1)),
          (f"({k}/({k} - 1))²", (n / (n - 1)) ** 2)]] + [("2", 2)]
     for words, value in factors:
         for direction, target in (("too large", value), ("too small", 1 / value)):
