@@ -406,6 +406,19 @@ def _off_diagonal(z, f):
     return (f(cov).sum() - f(cov.diagonal()).sum()) / (z.shape[1] * (z.shape[1] - 1))
 
 
+def _wall_side_by_target(positions, moves, layouts):
+    """The notebook's wall rules with rule 3 read off the target's y1, not y_out."""
+    wall_x, door_y = layouts.float().unbind(-1)
+    x_lo, x_hi, y_lo, y_hi = wall_x - 2.5, wall_x + 2.5, door_y - 3.5, door_y + 3.5
+    (x0, y0), (x1, y1) = positions.unbind(-1), (positions + moves).clamp(LOW, HIGH).unbind(-1)
+    t_in, t_out = SOLUTIONS["slab_crossing"](x0, x1, x_lo, x_hi)
+    y_in = y0 + t_in * (y1 - y0)
+    hits_face = (t_out > t_in) & ((y_in < y_lo) | (y_in > y_hi))
+    hits_side = (t_out > t_in) & ~hits_face & ((y1 < y_lo) | (y1 > y_hi))  # y1, not y_out
+    x = torch.where(hits_face, torch.where(x0 <= x_lo, x_lo, x_hi), x1)
+    return torch.stack([x, torch.where(hits_side, y1.clamp(y_lo, y_hi), y1)], -1)
+
+
 def _covariance_batch_by_batch(z):
     centred = z - z.mean(dim=0)
     cov = centred @ centred.T / (len(z) - 1)  # (B, B): the transpose on the wrong side
@@ -494,6 +507,7 @@ def _epps_pulley_knot_mean(x, knots=17, t_max=3.0, scale_by_n=True):
      "you subtracted one mean of all the entries of z"),
     (exercises.check_epps_pulley, _epps_pulley_knot_mean,
      "you averaged the integrand over the knots and multiplied by the range"),
+    (check_wall_collision, _wall_side_by_target, "you decided rule 3 by the target's y1"),
 ])
 def test_a_learner_s_own_slip_is_named_in_its_words(checker, wrong, words):
     """A slip the checker knows, written as a learner would (not the checker's own slip

@@ -154,7 +154,13 @@ def _wall_slip(positions, moves, layouts, rule):
         return torch.where(blocked, positions, expected)
     if rule == "no_door_sides":  # stop at the wall's faces, but y may leave the doorway
         return torch.stack([expected[:, 0], target[:, 1]], -1)
-    (x0, y0), (x1, y1) = positions.unbind(-1), target.unbind(-1)  # stop y at the face too
+    (x0, y0), (x1, y1) = positions.unbind(-1), target.unbind(-1)
+    if rule == "side_by_target":  # rule 3 read off the target's y, not where it leaves the slab
+        x_lo, x_hi, y_lo, y_hi = wall_bounds(layouts)
+        t_in, t_out = _crossing_slip()(x0, x1, x_lo, x_hi)
+        doorway = (t_out > t_in) & torch.isclose(expected[:, 0], x1)  # entered, not at a face
+        return torch.stack([expected[:, 0], torch.where(doorway, y1.clamp(y_lo, y_hi),
+                                                        expected[:, 1])], -1)
     at_face = ~torch.isclose(expected[:, 0], x1)
     t = (expected[:, 0] - x0) / torch.where(at_face, x1 - x0, torch.ones_like(x0))
     y = torch.where(at_face, y0 + t * (y1 - y0), expected[:, 1])
@@ -167,6 +173,7 @@ check_wall_collision = Exercise(
             lambda p, m, walls: stop_at_wall(p, p + m, walls).clamp(LOW, HIGH),
             lambda p, m, walls: stop_at_wall(p, p + m, walls)),
         stay_put=partial(_wall_slip, rule="stay_put"),
-        stop_at_contact=partial(_wall_slip, rule="stop_at_contact"),
+        stop_at_contact=partial(_wall_slip, rule="stop_at_contact"),  # y stopped at the face
+        side_by_target=partial(_wall_slip, rule="side_by_target"),
         no_door_sides=partial(_wall_slip, rule="no_door_sides")),
     _wall_cases, atol=1e-4, explain=_first_problem)
