@@ -43,11 +43,6 @@ check_variance_term = Exercise(
     grad=[(0, "z")], dims={0: "BD"})
 
 
-def _centred(z, dim=0):
-    """``z`` minus its mean over the batch (``dim=None``: over every entry)."""
-    return z - (z.mean() if dim is None else z.mean(dim))
-
-
 def _pair_mean(z, cov=losses.covariance_matrix, f=torch.square, diagonal=False):
     """``sum_{i != j} f(C_ij) / (D (D - 1))`` of ``C = cov(z)`` (``diagonal``: all i, j)."""
     c, d = cov(z), z.shape[1]
@@ -62,11 +57,11 @@ check_covariance_term = Exercise(
         not_squared=lambda z: _pair_mean(z, f=lambda c: c),
         absolute=lambda z: _pair_mean(z, f=torch.abs),
         cov_of_rows=lambda z: _pair_mean(z, cov=torch.cov),
-        batch_by_batch=lambda z: _pair_mean(z, cov=lambda z: _centred(z) @ _centred(z).T
+        batch_by_batch=lambda z: _pair_mean(z, cov=lambda z: (z - z.mean(0)) @ (z - z.mean(0)).T
                                             / (len(z) - 1)),
         correlations=lambda z: _pair_mean(z, cov=lambda z: torch.corrcoef(z.T)),
-        global_mean=lambda z: _pair_mean(z, cov=lambda z: _centred(z, dim=None).T
-                                         @ _centred(z, dim=None) / (len(z) - 1)),
+        global_mean=lambda z: _pair_mean(z, cov=lambda z: (z - z.mean()).T @ (z - z.mean())
+                                         / (len(z) - 1)),
         wrong_axis=lambda z: losses.covariance_term(z.T.contiguous())),
     lambda: _embedding_cases(seed=2),
     grad=[(0, "z")], dims={0: "BD"})
