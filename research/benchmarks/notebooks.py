@@ -80,13 +80,19 @@ def main() -> None:
     parser.add_argument("--record", action="store_true")
     args = parser.parse_args()
     host = f"{cpu_name()}, {os.cpu_count()} cores"
+    paths = notebooks(args.only)
     with cold_cache(args.cold):
-        for path in notebooks(args.only):
+        for done, path in enumerate(paths):
             seconds = run_notebook(path, args.scale)
             print(f"{path.name}: {seconds:.0f} s at {args.scale}", flush=True)
             if args.record:
-                state = "a first run (no trained runs in data/cache)" if args.cold else \
-                    "data/cache as left by earlier runs"
+                earlier = ", ".join(p.name[:2] for p in paths[:done])  # they filled the cache
+                if not args.cold:
+                    state = "data/cache as left by earlier runs"
+                elif earlier:
+                    state = f"a first run after chapter(s) {earlier} in the same emptied cache"
+                else:
+                    state = "a first run (no trained runs in data/cache)"
                 figures.record(f"notebook_{path.name[:2]}_{args.scale}", seconds,
                                command=command_line(__spec__.name),
                                protocol=f"one run top to bottom in a fresh kernel, "
