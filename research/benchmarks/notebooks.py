@@ -22,9 +22,7 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
-import nbformat
 import torch
-from nbclient import NotebookClient
 
 from ebjepa_tutorial.data.paths import cache_dir
 from research.benchmarks import command_line, cpu_name
@@ -62,6 +60,9 @@ def cold_cache(enabled: bool):
 
 def run_notebook(path: Path, scale: str, timeout: int = 3600) -> float:
     """Wall seconds to execute ``path`` top to bottom at ``scale`` in a fresh kernel."""
+    import nbformat  # here: its validator takes seconds to import, and only a timing needs it
+    from nbclient import NotebookClient
+
     os.environ["EBJEPA_SCALE"] = scale  # the kernel inherits this process's environment
     notebook = nbformat.read(path, as_version=4)
     client = NotebookClient(notebook, timeout=timeout, kernel_name="python3",
