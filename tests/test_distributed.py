@@ -10,6 +10,7 @@ stand-in collectives, so the arithmetic around the collectives is checked in the
 
 import copy
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -622,7 +623,7 @@ def test_torchrun_trains_the_video_command_on_two_processes(tmp_path, monkeypatc
     assert not list((tmp_path / "checkpoints").glob("*.partial"))
 
 
-@pytest.mark.slow  # two processes train 4 steps, then rank 0 fits and scores the position probe
+@pytest.mark.slow  # 4 steps on two processes (rank 0 scores the probe), then on one
 @pytest.mark.parametrize("flags, changes", [
     ([], {}),
     (["--window", "9", "--wall-fraction", "0.25", "--channels-last", "--replay-steps", "2",
@@ -642,6 +643,18 @@ def test_torchrun_trains_the_world_command_on_two_processes(tmp_path, flags, cha
     assert stored["history"]["step"] == [0, 3]  # logged every 10 steps and the last
     assert world.load_world_model(out).config == config.model
     assert not out.with_suffix(".partial").exists()
+    # the same command on one process: the same run, up to the order of float sums
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "OMP_WAIT_POLICY": "PASSIVE"}
+    alone = subprocess.run([sys.executable, "-m", "research.train_world", "--scale", "ci",
+                            "--steps", "4", "--out", str(tmp_path / "one.pt"), *flags], cwd=REPO,
+                           env=env, capture_output=True, text=True, timeout=600)
+    assert alone.returncode == 0, alone.stderr[-3000:]
+    one = load_checkpoint(tmp_path / "one.pt")
+    assert one["config"] == stored["config"] and one["processes"] == 1
+    for name, values in one["history"].items():
+        assert stored["history"][name] == pytest.approx(values, rel=1e-5), name
+    probe = re.compile(r"probe error [\d.]+ px")  # scored on rank 0 alone, as on one process
+    assert probe.findall(done.stdout) == probe.findall(alone.stdout) != []
 
 
 def _replays_agree(rank):
