@@ -103,8 +103,9 @@ class VideoJEPA(nn.Module):
 
     def encode(self, frames: torch.Tensor) -> torch.Tensor:
         """Frames ``(B, T, 1, 64, 64)`` (uint8, or float in 0..1) -> ``(B, T, C, S, S)``."""
-        outside = (frames.dtype != torch.uint8 and frames.numel()  # 0..255 or standardised
-                   and not 0 <= frames.detach().amin() <= frames.detach().amax() <= 1)
+        low, high = (torch.aminmax(frames.detach()) if frames.dtype != torch.uint8  # one scan
+                     and frames.numel() else (0, 1))
+        outside = not 0 <= low <= high <= 1  # 0..255 floats, or standardised frames
         if frames.ndim != 5 or frames.shape[2:] != (1, FRAME_SIZE, FRAME_SIZE) or outside:
             raise ValueError(f"frames must be (B, T, 1, 64, 64) clips, uint8 or float in 0..1 "
                              f"(uint8 / 255); got {tuple(frames.shape)} {frames.dtype}")
