@@ -1101,7 +1101,7 @@ def test_an_unfinished_exercise_hands_over_the_course_implementation(checker, ca
 
     assert checker(stub) is checker.reference  # so "Run All" reaches the end of the chapter
     out = capsys.readouterr().out
-    assert "not implemented yet" in out and "uses the course's implementation" in out
+    assert "not implemented yet" in out and "gets the course's implementation" in out
     assert f"exercises.hint({checker.exercise!r})" in out
 
 
