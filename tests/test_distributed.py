@@ -572,12 +572,15 @@ def test_load_or_train_saves_on_rank_0_and_loads_on_every_rank(tmp_path):
 # --- the commands under torchrun -------------------------------------------------------------
 
 
-def torchrun(command: str, *args: str, **env: str) -> subprocess.CompletedProcess:
-    """``python -m research.<command> args`` on two processes under torchrun."""
+def torchrun(command: str, *args: str, processes: int = 2,
+             **env: str) -> subprocess.CompletedProcess:
+    """``python -m research.<command> args`` on two processes under torchrun (``processes=1``:
+    a plain ``python -m``), each on one thread."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OMP_WAIT_POLICY": "PASSIVE", **env}
-    launcher = Path(sys.executable).with_name("torchrun")
-    line = [str(launcher), "--nnodes=1", "--nproc_per_node=2", "--master_addr=127.0.0.1",
-            f"--master_port={free_port()}", "-m", f"research.{command}", *args]
+    launcher = [str(Path(sys.executable).with_name("torchrun")), "--nnodes=1",
+                "--nproc_per_node=2", "--master_addr=127.0.0.1", f"--master_port={free_port()}"]
+    line = [*(launcher if processes == 2 else [sys.executable]), "-m", f"research.{command}",
+            *args]
     return subprocess.run(line, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
 
 
@@ -644,10 +647,8 @@ def test_torchrun_trains_the_world_command_on_two_processes(tmp_path, flags, cha
     assert world.load_world_model(out).config == config.model
     assert not out.with_suffix(".partial").exists()
     # the same command on one process: the same run, up to the order of float sums
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "OMP_WAIT_POLICY": "PASSIVE"}
-    alone = subprocess.run([sys.executable, "-m", "research.train_world", "--scale", "ci",
-                            "--steps", "4", "--out", str(tmp_path / "one.pt"), *flags], cwd=REPO,
-                           env=env, capture_output=True, text=True, timeout=600)
+    alone = torchrun("train_world", "--scale", "ci", "--steps", "4", "--out",
+                     str(tmp_path / "one.pt"), *flags, processes=1)
     assert alone.returncode == 0, alone.stderr[-3000:]
     one = load_checkpoint(tmp_path / "one.pt")
     assert one["config"] == stored["config"] and one["processes"] == 1
