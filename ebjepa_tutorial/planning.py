@@ -77,7 +77,9 @@ class PlannerConfig:
                  for name in ("horizon", "elites", "iterations", "execute")}
         check_fields(self, {**rules, "temperature": (is_positive, "a finite number > 0"),
                             "samples": (is_int_at_least(2), "an int >= 2",
-                                        "plans per iteration: sample 0 is the mean")})
+                                        "plans per iteration: sample 0 is the mean"),
+                            "noise": (lambda v: isinstance(v, Noise), "a planning.Noise(...)"),
+                            "habits": (lambda v: isinstance(v, Habits), "a planning.Habits(...)")})
         if self.elites > self.samples or self.execute > self.horizon:
             raise ValueError(f"need elites <= samples and execute <= horizon, got elites "
                              f"(Q={self.elites}), samples (N={self.samples}), execute "

@@ -84,6 +84,9 @@ def test_a_start_that_is_not_a_batch_of_latents_is_refused():
     (dict(horizon=8.0), "horizon must be an int >= 1"),
     (dict(iterations=0), "iterations"),
     (dict(elites=201), r"elites <= samples.*elites \(Q=201\), samples \(N=200\)"),
+    # a dict of Noise's fields would pass here and fail mid-plan with an AttributeError
+    (dict(noise={"period": 1}), r"noise must be a planning.Noise\(...\), got \{'period': 1\}"),
+    (dict(habits=(0, 0.0)), r"habits must be a planning.Habits\(...\), got \(0, 0.0\)"),
 ])
 def test_planner_settings_that_cannot_work_name_the_field_and_range(kwargs, words):
     with pytest.raises(ValueError, match=words):
