@@ -27,8 +27,8 @@ def test_record_keeps_other_figures_and_compare_prints_all_three(tmp_path):
     figs.record("world_probe_px", 1.063, "python c.py --record", "probe", 2, path)
     assert set(reference.load(path)) == {"vicreg_probe_acc", "world_probe_px"}
     line = reference.compare("vicreg_probe_acc", 0.5512, scale="class", path=path)
-    assert line.startswith("linear probe accuracy: this run 55.1% | the course's class run 55.4% "
-                           "(2 CPU threads, ")
+    assert line.startswith("linear probe accuracy: this notebook 55.1% | the course's class run "
+                           "55.4% (2 CPU threads, ")
     assert line.endswith("| the paper 90.1% (ResNet-18, 300 epochs on a GPU, its probe trained "
                          "online on augmented views)")
     assert "smoke test" in reference.compare("vicreg_probe_acc", 0.1, scale="ci", path=path)
@@ -66,7 +66,7 @@ def test_only_a_learners_ci_figure_is_called_a_smoke_test_and_only_a_benchmark_i
     assert "smoke test" in reference.compare("vicreg_probe_acc", 0.3, scale="ci", path=missing)
     assert reference.METRICS["video_ap3_lead"].benchmark is None
     line = reference.compare("video_ap3_lead", 0.1, scale="class", path=missing)
-    assert line == "AP three steps ahead, K = 4 minus K = 1: this run 0.10"
+    assert line == "AP three steps ahead, K = 4 minus K = 1: this notebook 0.10"
 
 
 def test_the_papers_figures_agree_with_the_paper_column_of_the_results_page():

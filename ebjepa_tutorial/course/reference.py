@@ -64,12 +64,12 @@ def load(path: Path = REFERENCE_FILE) -> dict:
 
 def compare(key: str, yours: float | None = None, scale: str | None = None,
             path: Path = REFERENCE_FILE) -> str:
-    """One line: this run's figure ``yours`` (if given), the course's recorded class run (where a
-    benchmark records it) and the paper's, each labelled; at ``ci``, a warning that this run's
-    figure means nothing."""
+    """One line: the notebook's figure ``yours`` (if given), the course's recorded class run
+    (where a benchmark records it) and the paper's, each labelled; at ``ci``, a warning that the
+    notebook's figure means nothing."""
     metric, ours = METRICS[key], load(path).get(key)
     fmt = metric.fmt.format
-    parts = [] if yours is None else [f"this run {fmt(yours)}"]
+    parts = [] if yours is None else [f"this notebook {fmt(yours)}"]
     if ours is not None:  # with its range where one was measured (seeds, runs, hosts)
         low, high = ours.get("spread", (None, None))
         spread = "" if low is None else f"range {fmt(low)} to {fmt(high)}, "
