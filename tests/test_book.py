@@ -143,6 +143,15 @@ def test_long_running_cells_get_their_own_time_limit(tmp_path, monkeypatch):
         bk.execute_notebook(path, tmp_path / "out.ipynb", book, "ci")
 
 
+@pytest.mark.slow
+def test_the_book_shows_no_progress_bar_frozen_at_zero(tmp_path):
+    path = tiny_notebook(tmp_path, ("from tqdm.auto import tqdm\n"
+                                    "total = sum(tqdm(range(3), desc='steps'))\nprint(total)", []))
+    bk.execute_notebook(path, tmp_path / "out.ipynb", quick_book(tmp_path), "ci")
+    outputs = json.loads((tmp_path / "out.ipynb").read_text())["cells"][0]["outputs"]
+    assert [o.get("text") for o in outputs] == [["3\n"]]  # no widget, no stderr bar
+
+
 LONG_CALLS = re.compile(r"(?<!def )train_or_load\(|probe_encoder\(|run_episodes\(|"
                         r"probe_report\(")
 

@@ -42,6 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]  # the repository
 PACKAGE_DIR = ROOT / "ebjepa_tutorial"
 DEFAULT_CONFIG = ROOT / "book.yml"
 MATHJAX_DIR = "mathjax"  # under _static/
+WIDGET = "application/vnd.jupyter.widget-view+json"  # an output that needs the widget JavaScript
 BOOK_KEYS = {"title", "subtitle", "authors", "description", "chapters", "execute"}
 EXECUTE_KEYS = {"scale", "cache", "timeout", "long_timeout"}
 LONG_TAG = "long-running"  # cells that train, probe or play episodes
@@ -193,7 +194,8 @@ def index_md(book: Book, scale: str | None) -> str:
                   "run them with `make lab`.", ""]
     else:
         parts += [f"The notebooks on these pages were executed at scale `{scale}` "
-                  f"(`EBJEPA_SCALE={scale}`).", ""]
+                  f"(`EBJEPA_SCALE={scale}`). Progress bars and interactive widgets appear "
+                  "only when you run a notebook in Jupyter.", ""]
     parts += ["```{toctree}", ":caption: Chapters", ":maxdepth: 1", "", *docs, "```", ""]
     return "\n".join(parts)
 
@@ -311,6 +313,9 @@ def execute_notebook(path: Path, target: Path, book: Book, scale: str) -> None:
         client.execute(env=env)
     except (CellExecutionError, CellTimeoutError, DeadKernelError) as error:
         raise BookError(describe_failure(path.name, running, error, scale, book)) from None
+    for cell in notebook.cells:  # the book loads no widget JavaScript: a widget would show its
+        # text fallback, saved in its first state (a progress bar at 0%)
+        cell["outputs"] = [o for o in cell.get("outputs", ()) if WIDGET not in o.get("data", {})]
     target.parent.mkdir(parents=True, exist_ok=True)
     nbformat.write(notebook, target)
 
