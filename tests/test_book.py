@@ -152,6 +152,16 @@ def test_the_book_shows_no_progress_bar_frozen_at_zero(tmp_path):
     assert [o.get("text") for o in outputs] == [["3\n"]]  # no widget, no stderr bar
 
 
+@pytest.mark.slow
+def test_the_book_draws_figures_whatever_backend_the_shell_sets(tmp_path, monkeypatch):
+    monkeypatch.setenv("MPLBACKEND", "agg")  # as `make test` sets it
+    path = tiny_notebook(tmp_path, ("import matplotlib.pyplot as plt\nplt.plot([0, 1])\n"
+                                    "plt.show()", []))
+    bk.execute_notebook(path, tmp_path / "out.ipynb", quick_book(tmp_path), "ci")
+    outputs = json.loads((tmp_path / "out.ipynb").read_text())["cells"][0]["outputs"]
+    assert any("image/png" in o.get("data", {}) for o in outputs)
+
+
 LONG_CALLS = re.compile(r"(?<!def )train_or_load\(|probe_encoder\(|run_episodes\(|"
                         r"probe_report\(")
 
@@ -175,6 +185,16 @@ def test_a_cached_run_is_reused_only_while_what_it_shows_is_unchanged(tmp_path, 
     assert key(markdown="Other prose.") != first  # the cached copy holds the prose too
     reference.write_text('{"a": 1}')  # a new recorded figure, printed beside the learner's
     assert key() != first
+
+
+def test_cached_outputs_expire_when_the_runner_changes(monkeypatch):
+    before = bk.package_fingerprint()
+
+    def execute_notebook(path, target, book, scale):  # a runner that keeps other outputs
+        raise AssertionError("not called")
+
+    monkeypatch.setattr(bk, "execute_notebook", execute_notebook)
+    assert bk.package_fingerprint() != before
 
 
 def test_a_link_to_a_file_the_book_does_not_hold_names_the_file():

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import inspect
 import json
 import os
 import re
@@ -121,8 +122,9 @@ def resolve_scale(book: Book, scale: str | None = None, environ=None) -> str:
 
 
 def package_fingerprint() -> str:
-    """A short hash of the package's Python sources, which notebooks run."""
-    digest = hashlib.sha256()
+    """A short hash of the package's Python sources, which notebooks run, and of the runner
+    (:func:`execute_notebook`), which sets what their outputs hold."""
+    digest = hashlib.sha256(inspect.getsource(execute_notebook).encode())
     for file in sorted(PACKAGE_DIR.rglob("*.py")):
         digest.update(file.relative_to(PACKAGE_DIR).as_posix().encode())
         digest.update(file.read_bytes())
@@ -307,8 +309,11 @@ def execute_notebook(path: Path, target: Path, book: Book, scale: str) -> None:
                             on_cell_start=note_cell)
     # OpenMP threads that wait sleep instead of spinning: on cores shared with other jobs,
     # spinning threads of two torch processes slowed each other several-fold (RESULTS.md)
+    # MPLBACKEND: the inline backend, as in Jupyter; an inherited "agg" (set for the tests)
+    # would draw every figure off the page
     env = dict(os.environ, EBJEPA_SCALE=scale, PYDEVD_DISABLE_FILE_VALIDATION="1",
-               OMP_WAIT_POLICY=os.environ.get("OMP_WAIT_POLICY", "PASSIVE"))
+               OMP_WAIT_POLICY=os.environ.get("OMP_WAIT_POLICY", "PASSIVE"),
+               MPLBACKEND="module://matplotlib_inline.backend_inline")
     try:
         client.execute(env=env)
     except (CellExecutionError, CellTimeoutError, DeadKernelError) as error:
