@@ -574,12 +574,13 @@ def test_load_or_train_saves_on_rank_0_and_loads_on_every_rank(tmp_path):
 
 def torchrun(command: str, *args: str, processes: int = 2,
              **env: str) -> subprocess.CompletedProcess:
-    """``python -m research.<command> args`` on two processes under torchrun (``processes=1``:
-    a plain ``python -m``), each on one thread."""
+    """``python -m research.<command> args`` on ``processes`` processes under torchrun (1: a
+    plain ``python -m``), each on one thread."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OMP_WAIT_POLICY": "PASSIVE", **env}
     launcher = [str(Path(sys.executable).with_name("torchrun")), "--nnodes=1",
-                "--nproc_per_node=2", "--master_addr=127.0.0.1", f"--master_port={free_port()}"]
-    line = [*(launcher if processes == 2 else [sys.executable]), "-m", f"research.{command}",
+                f"--nproc_per_node={processes}", "--master_addr=127.0.0.1",
+                f"--master_port={free_port()}"]
+    line = [*(launcher if processes > 1 else [sys.executable]), "-m", f"research.{command}",
             *args]
     return subprocess.run(line, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
 
