@@ -318,9 +318,10 @@ def execute_notebook(path: Path, target: Path, book: Book, scale: str) -> None:
         client.execute(env=env)
     except (CellExecutionError, CellTimeoutError, DeadKernelError) as error:
         raise BookError(describe_failure(path.name, running, error, scale, book)) from None
-    for cell in notebook.cells:  # the book loads no widget JavaScript: a widget would show its
-        # text fallback, saved in its first state (a progress bar at 0%)
-        cell["outputs"] = [o for o in cell.get("outputs", ()) if WIDGET not in o.get("data", {})]
+    # the book loads no widget JavaScript: a widget would show its text fallback, saved in its
+    # first state (a progress bar at 0%); only code cells have outputs
+    for cell in (c for c in notebook.cells if c.cell_type == "code"):
+        cell.outputs = [o for o in cell.outputs if WIDGET not in o.get("data", {})]
     target.parent.mkdir(parents=True, exist_ok=True)
     nbformat.write(notebook, target)
 
