@@ -199,6 +199,17 @@ def _parallel_along_the_batch(predictor, z, context=2, steps=4, detach_later=Fal
     return _parallel(predictor, z, context, steps, detach_later, axis=0)
 
 
+def _parallel_unflattened(predictor, z, context=2, steps=4, detach_later=False):
+    """Windows stacked as (B, context, T - context, C, H, W) and never flattened: the toy
+    'last latent' predictors would pick the right frames, the course's network would crash."""
+    errors, sequence, n = [], z, z.shape[1] - context
+    for _ in range(steps):
+        predictions = predictor(torch.stack([sequence[:, j:j + n] for j in range(context)], 1))
+        errors.append(F.mse_loss(predictions, z[:, context:]))
+        sequence = torch.cat([z[:, :context], predictions], dim=1)
+    return torch.stack(errors).mean()
+
+
 def _parallel_going_on_detached(predictor, z, context=2, steps=4, detach_later=False):
     return _parallel(predictor, z, context, steps, detach_later, go_on=True)
 
@@ -322,6 +333,8 @@ def _slab_crossing_unordered(x0, x1, x_lo, x_hi):
      r"too large by a factor of K = 3 on .*a sum over the K steps where their mean belongs"),
     (exercises.check_parallel_rollout_loss, _parallel_along_the_batch,
      "unrolled along the batch axis: time is axis 1"),
+    (exercises.check_parallel_rollout_loss, _parallel_unflattened,
+     r"takes windows \(N, context, C, S, S\), got \(4, 2, 7, 5, 4, 4\).*on one axis"),
     (exercises.check_parallel_rollout_loss, _parallel_every_step_to_the_encoder,
      r"not the right gradient with respect to the other latents.*steps 2\.\.K still reach "
      "the encoder"),

@@ -19,13 +19,21 @@ _PREDICTORS = {
 }
 
 
+def _toy(window: torch.Tensor, kind: str, weight: torch.Tensor) -> torch.Tensor:
+    """The toy predictor ``kind`` on ``window``, refusing another rank as the course's does."""
+    if window.dim() != 5:  # a toy would broadcast an unflattened batch and hide the slip
+        raise ValueError(f"the predictor takes windows (N, context, C, S, S), got "
+                         f"{tuple(window.shape)}: put every window of every clip on one axis")
+    return _PREDICTORS[kind](window, weight)
+
+
 def _call(loss_fn: Callable) -> Callable:
     """``loss_fn`` on a case of :func:`_cases`, called positionally as the training step does; a
     ``z`` it changes in place shows as a change of ``z`` (the case's latents but the last)."""
     def run(kind, weight, z, z_last, context, steps, detach_later):
         whole = torch.cat([z, z_last[:, None]], dim=1)
         given = whole.detach().clone()
-        loss = loss_fn(partial(_PREDICTORS[kind], weight=weight), whole, context, steps,
+        loss = loss_fn(partial(_toy, kind=kind, weight=weight), whole, context, steps,
                        detach_later)
         if not torch.equal(whole.detach(), given):  # the step would project what it overwrote
             with torch.no_grad():
