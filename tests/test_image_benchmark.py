@@ -86,12 +86,37 @@ def test_split_times_float32_against_bf16_and_records_the_median_ratio(monkeypat
 def test_the_untrained_encoders_figure_is_recorded_as_untrained(monkeypatch):
     """The random-init probe is stored with a protocol of its own: an encoder at its initial
     weights, not the trained run's "1600 steps ... trained on 16-px views"."""
-    from types import SimpleNamespace
-
     from research.benchmarks import image_jepa
+
+    recorded = _fake_run(monkeypatch, image_jepa, "bf16 autocast")
+    image_jepa.main()
+    assert recorded["vicreg_probe_acc"].startswith("1600 steps in ")
+    assert "trained on 16-px views" in recorded["vicreg_probe_acc"]
+    untrained = recorded["vicreg_random_init_probe_acc"]
+    assert untrained.startswith("no training: the class encoder at its initial weights")
+    assert "steps" not in untrained and "trained on" not in untrained
+
+
+def test_a_cpu_without_bf16_records_its_float32_minutes_and_keeps_the_bf16_figures(monkeypatch):
+    """The pages state the class figures of bf16 runs: a float32 run stores its own minutes
+    (and its accuracy in their protocol) under a key of its own, and nothing else."""
+    from research.benchmarks import image_jepa
+
+    recorded = _fake_run(monkeypatch, image_jepa, "float32")
+    image_jepa.main()
+    assert list(recorded) == ["vicreg_float32_train_min"]
+    assert recorded["vicreg_float32_train_min"].startswith("1600 steps in float32 (this CPU")
+    assert "50.00% (kNN 40.00%)" in recorded["vicreg_float32_train_min"]
+
+
+def _fake_run(monkeypatch, image_jepa, precision: str) -> dict:
+    """``image_jepa.main`` with ``--record`` made instant: no data, training or probe (scores
+    0.5 and 0.4), networks in ``precision``; returns the dict its figures' protocols go to."""
+    from types import SimpleNamespace
 
     monkeypatch.setattr(sys, "argv", ["image_jepa", "--record"])
     monkeypatch.setattr(image_jepa.torch, "set_num_threads", lambda n: None)  # this worker's
+    monkeypatch.setattr(image_jepa, "precision_name", lambda device, cpu=False: precision)
     monkeypatch.setattr(image_jepa, "load_cifar10", lambda split: (None, None))
     monkeypatch.setattr(image_jepa, "random_subset", lambda images, labels, n: (images, labels))
     monkeypatch.setattr(image_jepa, "probe_encoder",
@@ -101,9 +126,4 @@ def test_the_untrained_encoders_figure_is_recorded_as_untrained(monkeypatch):
     recorded = {}
     monkeypatch.setattr(image_jepa.figures, "record",
                         lambda key, value, **where: recorded.update({key: where["protocol"]}))
-    image_jepa.main()
-    assert recorded["vicreg_probe_acc"].startswith("1600 steps in ")
-    assert "trained on 16-px views" in recorded["vicreg_probe_acc"]
-    untrained = recorded["vicreg_random_init_probe_acc"]
-    assert untrained.startswith("no training: the class encoder at its initial weights")
-    assert "steps" not in untrained and "trained on" not in untrained
+    return recorded

@@ -28,7 +28,8 @@ FORMATS = {key: metric.fmt for key, metric in METRICS.items()} | {
     "planning_cpu_s_shipped": "{:.1f} s", "video_train_min": "{:.1f} min",
     "world_train_min": "{:.1f} min", "vicreg_shipped_probe_acc": "{:.1%}",
     "sigreg_shipped_probe_acc": "{:.1%}", "vicreg_train_min": "{:.1f} min",
-    "sigreg_train_min": "{:.1f} min", "sweep_sigreg_tenfold_points": "{:.0f} points",
+    "sigreg_train_min": "{:.1f} min", "vicreg_float32_train_min": "{:.0f} min",
+    "sigreg_float32_train_min": "{:.0f} min", "sweep_sigreg_tenfold_points": "{:.0f} points",
     "sweep_vicreg_tenfold_points": "{:.0f} points",
     "image_float32_step_ratio": "{:.1f} times", "world_probe_baseline_px": "{:.1f} px",
 } | {f"notebook_{nb:02d}_{scale}": "{:.0f} s" for nb in range(8) for scale in ("ci", "class")}

@@ -166,7 +166,7 @@ _IMAGE = {  # chapter 01's run at each scale, and chapter 02's changes to it
     "ci": (ImageJEPAConfig(widths=(8, 8, 16, 16), blocks_per_stage=1, projector=(64, 64),
                            batch_size=32, steps=15, warmup_steps=3, eval_image_size=16),
            dict(loss=SIGReg(), projector=(64, 16))),  # narrower than VICReg's, as at class
-    # about 10 minutes on 2 cores with bf16 instructions, 13-17 without
+    # about 10 minutes on 2 cores with bf16 instructions, about 30 in float32 on AVX2 only
     "class": (ImageJEPAConfig(widths=(32, 64, 128, 256), blocks_per_stage=1, steps=1600,
                               warmup_steps=160),
               dict(loss=SIGReg(0.05, slices=1024), projector=(1024, 256))),

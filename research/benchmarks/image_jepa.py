@@ -11,7 +11,9 @@ the JPEG copy where ``EBJEPA_DATA`` points at it). The random-init encoder is
 scored the same way for comparison. Last line:
 ``images_per_s=... minutes=... probe_acc=... knn_acc=...``. ``--record`` (class
 scale, no overrides) stores the probe accuracies in ``checkpoints/reference.json``,
-which notebooks 01 and 02 print beside the learner's. ``--split`` prints where
+which notebooks 01 and 02 print beside the learner's; on a CPU without bf16 it
+stores only the float32 run's minutes (``{loss}_float32_train_min``), leaving
+the bf16 figures as they are. ``--split`` prints where
 one training step's time goes (augmentation, forward, loss, backward,
 optimiser) and, on a CPU with bf16, how much longer the step takes in float32
 (``--split --record``, VICReg's step only, stores that ratio), and stops.
@@ -162,6 +164,13 @@ def main() -> None:
     if args.record and args.loss != "invariance":
         where = dict(command=command_line(__spec__.name), threads=args.threads,
                      protocol=f"{config.steps} steps in {precision}; {protocol(config)}")
+        if precision == "float32":  # the pages' class figures are bf16 runs: this CPU's own
+            return figures.record(f"{args.loss}_float32_train_min", seconds / 60, **where | dict(
+                protocol=f"{config.steps} steps in float32 (this CPU has no bf16), training "
+                f"alone, {args.threads} threads of an idle {cpu_name()} "
+                f"({torch.backends.cpu.get_cpu_capability()} kernels), torch "
+                f"{torch.__version__.split('+')[0]}; that run's {protocol(config)}: "
+                f"{trained['probe_acc']:.2%} (kNN {trained['knn_acc']:.2%})"))
         figures.record(f"{args.loss}_probe_acc", trained["probe_acc"], **where)
         figures.record(f"{args.loss}_random_init_probe_acc", random_init["probe_acc"],
                        **where | dict(protocol="no training: the class encoder at its initial "
